@@ -1,0 +1,74 @@
+//! The runtime's error type.
+
+/// Errors returned by the runtime and by implementors of its traits.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    // ---- configuration ----
+    /// A configuration value is invalid; the message names the field and the limit.
+    #[error("invalid runtime configuration: {0}")]
+    Config(String),
+    /// A schedule error bubbled up from `pir2-schedule`.
+    #[error(transparent)]
+    Schedule(#[from] pir2_schedule::Error),
+
+    // ---- shapes ----
+    /// A tensor or slice had the wrong length/shape.
+    #[error("shape mismatch for `{what}`: expected {expected}, got {got}")]
+    Shape {
+        /// What was being checked.
+        what: String,
+        /// The expected shape, printed.
+        expected: String,
+        /// The shape received, printed.
+        got: String,
+    },
+
+    // ---- model ----
+    /// The velocity model failed.
+    #[error("velocity model failed: {0}")]
+    Model(String),
+    /// A capability the backend does not provide.
+    #[error("`{capability}` is not supported by the {backend} backend")]
+    Unsupported {
+        /// The capability requested (e.g. "training").
+        capability: &'static str,
+        /// The backend's name.
+        backend: &'static str,
+    },
+    /// The model produced a non-finite value.
+    #[error("velocity model produced a non-finite value at {index}")]
+    NonFinite {
+        /// Flat index of the first non-finite element.
+        index: usize,
+    },
+
+    // ---- I/O ----
+    /// A source, encoder or actuator failed (robot, camera, transport).
+    #[error("{device}: {message}")]
+    Io {
+        /// Which device or channel.
+        device: String,
+        /// What went wrong.
+        message: String,
+    },
+    /// A worker thread stopped unexpectedly.
+    #[error("worker `{0}` stopped")]
+    WorkerStopped(&'static str),
+    /// Safety stop: the runtime stopped the robot.
+    #[error("safety stop: {0}")]
+    SafetyStop(String),
+}
+
+/// Result alias for the runtime.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    /// Convenience constructor for [`Error::Shape`].
+    pub fn shape(what: impl Into<String>, expected: impl std::fmt::Debug, got: impl std::fmt::Debug) -> Self {
+        Error::Shape { what: what.into(), expected: format!("{expected:?}"), got: format!("{got:?}") }
+    }
+    /// Convenience constructor for [`Error::Io`].
+    pub fn io(device: impl Into<String>, message: impl std::fmt::Display) -> Self {
+        Error::Io { device: device.into(), message: message.to_string() }
+    }
+}

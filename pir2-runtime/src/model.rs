@@ -1,0 +1,103 @@
+//! The velocity-model trait every backend implements.
+
+use crate::error::{Error, Result};
+
+/// The slow-channel input of a model call.
+#[derive(Debug, Clone, Copy)]
+pub enum SlowInput<'a> {
+    /// The model takes no slow input.
+    None,
+    /// A feature vector per sample: `data` is `[B, dim]`.
+    Vector {
+        /// Flat `[B, dim]` data.
+        data: &'a [f32],
+        /// Feature width.
+        dim: usize,
+    },
+    /// Tokens per sample: `data` is `[B, tokens, dim]`.
+    Tokens {
+        /// Flat `[B, tokens, dim]` data.
+        data: &'a [f32],
+        /// Tokens per sample.
+        tokens: usize,
+        /// Token width.
+        dim: usize,
+    },
+}
+
+/// One batched model call. All tensors are flat, row-major, `f32`.
+#[derive(Debug, Clone, Copy)]
+pub struct ModelInput<'a> {
+    /// Batch size `B`.
+    pub batch: usize,
+    /// Chunk length `H`.
+    pub horizon: usize,
+    /// Action dimension `A`.
+    pub action_dim: usize,
+    /// Noisy chunk `x`: `[B, H, A]`.
+    pub x: &'a [f32],
+    /// Per-position noise level `τ`: `[B, H]` (0 = noise, 1 = clean;
+    /// [`pir2_schedule::HIDDEN_FRONT_TAU`] marks a hidden front slot).
+    pub tau: &'a [f32],
+    /// Fast observation history: `[B, n_obs, fast_dim]`, oldest first.
+    pub obs_fast: &'a [f32],
+    /// History length `n_obs`.
+    pub n_obs: usize,
+    /// Fast observation width.
+    pub fast_dim: usize,
+    /// Slow features.
+    pub slow: SlowInput<'a>,
+    /// Age of the slow features in control ticks: `[B]`.
+    pub d_vis: &'a [u32],
+}
+
+impl ModelInput<'_> {
+    /// Check every length against the declared sizes; one error naming the tensor.
+    pub fn validate(&self) -> Result<()> {
+        let b = self.batch;
+        let chk = |what: &str, got: usize, want: usize| -> Result<()> {
+            if got != want {
+                Err(Error::shape(what, want, got))
+            } else {
+                Ok(())
+            }
+        };
+        chk("x [B,H,A]", self.x.len(), b * self.horizon * self.action_dim)?;
+        chk("tau [B,H]", self.tau.len(), b * self.horizon)?;
+        chk("obs_fast [B,n_obs,F]", self.obs_fast.len(), b * self.n_obs * self.fast_dim)?;
+        chk("d_vis [B]", self.d_vis.len(), b)?;
+        match self.slow {
+            SlowInput::None => Ok(()),
+            SlowInput::Vector { data, dim } => chk("obs_slow [B,S]", data.len(), b * dim),
+            SlowInput::Tokens { data, tokens, dim } => chk("obs_slow [B,T,D]", data.len(), b * tokens * dim),
+        }
+    }
+}
+
+/// A flow-matching velocity model `v(x, τ, obs_fast, obs_slow, d_vis)`.
+///
+/// `velocity` writes `[B, H, A]` into `out`. Backends keep their scratch memory inside
+/// `self`, hence `&mut self`. Optional capabilities are default methods that return
+/// [`Error::Unsupported`].
+pub trait VelocityModel: Send {
+    /// The backend's name (e.g. "candle", "onnxruntime", "libtorch").
+    fn backend(&self) -> &'static str;
+    /// Evaluate one NFE.
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()>;
+    /// Export to an ONNX file (optional capability).
+    fn export_onnx(&self, _path: &std::path::Path) -> Result<()> {
+        Err(Error::Unsupported { capability: "ONNX export", backend: self.backend() })
+    }
+}
+
+impl<M: VelocityModel + ?Sized> VelocityModel for Box<M> {
+    fn backend(&self) -> &'static str {
+        (**self).backend()
+    }
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        (**self).velocity(input, out)
+    }
+    fn export_onnx(&self, path: &std::path::Path) -> Result<()> {
+        (**self).export_onnx(path)
+    }
+}
