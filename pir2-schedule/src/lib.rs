@@ -9,6 +9,7 @@
 pub mod error;
 pub mod rng;
 pub mod staircase;
+pub mod train;
 
 pub use error::{Error, Result};
 pub use rng::Rng;
