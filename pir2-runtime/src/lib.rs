@@ -13,5 +13,7 @@ pub mod model;
 
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
 pub use error::{Error, Result};
-pub use io::{Actuator, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowSource, SlowFrame};
+pub use io::{
+    Actuator, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame, SlowSource,
+};
 pub use model::{ModelInput, SlowInput, VelocityModel};

@@ -76,7 +76,14 @@ pub struct StreamConfig {
 
 impl Default for StreamConfig {
     fn default() -> Self {
-        Self { horizon: 16, action_dim: 1, nfe: None, alignment: Alignment::Fresh, front: FrontMode::Visible, max_delay: 5 }
+        Self {
+            horizon: 16,
+            action_dim: 1,
+            nfe: None,
+            alignment: Alignment::Fresh,
+            front: FrontMode::Visible,
+            max_delay: 5,
+        }
     }
 }
 
@@ -118,7 +125,10 @@ impl StreamBuffer {
     /// (or [`warm_start_with`](Self::warm_start_with)) before the first call.
     pub fn new(cfg: StreamConfig, seed: u64) -> Result<Self> {
         if cfg.action_dim == 0 {
-            return Err(Error::Invalid { field: "action_dim", message: "must be at least 1".into() });
+            return Err(Error::Invalid {
+                field: "action_dim",
+                message: "must be at least 1".into(),
+            });
         }
         if cfg.alignment == Alignment::Paper && cfg.nfe.is_some() {
             return Err(Error::Invalid {
@@ -152,7 +162,9 @@ impl StreamBuffer {
     fn staircase_for(cfg: &StreamConfig, d: usize) -> Result<Staircase> {
         let n = match cfg.alignment {
             Alignment::Paper => None,
-            Alignment::Fresh => cfg.nfe.map(|n| n.min(Staircase::n_max(cfg.horizon, d)).max(1)),
+            Alignment::Fresh => cfg
+                .nfe
+                .map(|n| n.min(Staircase::n_max(cfg.horizon, d)).max(1)),
         };
         Staircase::new(cfg.horizon, d, n, cfg.alignment)
     }
@@ -167,7 +179,10 @@ impl StreamBuffer {
         if d > self.cfg.max_delay {
             return Err(Error::Invalid {
                 field: "d",
-                message: format!("delay {d} exceeds the buffer's max_delay {}", self.cfg.max_delay),
+                message: format!(
+                    "delay {d} exceeds the buffer's max_delay {}",
+                    self.cfg.max_delay
+                ),
             });
         }
         Ok(())
@@ -223,7 +238,11 @@ impl StreamBuffer {
             let t = self.tau[p];
             for j in p * a..(p + 1) * a {
                 let eps = self.rng.normal();
-                self.x[j] = if t >= 1.0 { clean[j] } else { (1.0 - t) * eps + t * clean[j] };
+                self.x[j] = if t >= 1.0 {
+                    clean[j]
+                } else {
+                    (1.0 - t) * eps + t * clean[j]
+                };
             }
         }
         self.xhat.copy_from_slice(clean);
@@ -234,13 +253,22 @@ impl StreamBuffer {
 
     /// Warm start with `k`-step standard flow from pure noise, then re-noise to `τ*,d0`.
     /// `model(x, tau, v_out)` evaluates the velocity for the whole chunk.
-    pub fn warm_start_with<E, F>(&mut self, d0: usize, k: usize, mut model: F) -> std::result::Result<(), E>
+    pub fn warm_start_with<E, F>(
+        &mut self,
+        d0: usize,
+        k: usize,
+        mut model: F,
+    ) -> std::result::Result<(), E>
     where
         F: FnMut(&[f32], &[f32], &mut [f32]) -> std::result::Result<(), E>,
         E: From<Error>,
     {
         if k == 0 {
-            return Err(Error::Invalid { field: "k", message: "warm start needs at least one step".into() }.into());
+            return Err(Error::Invalid {
+                field: "k",
+                message: "warm start needs at least one step".into(),
+            }
+            .into());
         }
         self.check_delay(d0)?;
         let mut clean = std::mem::take(&mut self.x_in);
@@ -311,24 +339,38 @@ impl StreamBuffer {
     /// Apply the Euler step with the model's velocity `v` (`[H, A]`) and update `x̂`.
     /// A non-finite velocity is rejected before anything changes.
     pub fn step(&mut self, v: &[f32]) -> Result<Emitted> {
-        let plan = self.plan.ok_or(Error::Invalid { field: "step", message: "call plan(d) before step(v)".into() })?;
+        let plan = self.plan.ok_or_else(|| Error::Invalid {
+            field: "step",
+            message: "call plan(d) before step(v)".into(),
+        })?;
         check_len("velocity", v.len(), self.x.len())?;
         if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-            return Err(Error::Invalid { field: "velocity", message: format!("non-finite value at flat index {i}") });
+            return Err(Error::Invalid {
+                field: "velocity",
+                message: format!("non-finite value at flat index {i}"),
+            });
         }
         let a = self.cfg.action_dim;
         for p in 0..self.cfg.horizon {
             let dt = self.delta[p];
             let t = self.tau_next[p];
-            let (xs, vs, hs) = (&mut self.x[p * a..(p + 1) * a], &v[p * a..(p + 1) * a], &mut self.xhat[p * a..(p + 1) * a]);
+            let (xs, vs, hs) = (
+                &mut self.x[p * a..(p + 1) * a],
+                &v[p * a..(p + 1) * a],
+                &mut self.xhat[p * a..(p + 1) * a],
+            );
             if dt > 0.0 {
                 for (x, v) in xs.iter_mut().zip(vs) {
                     *x += dt * v;
                 }
             }
+            let was_clean = self.tau[p] >= 1.0;
             self.tau[p] = t;
             if t >= 1.0 {
-                hs.copy_from_slice(xs);
+                // A slot that was already clean has x̂ = x (committed front, or clean before).
+                if !was_clean {
+                    hs.copy_from_slice(xs);
+                }
             } else {
                 for ((h, x), v) in hs.iter_mut().zip(xs.iter()).zip(vs) {
                     *h = x + (1.0 - t) * v;
@@ -337,7 +379,10 @@ impl StreamBuffer {
         }
         self.delta.fill(0.0);
         self.plan = None;
-        Ok(Emitted { start: plan.d, len: plan.e })
+        Ok(Emitted {
+            start: plan.d,
+            len: plan.e,
+        })
     }
 
     /// Slide left by `k` executed slots and append `k` fresh-noise slots (`τ = 0`).
@@ -346,7 +391,10 @@ impl StreamBuffer {
     pub fn slide(&mut self, k: usize) -> Result<()> {
         let (h, a) = (self.cfg.horizon, self.cfg.action_dim);
         if k > h {
-            return Err(Error::Invalid { field: "k", message: format!("cannot slide by {k} > H = {h}") });
+            return Err(Error::Invalid {
+                field: "k",
+                message: format!("cannot slide by {k} > H = {h}"),
+            });
         }
         if k == 0 {
             return Ok(());
@@ -373,7 +421,13 @@ mod tests {
     use super::*;
 
     fn cfg(h: usize, n: Option<usize>, max_delay: usize) -> StreamConfig {
-        StreamConfig { horizon: h, action_dim: 2, nfe: n, max_delay, ..Default::default() }
+        StreamConfig {
+            horizon: h,
+            action_dim: 2,
+            nfe: n,
+            max_delay,
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -393,15 +447,27 @@ mod tests {
 
     #[test]
     fn errors_name_the_problem() {
-        assert!(matches!(StreamBuffer::new(cfg(7, Some(2), 3), 0), Err(Error::HorizonTooShort { d: 3, .. })));
+        assert!(matches!(
+            StreamBuffer::new(cfg(7, Some(2), 3), 0),
+            Err(Error::HorizonTooShort { d: 3, .. })
+        ));
         let mut b = StreamBuffer::new(cfg(16, Some(2), 3), 0).unwrap();
-        assert!(matches!(b.step(&[0.0; 32]), Err(Error::Invalid { field: "step", .. })));
+        assert!(matches!(
+            b.step(&[0.0; 32]),
+            Err(Error::Invalid { field: "step", .. })
+        ));
         assert!(matches!(b.plan(4), Err(Error::Invalid { field: "d", .. })));
         b.plan(1).unwrap();
         let mut v = [0.0; 32];
         v[5] = f32::NAN;
         let before = b.x().to_vec();
-        assert!(matches!(b.step(&v), Err(Error::Invalid { field: "velocity", .. })));
+        assert!(matches!(
+            b.step(&v),
+            Err(Error::Invalid {
+                field: "velocity",
+                ..
+            })
+        ));
         assert_eq!(b.x(), &before[..]);
         assert!(matches!(b.step(&[0.0; 31]), Err(Error::Length { .. })));
     }

@@ -6,6 +6,7 @@
 //! Pure Rust, no heavy dependencies. See `DESIGN.md` §1 for the binding definitions.
 #![warn(missing_docs)]
 
+pub mod baselines;
 pub mod buffer;
 pub mod error;
 pub mod rng;

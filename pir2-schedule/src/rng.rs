@@ -23,7 +23,12 @@ impl Rng {
     /// A generator seeded from `seed`.
     pub fn new(seed: u64) -> Self {
         let mut st = seed;
-        let s = [splitmix64(&mut st), splitmix64(&mut st), splitmix64(&mut st), splitmix64(&mut st)];
+        let s = [
+            splitmix64(&mut st),
+            splitmix64(&mut st),
+            splitmix64(&mut st),
+            splitmix64(&mut st),
+        ];
         Self { s, spare: None }
     }
 
@@ -80,18 +85,25 @@ impl Rng {
         }
     }
 
-    /// Standard normal sample (Box–Muller; the second value is kept for the next call).
+    /// Standard normal sample (Marsaglia's polar method; the second value of each pair is
+    /// kept for the next call).
     #[inline]
     pub fn normal(&mut self) -> f32 {
         if let Some(z) = self.spare.take() {
             return z;
         }
-        let u1 = 1.0 - self.uniform_f64(); // (0, 1]
-        let u2 = self.uniform_f64();
-        let r = (-2.0 * u1.ln()).sqrt();
-        let (s, c) = (std::f64::consts::TAU * u2).sin_cos();
-        self.spare = Some((r * s) as f32);
-        (r * c) as f32
+        loop {
+            let bits = self.next_u64();
+            // Two 24-bit uniforms in (-1, 1) from one draw.
+            let u = ((bits >> 40) as f32 + 0.5) * (2.0 / (1u64 << 24) as f32) - 1.0;
+            let v = (((bits >> 16) & 0xFF_FFFF) as f32 + 0.5) * (2.0 / (1u64 << 24) as f32) - 1.0;
+            let s = u * u + v * v;
+            if s < 1.0 && s > 0.0 {
+                let f = (-2.0 * s.ln() / s).sqrt();
+                self.spare = Some(v * f);
+                return u * f;
+            }
+        }
     }
 
     /// Fill `out` with standard normal samples.

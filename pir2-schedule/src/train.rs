@@ -75,11 +75,15 @@ impl DelayDist {
     /// Validate the parameters.
     pub fn validate(&self) -> Result<()> {
         match *self {
-            DelayDist::Uniform { max } if max == 0 => {
-                Err(Error::Invalid { field: "delay.max", message: "uniform delays need max >= 1".into() })
-            }
+            DelayDist::Uniform { max } if max == 0 => Err(Error::Invalid {
+                field: "delay.max",
+                message: "uniform delays need max >= 1".into(),
+            }),
             DelayDist::Exponential { rate, .. } if !rate.is_finite() || rate < 0.0 => {
-                Err(Error::Invalid { field: "delay.rate", message: format!("must be finite and >= 0, got {rate}") })
+                Err(Error::Invalid {
+                    field: "delay.rate",
+                    message: format!("must be finite and >= 0, got {rate}"),
+                })
             }
             _ => Ok(()),
         }
@@ -186,7 +190,12 @@ pub struct Draw {
 impl Draw {
     /// A reusable draw buffer for chunk length `h`.
     pub fn new(h: usize) -> Self {
-        Self { tau: vec![0.0; h], mask: vec![1.0; h], delay: 0, hidden: false }
+        Self {
+            tau: vec![0.0; h],
+            mask: vec![1.0; h],
+            delay: 0,
+            hidden: false,
+        }
     }
 
     /// Build the model input and the regression target from ground truth `actions` and
@@ -212,7 +221,11 @@ impl Draw {
             let hide = self.hidden && p < self.delay;
             tau_in[p] = if hide { HIDDEN_FRONT_TAU } else { t };
             for j in p * a..(p + 1) * a {
-                x[j] = if hide { 0.0 } else { (1.0 - t) * eps[j] + t * actions[j] };
+                x[j] = if hide {
+                    0.0
+                } else {
+                    (1.0 - t) * eps[j] + t * actions[j]
+                };
                 target[j] = actions[j] - eps[j];
             }
         }
@@ -228,20 +241,42 @@ impl TrainSchedule {
             TrainSchedule::PiR2(c) => {
                 c.delay.validate()?;
                 if !(0.0..=1.0).contains(&c.alpha) {
-                    return Err(Error::Invalid { field: "alpha", message: format!("must be in [0,1], got {}", c.alpha) });
+                    return Err(Error::Invalid {
+                        field: "alpha",
+                        message: format!("must be in [0,1], got {}", c.alpha),
+                    });
                 }
                 if !(0.0..=1.0).contains(&c.jitter) {
-                    return Err(Error::Invalid { field: "jitter", message: format!("must be in [0,1], got {}", c.jitter) });
+                    return Err(Error::Invalid {
+                        field: "jitter",
+                        message: format!("must be in [0,1], got {}", c.jitter),
+                    });
                 }
                 if let FrontVisibility::Dropped { p } = c.front {
                     if !(0.0..=1.0).contains(&p) {
-                        return Err(Error::Invalid { field: "front.p", message: format!("must be in [0,1], got {p}") });
+                        return Err(Error::Invalid {
+                            field: "front.p",
+                            message: format!("must be in [0,1], got {p}"),
+                        });
                     }
                 }
-                let lo = if matches!(c.delay, DelayDist::Uniform { .. }) { 1 } else { 0 };
+                let lo = if matches!(c.delay, DelayDist::Uniform { .. }) {
+                    1
+                } else {
+                    0
+                };
                 for d in lo..=c.delay.max() {
                     let n = c.n.map(|n| n.min(Staircase::n_max(h, d)).max(1));
-                    Staircase::new(h, d, if c.alignment == Alignment::Paper { None } else { n }, c.alignment)?;
+                    Staircase::new(
+                        h,
+                        d,
+                        if c.alignment == Alignment::Paper {
+                            None
+                        } else {
+                            n
+                        },
+                        c.alignment,
+                    )?;
                 }
                 Ok(())
             }
@@ -250,7 +285,10 @@ impl TrainSchedule {
                 if delay.max() >= h {
                     return Err(Error::Invalid {
                         field: "delay.max",
-                        message: format!("train-time RTC needs d_max < H = {h}, got {}", delay.max()),
+                        message: format!(
+                            "train-time RTC needs d_max < H = {h}, got {}",
+                            delay.max()
+                        ),
                     });
                 }
                 Ok(())
@@ -336,11 +374,25 @@ mod tests {
 
     #[test]
     fn invalid_configs_name_the_field() {
-        let bad = TrainSchedule::PiR2(PiR2Draws { alpha: 1.5, ..Default::default() });
-        assert!(matches!(bad.validate(16), Err(Error::Invalid { field: "alpha", .. })));
-        let bad = TrainSchedule::PiR2(PiR2Draws { delay: DelayDist::Uniform { max: 6 }, ..Default::default() });
-        assert!(matches!(bad.validate(16), Err(Error::HorizonTooShort { .. })));
-        let rtc = TrainSchedule::TrainTimeRtc { delay: DelayDist::Uniform { max: 16 } };
+        let bad = TrainSchedule::PiR2(PiR2Draws {
+            alpha: 1.5,
+            ..Default::default()
+        });
+        assert!(matches!(
+            bad.validate(16),
+            Err(Error::Invalid { field: "alpha", .. })
+        ));
+        let bad = TrainSchedule::PiR2(PiR2Draws {
+            delay: DelayDist::Uniform { max: 6 },
+            ..Default::default()
+        });
+        assert!(matches!(
+            bad.validate(16),
+            Err(Error::HorizonTooShort { .. })
+        ));
+        let rtc = TrainSchedule::TrainTimeRtc {
+            delay: DelayDist::Uniform { max: 16 },
+        };
         assert!(rtc.validate(16).is_err());
     }
 }
