@@ -14,6 +14,7 @@
 //!   [`Environment`] where a call takes an injected number of ticks.
 #![warn(missing_docs)]
 
+pub mod bench;
 pub mod chunk;
 pub mod clock;
 pub mod control;
@@ -24,6 +25,8 @@ pub mod lockstep;
 pub mod metrics;
 pub mod mode;
 pub mod model;
+pub mod realtime;
+pub mod testing;
 pub mod window;
 
 pub use chunk::Chunk;

@@ -75,7 +75,7 @@ impl DelayDist {
     /// Validate the parameters.
     pub fn validate(&self) -> Result<()> {
         match *self {
-            DelayDist::Uniform { max } if max == 0 => Err(Error::Invalid {
+            DelayDist::Uniform { max: 0 } => Err(Error::Invalid {
                 field: "delay.max",
                 message: "uniform delays need max >= 1".into(),
             }),
