@@ -351,30 +351,24 @@ impl StreamBuffer {
             });
         }
         let a = self.cfg.action_dim;
-        for p in 0..self.cfg.horizon {
+        let slots = self
+            .x
+            .chunks_exact_mut(a)
+            .zip(self.xhat.chunks_exact_mut(a))
+            .zip(v.chunks_exact(a));
+        for (p, ((xs, hs), vs)) in slots.enumerate() {
             let dt = self.delta[p];
             let t = self.tau_next[p];
-            let (xs, vs, hs) = (
-                &mut self.x[p * a..(p + 1) * a],
-                &v[p * a..(p + 1) * a],
-                &mut self.xhat[p * a..(p + 1) * a],
-            );
-            if dt > 0.0 {
-                for (x, v) in xs.iter_mut().zip(vs) {
-                    *x += dt * v;
-                }
+            if dt == 0.0 && self.tau[p] >= 1.0 {
+                continue; // already clean and untouched (the front): bit-identical, x̂ = x
             }
-            let was_clean = self.tau[p] >= 1.0;
             self.tau[p] = t;
-            if t >= 1.0 {
-                // A slot that was already clean has x̂ = x (committed front, or clean before).
-                if !was_clean {
-                    hs.copy_from_slice(xs);
-                }
-            } else {
-                for ((h, x), v) in hs.iter_mut().zip(xs.iter()).zip(vs) {
-                    *h = x + (1.0 - t) * v;
-                }
+            // x += Δτ·v; x̂ = x + (1−τ)·v (exactly x for a slot that became clean).
+            let c = 1.0 - t;
+            for ((x, h), v) in xs.iter_mut().zip(hs.iter_mut()).zip(vs) {
+                let xn = *x + dt * v;
+                *x = xn;
+                *h = xn + c * v;
             }
         }
         self.delta.fill(0.0);
