@@ -118,9 +118,11 @@ impl LockstepDriver {
             )));
         }
         let period = spec.period;
-        let call_ticks = timing.call_ticks.max(1);
+        // `call_ticks = 0` simulates zero inference latency: the chunk is swapped in within
+        // the tick of its snapshot (the horizon study); `d` is still at least 1.
+        let call_ticks = timing.call_ticks;
         if timing.pin_delay {
-            head.force_delay(Some(call_ticks.min(spec.d_max.max(1))));
+            head.force_delay(Some(call_ticks.clamp(1, spec.d_max.max(1))));
         }
         let mut control = ControlState::new(ControlConfig {
             horizon: spec.horizon,
@@ -172,7 +174,7 @@ impl LockstepDriver {
             };
             if t == 0 {
                 fill_snapshot(&mut self.snap, &self.fast_hist, &self.slow_hist);
-                head.warm_start(&self.snap, call_ticks, &mut self.spare)?;
+                head.warm_start(&self.snap, call_ticks.max(1), &mut self.spare)?;
                 control.deliver(&mut self.spare);
             }
             if due == Some(t) {
@@ -193,6 +195,10 @@ impl LockstepDriver {
                 self.pending.call.latency = ticks as u64 * period;
                 head.record_latency(ticks as u64 * period);
                 due = Some(t + ticks as u64);
+                if ticks == 0 {
+                    control.deliver(&mut self.pending);
+                    due = None;
+                }
             }
             let action = control.action();
             on_tick(t, action);
