@@ -48,6 +48,9 @@
 //! change the physics, and the same seed with the same actions gives bit-identical
 //! trajectories and observations.
 
+// Per-axis physics reads best with explicit axis indices.
+#![allow(clippy::needless_range_loop)]
+
 use pir2_runtime::{EnvStep, Environment, Nanos};
 use pir2_schedule::Rng;
 use serde::{Deserialize, Serialize};
@@ -165,7 +168,7 @@ impl BallPlateConfig {
         Ok(cfg)
     }
 
-    /// Check ranges.
+    /// Check ranges (NaN is rejected everywhere).
     pub fn validate(&self) -> Result<()> {
         let bad = |field, reason: &str| {
             Err(Error::ConfigValue {
@@ -173,7 +176,9 @@ impl BallPlateConfig {
                 reason: reason.to_string(),
             })
         };
-        if !(self.control_hz > 0.0) {
+        let positive = |v: f64| v.is_finite() && v > 0.0;
+        let non_negative = |v: f64| v.is_finite() && v >= 0.0;
+        if !positive(self.control_hz) {
             return bad("control_hz", "must be > 0");
         }
         if self.substeps == 0 {
@@ -182,14 +187,23 @@ impl BallPlateConfig {
         if self.max_steps() == 0 {
             return bad("episode_s", "must last at least one control period");
         }
-        if !(self.push_rate >= 0.0) {
+        if !non_negative(self.push_rate) {
             return bad("push_rate", "must be ≥ 0");
         }
-        if !(self.push_min <= self.push_max) {
-            return bad("push_min", "must be ≤ push_max");
+        if !non_negative(self.push_min)
+            || !non_negative(self.push_max)
+            || self.push_min > self.push_max
+        {
+            return bad("push_min", "must be ≥ 0 and ≤ push_max");
         }
-        if !(self.max_target > 0.0) || !(self.bound > 0.0) || !(self.success_radius > 0.0) {
-            return bad("max_target/bound/success_radius", "must be > 0");
+        for (field, v) in [
+            ("max_target", self.max_target),
+            ("bound", self.bound),
+            ("success_radius", self.success_radius),
+        ] {
+            if !positive(v) {
+                return bad(field, "must be > 0");
+            }
         }
         for (field, v) in [
             ("noise_tilt", self.noise_tilt),
@@ -199,7 +213,7 @@ impl BallPlateConfig {
             ("init_pos", self.init_pos),
             ("init_vel", self.init_vel),
         ] {
-            if !(v >= 0.0) {
+            if !non_negative(v) {
                 return bad(field, "must be ≥ 0");
             }
         }
