@@ -705,6 +705,23 @@ impl DatasetWriter {
                 let info = read_info(root)?;
                 check_compatible(&info_path, &info, &spec)?;
                 existing = read_episode_rows(root)?;
+                // LeRobot loads every `data/*/*.parquet`: a data file that no episode row
+                // references (left by an interrupted session) would corrupt the dataset.
+                let referenced: std::collections::BTreeSet<usize> = existing
+                    .iter()
+                    .map(|r| r.data_chunk as usize * CHUNKS_SIZE + r.data_file as usize)
+                    .collect();
+                for n in file_numbers(&root.join("data"), true)? {
+                    if !referenced.contains(&n) {
+                        let (c, f) = chunk_file(n);
+                        return Err(Error::Inconsistent {
+                            path: root.join(fill_template(DATA_PATH, c, f)),
+                            reason: "data file not referenced by meta/episodes (left by an interrupted session?); \
+                                     remove it, or rewrite the dataset with WriteMode::Overwrite"
+                                .into(),
+                        });
+                    }
+                }
             }
             WriteMode::Overwrite => {
                 for sub in ["data", "meta"] {
@@ -880,9 +897,15 @@ impl DatasetWriter {
 }
 
 fn max_file_number(dir: &Path) -> Result<Option<usize>> {
-    let mut best = None;
+    Ok(file_numbers(dir, false)?.into_iter().max())
+}
+
+/// Numbers (`chunk · CHUNKS_SIZE + file`) of the `chunk-*/file-*` files under `dir`; with
+/// `parquet_only`, only finished `.parquet` files (not `.tmp` leftovers).
+fn file_numbers(dir: &Path, parquet_only: bool) -> Result<Vec<usize>> {
+    let mut out = Vec::new();
     let Ok(chunks) = fs::read_dir(dir) else {
-        return Ok(None);
+        return Ok(out);
     };
     for c in chunks {
         let c = c.map_err(|e| Error::io(dir, e))?;
@@ -899,17 +922,20 @@ fn max_file_number(dir: &Path) -> Result<Option<usize>> {
         for f in files {
             let f = f.map_err(|e| Error::io(c.path(), e))?;
             let fname = f.file_name().to_string_lossy().into_owned();
+            if parquet_only && !fname.ends_with(".parquet") {
+                continue;
+            }
             let Some(fi) = fname
                 .strip_prefix("file-")
                 .and_then(|s| s.split('.').next()?.parse::<usize>().ok())
             else {
                 continue;
             };
-            let n = ci * CHUNKS_SIZE + fi;
-            best = Some(best.map_or(n, |b: usize| b.max(n)));
+            out.push(ci * CHUNKS_SIZE + fi);
         }
     }
-    Ok(best)
+    out.sort_unstable();
+    Ok(out)
 }
 
 fn check_compatible(path: &Path, info: &Value, spec: &DatasetSpec) -> Result<()> {
@@ -1950,6 +1976,40 @@ mod tests {
         .unwrap();
         assert_eq!(summary.total_episodes, 1);
         assert!(!root.join("data/chunk-000/file-001.parquet").exists());
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn resume_refuses_orphan_data_files() {
+        let root = tmpdir("orphan");
+        let (mut env, mut ex) = setup();
+        let spec = DatasetSpec::ballplate(50);
+        collect_to_dataset(
+            &mut env,
+            &mut ex,
+            &short(1),
+            &root,
+            &spec,
+            WriteMode::New,
+            &mut |_| {},
+        )
+        .unwrap();
+        // A data file whose episodes file never got written.
+        fs::copy(
+            root.join("data/chunk-000/file-000.parquet"),
+            root.join("data/chunk-000/file-001.parquet"),
+        )
+        .unwrap();
+        let err = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap_err();
+        assert!(
+            matches!(&err, Error::Inconsistent { path, .. } if path.ends_with("data/chunk-000/file-001.parquet")),
+            "{err}"
+        );
+        fs::remove_file(root.join("data/chunk-000/file-001.parquet")).unwrap();
+        // A temporary leftover is harmless and its number is not reused.
+        fs::write(root.join("data/chunk-000/file-001.parquet.tmp"), b"partial").unwrap();
+        let w = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap();
+        assert_eq!(w.file_no, 2);
         fs::remove_dir_all(&root).unwrap();
     }
 
