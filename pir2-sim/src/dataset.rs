@@ -1204,10 +1204,19 @@ fn episodes_batch(
     let per_ep: Vec<Vec<(&'static str, FeatureStats)>> = eps
         .iter()
         .map(|l| {
-            feature_columns(std::iter::once(&l.episode), spec)
-                .into_iter()
+            let n = l.episode.len();
+            let mut cols = feature_columns(std::iter::once(&l.episode), spec);
+            // The index columns too, as LeRobot's `compute_episode_stats` covers every feature.
+            cols.push(("episode_index", vec![l.episode_index as f64; n], 1));
+            cols.push((
+                "index",
+                (0..n).map(|t| (l.from + t as i64) as f64).collect(),
+                1,
+            ));
+            cols.push(("task_index", vec![l.episode.task_index as f64; n], 1));
+            cols.into_iter()
                 .map(|(k, data, dim)| (k, FeatureStats::compute(&data, dim)))
-                .collect()
+                .collect::<Vec<_>>()
         })
         .collect();
     if let Some(first) = per_ep.first() {
@@ -1884,6 +1893,18 @@ mod tests {
             json!(["ball_x", "ball_y"])
         );
         assert_eq!(info["splits"]["train"], "0:3");
+        let eb = read_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
+        let col = eb[0]
+            .column_by_name("stats/index/max")
+            .expect("per-episode index stats");
+        let maxes = col.as_list::<i32>().value(2);
+        assert_eq!(
+            maxes.as_primitive::<Float64Type>().values().to_vec(),
+            vec![1499.0]
+        );
+        assert!(eb[0]
+            .column_by_name("stats/observation.state/q99")
+            .is_some());
         let st: Value =
             serde_json::from_str(&fs::read_to_string(root.join(STATS_PATH)).unwrap()).unwrap();
         assert_eq!(st["action"]["count"], json!([1500]));
