@@ -705,6 +705,23 @@ impl DatasetWriter {
                 let info = read_info(root)?;
                 check_compatible(&info_path, &info, &spec)?;
                 existing = read_episode_rows(root)?;
+                // LeRobot loads every `data/*/*.parquet`: a data file that no episode row
+                // references (left by an interrupted session) would corrupt the dataset.
+                let referenced: std::collections::BTreeSet<usize> = existing
+                    .iter()
+                    .map(|r| r.data_chunk as usize * CHUNKS_SIZE + r.data_file as usize)
+                    .collect();
+                for n in file_numbers(&root.join("data"), true)? {
+                    if !referenced.contains(&n) {
+                        let (c, f) = chunk_file(n);
+                        return Err(Error::Inconsistent {
+                            path: root.join(fill_template(DATA_PATH, c, f)),
+                            reason: "data file not referenced by meta/episodes (left by an interrupted session?); \
+                                     remove it, or rewrite the dataset with WriteMode::Overwrite"
+                                .into(),
+                        });
+                    }
+                }
             }
             WriteMode::Overwrite => {
                 for sub in ["data", "meta"] {
@@ -880,9 +897,15 @@ impl DatasetWriter {
 }
 
 fn max_file_number(dir: &Path) -> Result<Option<usize>> {
-    let mut best = None;
+    Ok(file_numbers(dir, false)?.into_iter().max())
+}
+
+/// Numbers (`chunk · CHUNKS_SIZE + file`) of the `chunk-*/file-*` files under `dir`; with
+/// `parquet_only`, only finished `.parquet` files (not `.tmp` leftovers).
+fn file_numbers(dir: &Path, parquet_only: bool) -> Result<Vec<usize>> {
+    let mut out = Vec::new();
     let Ok(chunks) = fs::read_dir(dir) else {
-        return Ok(None);
+        return Ok(out);
     };
     for c in chunks {
         let c = c.map_err(|e| Error::io(dir, e))?;
@@ -899,17 +922,20 @@ fn max_file_number(dir: &Path) -> Result<Option<usize>> {
         for f in files {
             let f = f.map_err(|e| Error::io(c.path(), e))?;
             let fname = f.file_name().to_string_lossy().into_owned();
+            if parquet_only && !fname.ends_with(".parquet") {
+                continue;
+            }
             let Some(fi) = fname
                 .strip_prefix("file-")
                 .and_then(|s| s.split('.').next()?.parse::<usize>().ok())
             else {
                 continue;
             };
-            let n = ci * CHUNKS_SIZE + fi;
-            best = Some(best.map_or(n, |b: usize| b.max(n)));
+            out.push(ci * CHUNKS_SIZE + fi);
         }
     }
-    Ok(best)
+    out.sort_unstable();
+    Ok(out)
 }
 
 fn check_compatible(path: &Path, info: &Value, spec: &DatasetSpec) -> Result<()> {
@@ -1178,10 +1204,19 @@ fn episodes_batch(
     let per_ep: Vec<Vec<(&'static str, FeatureStats)>> = eps
         .iter()
         .map(|l| {
-            feature_columns(std::iter::once(&l.episode), spec)
-                .into_iter()
+            let n = l.episode.len();
+            let mut cols = feature_columns(std::iter::once(&l.episode), spec);
+            // The index columns too, as LeRobot's `compute_episode_stats` covers every feature.
+            cols.push(("episode_index", vec![l.episode_index as f64; n], 1));
+            cols.push((
+                "index",
+                (0..n).map(|t| (l.from + t as i64) as f64).collect(),
+                1,
+            ));
+            cols.push(("task_index", vec![l.episode.task_index as f64; n], 1));
+            cols.into_iter()
                 .map(|(k, data, dim)| (k, FeatureStats::compute(&data, dim)))
-                .collect()
+                .collect::<Vec<_>>()
         })
         .collect();
     if let Some(first) = per_ep.first() {
@@ -1858,6 +1893,18 @@ mod tests {
             json!(["ball_x", "ball_y"])
         );
         assert_eq!(info["splits"]["train"], "0:3");
+        let eb = read_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
+        let col = eb[0]
+            .column_by_name("stats/index/max")
+            .expect("per-episode index stats");
+        let maxes = col.as_list::<i32>().value(2);
+        assert_eq!(
+            maxes.as_primitive::<Float64Type>().values().to_vec(),
+            vec![1499.0]
+        );
+        assert!(eb[0]
+            .column_by_name("stats/observation.state/q99")
+            .is_some());
         let st: Value =
             serde_json::from_str(&fs::read_to_string(root.join(STATS_PATH)).unwrap()).unwrap();
         assert_eq!(st["action"]["count"], json!([1500]));
@@ -1950,6 +1997,40 @@ mod tests {
         .unwrap();
         assert_eq!(summary.total_episodes, 1);
         assert!(!root.join("data/chunk-000/file-001.parquet").exists());
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn resume_refuses_orphan_data_files() {
+        let root = tmpdir("orphan");
+        let (mut env, mut ex) = setup();
+        let spec = DatasetSpec::ballplate(50);
+        collect_to_dataset(
+            &mut env,
+            &mut ex,
+            &short(1),
+            &root,
+            &spec,
+            WriteMode::New,
+            &mut |_| {},
+        )
+        .unwrap();
+        // A data file whose episodes file never got written.
+        fs::copy(
+            root.join("data/chunk-000/file-000.parquet"),
+            root.join("data/chunk-000/file-001.parquet"),
+        )
+        .unwrap();
+        let err = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap_err();
+        assert!(
+            matches!(&err, Error::Inconsistent { path, .. } if path.ends_with("data/chunk-000/file-001.parquet")),
+            "{err}"
+        );
+        fs::remove_file(root.join("data/chunk-000/file-001.parquet")).unwrap();
+        // A temporary leftover is harmless and its number is not reused.
+        fs::write(root.join("data/chunk-000/file-001.parquet.tmp"), b"partial").unwrap();
+        let w = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap();
+        assert_eq!(w.file_no, 2);
         fs::remove_dir_all(&root).unwrap();
     }
 

@@ -5,7 +5,14 @@
 use pir2_sim::expert::{evaluate_expert, LqrConfig, LqrExpert};
 use pir2_sim::{BallPlate, BallPlateConfig};
 
-fn main() -> pir2_sim::Result<()> {
+fn main() {
+    if let Err(e) = run() {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+fn run() -> pir2_sim::Result<()> {
     let mut args = std::env::args().skip(1);
     let episodes: usize = args.next().and_then(|a| a.parse().ok()).unwrap_or(200);
     let seed0: u64 = args.next().and_then(|a| a.parse().ok()).unwrap_or(0);
