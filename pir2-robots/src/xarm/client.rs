@@ -95,7 +95,7 @@ impl XArmClient {
     /// warning/error bits are returned in [`Reply::status`] for the caller to act on.
     pub fn request(&mut self, register: u8, params: &[u8]) -> Result<Reply> {
         let tid = self.tid;
-        self.tid = self.tid % u16::MAX + 1;
+        self.tid = proto::next_tid(self.tid);
         self.scratch.clear();
         Command {
             tid,

@@ -133,6 +133,11 @@ pub const HEADER_LEN: usize = 6;
 /// Largest length field we accept (the biggest SDK request is a few hundred bytes).
 pub const MAX_LENGTH_FIELD: u16 = 4096;
 
+/// The transaction id after `tid`: 1, 2, ..., 65535, then 1 again (0 is never used).
+pub fn next_tid(tid: u16) -> u16 {
+    tid % u16::MAX + 1
+}
+
 /// One command frame.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Command {
