@@ -23,6 +23,7 @@
 //! [`Error::SafetyStop`] naming the reason, until [`SafetyLayer::reset`]. Every intervention is
 //! counted in [`SafetyStats`].
 
+use std::f32::consts::{PI, TAU};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::thread::JoinHandle;
@@ -53,10 +54,11 @@ pub struct SafetyConfig {
 }
 
 /// xArm6 lower joint limits, rad: the xArm6 URDF ranges of UFACTORY's ROS description
-/// (J2 [-2.059, 2.0944], J3 [-3.927, 0.19198], J5 [-1.69297, π], J1/J4/J6 ±2π), rounded inward.
-pub const XARM6_LOWER: [f32; 6] = [-6.283, -2.059, -3.927, -6.283, -1.692, -6.283];
+/// (J2 [-2.059, 2.0944], J3 [-3.927, 0.19198], J5 [-1.69297, π], J1/J4/J6 ±2π), the
+/// fractional ones rounded inward.
+pub const XARM6_LOWER: [f32; 6] = [-TAU, -2.059, -3.927, -TAU, -1.692, -TAU];
 /// xArm6 upper joint limits, rad.
-pub const XARM6_UPPER: [f32; 6] = [6.283, 2.094, 0.191, 6.283, 3.141, 6.283];
+pub const XARM6_UPPER: [f32; 6] = [TAU, 2.094, 0.191, TAU, PI, TAU];
 /// Conservative XHand joint envelope, rad. Placeholder, not vendor limits: set per hand.
 pub const XHAND_LOWER: f32 = -0.5;
 /// Conservative XHand joint envelope, rad.
@@ -96,20 +98,20 @@ impl SafetyConfig {
         Error::check_dim("safety upper limits", dim, self.upper.len())?;
         Error::check_dim("safety max_step", dim, self.max_step.len())?;
         for i in 0..dim {
-            if !(self.lower[i] <= self.upper[i]) {
+            if self.lower[i].is_nan() || self.upper[i].is_nan() || self.lower[i] > self.upper[i] {
                 return Err(Error::Config(format!(
                     "safety joint {i}: lower {} > upper {}",
                     self.lower[i], self.upper[i]
                 )));
             }
-            if !(self.max_step[i] >= 0.0) {
+            if self.max_step[i].is_nan() || self.max_step[i] < 0.0 {
                 return Err(Error::Config(format!(
                     "safety joint {i}: max_step {} must be >= 0",
                     self.max_step[i]
                 )));
             }
         }
-        if !(self.torque_limit > 0.0) {
+        if self.torque_limit.is_nan() || self.torque_limit <= 0.0 {
             return Err(Error::Config(format!(
                 "safety torque_limit {} must be > 0",
                 self.torque_limit

@@ -6,7 +6,7 @@
 //! `binascii.crc_hqx(frame, 0)` (CRC-16/XMODEM).
 
 use pir2_robots::xarm::proto::{
-    self, next_tid, reg, Command, FrameBuf, Report, ReportBuf, ReportKind, Reply,
+    self, next_tid, reg, Command, FrameBuf, Reply, Report, ReportBuf, ReportKind,
 };
 use pir2_robots::xhand::consts;
 use pir2_robots::xhand::proto::{
@@ -17,7 +17,14 @@ use pir2_robots::Error;
 use proptest::prelude::*;
 
 fn cmd(tid: u16, register: u8, params: &[u8]) -> Vec<u8> {
-    Command { tid, proto: 2, register, params: params.to_vec() }.encode().unwrap()
+    Command {
+        tid,
+        proto: 2,
+        register,
+        params: params.to_vec(),
+    }
+    .encode()
+    .unwrap()
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -33,21 +40,49 @@ fn xarm_motion_enable_frame() {
 
 #[test]
 fn xarm_set_mode_set_state_get_state_clean_err_frames() {
-    assert_eq!(cmd(2, reg::SET_MODE, &[1]), [0x00, 0x02, 0x00, 0x02, 0x00, 0x02, 0x13, 0x01]);
-    assert_eq!(cmd(3, reg::SET_STATE, &[4]), [0x00, 0x03, 0x00, 0x02, 0x00, 0x02, 0x0c, 0x04]);
-    assert_eq!(cmd(7, reg::GET_STATE, &[]), [0x00, 0x07, 0x00, 0x02, 0x00, 0x01, 0x0d]);
-    assert_eq!(cmd(10, reg::CLEAN_ERR, &[]), [0x00, 0x0a, 0x00, 0x02, 0x00, 0x01, 0x10]);
-    assert_eq!(cmd(11, reg::GET_ERROR, &[]), [0x00, 0x0b, 0x00, 0x02, 0x00, 0x01, 0x0f]);
-    assert_eq!(cmd(12, reg::GET_VERSION, &[]), [0x00, 0x0c, 0x00, 0x02, 0x00, 0x01, 0x01]);
-    assert_eq!(cmd(13, reg::GET_JOINT_POS, &[]), [0x00, 0x0d, 0x00, 0x02, 0x00, 0x01, 0x2a]);
-    assert_eq!(cmd(14, reg::GET_JOINT_TAU, &[]), [0x00, 0x0e, 0x00, 0x02, 0x00, 0x01, 0x37]);
+    assert_eq!(
+        cmd(2, reg::SET_MODE, &[1]),
+        [0x00, 0x02, 0x00, 0x02, 0x00, 0x02, 0x13, 0x01]
+    );
+    assert_eq!(
+        cmd(3, reg::SET_STATE, &[4]),
+        [0x00, 0x03, 0x00, 0x02, 0x00, 0x02, 0x0c, 0x04]
+    );
+    assert_eq!(
+        cmd(7, reg::GET_STATE, &[]),
+        [0x00, 0x07, 0x00, 0x02, 0x00, 0x01, 0x0d]
+    );
+    assert_eq!(
+        cmd(10, reg::CLEAN_ERR, &[]),
+        [0x00, 0x0a, 0x00, 0x02, 0x00, 0x01, 0x10]
+    );
+    assert_eq!(
+        cmd(11, reg::GET_ERROR, &[]),
+        [0x00, 0x0b, 0x00, 0x02, 0x00, 0x01, 0x0f]
+    );
+    assert_eq!(
+        cmd(12, reg::GET_VERSION, &[]),
+        [0x00, 0x0c, 0x00, 0x02, 0x00, 0x01, 0x01]
+    );
+    assert_eq!(
+        cmd(13, reg::GET_JOINT_POS, &[]),
+        [0x00, 0x0d, 0x00, 0x02, 0x00, 0x01, 0x2a]
+    );
+    assert_eq!(
+        cmd(14, reg::GET_JOINT_TAU, &[]),
+        [0x00, 0x0e, 0x00, 0x02, 0x00, 0x01, 0x37]
+    );
     // Transaction ids are big-endian.
     assert_eq!(&cmd(0x1234, reg::GET_STATE, &[])[..2], &[0x12, 0x34]);
 }
 
 #[test]
 fn xarm_servoj_frame_is_ten_little_endian_fp32() {
-    let f = cmd(1, reg::MOVE_SERVOJ, &proto::servoj_params(&[0.5, -2.0, 0.0, 0.0, 0.0, 1.0]));
+    let f = cmd(
+        1,
+        reg::MOVE_SERVOJ,
+        &proto::servoj_params(&[0.5, -2.0, 0.0, 0.0, 0.0, 1.0]),
+    );
     let mut want = vec![0x00, 0x01, 0x00, 0x02, 0x00, 0x29, 0x1d];
     want.extend([0x00, 0x00, 0x00, 0x3f]); // 0.5
     want.extend([0x00, 0x00, 0x00, 0xc0]); // -2.0
@@ -66,7 +101,10 @@ fn xarm_servoj_frame_is_ten_little_endian_fp32() {
 fn xarm_replies_decode_from_hand_written_bytes() {
     // GET_STATE reply: tid 7, len 3, reg 13, status 0, state 2.
     let r = Reply::decode(&[0x00, 0x07, 0x00, 0x02, 0x00, 0x03, 0x0d, 0x00, 0x02]).unwrap();
-    assert_eq!((r.tid, r.proto, r.register, r.status, r.data.as_slice()), (7, 2, 13, 0, &[2u8][..]));
+    assert_eq!(
+        (r.tid, r.proto, r.register, r.status, r.data.as_slice()),
+        (7, 2, 13, 0, &[2u8][..])
+    );
     // GET_ERROR reply with the error bit: error 31, warning 0.
     let r = Reply::decode(&[0x00, 0x09, 0x00, 0x02, 0x00, 0x04, 0x0f, 0x40, 0x1f, 0x00]).unwrap();
     assert_eq!(r.status, proto::status::ERROR);
@@ -81,12 +119,33 @@ fn xarm_replies_decode_from_hand_written_bytes() {
     assert_eq!(q, [1.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
     assert_eq!(r.encode().unwrap(), b);
     // A servo-j acknowledgement: no data.
-    let ack = Reply { tid: 300, proto: 2, register: 29, status: 0, data: vec![] };
-    assert_eq!(ack.encode().unwrap(), [0x01, 0x2c, 0x00, 0x02, 0x00, 0x02, 0x1d, 0x00]);
+    let ack = Reply {
+        tid: 300,
+        proto: 2,
+        register: 29,
+        status: 0,
+        data: vec![],
+    };
+    assert_eq!(
+        ack.encode().unwrap(),
+        [0x01, 0x2c, 0x00, 0x02, 0x00, 0x02, 0x1d, 0x00]
+    );
     // GET_JOINT_TAU and GET_VERSION replies round-trip with their lengths.
-    let tau = Reply { tid: 1, proto: 2, register: reg::GET_JOINT_TAU, status: 0, data: proto::fp32s_le(&[2.5; 7]) };
+    let tau = Reply {
+        tid: 1,
+        proto: 2,
+        register: reg::GET_JOINT_TAU,
+        status: 0,
+        data: proto::fp32s_le(&[2.5; 7]),
+    };
     assert_eq!(&tau.encode().unwrap()[4..6], &[0x00, 0x1e]);
-    let ver = Reply { tid: 1, proto: 2, register: reg::GET_VERSION, status: 0, data: vec![b'v'; 40] };
+    let ver = Reply {
+        tid: 1,
+        proto: 2,
+        register: reg::GET_VERSION,
+        status: 0,
+        data: vec![b'v'; 40],
+    };
     assert_eq!(&ver.encode().unwrap()[4..8], &[0x00, 0x2a, 0x01, 0x00]);
     assert_eq!(Reply::decode(&ver.encode().unwrap()).unwrap(), ver);
 }
@@ -94,7 +153,10 @@ fn xarm_replies_decode_from_hand_written_bytes() {
 #[test]
 fn xarm_frame_length_mismatch_is_named() {
     let err = Reply::decode(&[0x00, 0x07, 0x00, 0x02, 0x00, 0x05, 0x0d, 0x00, 0x02]).unwrap_err();
-    assert!(matches!(err, Error::XArmFrame { ref reason } if reason.contains("length field 5")), "{err}");
+    assert!(
+        matches!(err, Error::XArmFrame { ref reason } if reason.contains("length field 5")),
+        "{err}"
+    );
 }
 
 #[test]
@@ -187,14 +249,23 @@ fn xarm_report_buffer_locks_the_size_and_rejects_a_change() {
     other[3] = 0x58;
     other.push(0);
     rb.push(&other);
-    assert!(matches!(rb.next_report(), Err(Error::XArmReportSize { expected: 87, got: 88 })));
+    assert!(matches!(
+        rb.next_report(),
+        Err(Error::XArmReportSize {
+            expected: 87,
+            got: 88
+        })
+    ));
 }
 
 #[test]
 fn xarm_report_buffer_rejects_a_tiny_size_header() {
     let mut rb = ReportBuf::new(ReportKind::Real);
     rb.push(&[0, 0, 0, 4, 1, 2, 3]);
-    assert!(matches!(rb.next_report(), Err(Error::XArmReportSize { got: 4, .. })));
+    assert!(matches!(
+        rb.next_report(),
+        Err(Error::XArmReportSize { got: 4, .. })
+    ));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -210,25 +281,66 @@ fn crc16_xmodem_check_value() {
 
 #[test]
 fn xhand_version_request_and_reply_frames() {
-    let req = Frame { src: 0xfe, dst: 0x00, cmd: consts::CMD_VERSION, payload: vec![] };
-    assert_eq!(req.encode().unwrap(), [0x55, 0xaa, 0xfe, 0x00, 0x13, 0x00, 0x00, 0xd7, 0x1e]);
-    let rep = [0x55, 0xaa, 0x00, 0xfe, 0x13, 0x03, 0x00, b'v', b'1', b'2', 0x91, 0xbe];
+    let req = Frame {
+        src: 0xfe,
+        dst: 0x00,
+        cmd: consts::CMD_VERSION,
+        payload: vec![],
+    };
+    assert_eq!(
+        req.encode().unwrap(),
+        [0x55, 0xaa, 0xfe, 0x00, 0x13, 0x00, 0x00, 0xd7, 0x1e]
+    );
+    let rep = [
+        0x55, 0xaa, 0x00, 0xfe, 0x13, 0x03, 0x00, b'v', b'1', b'2', 0x91, 0xbe,
+    ];
     let f = Frame::decode(&rep).unwrap();
-    assert_eq!((f.src, f.dst, f.cmd, f.payload.as_slice()), (0, 0xfe, 0x13, &b"v12"[..]));
-    let read = Frame { src: 0xfe, dst: 0x00, cmd: consts::CMD_READ_STATE, payload: vec![] };
-    assert_eq!(read.encode().unwrap(), [0x55, 0xaa, 0xfe, 0x00, 0x01, 0x00, 0x00, 0xd4, 0x33]);
+    assert_eq!(
+        (f.src, f.dst, f.cmd, f.payload.as_slice()),
+        (0, 0xfe, 0x13, &b"v12"[..])
+    );
+    let read = Frame {
+        src: 0xfe,
+        dst: 0x00,
+        cmd: consts::CMD_READ_STATE,
+        payload: vec![],
+    };
+    assert_eq!(
+        read.encode().unwrap(),
+        [0x55, 0xaa, 0xfe, 0x00, 0x01, 0x00, 0x00, 0xd4, 0x33]
+    );
 }
 
 #[test]
 fn xhand_wrong_crc_is_named() {
-    let rep = [0x55, 0xaa, 0x00, 0xfe, 0x13, 0x03, 0x00, b'v', b'1', b'2', 0x92, 0xbe];
+    let rep = [
+        0x55, 0xaa, 0x00, 0xfe, 0x13, 0x03, 0x00, b'v', b'1', b'2', 0x92, 0xbe,
+    ];
     let e = Frame::decode(&rep).unwrap_err();
-    assert!(matches!(e, Error::XHandCrc { command: 0x13, got: 0xbe92, computed: 0xbe91 }), "{e}");
+    assert!(
+        matches!(
+            e,
+            Error::XHandCrc {
+                command: 0x13,
+                got: 0xbe92,
+                computed: 0xbe91
+            }
+        ),
+        "{e}"
+    );
 }
 
 #[test]
 fn xhand_finger_command_layout() {
-    let c = FingerCommand { id: 3, kp: 100, ki: -1, kd: 2, position: 1.0, tor_max: 300, mode: 3 };
+    let c = FingerCommand {
+        id: 3,
+        kp: 100,
+        ki: -1,
+        kd: 2,
+        position: 1.0,
+        tor_max: 300,
+        mode: 3,
+    };
     let mut b = [0xffu8; 24];
     c.write(&mut b);
     assert_eq!(
@@ -249,7 +361,15 @@ fn xhand_finger_command_layout() {
 
 #[test]
 fn xhand_hand_command_is_288_bytes_and_round_trips() {
-    let mut cmds = [FingerCommand { id: 0, kp: 100, ki: 0, kd: 0, position: 0.0, tor_max: 300, mode: 3 }; 12];
+    let mut cmds = [FingerCommand {
+        id: 0,
+        kp: 100,
+        ki: 0,
+        kd: 0,
+        position: 0.0,
+        tor_max: 300,
+        mode: 3,
+    }; 12];
     for (i, c) in cmds.iter_mut().enumerate() {
         c.id = i as u16;
         c.position = i as f32 * 0.1;
@@ -258,7 +378,14 @@ fn xhand_hand_command_is_288_bytes_and_round_trips() {
     assert_eq!(p.len(), 288);
     assert_eq!(&p[24..26], &[0x01, 0x00]); // second finger's id
     assert_eq!(decode_hand_command(&p).unwrap(), cmds);
-    let frame = Frame { src: 0xfe, dst: 0, cmd: consts::CMD_SET_COMMAND, payload: p }.encode().unwrap();
+    let frame = Frame {
+        src: 0xfe,
+        dst: 0,
+        cmd: consts::CMD_SET_COMMAND,
+        payload: p,
+    }
+    .encode()
+    .unwrap();
     assert_eq!(&frame[..7], &[0x55, 0xaa, 0xfe, 0x00, 0x02, 0x20, 0x01]); // len 288 LE
     assert_eq!(frame.len(), 7 + 288 + 2);
     assert!(decode_hand_command(&[0u8; 287]).is_err());
@@ -298,13 +425,28 @@ fn xhand_state_payload_layout() {
     d.write_vector(&mut v);
     assert_eq!(v[0], 0.5);
     assert_eq!(v[12], -2.0);
-    assert_eq!(&v[36..39], &[-3.0 * consts::TIP_FORCE_SCALE, 2.0 * consts::TIP_FORCE_SCALE, 200.0 * consts::TIP_FORCE_SCALE]);
-    assert!(matches!(HandState::decode(&p[..2207]), Err(Error::XHandReply { .. })));
+    assert_eq!(
+        &v[36..39],
+        &[
+            -3.0 * consts::TIP_FORCE_SCALE,
+            2.0 * consts::TIP_FORCE_SCALE,
+            200.0 * consts::TIP_FORCE_SCALE
+        ]
+    );
+    assert!(matches!(
+        HandState::decode(&p[..2207]),
+        Err(Error::XHandReply { .. })
+    ));
 }
 
 #[test]
 fn xhand_parser_skips_garbage_and_survives_split_reads() {
-    let f = Frame { src: 0, dst: 0xfe, cmd: 0x13, payload: b"abc".to_vec() };
+    let f = Frame {
+        src: 0,
+        dst: 0xfe,
+        cmd: 0x13,
+        payload: b"abc".to_vec(),
+    };
     let bytes = f.encode().unwrap();
     let mut p = FrameParser::new();
     p.push(&[0x00, 0x13, 0x55, 0x01, 0x55]);
@@ -319,7 +461,14 @@ fn xhand_parser_skips_garbage_and_survives_split_reads() {
 
 #[test]
 fn xhand_parser_reports_a_bad_crc_and_resyncs_on_the_next_frame() {
-    let good = Frame { src: 0, dst: 0xfe, cmd: 0x13, payload: vec![1, 2] }.encode().unwrap();
+    let good = Frame {
+        src: 0,
+        dst: 0xfe,
+        cmd: 0x13,
+        payload: vec![1, 2],
+    }
+    .encode()
+    .unwrap();
     let mut bad = good.clone();
     let n = bad.len();
     bad[n - 1] ^= 0xff;

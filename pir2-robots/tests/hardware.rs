@@ -12,7 +12,10 @@ use pir2_robots::{Robot, XArm6, XArm6Config};
 use pir2_runtime::SystemClock;
 
 fn arm_ip() -> IpAddr {
-    std::env::var("PIR2_XARM").expect("set PIR2_XARM=<arm ip>").parse().expect("PIR2_XARM is an IP address")
+    std::env::var("PIR2_XARM")
+        .expect("set PIR2_XARM=<arm ip>")
+        .parse()
+        .expect("PIR2_XARM is an IP address")
 }
 
 fn hand_path() -> PathBuf {

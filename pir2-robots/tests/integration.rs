@@ -9,7 +9,9 @@ use std::time::Duration;
 use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
 use pir2_robots::robot::{ARM_HAND_ACTION_DIM, ARM_HAND_STATE_DIM};
 use pir2_robots::xarm::proto::state;
-use pir2_robots::{split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig};
+use pir2_robots::{
+    split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
+};
 use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
 
 const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
@@ -32,11 +34,23 @@ fn rig(safety: SafetyConfig) -> Rig {
     cfg.report_addr = arm_emu.real_report_addr();
     cfg.stream_hz = 100.0;
     let arm = XArm6::connect(cfg, clock.clone()).unwrap();
-    let hand = XHand::new(host, XHandConfig { timeout: Duration::from_millis(100), ..Default::default() }, clock.clone());
+    let hand = XHand::new(
+        host,
+        XHandConfig {
+            timeout: Duration::from_millis(100),
+            ..Default::default()
+        },
+        clock.clone(),
+    );
     let composite = ArmHand::new(arm, hand).unwrap();
     let mut layer = SafetyLayer::new(composite, safety, clock.clone()).unwrap();
     layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
-    Rig { arm_emu, hand_emu, clock, layer }
+    Rig {
+        arm_emu,
+        hand_emu,
+        clock,
+        layer,
+    }
 }
 
 /// A smooth 18-d reference around the arm's home pose.
@@ -54,7 +68,12 @@ fn reference(k: usize, home: &[f32]) -> Vec<f32> {
 
 #[test]
 fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
-    let Rig { arm_emu, hand_emu, clock, layer } = rig(SafetyConfig::xarm6_xhand());
+    let Rig {
+        arm_emu,
+        hand_emu,
+        clock,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
     let (mut source, mut actuator) = split(layer);
     assert_eq!(source.dim(), ARM_HAND_STATE_DIM);
     assert_eq!(actuator.dim(), ARM_HAND_ACTION_DIM);
@@ -85,15 +104,29 @@ fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
     }
     source.read(&mut obs).unwrap();
     for j in 0..6 {
-        assert!((obs[j] - last_action[j]).abs() < 0.02, "arm joint {j}: {} vs {}", obs[j], last_action[j]);
+        assert!(
+            (obs[j] - last_action[j]).abs() < 0.02,
+            "arm joint {j}: {} vs {}",
+            obs[j],
+            last_action[j]
+        );
     }
     for j in 0..12 {
-        assert!((obs[6 + j] - last_action[6 + j]).abs() < 0.05, "hand joint {j}: {} vs {}", obs[6 + j], last_action[6 + j]);
+        assert!(
+            (obs[6 + j] - last_action[6 + j]).abs() < 0.05,
+            "hand joint {j}: {} vs {}",
+            obs[6 + j],
+            last_action[6 + j]
+        );
     }
     let stats = source.robot().lock().unwrap().stats();
     assert_eq!(stats.targets, ticks as u64 + 10);
     assert_eq!(stats.stops, 0, "{stats}");
-    assert_eq!(stats.command_timeouts + stats.stale_states + stats.non_finite_targets, 0, "{stats}");
+    assert_eq!(
+        stats.command_timeouts + stats.stale_states + stats.non_finite_targets,
+        0,
+        "{stats}"
+    );
     // The arm was streamed at ~100 Hz: clearly more servo-j frames than policy targets.
     assert!(arm_emu.handle().sim().servoj > 2 * ticks as u64);
     assert!(hand_emu.handle().commands() >= ticks as u64);
@@ -105,7 +138,12 @@ fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
 
 #[test]
 fn silent_policy_is_stopped_by_the_watchdog() {
-    let Rig { arm_emu, hand_emu: _h, clock: _c, layer } = rig(SafetyConfig::xarm6_xhand());
+    let Rig {
+        arm_emu,
+        hand_emu: _h,
+        clock: _c,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
     let (mut source, mut actuator) = split(layer);
     let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
     source.read(&mut obs).unwrap();
@@ -119,13 +157,21 @@ fn silent_policy_is_stopped_by_the_watchdog() {
     }
     assert_eq!(arm_emu.handle().sim().state, state::STOP);
     let err = actuator.send(&a).unwrap_err();
-    assert!(matches!(err, pir2_runtime::Error::SafetyStop(ref m) if m.contains("no target")), "{err}");
+    assert!(
+        matches!(err, pir2_runtime::Error::SafetyStop(ref m) if m.contains("no target")),
+        "{err}"
+    );
     assert_eq!(source.robot().lock().unwrap().stats().command_timeouts, 1);
 }
 
 #[test]
 fn wild_policy_is_clamped_not_executed() {
-    let Rig { arm_emu, hand_emu, clock: _c, layer } = rig(SafetyConfig::xarm6_xhand());
+    let Rig {
+        arm_emu,
+        hand_emu,
+        clock: _c,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
     let (mut source, mut actuator) = split(layer);
     let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
     source.read(&mut obs).unwrap();
@@ -139,8 +185,15 @@ fn wild_policy_is_clamped_not_executed() {
     actuator.send(&jump).unwrap();
     std::thread::sleep(Duration::from_millis(100));
     let sim = arm_emu.handle().sim();
-    assert!((sim.target[0] - home[0]).abs() <= 0.05 + 1e-5, "arm moved at most one step: {}", sim.target[0]);
-    assert!(hand_emu.handle().targets().iter().all(|&q| q <= 0.2 + 1e-5), "hand moved at most one step from 0");
+    assert!(
+        (sim.target[0] - home[0]).abs() <= 0.05 + 1e-5,
+        "arm moved at most one step: {}",
+        sim.target[0]
+    );
+    assert!(
+        hand_emu.handle().targets().iter().all(|&q| q <= 0.2 + 1e-5),
+        "hand moved at most one step from 0"
+    );
     let stats = source.robot().lock().unwrap().stats();
     assert_eq!(stats.non_finite_targets, 1);
     assert_eq!(stats.limit_clamps, 1);

@@ -34,7 +34,10 @@ impl Robot for Scripted {
         2
     }
     fn layout(&self) -> StateLayout {
-        StateLayout { positions: 0..2, torques: Some(2..4) }
+        StateLayout {
+            positions: 0..2,
+            torques: Some(2..4),
+        }
     }
     fn read_state(&mut self, out: &mut [f32]) -> pir2_robots::Result<Nanos> {
         out.copy_from_slice(&self.state);
@@ -63,7 +66,12 @@ fn layer(state: [f32; 4]) -> (SafetyLayer<Scripted>, MockClock, Arc<Mutex<Log>>)
     let clock = MockClock::new();
     clock.set(1_000_000_000);
     let log = Arc::new(Mutex::new(Log::default()));
-    let r = Scripted { clock: clock.clone(), state, lag: 0, log: log.clone() };
+    let r = Scripted {
+        clock: clock.clone(),
+        state,
+        lag: 0,
+        log: log.clone(),
+    };
     let l = SafetyLayer::new(r, cfg(), Arc::new(clock.clone())).unwrap();
     (l, clock, log)
 }
@@ -127,15 +135,25 @@ fn torque_over_limit_holds_then_stops() {
     l.with_robot(|r| r.state[3] = -11.0);
     l.read_state(&mut s).unwrap();
     l.send_targets(&[0.2, 0.2]).unwrap();
-    assert_eq!(last(&log), vec![0.1, 0.1], "held while over the torque limit");
+    assert_eq!(
+        last(&log),
+        vec![0.1, 0.1],
+        "held while over the torque limit"
+    );
     assert_eq!(l.stats().torque_holds, 1);
     l.read_state(&mut s).unwrap();
     let e = l.read_state(&mut s).unwrap_err();
-    assert!(matches!(e, Error::SafetyStop(ref m) if m.contains("torque")), "{e}");
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("torque")),
+        "{e}"
+    );
     assert_eq!(log.lock().unwrap().stops, 1);
     assert_eq!(l.stats().torque_over, 3);
     // Latched.
-    assert!(matches!(l.send_targets(&[0.0, 0.0]), Err(Error::SafetyStop(_))));
+    assert!(matches!(
+        l.send_targets(&[0.0, 0.0]),
+        Err(Error::SafetyStop(_))
+    ));
 }
 
 #[test]
@@ -157,7 +175,10 @@ fn stale_state_stops_the_robot() {
     l.with_robot(|r| r.lag = 150_000_000);
     let mut s = [0f32; 4];
     let e = l.read_state(&mut s).unwrap_err();
-    assert!(matches!(e, Error::SafetyStop(ref m) if m.contains("150 ms old")), "{e}");
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("150 ms old")),
+        "{e}"
+    );
     assert_eq!(l.stats().stale_states, 1);
     assert_eq!(log.lock().unwrap().stops, 1);
 }
@@ -174,7 +195,10 @@ fn watchdog_stops_when_the_policy_stops_sending() {
     clock.advance(60_000_000);
     l.read_state(&mut s).unwrap();
     let e = l.check_watchdog().unwrap_err();
-    assert!(matches!(e, Error::SafetyStop(ref m) if m.contains("no target")), "{e}");
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("no target")),
+        "{e}"
+    );
     assert_eq!(l.stats().command_timeouts, 1);
     assert_eq!(log.lock().unwrap().stops, 1);
     // Reset re-arms.
@@ -194,7 +218,10 @@ fn watchdog_stops_when_state_stops_arriving() {
         l.send_targets(&[0.0, 0.0]).unwrap();
     }
     let e = l.check_watchdog().unwrap_err();
-    assert!(matches!(e, Error::SafetyStop(ref m) if m.contains("no fresh state")), "{e}");
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("no fresh state")),
+        "{e}"
+    );
     assert_eq!(l.stats().stale_states, 1);
 }
 
@@ -205,7 +232,12 @@ fn watchdog_thread_stops_a_silent_policy() {
     let log = Arc::new(Mutex::new(Log::default()));
     // The scripted robot stamps its state at mock time 0; the long state timeout keeps that
     // fresh enough on the real clock, so only the command deadline can fire.
-    let r = Scripted { clock: MockClock::new(), state: [0.0; 4], lag: 0, log: log.clone() };
+    let r = Scripted {
+        clock: MockClock::new(),
+        state: [0.0; 4],
+        lag: 0,
+        log: log.clone(),
+    };
     let mut c = cfg();
     c.state_timeout = Duration::from_secs(5);
     c.command_timeout = Duration::from_millis(30);
@@ -226,7 +258,10 @@ fn explicit_stop_is_counted_and_latched() {
     l.stop().unwrap();
     assert_eq!(l.stats().stops, 1);
     assert_eq!(log.lock().unwrap().stops, 1);
-    assert!(matches!(l.send_targets(&[0.0, 0.0]), Err(Error::SafetyStop(_))));
+    assert!(matches!(
+        l.send_targets(&[0.0, 0.0]),
+        Err(Error::SafetyStop(_))
+    ));
     let text = l.stats().to_string();
     assert!(text.contains("stops 1"), "{text}");
 }
@@ -234,9 +269,17 @@ fn explicit_stop_is_counted_and_latched() {
 #[test]
 fn config_is_checked_against_the_robot() {
     let clock = MockClock::new();
-    let r = Scripted { clock: clock.clone(), state: [0.0; 4], lag: 0, log: Arc::default() };
+    let r = Scripted {
+        clock: clock.clone(),
+        state: [0.0; 4],
+        lag: 0,
+        log: Arc::default(),
+    };
     let bad = SafetyConfig::uniform(3, -1.0, 1.0, 0.1);
-    assert!(matches!(SafetyLayer::new(r, bad, Arc::new(clock)), Err(Error::Dim { .. })));
+    assert!(matches!(
+        SafetyLayer::new(r, bad, Arc::new(clock)),
+        Err(Error::Dim { .. })
+    ));
     let mut inverted = SafetyConfig::uniform(2, 1.0, -1.0, 0.1);
     assert!(inverted.validate(2).is_err());
     inverted = SafetyConfig::xarm6_xhand();

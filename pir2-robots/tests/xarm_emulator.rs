@@ -50,7 +50,10 @@ fn wait_until(mut f: impl FnMut() -> bool, limit: Duration) -> bool {
 fn answers_what_a_client_asks_at_connect() {
     let e = emu();
     let mut c = client(&e);
-    assert_eq!(c.version().unwrap(), pir2_robots::emu::xarm::XARM_EMU_VERSION);
+    assert_eq!(
+        c.version().unwrap(),
+        pir2_robots::emu::xarm::XARM_EMU_VERSION
+    );
     assert_eq!(c.state().unwrap(), state::STOP);
     assert_eq!(c.error_codes().unwrap(), (0, 0));
     let q = c.joint_positions().unwrap();
@@ -69,14 +72,28 @@ fn answers_what_a_client_asks_at_connect() {
     assert_eq!(e.handle().sim().servoj, 1);
     assert_eq!(c.state().unwrap(), state::MOVING);
     // Report streams: real and normal, each with its size header.
-    let mut rr = ReportReader::connect(e.real_report_addr().unwrap(), ReportKind::Real, Duration::from_millis(300)).unwrap();
-    let r = rr.next(&SystemClock::new(), Duration::from_secs(2)).unwrap();
+    let mut rr = ReportReader::connect(
+        e.real_report_addr().unwrap(),
+        ReportKind::Real,
+        Duration::from_millis(300),
+    )
+    .unwrap();
+    let r = rr
+        .next(&SystemClock::new(), Duration::from_secs(2))
+        .unwrap();
     assert_eq!(r.mode, 1);
     let normal = e.report_addr(ReportKind::Normal, 133).unwrap();
-    let mut rn = ReportReader::connect(normal, ReportKind::Normal, Duration::from_millis(300)).unwrap();
-    assert_eq!(rn.next(&SystemClock::new(), Duration::from_secs(2)).unwrap().error, 0);
+    let mut rn =
+        ReportReader::connect(normal, ReportKind::Normal, Duration::from_millis(300)).unwrap();
+    assert_eq!(
+        rn.next(&SystemClock::new(), Duration::from_secs(2))
+            .unwrap()
+            .error,
+        0
+    );
     let rich = e.report_addr(ReportKind::Normal, 187).unwrap();
-    let mut rx = ReportReader::connect(rich, ReportKind::Normal, Duration::from_millis(300)).unwrap();
+    let mut rx =
+        ReportReader::connect(rich, ReportKind::Normal, Duration::from_millis(300)).unwrap();
     assert!(rx.next(&SystemClock::new(), Duration::from_secs(2)).is_ok());
 }
 
@@ -85,7 +102,10 @@ fn unknown_register_is_reported_invalid() {
     let e = emu();
     let mut c = client(&e);
     let err = c.request(200, &[]).unwrap_err();
-    assert!(matches!(err, Error::XArmInvalid { register: 200, .. }), "{err}");
+    assert!(
+        matches!(err, Error::XArmInvalid { register: 200, .. }),
+        "{err}"
+    );
     // The connection stays usable.
     assert!(c.version().is_ok());
 }
@@ -103,9 +123,13 @@ fn late_reply_with_another_tid_is_skipped() {
 fn stalled_reply_times_out_and_closes() {
     let e = emu();
     let mut c = XArmClient::connect(e.cmd_addr(), Duration::from_millis(100), clock()).unwrap();
-    e.handle().inject(XArmFault::Stall(Duration::from_millis(400)));
+    e.handle()
+        .inject(XArmFault::Stall(Duration::from_millis(400)));
     let err = c.state().unwrap_err();
-    assert!(matches!(err, Error::Timeout { ref what, .. } if what.contains("register 13")), "{err}");
+    assert!(
+        matches!(err, Error::Timeout { ref what, .. } if what.contains("register 13")),
+        "{err}"
+    );
     assert!(!c.is_open());
     assert!(matches!(c.state(), Err(Error::Disconnected { .. })));
 }
@@ -116,7 +140,10 @@ fn dropped_connection_is_reported() {
     let mut c = client(&e);
     e.handle().inject(XArmFault::DropConnection);
     let err = c.state().unwrap_err();
-    assert!(matches!(err, Error::Disconnected { .. } | Error::Io { .. }), "{err}");
+    assert!(
+        matches!(err, Error::Disconnected { .. } | Error::Io { .. }),
+        "{err}"
+    );
     assert!(!c.is_open());
 }
 
@@ -126,14 +153,22 @@ fn truncated_reply_is_reported() {
     let mut c = client(&e);
     e.handle().inject(XArmFault::Truncated);
     let err = c.joint_positions().unwrap_err();
-    assert!(matches!(err, Error::Disconnected { .. } | Error::Io { .. } | Error::Timeout { .. }), "{err}");
+    assert!(
+        matches!(
+            err,
+            Error::Disconnected { .. } | Error::Io { .. } | Error::Timeout { .. }
+        ),
+        "{err}"
+    );
 }
 
 #[test]
 fn garbage_reply_is_a_frame_error() {
     let e = emu();
     let mut c = client(&e);
-    e.handle().inject(XArmFault::Garbage(vec![0xde, 0xad, 0xbe, 0xef, 0xff, 0xff, 0x00, 0x01]));
+    e.handle().inject(XArmFault::Garbage(vec![
+        0xde, 0xad, 0xbe, 0xef, 0xff, 0xff, 0x00, 0x01,
+    ]));
     let err = c.state().unwrap_err();
     assert!(matches!(err, Error::XArmFrame { .. }), "{err}");
     assert!(!c.is_open());
@@ -145,7 +180,17 @@ fn wrong_protocol_id_is_named() {
     let mut c = client(&e);
     e.handle().inject(XArmFault::WrongProtocol);
     let err = c.state().unwrap_err();
-    assert!(matches!(err, Error::XArmProtocolId { register: 13, expected: 2, got: 3 }), "{err}");
+    assert!(
+        matches!(
+            err,
+            Error::XArmProtocolId {
+                register: 13,
+                expected: 2,
+                got: 3
+            }
+        ),
+        "{err}"
+    );
 }
 
 #[test]
@@ -171,7 +216,10 @@ fn xarm6_streams_interpolated_targets_and_the_arm_follows() {
     assert!(arm.streamed() > 10, "streamed {}", arm.streamed());
     arm.stop().unwrap();
     assert_eq!(e.handle().sim().state, state::STOP);
-    assert!(matches!(arm.send_targets(&target), Err(Error::Stopped { .. })));
+    assert!(matches!(
+        arm.send_targets(&target),
+        Err(Error::Stopped { .. })
+    ));
     // Stop is idempotent.
     arm.stop().unwrap();
 }
@@ -184,7 +232,10 @@ fn xarm6_without_report_stream_polls_state_on_the_command_port() {
     let mut arm = XArm6::connect(cfg, clock()).unwrap();
     let mut s = [0f32; 12];
     let t0 = arm.read_state(&mut s).unwrap();
-    assert!(wait_until(|| arm.read_state(&mut s).unwrap() > t0, Duration::from_secs(2)));
+    assert!(wait_until(
+        || arm.read_state(&mut s).unwrap() > t0,
+        Duration::from_secs(2)
+    ));
 }
 
 #[test]
@@ -193,9 +244,15 @@ fn controller_error_ends_streaming_and_fails_the_next_call() {
     let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
     e.handle().inject(XArmFault::ErrorCode(31));
     let mut s = [0f32; 12];
-    assert!(wait_until(|| arm.read_state(&mut s).is_err(), Duration::from_secs(2)));
+    assert!(wait_until(
+        || arm.read_state(&mut s).is_err(),
+        Duration::from_secs(2)
+    ));
     let err = arm.send_targets(&[0.0; 6]).unwrap_err();
-    assert!(matches!(err, Error::Stopped { ref reason, .. } if reason.contains("error code 31")), "{err}");
+    assert!(
+        matches!(err, Error::Stopped { ref reason, .. } if reason.contains("error code 31")),
+        "{err}"
+    );
     // Stop still reaches the controller.
     arm.stop().unwrap();
 }
@@ -216,9 +273,15 @@ fn command_port_drop_while_streaming_is_reported() {
     let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
     e.handle().inject(XArmFault::DropConnection);
     let mut s = [0f32; 12];
-    assert!(wait_until(|| arm.read_state(&mut s).is_err(), Duration::from_secs(2)));
+    assert!(wait_until(
+        || arm.read_state(&mut s).is_err(),
+        Duration::from_secs(2)
+    ));
     let err = arm.stop().unwrap_err();
-    assert!(matches!(err, Error::Stopped { ref reason, .. } if reason.contains("SET_STATE 4")), "{err}");
+    assert!(
+        matches!(err, Error::Stopped { ref reason, .. } if reason.contains("SET_STATE 4")),
+        "{err}"
+    );
 }
 
 #[test]
@@ -228,9 +291,15 @@ fn report_stream_faults_are_reported() {
         let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
         e.handle().inject(fault.clone());
         let mut s = [0f32; 12];
-        assert!(wait_until(|| arm.read_state(&mut s).is_err(), Duration::from_secs(2)), "{fault:?}");
+        assert!(
+            wait_until(|| arm.read_state(&mut s).is_err(), Duration::from_secs(2)),
+            "{fault:?}"
+        );
         let err = arm.read_state(&mut s).unwrap_err();
-        assert!(matches!(err, Error::Stopped { ref reason, .. } if reason.contains("report stream")), "{err}");
+        assert!(
+            matches!(err, Error::Stopped { ref reason, .. } if reason.contains("report stream")),
+            "{err}"
+        );
     }
 }
 
@@ -240,7 +309,8 @@ fn report_stall_leaves_the_state_timestamp_behind() {
     let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
     let c = SystemClock::new();
     let mut s = [0f32; 12];
-    e.handle().inject(XArmFault::ReportStall(Duration::from_millis(300)));
+    e.handle()
+        .inject(XArmFault::ReportStall(Duration::from_millis(300)));
     // During the stall the newest state grows old (the safety layer turns that into a stop).
     let mut max_age = 0;
     let t_end = c.now() + 250_000_000;
@@ -257,8 +327,40 @@ fn run_xarm_emulator_returns_when_stopped() {
     use std::sync::atomic::{AtomicBool, Ordering};
     let stop = Arc::new(AtomicBool::new(false));
     let s2 = stop.clone();
-    let j = std::thread::spawn(move || pir2_robots::emu::run_xarm_emulator(LOCAL, XArmPorts::ephemeral(), s2));
+    let j = std::thread::spawn(move || {
+        pir2_robots::emu::run_xarm_emulator(LOCAL, XArmPorts::ephemeral(), s2)
+    });
     std::thread::sleep(Duration::from_millis(50));
     stop.store(true, Ordering::SeqCst);
     j.join().unwrap().unwrap();
+}
+
+#[test]
+fn check_reports_an_emulated_arm_without_moving_it() {
+    let e = emu();
+    let mut opts = pir2_robots::CheckOptions::new(Some(e.cmd_addr()), None);
+    assert_eq!(
+        opts.xarm_report, None,
+        "no report port guessed for a non-standard command port"
+    );
+    opts.xarm_report = e.real_report_addr();
+    let r = pir2_robots::check_with(&opts).unwrap();
+    let a = r.xarm.as_ref().unwrap();
+    assert_eq!(a.version, pir2_robots::emu::xarm::XARM_EMU_VERSION);
+    assert_eq!(a.state, state::STOP);
+    assert!(matches!(a.report, Some(Ok(_))));
+    assert!(r.healthy());
+    assert!(r.to_string().ends_with("OK"));
+    assert!(!e.handle().sim().enabled, "check never enables the motors");
+    // A controller error shows up as unhealthy.
+    e.handle().inject(XArmFault::ErrorCode(12));
+    let r = pir2_robots::check_with(&opts).unwrap();
+    assert_eq!(r.xarm.as_ref().unwrap().error, 12);
+    assert!(!r.healthy());
+    // Nobody listening: an error naming the address.
+    let addr = e.cmd_addr();
+    e.shutdown();
+    std::thread::sleep(Duration::from_millis(50));
+    let err = pir2_robots::check(Some(addr), None).unwrap_err();
+    assert!(matches!(err, Error::Connect { .. }), "{err}");
 }

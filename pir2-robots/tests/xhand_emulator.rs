@@ -17,15 +17,26 @@ fn clock() -> Arc<dyn Clock> {
 
 fn setup() -> (XHand<DuplexPort>, XHandEmulator) {
     let (host, dev) = duplex(Duration::from_millis(10));
-    let emu = XHandEmulator::spawn(dev, consts::DEFAULT_HAND_ID, Arc::new(AtomicBool::new(false))).unwrap();
-    let cfg = XHandConfig { timeout: Duration::from_millis(150), ..Default::default() };
+    let emu = XHandEmulator::spawn(
+        dev,
+        consts::DEFAULT_HAND_ID,
+        Arc::new(AtomicBool::new(false)),
+    )
+    .unwrap();
+    let cfg = XHandConfig {
+        timeout: Duration::from_millis(150),
+        ..Default::default()
+    };
     (XHand::new(host, cfg, clock()), emu)
 }
 
 #[test]
 fn version_state_and_position_commands() {
     let (mut hand, emu) = setup();
-    assert_eq!(hand.version().unwrap(), pir2_robots::emu::xhand::XHAND_EMU_VERSION);
+    assert_eq!(
+        hand.version().unwrap(),
+        pir2_robots::emu::xhand::XHAND_EMU_VERSION
+    );
     let mut s = [0f32; 39];
     hand.read_state(&mut s).unwrap();
     assert!(s[..12].iter().all(|&q| q == 0.0));
@@ -37,11 +48,18 @@ fn version_state_and_position_commands() {
     }
     hand.read_state(&mut s).unwrap();
     for i in 0..12 {
-        assert!((s[i] - target[i]).abs() < 0.01, "joint {i}: {} vs {}", s[i], target[i]);
+        assert!(
+            (s[i] - target[i]).abs() < 0.01,
+            "joint {i}: {} vs {}",
+            s[i],
+            target[i]
+        );
     }
     // The paper's gains and torque limit went out in position mode.
     let cmds = emu.handle().last_commands();
-    assert!(cmds.iter().all(|c| c.kp == 100 && c.tor_max == 300 && c.mode == consts::MODE_POSITION));
+    assert!(cmds
+        .iter()
+        .all(|c| c.kp == 100 && c.tor_max == 300 && c.mode == consts::MODE_POSITION));
     assert_eq!(cmds[11].id, 11);
     // Fingertip forces follow flexion in the emulator; torques are in the state.
     assert!(s[24..39].iter().any(|&f| f > 0.0));
@@ -62,7 +80,8 @@ fn read_state_uses_the_cache_while_fresh() {
 }
 
 fn recovers(hand: &mut XHand<DuplexPort>) {
-    hand.send_targets(&[0.2; 12]).expect("the request after a fault must work");
+    hand.send_targets(&[0.2; 12])
+        .expect("the request after a fault must work");
 }
 
 #[test]
@@ -70,15 +89,22 @@ fn no_reply_times_out_then_recovers() {
     let (mut hand, emu) = setup();
     emu.handle().inject(XHandFault::NoReply);
     let e = hand.send_targets(&[0.2; 12]).unwrap_err();
-    assert!(matches!(e, Error::Timeout { ref what, .. } if what.contains("0x02")), "{e}");
+    assert!(
+        matches!(e, Error::Timeout { ref what, .. } if what.contains("0x02")),
+        "{e}"
+    );
     recovers(&mut hand);
 }
 
 #[test]
 fn stall_longer_than_the_timeout_times_out_then_recovers() {
     let (mut hand, emu) = setup();
-    emu.handle().inject(XHandFault::Stall(Duration::from_millis(300)));
-    assert!(matches!(hand.send_targets(&[0.2; 12]), Err(Error::Timeout { .. })));
+    emu.handle()
+        .inject(XHandFault::Stall(Duration::from_millis(300)));
+    assert!(matches!(
+        hand.send_targets(&[0.2; 12]),
+        Err(Error::Timeout { .. })
+    ));
     // The late reply arrives while the next request waits; it is dropped by the
     // "clear before send" rule or answers with the right command; either way no panic.
     std::thread::sleep(Duration::from_millis(250));
@@ -89,15 +115,23 @@ fn stall_longer_than_the_timeout_times_out_then_recovers() {
 fn truncated_reply_times_out_then_recovers() {
     let (mut hand, emu) = setup();
     emu.handle().inject(XHandFault::Truncated);
-    assert!(matches!(hand.send_targets(&[0.2; 12]), Err(Error::Timeout { .. })));
+    assert!(matches!(
+        hand.send_targets(&[0.2; 12]),
+        Err(Error::Timeout { .. })
+    ));
     recovers(&mut hand);
 }
 
 #[test]
 fn garbage_reply_times_out_then_recovers() {
     let (mut hand, emu) = setup();
-    emu.handle().inject(XHandFault::Garbage(vec![0x55, 0x00, 0xaa, 0x13, 0x37, 0x55]));
-    assert!(matches!(hand.send_targets(&[0.2; 12]), Err(Error::Timeout { .. })));
+    emu.handle().inject(XHandFault::Garbage(vec![
+        0x55, 0x00, 0xaa, 0x13, 0x37, 0x55,
+    ]));
+    assert!(matches!(
+        hand.send_targets(&[0.2; 12]),
+        Err(Error::Timeout { .. })
+    ));
     recovers(&mut hand);
     assert!(hand.stats().dropped_bytes > 0 || hand.stats().requests >= 2);
 }
@@ -115,7 +149,10 @@ fn wrong_crc_is_named_then_recovers() {
 fn reply_from_another_hand_is_ignored_and_times_out() {
     let (mut hand, emu) = setup();
     emu.handle().inject(XHandFault::WrongId);
-    assert!(matches!(hand.send_targets(&[0.2; 12]), Err(Error::Timeout { .. })));
+    assert!(matches!(
+        hand.send_targets(&[0.2; 12]),
+        Err(Error::Timeout { .. })
+    ));
     assert_eq!(hand.stats().foreign_frames, 1);
     recovers(&mut hand);
 }
@@ -134,7 +171,10 @@ fn cut_line_fails_every_request_cleanly() {
     let (mut hand, emu) = setup();
     emu.handle().inject(XHandFault::Disconnect);
     let e = hand.send_targets(&[0.2; 12]).unwrap_err();
-    assert!(matches!(e, Error::Disconnected { .. } | Error::Timeout { .. }), "{e}");
+    assert!(
+        matches!(e, Error::Disconnected { .. } | Error::Timeout { .. }),
+        "{e}"
+    );
     emu.shutdown();
     let e = hand.send_targets(&[0.2; 12]).unwrap_err();
     assert!(matches!(e, Error::Disconnected { .. }), "{e}");
@@ -152,7 +192,10 @@ fn stop_holds_the_measured_position_and_refuses_targets() {
     let cmds = emu.handle().last_commands();
     assert_eq!(cmds[3].position, measured);
     assert_eq!(cmds[3].mode, consts::MODE_POSITION);
-    assert!(matches!(hand.send_targets(&[0.5; 12]), Err(Error::Stopped { .. })));
+    assert!(matches!(
+        hand.send_targets(&[0.5; 12]),
+        Err(Error::Stopped { .. })
+    ));
     hand.stop().unwrap();
 }
 
@@ -160,11 +203,19 @@ fn stop_holds_the_measured_position_and_refuses_targets() {
 fn release_on_stop_makes_the_joints_powerless() {
     let (host, dev) = duplex(Duration::from_millis(10));
     let emu = XHandEmulator::spawn(dev, 0, Arc::new(AtomicBool::new(false))).unwrap();
-    let cfg = XHandConfig { release_on_stop: true, timeout: Duration::from_millis(150), ..Default::default() };
+    let cfg = XHandConfig {
+        release_on_stop: true,
+        timeout: Duration::from_millis(150),
+        ..Default::default()
+    };
     let mut hand = XHand::new(host, cfg, clock());
     hand.send_targets(&[0.1; 12]).unwrap();
     hand.stop().unwrap();
-    assert!(emu.handle().last_commands().iter().all(|c| c.mode == consts::MODE_POWERLESS));
+    assert!(emu
+        .handle()
+        .last_commands()
+        .iter()
+        .all(|c| c.mode == consts::MODE_POWERLESS));
 }
 
 #[cfg(unix)]
@@ -174,9 +225,15 @@ fn driver_talks_to_the_emulator_through_a_pty() {
     let stop = Arc::new(AtomicBool::new(false));
     let (emu, path) = pir2_robots::emu::xhand::spawn_pty(0, stop.clone()).unwrap();
     let port = TtyPort::open(&path, consts::BAUD).unwrap();
-    let cfg = XHandConfig { timeout: Duration::from_millis(500), ..Default::default() };
+    let cfg = XHandConfig {
+        timeout: Duration::from_millis(500),
+        ..Default::default()
+    };
     let mut hand = XHand::new(port, cfg, clock());
-    assert_eq!(hand.version().unwrap(), pir2_robots::emu::xhand::XHAND_EMU_VERSION);
+    assert_eq!(
+        hand.version().unwrap(),
+        pir2_robots::emu::xhand::XHAND_EMU_VERSION
+    );
     // A 2208-byte state crosses the line intact.
     hand.send_targets(&[0.3; 12]).unwrap();
     let mut s = [0f32; 39];
@@ -184,7 +241,10 @@ fn driver_talks_to_the_emulator_through_a_pty() {
     assert_eq!(emu.handle().targets(), [0.3; 12]);
     // Faults over the PTY too.
     emu.handle().inject(XHandFault::BadCrc);
-    assert!(matches!(hand.send_targets(&[0.3; 12]), Err(Error::XHandCrc { .. })));
+    assert!(matches!(
+        hand.send_targets(&[0.3; 12]),
+        Err(Error::XHandCrc { .. })
+    ));
     hand.send_targets(&[0.3; 12]).unwrap();
     emu.shutdown();
 }
@@ -197,7 +257,10 @@ fn run_xhand_emulator_pty_serves_until_stopped() {
     let path = pir2_robots::emu::run_xhand_emulator_pty(stop.clone()).unwrap();
     let report = pir2_robots::check(None, Some(&path)).unwrap();
     let h = report.xhand.as_ref().unwrap();
-    assert_eq!(h.version.as_deref(), Ok(pir2_robots::emu::xhand::XHAND_EMU_VERSION));
+    assert_eq!(
+        h.version.as_deref(),
+        Ok(pir2_robots::emu::xhand::XHAND_EMU_VERSION)
+    );
     assert_eq!(h.state.len(), 39);
     assert!(report.healthy());
     assert!(report.to_string().contains("XHand at"));

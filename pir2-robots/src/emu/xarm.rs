@@ -8,9 +8,9 @@
 //! (fields past the normal layout are not emulated).
 //!
 //! Behaviour: the arm starts stopped (state 4), mode 0, motors disabled. `MOTION_EN [8, 1]`,
-//! `SET_MODE [1]` and `SET_STATE [0]` make it ready (state 2); servo-j is then applied (state
-//! 1) and each joint moves toward its target at up to [`ARM_MAX_SPEED`] rad/s. Servo-j in
-//! any other condition answers with the not-ready bit and is ignored. An injected error code
+//! `SET_MODE [1]` and `SET_STATE [0]` make it ready (state 2); servo-j is then applied
+//! (state 1) and each joint moves toward its target at up to [`ARM_MAX_SPEED`] rad/s. Servo-j
+//! in any other condition answers with the not-ready bit and is ignored. An injected error code
 //! stops the arm and sets the error bit in every reply until `CLEAN_ERR`. Unknown registers
 //! answer with the invalid bit.
 

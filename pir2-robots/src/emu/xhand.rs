@@ -209,8 +209,10 @@ impl XHandEmulator {
 
 impl Drop for XHandEmulator {
     fn drop(&mut self) {
-        self.handle.shutdown();
+        // A detached emulator (see `run_xhand_emulator_pty`) has no thread here and keeps
+        // running until its stop flag is set.
         if let Some(t) = self.thread.take() {
+            self.handle.shutdown();
             let _ = t.join();
         }
     }

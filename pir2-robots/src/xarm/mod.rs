@@ -109,11 +109,7 @@ impl Interpolator {
     /// The streamed point at `t`.
     pub fn sample(&self, t: Nanos) -> [f32; 6] {
         let a = (t.saturating_sub(self.t0) as f64 / self.duration as f64).min(1.0) as f32;
-        let mut q = [0f32; 6];
-        for i in 0..6 {
-            q[i] = self.from[i] + a * (self.to[i] - self.from[i]);
-        }
-        q
+        std::array::from_fn(|i| self.from[i] + a * (self.to[i] - self.from[i]))
     }
     /// Start a new ramp at `t` from the current point to `target`.
     pub fn retarget(&mut self, t: Nanos, target: [f32; 6]) {

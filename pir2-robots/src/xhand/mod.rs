@@ -157,8 +157,8 @@ impl<T: Transport> XHand<T> {
         }
         .encode_into(&mut self.tx)?;
         self.stats.requests += 1;
-        self.port.write_all(&self.tx).map_err(|e| io_err(e))?;
-        self.port.flush().map_err(|e| io_err(e))?;
+        self.port.write_all(&self.tx).map_err(io_err)?;
+        self.port.flush().map_err(io_err)?;
         let start = self.clock.now();
         let timeout = self.cfg.timeout.as_nanos() as Nanos;
         loop {

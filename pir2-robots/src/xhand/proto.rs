@@ -160,50 +160,48 @@ impl FrameParser {
     /// The next frame: `None` if none is complete yet; `Some(Err)` for a frame with a bad CRC
     /// or an impossible length (its first byte is dropped and the hunt resumes).
     pub fn next_frame(&mut self) -> Option<Result<Frame>> {
-        loop {
-            let start = self
-                .buf
-                .windows(2)
-                .position(|w| w == [consts::SYNC0, consts::SYNC1]);
-            match start {
-                None => {
-                    // Keep a trailing 0x55: it may be the first half of a sync pair.
-                    let keep = usize::from(self.buf.last() == Some(&consts::SYNC0));
-                    let drop = self.buf.len() - keep;
-                    self.dropped += drop as u64;
-                    self.buf.drain(..drop);
-                    return None;
-                }
-                Some(s) => {
-                    self.dropped += s as u64;
-                    self.buf.drain(..s);
-                }
-            }
-            if self.buf.len() < consts::HEADER_LEN {
+        let start = self
+            .buf
+            .windows(2)
+            .position(|w| w == [consts::SYNC0, consts::SYNC1]);
+        match start {
+            None => {
+                // Keep a trailing 0x55: it may be the first half of a sync pair.
+                let keep = usize::from(self.buf.last() == Some(&consts::SYNC0));
+                let drop = self.buf.len() - keep;
+                self.dropped += drop as u64;
+                self.buf.drain(..drop);
                 return None;
             }
-            let n = u16::from_le_bytes([self.buf[5], self.buf[6]]) as usize;
-            if n > consts::MAX_PAYLOAD {
-                self.buf.drain(..1);
-                self.dropped += 1;
-                return Some(Err(Error::XHandFrame {
-                    reason: format!("length field {n} exceeds {}", consts::MAX_PAYLOAD),
-                }));
+            Some(s) => {
+                self.dropped += s as u64;
+                self.buf.drain(..s);
             }
-            let total = consts::HEADER_LEN + n + consts::CRC_LEN;
-            if self.buf.len() < total {
-                return None;
-            }
-            let res = Frame::decode(&self.buf[..total]);
-            if res.is_ok() {
-                self.buf.drain(..total);
-            } else {
-                // A false sync inside garbage, or a corrupted frame: resync one byte later.
-                self.buf.drain(..1);
-                self.dropped += 1;
-            }
-            return Some(res);
         }
+        if self.buf.len() < consts::HEADER_LEN {
+            return None;
+        }
+        let n = u16::from_le_bytes([self.buf[5], self.buf[6]]) as usize;
+        if n > consts::MAX_PAYLOAD {
+            self.buf.drain(..1);
+            self.dropped += 1;
+            return Some(Err(Error::XHandFrame {
+                reason: format!("length field {n} exceeds {}", consts::MAX_PAYLOAD),
+            }));
+        }
+        let total = consts::HEADER_LEN + n + consts::CRC_LEN;
+        if self.buf.len() < total {
+            return None;
+        }
+        let res = Frame::decode(&self.buf[..total]);
+        if res.is_ok() {
+            self.buf.drain(..total);
+        } else {
+            // A false sync inside garbage, or a corrupted frame: resync one byte later.
+            self.buf.drain(..1);
+            self.dropped += 1;
+        }
+        Some(res)
     }
 }
 

@@ -98,7 +98,12 @@ impl Read for TtyPort {
 
 impl Write for TtyPort {
     fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
-        self.file.write(buf)
+        match self.file.write(buf) {
+            Err(e) if e.raw_os_error() == Some(libc::EIO) => {
+                Err(io::Error::new(io::ErrorKind::BrokenPipe, e))
+            }
+            r => r,
+        }
     }
     fn flush(&mut self) -> io::Result<()> {
         self.file.flush()
