@@ -11,7 +11,7 @@
 //! described in [`safety`], [`xarm`] and [`xhand`].
 //!
 //! Entry points for the CLI:
-//! - [`check`] / [`check_with`]: connect without moving, read versions, states, errors and
+//! - [`check()`] / [`check_with`]: connect without moving, read versions, states, errors and
 //!   joint positions, and return a printable [`CheckReport`].
 //! - [`emu::run_xarm_emulator`]: serve an emulated xArm (standard or ephemeral ports) until a
 //!   stop flag is set.

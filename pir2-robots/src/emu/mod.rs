@@ -1,5 +1,5 @@
 //! Loopback emulators for tests and dry runs: the xArm over TCP ([`xarm`]) and the XHand over
-//! an in-memory serial line ([`duplex`]) or a pseudo-terminal ([`xhand::spawn_pty`]). Both
+//! an in-memory serial line ([`duplex()`]) or a pseudo-terminal ([`xhand::spawn_pty`]). Both
 //! take injected faults (disconnects, stalls, truncated or garbage frames, wrong CRC, wrong
 //! transaction ids, controller error codes).
 

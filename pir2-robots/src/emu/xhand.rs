@@ -1,5 +1,5 @@
 //! XHand emulator: answers the RS-485 protocol of [`crate::xhand::proto`] on any transport
-//! (an in-memory [`super::duplex`] port or a PTY), with simple joint dynamics and fault
+//! (an in-memory [`super::duplex()`] port or a PTY), with simple joint dynamics and fault
 //! injection.
 //!
 //! Dynamics: each joint in position mode moves toward its target as a first-order lag

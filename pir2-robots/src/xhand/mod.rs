@@ -2,7 +2,7 @@
 //! ([`tty`], unix) and the [`XHand`] robot.
 //!
 //! The transport is injected: anything `Read + Write + Send` (a [`tty::TtyPort`] on a real
-//! adapter or a PTY, or the in-memory [`crate::emu::duplex`] port). A read that returns
+//! adapter or a PTY, or the in-memory [`crate::emu::duplex()`] port). A read that returns
 //! `Ok(0)`, `WouldBlock` or `TimedOut` means "nothing yet"; the driver keeps its own deadline
 //! on the injected clock. `BrokenPipe`/`UnexpectedEof`/`ConnectionReset` mean the line is gone.
 //!
