@@ -86,6 +86,8 @@ pub enum XArmFault {
     WrongProtocol,
     /// Set the controller error code (sticky until CLEAN_ERR; the arm stops).
     ErrorCode(u8),
+    /// Stop the arm from the controller side (state 4, no error), like an emergency stop.
+    EmergencyStop,
     /// Pause the report stream this long.
     ReportStall(Duration),
     /// Close the report connection.
@@ -284,6 +286,10 @@ impl XArmEmuHandle {
         match f {
             XArmFault::ReportStall(_) | XArmFault::ReportDisconnect | XArmFault::ReportGarbage => {
                 q.report.push_back(f)
+            }
+            XArmFault::EmergencyStop => {
+                drop(q);
+                lock(&self.sim).state = state::STOP;
             }
             XArmFault::ErrorCode(code) => {
                 drop(q);
