@@ -91,7 +91,7 @@ fn answers_what_a_client_asks_at_connect() {
             .error,
         0
     );
-    let rich = e.report_addr(ReportKind::Normal, 187).unwrap();
+    let rich = e.report_addr(ReportKind::Normal, 233).unwrap();
     let mut rx =
         ReportReader::connect(rich, ReportKind::Normal, Duration::from_millis(300)).unwrap();
     assert!(rx.next(&SystemClock::new(), Duration::from_secs(2)).is_ok());

@@ -365,7 +365,7 @@ pub const REPORT_REAL_LEN: usize = 87;
 /// Size of a "normal" report on older firmware.
 pub const REPORT_NORMAL_LEN: usize = 133;
 /// Size of a "rich" report (normal layout plus configuration blocks).
-pub const REPORT_RICH_LEN: usize = 187;
+pub const REPORT_RICH_LEN: usize = 233;
 /// Largest report size we accept.
 pub const REPORT_MAX_LEN: u32 = 1024;
 
