@@ -72,7 +72,7 @@ impl ParamStore {
         Ok(candle_nn::Linear::new(w, Some(bias)))
     }
 
-    /// `nn.Conv1d` with same-padding for odd kernels (or explicit `stride`).
+    /// `nn.Conv1d` (weight `[out, in, k]`) with same-padding for odd kernels and `stride` 1 or 2.
     pub(crate) fn conv1d(
         &mut self,
         name: &str,
@@ -80,18 +80,16 @@ impl ParamStore {
         cout: usize,
         k: usize,
         stride: usize,
-    ) -> CResult<candle_nn::Conv1d> {
+    ) -> CResult<Conv1d> {
         let b = 1.0 / ((cin * k) as f32).sqrt();
-        let w = self.param(&format!("{name}.weight"), &[cout, cin, k], Init::Uniform(b))?;
+        let weight = self.param(&format!("{name}.weight"), &[cout, cin, k], Init::Uniform(b))?;
         let bias = self.param(&format!("{name}.bias"), &[cout], Init::Uniform(b))?;
-        let cfg = candle_nn::Conv1dConfig {
-            padding: k / 2,
+        Ok(Conv1d {
+            weight,
+            bias,
+            k,
             stride,
-            dilation: 1,
-            groups: 1,
-            cudnn_fwd_algo: None,
-        };
-        Ok(candle_nn::Conv1d::new(w, Some(bias), cfg))
+        })
     }
 
     /// A zero-initialised embedding table `[n, dim]` (the `d_vis` embedding).
@@ -119,6 +117,46 @@ impl ParamStore {
             groups,
             eps: 1e-5,
         })
+    }
+}
+
+/// 1-D convolution as im2col + matmul from differentiable primitives (pad, narrow, cat,
+/// matmul). candle 0.11's CPU `conv1d` backward gave wrong gradients in our finite-difference
+/// check (tests/gradcheck.rs), so the U-Net does not use it.
+#[derive(Debug, Clone)]
+pub(crate) struct Conv1d {
+    weight: Tensor,
+    bias: Tensor,
+    k: usize,
+    stride: usize,
+}
+
+impl Module for Conv1d {
+    fn forward(&self, x: &Tensor) -> CResult<Tensor> {
+        let (b, c, l) = x.dims3()?;
+        let o = self.weight.dim(0)?;
+        let cols = if self.k == 1 {
+            x.clone()
+        } else {
+            let xp = x.pad_with_zeros(2, self.k / 2, self.k / 2)?;
+            let taps = (0..self.k)
+                .map(|j| xp.narrow(2, j, l))
+                .collect::<CResult<Vec<_>>>()?;
+            Tensor::cat(&taps, 1)? // [B, K·C, L], index j·C + c
+        };
+        let w = self.weight.transpose(1, 2)?.reshape((o, self.k * c))?; // [O, K·C]
+        let y = w
+            .broadcast_left(b)?
+            .matmul(&cols)?
+            .broadcast_add(&self.bias.reshape((1, o, 1))?)?;
+        if self.stride == 1 {
+            Ok(y)
+        } else {
+            // Stride s on a same-padded conv = every s-th output position.
+            y.reshape((b, o, l / self.stride, self.stride))?
+                .narrow(3, 0, 1)?
+                .squeeze(3)
+        }
     }
 }
 

@@ -14,13 +14,13 @@
 
 use candle_core::{Module, Tensor};
 
-use super::layers::{mish, sinusoidal_tau, CResult, GroupNorm, ParamStore};
+use super::layers::{mish, sinusoidal_tau, CResult, Conv1d, GroupNorm, ParamStore};
 use super::Inputs;
 use crate::config::{FilmMode, Spec, UNetConfig};
 
 #[derive(Debug)]
 struct ConvBlock {
-    conv: candle_nn::Conv1d,
+    conv: Conv1d,
     gn: GroupNorm,
 }
 
@@ -49,7 +49,7 @@ struct ResBlock {
     b1: ConvBlock,
     film: candle_nn::Linear,
     film_pos: Option<candle_nn::Linear>,
-    res: Option<candle_nn::Conv1d>,
+    res: Option<Conv1d>,
     cout: usize,
 }
 
@@ -132,7 +132,7 @@ struct Level {
     r0: ResBlock,
     r1: ResBlock,
     /// Down: stride-2 conv. Up: conv3 after nearest ×2.
-    resample: Option<candle_nn::Conv1d>,
+    resample: Option<Conv1d>,
 }
 
 #[derive(Debug)]
@@ -144,7 +144,7 @@ pub(crate) struct UNet {
     mid: [ResBlock; 2],
     up: Vec<Level>,
     final_block: ConvBlock,
-    final_conv: candle_nn::Conv1d,
+    final_conv: Conv1d,
     tau_dim: usize,
     film: FilmMode,
     h: usize,
