@@ -92,7 +92,7 @@ fn unet_learns_a_known_function() {
             film: FilmMode::PerPosition,
         }),
     };
-    learns_function(cfg, 300, 3e-3, 0.2);
+    learns_function(cfg, 400, 6e-3, 0.2);
 }
 
 fn train_weights(seed: u64, schedule: TrainSchedule) -> Vec<Vec<f32>> {

@@ -36,7 +36,7 @@ fn check(cfg: Config) {
     let slow = [0.4f32, -0.3];
     let w: Vec<f32> = (0..b * h * A).map(|i| (i as f32 * 1.3).cos()).collect();
     let wt = Tensor::from_vec(w, (b, h, A), &candle_core::Device::Cpu).unwrap();
-    let mut loss = |m: &mut CandleModel| -> Tensor {
+    let loss = |m: &mut CandleModel| -> Tensor {
         let input = ModelInput {
             batch: b,
             horizon: h,
