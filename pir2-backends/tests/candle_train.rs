@@ -367,3 +367,37 @@ fn dit_trains_and_its_delay_embedding_starts_at_zero() {
         .iter()
         .any(|&v| v != 0.0));
 }
+
+#[test]
+fn finetune_from_shared_film_starts_position_uniform() {
+    let dir = std::env::temp_dir().join(format!("pir2-ft-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let unet = |film| Config {
+        spec: spec(8),
+        model: ModelConfig::UNet(UNetConfig {
+            widths: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            dvis_dim: 2,
+            film,
+        }),
+    };
+    let shared = CandleModel::new(
+        unet(FilmMode::Shared),
+        pir2_backends::Stats::identity(&spec(8)),
+        2,
+    )
+    .unwrap();
+    shared.save(&dir).unwrap();
+    let mut shared = CandleModel::load(&dir).unwrap();
+    let mut pp = CandleModel::init_from(&dir, unet(FilmMode::PerPosition)).unwrap();
+    assert!(pp.vars().iter().any(|(n, _)| n.contains("film_pos")));
+    assert_eq!(one_call(&mut shared), one_call(&mut pp));
+    // A plain load with the wrong architecture still fails, naming a tensor.
+    assert!(matches!(
+        CandleModel::init_from(&dir, mlp_config(8)),
+        Err(Error::MissingTensor { .. } | Error::TensorShape { .. })
+    ));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
