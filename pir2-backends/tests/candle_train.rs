@@ -401,3 +401,41 @@ fn finetune_from_shared_film_starts_position_uniform() {
     ));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn shipped_configs_parse_and_build() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let p = e.unwrap().path();
+        let cfg = Config::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        let m =
+            CandleModel::new(cfg.clone(), pir2_backends::Stats::identity(&cfg.spec), 0).unwrap();
+        assert!(m.num_params() > 0);
+        n += 1;
+    }
+    assert!(n >= 2, "expected the shipped configs in {}", dir.display());
+}
+
+#[test]
+fn trainer_refuses_a_dir_with_old_checkpoints_before_training() {
+    let dir = std::env::temp_dir().join(format!("pir2-old-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("step-000005")).unwrap();
+    let cfg = mlp_config(8);
+    let data = dataset(4, 10, 7);
+    let mut m = CandleModel::new(
+        cfg.clone(),
+        compute_stats(data.as_slice(), &cfg.spec).unwrap(),
+        0,
+    )
+    .unwrap();
+    let mut steps = 0;
+    let r = Trainer::new(quick(5, 1e-3, TrainSchedule::StandardFlow))
+        .out_dir(&dir)
+        .on_progress(|_| steps += 1)
+        .run(&mut m, data.as_slice());
+    assert!(matches!(r, Err(Error::CheckpointExists(_))));
+    assert_eq!(steps, 0);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
