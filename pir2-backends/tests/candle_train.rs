@@ -439,3 +439,53 @@ fn trainer_refuses_a_dir_with_old_checkpoints_before_training() {
     assert_eq!(steps, 0);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn hidden_front_draws_train_every_architecture() {
+    use pir2_backends::config::DitConfig;
+    use pir2_schedule::train::FrontVisibility;
+    let s = TrainSchedule::PiR2(PiR2Draws {
+        n: Some(2),
+        delay: DelayDist::Uniform { max: 2 },
+        front: FrontVisibility::Hidden,
+        ..PiR2Draws::default()
+    });
+    let data = dataset(8, 12, 8);
+    for model in [
+        mlp_config(8).model,
+        ModelConfig::UNet(UNetConfig {
+            widths: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            dvis_dim: 2,
+            film: FilmMode::PerPosition,
+        }),
+        ModelConfig::Dit(DitConfig {
+            width: 16,
+            depth: 1,
+            heads: 2,
+            mlp_ratio: 2,
+            tau_dim: 8,
+        }),
+    ] {
+        let cfg = Config {
+            spec: spec(8),
+            model,
+        };
+        let mut m = CandleModel::new(
+            cfg.clone(),
+            compute_stats(data.as_slice(), &cfg.spec).unwrap(),
+            0,
+        )
+        .unwrap();
+        let r = Trainer::new(TrainConfig {
+            batch_size: 8,
+            ..quick(5, 1e-3, s)
+        })
+        .run(&mut m, data.as_slice())
+        .unwrap();
+        assert!(r.losses.iter().all(|l| l.1.is_finite()), "{:?}", cfg.model);
+        assert!(one_call(&mut m).iter().all(|v| v.is_finite()));
+    }
+}
