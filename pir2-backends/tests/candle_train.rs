@@ -463,7 +463,7 @@ fn hidden_front_draws_train_every_architecture() {
         }),
         ModelConfig::Dit(DitConfig {
             width: 16,
-            depth: 1,
+            depth: 2,
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 8,

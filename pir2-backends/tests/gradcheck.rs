@@ -125,7 +125,7 @@ fn dit_gradients_match_finite_differences() {
         spec: spec(4),
         model: ModelConfig::Dit(DitConfig {
             width: 16,
-            depth: 1,
+            depth: 2,
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 8,
