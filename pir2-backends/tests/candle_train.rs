@@ -92,7 +92,7 @@ fn unet_learns_a_known_function() {
             film: FilmMode::PerPosition,
         }),
     };
-    learns_function(cfg, 400, 6e-3, 0.2);
+    learns_function(cfg, 300, 6e-3, 0.2);
 }
 
 fn train_weights(seed: u64, schedule: TrainSchedule) -> Vec<Vec<f32>> {
@@ -348,7 +348,7 @@ fn dit_trains_and_its_delay_embedding_starts_at_zero() {
         .unwrap()
         .iter()
         .all(|&v| v == 0.0));
-    let r = Trainer::new(quick(150, 3e-3, TrainSchedule::StandardFlow))
+    let r = Trainer::new(quick(100, 3e-3, TrainSchedule::StandardFlow))
         .run(&mut m, data.as_slice())
         .unwrap();
     let l = &r.losses;
