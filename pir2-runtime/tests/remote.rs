@@ -129,7 +129,7 @@ fn remote_slow(port: u16, robot_clock: Arc<dyn Clock>) -> (SlowChannel, Arc<Remo
                 ..Link::connect(ep(port))
             },
             key: "test/slow".into(),
-            stale_poll: Duration::from_millis(40),
+            stale_poll: Duration::from_millis(100), // frames every ~40 ms
             first_timeout: Duration::from_secs(5),
             ..Default::default()
         },
@@ -369,7 +369,7 @@ fn slow_server_gone_stops_the_robot_once_d_vis_exceeds_its_max() {
         Ok(_) => panic!("expected a safety stop, the run completed"),
     }
     let c = stats.counters();
-    assert!(c.stale_polls >= 2 && c.stale_episodes == 1, "{c:?}");
+    assert!(c.stale_polls >= 1 && c.stale_episodes == 1, "{c:?}");
     // Stopped within (d_vis_max + ½)·T + grace ≈ 0.21 s of the outage, long before 500 ticks.
     assert!(r.sent < 500, "sent {}", r.sent);
 }

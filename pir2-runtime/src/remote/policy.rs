@@ -280,3 +280,132 @@ impl VelocityModel for RemoteModel {
         self.call(input, out).map_err(Into::into)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::SlowInput;
+    use crate::remote::slow::{RemoteSlowConfig, RemoteSlowSource};
+    use crate::remote::wire::{Header, Kind, WireError, Writer};
+
+    fn free_endpoint() -> String {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        format!("tcp/127.0.0.1:{}", l.local_addr().unwrap().port())
+    }
+
+    fn v2(kind: Kind) -> Vec<u8> {
+        let h = Header {
+            kind,
+            sender: 1,
+            seq: 1,
+            t_a: 0,
+            t_b: 0,
+        };
+        Writer::with_version(h, 0, 0, WIRE_VERSION_NEXT).finish()
+    }
+
+    const WIRE_VERSION_NEXT: u16 = wire::WIRE_VERSION + 1;
+
+    #[test]
+    fn version_mismatch_from_a_policy_server_is_a_typed_error() {
+        let ep = free_endpoint();
+        let server = Link::listen(ep.clone()).open().unwrap();
+        let q = server.declare_queryable("t/policy").wait().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        // A server that answers pings in v1 but requests in v2 (a newer build).
+        let fake = std::thread::spawn(move || {
+            while !s.load(Ordering::Acquire) {
+                let Ok(Some(q)) = q.recv_timeout(Duration::from_millis(20)) else {
+                    continue;
+                };
+                let bytes = q.payload().map(|p| p.to_bytes().into_owned()).unwrap();
+                let (h, _) = wire::decode_header(&bytes).unwrap();
+                let reply = if h.kind == Kind::Ping {
+                    wire::encode_pong(1, &h, 0)
+                } else {
+                    v2(Kind::PolicyReply)
+                };
+                q.reply(q.key_expr().clone(), reply).wait().unwrap();
+            }
+        });
+        let mut m = RemoteModel::connect(RemoteModelConfig {
+            link: Link::connect(ep),
+            key: "t/policy".into(),
+            timeout: Duration::from_secs(2),
+            connect_timeout: Duration::from_secs(5),
+            ..Default::default()
+        })
+        .unwrap();
+        let (x, tau, obs, dv) = (vec![0.0; 6], vec![0.0; 3], vec![0.0; 4], [0u32]);
+        let input = ModelInput {
+            batch: 1,
+            horizon: 3,
+            action_dim: 2,
+            x: &x,
+            tau: &tau,
+            obs_fast: &obs,
+            n_obs: 1,
+            fast_dim: 4,
+            slow: SlowInput::None,
+            d_vis: &dv,
+        };
+        let mut out = vec![0.0; 6];
+        let err = m.call(&input, &mut out).unwrap_err();
+        stop.store(true, Ordering::Release);
+        fake.join().unwrap();
+        assert!(
+            matches!(
+                err,
+                Error::Wire(WireError::Version {
+                    got: WIRE_VERSION_NEXT,
+                    expected: wire::WIRE_VERSION
+                })
+            ),
+            "{err}"
+        );
+        // Not retried: a version mismatch cannot heal.
+        assert_eq!(m.stats().counters().attempts, 1);
+        let e: crate::Error = err.into();
+        assert!(e.to_string().contains("wire version mismatch"), "{e}");
+    }
+
+    #[test]
+    fn version_mismatch_on_the_slow_channel_is_a_typed_error() {
+        let ep = free_endpoint();
+        let server = Link::listen(ep.clone()).open().unwrap();
+        let publisher = server.declare_publisher("t/slow").wait().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let s = stop.clone();
+        let fake = std::thread::spawn(move || {
+            while !s.load(Ordering::Acquire) {
+                publisher.put(v2(Kind::Features)).wait().unwrap();
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        });
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let mut src = RemoteSlowSource::connect(
+            RemoteSlowConfig {
+                link: Link::connect(ep),
+                key: "t/slow".into(),
+                first_timeout: Duration::from_secs(5),
+                ..Default::default()
+            },
+            clock,
+        )
+        .unwrap();
+        let err = src.next().unwrap_err();
+        stop.store(true, Ordering::Release);
+        fake.join().unwrap();
+        assert!(
+            matches!(
+                err,
+                Error::Wire(WireError::Version {
+                    got: WIRE_VERSION_NEXT,
+                    ..
+                })
+            ),
+            "{err}"
+        );
+    }
+}

@@ -130,7 +130,8 @@ pub struct RemoteSlowConfig {
     /// The server's key.
     pub key: String,
     /// Without a fresh message for this long, the last features are handed again (same
-    /// capture time, so `d_vis` grows) and a stale poll is counted.
+    /// capture time, so `d_vis` keeps growing), a stale poll is counted and the slow worker
+    /// gets a chance to see the stop flag. Make it longer than the server's frame interval.
     pub stale_poll: Duration,
     /// How long the first features may take before `capture` fails.
     pub first_timeout: Duration,
@@ -147,7 +148,7 @@ impl Default for RemoteSlowConfig {
         Self {
             link: Link::connect("tcp/127.0.0.1:7448"),
             key: "pir2/slow".into(),
-            stale_poll: Duration::from_millis(50),
+            stale_poll: Duration::from_millis(250),
             first_timeout: Duration::from_secs(10),
             sync_samples: 16,
             ping_timeout: Duration::from_millis(200),
@@ -289,7 +290,7 @@ impl RemoteSlowSource {
         }
     }
 
-    fn next(&mut self) -> Result<SlowFrame> {
+    pub(crate) fn next(&mut self) -> Result<SlowFrame> {
         let first = self.last.is_none();
         let wait = if first {
             self.cfg.first_timeout

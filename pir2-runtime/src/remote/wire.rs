@@ -882,7 +882,8 @@ mod tests {
 
     #[test]
     fn huge_declared_tensor_is_rejected_without_allocating() {
-        let mut bytes = Writer::new(hdr(Kind::Features), 1, 0).finish();
+        let mut bytes = Writer::new(hdr(Kind::Features), 0, 0).finish();
+        bytes[7] = 1; // one tensor, declared [u32::MAX, u32::MAX] f32 with no data
         bytes.extend_from_slice(&[1, 2, 0, 0]);
         bytes.extend_from_slice(&u32::MAX.to_le_bytes());
         bytes.extend_from_slice(&u32::MAX.to_le_bytes());
