@@ -5,6 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo fmt --all -- --check
 cargo clippy -p pir2-runtime --features remote --all-targets -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc -p pir2-runtime --features remote --no-deps
 cargo test -p pir2-runtime --features remote
 # the default build must not change
 cargo test -p pir2-runtime

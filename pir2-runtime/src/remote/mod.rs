@@ -13,7 +13,7 @@
 //!   ±RTT/2), converts the capture time into the robot's clock and feeds the runtime's slow
 //!   cache through [`RemoteSlowEncoder`] (identity). `d_vis` therefore includes the backbone
 //!   time, the transport delay and the offset error.
-//! - [`serve_policy`] answers one-NFE requests with any local [`VelocityModel`];
+//! - [`serve_policy`] answers one-NFE requests with any local [`crate::VelocityModel`];
 //!   [`RemoteModel`] is a `VelocityModel` that sends the request and waits for the reply.
 //!   The real-time worker measures each call, so the round trip lands in the latency
 //!   window and `d` grows with the network.
