@@ -802,7 +802,7 @@ pub fn encode_pong(sender: u64, ping: &Header, t_recv: u64) -> Vec<u8> {
     .finish()
 }
 
-/// Decode a pong (or a server error as `Err(Malformed)`).
+/// Decode a pong (anything else, e.g. a server error, is `Err(UnexpectedKind)`).
 pub fn decode_pong(bytes: &[u8]) -> Result<Header, WireError> {
     let msg = decode(bytes)?;
     expect(&msg, Kind::Pong)?;
