@@ -123,6 +123,7 @@ pub struct ActionHead<M> {
     v: Vec<f32>,
     eps: Vec<f32>,
     forced_delay: Option<usize>,
+    slow_grace: Option<Nanos>,
 }
 
 impl<M: VelocityModel> ActionHead<M> {
@@ -191,6 +192,7 @@ impl<M: VelocityModel> ActionHead<M> {
             v: vec![0.0; h * a],
             eps: vec![0.0; h * a],
             forced_delay: None,
+            slow_grace: None,
         })
     }
 
@@ -220,6 +222,34 @@ impl<M: VelocityModel> ActionHead<M> {
         self.forced_delay
             .unwrap_or_else(|| self.window.delay())
             .clamp(1, self.spec.d_max.max(1))
+    }
+
+    /// Stale-slow safety check: a call fails with [`Error::SafetyStop`] when its slow
+    /// features are older than `d_vis_max` ticks (rounded, i.e. `(d_vis_max + ½)·T_ctrl`)
+    /// for longer than `grace`. `None` (the default) never stops: `d_vis` is clamped to
+    /// `d_vis_max`. Set it whenever the slow channel can stall (a remote backbone).
+    pub fn set_slow_grace(&mut self, grace: Option<Nanos>) {
+        self.slow_grace = grace;
+    }
+
+    fn check_slow_age(&self, snap: &Snapshot) -> Result<()> {
+        let Some(grace) = self.slow_grace else {
+            return Ok(());
+        };
+        if self.spec.slow_dim == 0 {
+            return Ok(());
+        }
+        let age = snap.t_state.saturating_sub(snap.t_slow);
+        let limit = (2 * self.spec.d_vis_max as u64 + 1) * self.spec.period / 2 + grace;
+        if age > limit {
+            return Err(Error::SafetyStop(format!(
+                "slow features are {:.1} ms old: d_vis > d_vis_max = {} for longer than the {:.1} ms grace",
+                age as f64 / 1e6,
+                self.spec.d_vis_max,
+                grace as f64 / 1e6
+            )));
+        }
+        Ok(())
     }
 
     fn d_vis(&self, snap: &Snapshot) -> usize {
@@ -320,6 +350,7 @@ impl<M: VelocityModel> ActionHead<M> {
     /// One call on `snap`: writes the new chunk into `out`. The latency is recorded by the
     /// driver (it owns the clock) through [`record_latency`](Self::record_latency).
     pub fn call(&mut self, snap: &Snapshot, out: &mut Chunk) -> Result<()> {
+        self.check_slow_age(snap)?;
         let d = self.delay();
         let d_vis = self.d_vis(snap);
         let spec = self.spec;

@@ -26,6 +26,8 @@ pub mod metrics;
 pub mod mode;
 pub mod model;
 pub mod realtime;
+#[cfg(feature = "remote")]
+pub mod remote;
 pub mod testing;
 pub mod window;
 

@@ -1,0 +1,283 @@
+//! The slow channel and the action head across machines, over Zenoh (feature `remote`).
+//!
+//! ```text
+//!  robot (realtime::run)                               servers
+//!  slow worker ── RemoteSlowSource ◄── pub/sub ──────── serve_slow(source, encoder)
+//!              (clock offset: ping/pong, min RTT)  ◄──── (pong on `<key>/clock`)
+//!  action worker ─ RemoteModel ────── query/reply ────► serve_policy(model)
+//! ```
+//!
+//! - [`serve_slow`] publishes backbone features with their capture time on the server's
+//!   clock. The robot's [`RemoteSlowSource`] subscribes, estimates the clock offset with an
+//!   NTP-style ping/pong exchange (the sample with the smallest round trip wins, accuracy
+//!   ±RTT/2), converts the capture time into the robot's clock and feeds the runtime's slow
+//!   cache through [`RemoteSlowEncoder`] (identity). `d_vis` therefore includes the backbone
+//!   time, the transport delay and the offset error.
+//! - [`serve_policy`] answers one-NFE requests with any local [`crate::VelocityModel`];
+//!   [`RemoteModel`] is a `VelocityModel` that sends the request and waits for the reply.
+//!   The real-time worker measures each call, so the round trip lands in the latency
+//!   window and `d` grows with the network.
+//!
+//! Faults (see `notes/issue-9.md` for the measured behaviour):
+//! - slow server gone: [`RemoteSlowSource`] hands the last features again (same capture
+//!   time) every [`RemoteSlowConfig::stale_poll`], so `d_vis` keeps growing; the head's
+//!   stale-slow check ([`crate::head::ActionHead::set_slow_grace`]) stops the robot with
+//!   [`crate::Error::SafetyStop`] once the features are older than `d_vis_max` ticks for
+//!   longer than the grace period. A restarted server (new sender id) is detected, the
+//!   clock offset is estimated again, and the features resume;
+//! - policy server gone: a call that gets no reply within [`RemoteModelConfig::timeout`]
+//!   is retried (same snapshot) while the control thread runs the overrun path (`x̂`, then
+//!   holds); after [`RemoteModelConfig::max_failed_calls`] consecutive failures the call
+//!   returns [`Error::ServerGone`], a safety stop. A reply after failures counts a
+//!   reconnect; nothing on the robot side restarts.
+//!
+//! Every event is counted in a shared [`RemoteStats`] (read it after a run with
+//! [`RemoteStats::counters`]). The control thread never touches Zenoh: only the slow and
+//! action workers block on it, through Zenoh's synchronous `wait()` API.
+
+mod clock_sync;
+mod policy;
+mod slow;
+pub mod wire;
+
+use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+pub use clock_sync::{estimate_offset, ClockOffset, OffsetSample};
+pub use policy::{serve_policy, PolicyServerConfig, RemoteModel, RemoteModelConfig};
+pub use slow::{
+    remote_slow_channel, serve_slow, RemoteSlowConfig, RemoteSlowEncoder, RemoteSlowSource,
+    SlowServerConfig,
+};
+pub use wire::{WireError, WIRE_VERSION};
+
+/// Errors of the remote channels.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A message could not be decoded (version mismatch, malformed, wrong kind).
+    #[error(transparent)]
+    Wire(#[from] WireError),
+    /// Zenoh failed (open, declare, send).
+    #[error("zenoh {what}: {message}")]
+    Transport {
+        /// What was being done.
+        what: &'static str,
+        /// Zenoh's message.
+        message: String,
+    },
+    /// Nothing arrived in time.
+    #[error("{what}: no answer within {after:?}")]
+    Timeout {
+        /// What was awaited.
+        what: &'static str,
+        /// The timeout.
+        after: Duration,
+    },
+    /// The policy server answered with an error.
+    #[error("policy server error: {0}")]
+    Server(String),
+    /// The policy server did not answer `failed` calls in a row: stop the robot.
+    #[error("policy server unreachable: {failed} consecutive calls timed out after {timeout:?}")]
+    ServerGone {
+        /// Consecutive failed attempts.
+        failed: u32,
+        /// Timeout per attempt.
+        timeout: Duration,
+    },
+    /// A reply does not match its request (shape or sequence number).
+    #[error("reply mismatch: {0}")]
+    Mismatch(String),
+    /// Invalid configuration.
+    #[error("invalid remote configuration: {0}")]
+    Config(String),
+    /// A runtime error (a model, source or encoder on the server side).
+    #[error(transparent)]
+    Runtime(#[from] crate::Error),
+}
+
+/// Result alias of this module.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl From<Error> for crate::Error {
+    fn from(e: Error) -> Self {
+        match e {
+            Error::Runtime(e) => e,
+            Error::ServerGone { .. } => crate::Error::SafetyStop(e.to_string()),
+            Error::Server(m) => crate::Error::Model(format!("remote: {m}")),
+            Error::Config(m) => crate::Error::Config(m),
+            other => crate::Error::io("remote", other),
+        }
+    }
+}
+
+pub(crate) fn transport(what: &'static str) -> impl FnOnce(zenoh::Error) -> Error {
+    move |e| Error::Transport {
+        what,
+        message: e.to_string(),
+    }
+}
+
+/// Where a Zenoh session listens and what it connects to. Endpoints are Zenoh locators,
+/// e.g. `tcp/127.0.0.1:7447` or `unixsock-stream//tmp/pir2.sock`. Multicast and gossip
+/// scouting are off: peers meet only through these endpoints.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Link {
+    /// Endpoints to listen on (servers usually listen).
+    pub listen: Vec<String>,
+    /// Endpoints to connect to (the robot usually connects).
+    pub connect: Vec<String>,
+    /// First retry period after a lost connection (then doubles, up to 10×).
+    pub retry: Duration,
+}
+
+impl Link {
+    /// Listen on `endpoint`.
+    pub fn listen(endpoint: impl Into<String>) -> Self {
+        Self {
+            listen: vec![endpoint.into()],
+            connect: Vec::new(),
+            retry: Duration::from_millis(100),
+        }
+    }
+    /// Connect to `endpoint`.
+    pub fn connect(endpoint: impl Into<String>) -> Self {
+        Self {
+            listen: Vec::new(),
+            connect: vec![endpoint.into()],
+            retry: Duration::from_millis(100),
+        }
+    }
+
+    fn zenoh_config(&self) -> Result<zenoh::Config> {
+        if self.listen.is_empty() && self.connect.is_empty() {
+            return Err(Error::Config(
+                "a link needs at least one listen or connect endpoint".into(),
+            ));
+        }
+        let json = |v: &[String]| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());
+        let retry = self.retry.as_millis().max(1);
+        let mut c = zenoh::Config::default();
+        let entries = [
+            ("mode", "\"peer\"".to_string()),
+            ("scouting/multicast/enabled", "false".into()),
+            ("scouting/gossip/enabled", "false".into()),
+            ("listen/endpoints", json(&self.listen)),
+            ("connect/endpoints", json(&self.connect)),
+            (
+                "connect/retry",
+                format!(
+                    "{{ period_init_ms: {retry}, period_max_ms: {}, period_increase_factor: 2 }}",
+                    retry * 10
+                ),
+            ),
+        ];
+        for (k, v) in entries {
+            c.insert_json5(k, &v)
+                .map_err(|e| Error::Config(format!("zenoh config `{k}` = {v}: {e}")))?;
+        }
+        Ok(c)
+    }
+
+    pub(crate) fn open(&self) -> Result<zenoh::Session> {
+        use zenoh::Wait;
+        zenoh::open(self.zenoh_config()?)
+            .wait()
+            .map_err(transport("open session"))
+    }
+}
+
+/// Counters of the remote channels, shared between a channel and whoever reads them.
+/// All updates are relaxed atomics (never on the control thread).
+#[derive(Debug, Default)]
+pub struct RemoteStats {
+    frames: AtomicU64,
+    stale_polls: AtomicU64,
+    stale_episodes: AtomicU64,
+    reconnects: AtomicU64,
+    clock_syncs: AtomicU64,
+    clock_sync_failures: AtomicU64,
+    calls: AtomicU64,
+    attempts: AtomicU64,
+    timeouts: AtomicU64,
+    failed_calls: AtomicU64,
+    server_errors: AtomicU64,
+    offset_ns: AtomicI64,
+    offset_rtt_ns: AtomicU64,
+    last_rtt_ns: AtomicU64,
+}
+
+/// A snapshot of [`RemoteStats`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RemoteCounters {
+    /// Slow: fresh feature messages accepted.
+    pub frames: u64,
+    /// Slow: polls without a fresh message (the last features were handed again).
+    pub stale_polls: u64,
+    /// Slow: transitions from fresh to stale.
+    pub stale_episodes: u64,
+    /// A new server instance (slow) or a reply after failures (policy).
+    pub reconnects: u64,
+    /// Slow: successful clock-offset estimates.
+    pub clock_syncs: u64,
+    /// Slow: clock-offset estimates that got no answer.
+    pub clock_sync_failures: u64,
+    /// Policy: calls made.
+    pub calls: u64,
+    /// Policy: requests sent (calls plus retries).
+    pub attempts: u64,
+    /// Policy: requests without a reply in time.
+    pub timeouts: u64,
+    /// Policy: calls that gave up (safety stop).
+    pub failed_calls: u64,
+    /// Policy: error replies from the server.
+    pub server_errors: u64,
+    /// Slow: current offset estimate, server clock − robot clock, ns.
+    pub offset_ns: i64,
+    /// Slow: round trip of the sample the offset came from (accuracy bound = half), ns.
+    pub offset_rtt_ns: u64,
+    /// Policy: round trip of the last successful call, ns.
+    pub last_rtt_ns: u64,
+}
+
+impl RemoteStats {
+    /// Read every counter.
+    pub fn counters(&self) -> RemoteCounters {
+        let r = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        RemoteCounters {
+            frames: r(&self.frames),
+            stale_polls: r(&self.stale_polls),
+            stale_episodes: r(&self.stale_episodes),
+            reconnects: r(&self.reconnects),
+            clock_syncs: r(&self.clock_syncs),
+            clock_sync_failures: r(&self.clock_sync_failures),
+            calls: r(&self.calls),
+            attempts: r(&self.attempts),
+            timeouts: r(&self.timeouts),
+            failed_calls: r(&self.failed_calls),
+            server_errors: r(&self.server_errors),
+            offset_ns: self.offset_ns.load(Ordering::Relaxed),
+            offset_rtt_ns: r(&self.offset_rtt_ns),
+            last_rtt_ns: r(&self.last_rtt_ns),
+        }
+    }
+}
+
+fn bump(a: &AtomicU64) {
+    a.fetch_add(1, Ordering::Relaxed);
+}
+
+/// A random id for this process instance (distinguishes a restarted server).
+pub(crate) fn instance_id() -> u64 {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0),
+    );
+    h.write_u32(std::process::id());
+    h.finish()
+}

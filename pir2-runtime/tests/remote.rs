@@ -1,0 +1,375 @@
+//! The remote slow channel and action head end to end: `realtime::run` with a fake robot on
+//! one side, `serve_policy` / `serve_slow` on the other, over TCP on 127.0.0.1 (test-chosen
+//! free ports). Servers run in threads with their own Zenoh sessions; "killing" a server
+//! stops it and closes its session. Bounded: each test runs a few seconds at most.
+#![cfg(feature = "remote")]
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use pir2_runtime::realtime::{run, RealtimeConfig, SlowChannel};
+use pir2_runtime::remote::{
+    remote_slow_channel, serve_policy, serve_slow, Link, PolicyServerConfig, RemoteModel,
+    RemoteModelConfig, RemoteSlowConfig, RemoteStats, SlowServerConfig,
+};
+use pir2_runtime::testing::{CameraStub, FakeRobot, PassThroughEncoder, SleepyModel};
+use pir2_runtime::*;
+use pir2_schedule::{Alignment, FrontMode};
+
+const PERIOD: Nanos = 20_000_000;
+const SEC: Nanos = 1_000_000_000;
+
+/// A clock `offset` ns ahead of a shared base: two "machines" whose true offset is known.
+#[derive(Debug)]
+struct OffsetClock {
+    base: Arc<SystemClock>,
+    offset: Nanos,
+}
+
+impl Clock for OffsetClock {
+    fn now(&self) -> Nanos {
+        self.base.now() + self.offset
+    }
+    fn sleep_until(&self, deadline: Nanos) {
+        self.base.sleep_until(deadline.saturating_sub(self.offset));
+    }
+}
+
+fn clock(base: &Arc<SystemClock>, offset: Nanos) -> Arc<dyn Clock> {
+    Arc::new(OffsetClock {
+        base: base.clone(),
+        offset,
+    })
+}
+
+fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap().port()
+}
+
+fn ep(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+struct Server {
+    stop: Arc<AtomicBool>,
+    handle: JoinHandle<pir2_runtime::remote::Result<()>>,
+}
+
+impl Server {
+    /// Stop the server and close its session (the robot sees it vanish).
+    fn kill(self) {
+        self.stop.store(true, Ordering::SeqCst);
+        self.handle.join().unwrap().unwrap();
+    }
+}
+
+fn policy_server(port: u16, model_ms: u64, reply_delay: Duration) -> Server {
+    let stop = Arc::new(AtomicBool::new(false));
+    let cfg = PolicyServerConfig {
+        link: Link::listen(ep(port)),
+        key: "test/policy".into(),
+        reply_delay,
+    };
+    let s = stop.clone();
+    let handle = std::thread::spawn(move || {
+        serve_policy(
+            SleepyModel {
+                latency: Duration::from_millis(model_ms),
+            },
+            &cfg,
+            s,
+        )
+    });
+    Server { stop, handle }
+}
+
+fn slow_server(port: u16, clock: Arc<dyn Clock>) -> Server {
+    let stop = Arc::new(AtomicBool::new(false));
+    let cfg = SlowServerConfig {
+        link: Link::listen(ep(port)),
+        key: "test/slow".into(),
+    };
+    let s = stop.clone();
+    let handle = std::thread::spawn(move || {
+        serve_slow(
+            Box::new(CameraStub::new(clock.clone(), Duration::from_millis(30), 4)),
+            Box::new(PassThroughEncoder {
+                latency: Duration::from_millis(10),
+            }),
+            clock,
+            &cfg,
+            s,
+        )
+    });
+    Server { stop, handle }
+}
+
+fn remote_model(port: u16, timeout_ms: u64, max_failed: u32) -> RemoteModel {
+    RemoteModel::connect(RemoteModelConfig {
+        link: Link {
+            retry: Duration::from_millis(20),
+            ..Link::connect(ep(port))
+        },
+        key: "test/policy".into(),
+        timeout: Duration::from_millis(timeout_ms),
+        max_failed_calls: max_failed,
+        connect_timeout: Duration::from_secs(5),
+    })
+    .unwrap()
+}
+
+fn remote_slow(port: u16, robot_clock: Arc<dyn Clock>) -> (SlowChannel, Arc<RemoteStats>) {
+    remote_slow_channel(
+        RemoteSlowConfig {
+            link: Link {
+                retry: Duration::from_millis(20),
+                ..Link::connect(ep(port))
+            },
+            key: "test/slow".into(),
+            stale_poll: Duration::from_millis(100), // frames every ~40 ms
+            first_timeout: Duration::from_secs(5),
+            ..Default::default()
+        },
+        robot_clock,
+    )
+    .unwrap()
+}
+
+struct Run {
+    result: Result<(RunMetrics, ActionHead<RemoteModel>)>,
+    sent: u64,
+}
+
+fn go(
+    model: RemoteModel,
+    slow: Option<SlowChannel>,
+    robot_clock: Arc<dyn Clock>,
+    ticks: u64,
+    slow_grace: Option<Nanos>,
+) -> Run {
+    let spec = HeadSpec {
+        horizon: 16,
+        action_dim: 3,
+        n_obs: 2,
+        fast_dim: 6,
+        slow_dim: if slow.is_some() { 4 } else { 0 },
+        period: PERIOD,
+        d_max: 5,
+        d_vis_max: 5,
+    };
+    let mode = HeadMode::PiR2 {
+        nfe: Some(2),
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+        warm_start_steps: 2,
+    };
+    let mut head = ActionHead::new(
+        model,
+        spec,
+        mode,
+        LatencyWindow::new(20, 2, PERIOD, spec.d_max),
+        0,
+    )
+    .unwrap();
+    head.set_slow_grace(slow_grace);
+    let robot = FakeRobot::new(3, robot_clock.clone());
+    let sent = robot.sent.clone();
+    let control = ControlConfig {
+        horizon: 16,
+        action_dim: 3,
+        policy: CallPolicy::Async,
+        ensemble: None,
+        output: Default::default(),
+    };
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(ticks),
+        ..Default::default()
+    };
+    let result = run(
+        head,
+        control,
+        robot.clone(),
+        robot,
+        slow.unwrap_or(SlowChannel::None),
+        robot_clock,
+        cfg,
+        Arc::new(AtomicBool::new(false)),
+    );
+    Run {
+        result,
+        sent: sent.load(Ordering::SeqCst),
+    }
+}
+
+fn median(mut v: Vec<usize>) -> usize {
+    v.sort_unstable();
+    v[v.len() / 2]
+}
+
+#[test]
+fn remote_realtime_run_end_to_end_converts_capture_times() {
+    let base = Arc::new(SystemClock::new());
+    // The robot's clock is 3 s ahead of the servers': without the offset correction every
+    // slow feature would look 150 ticks old (d_vis clamped to 5).
+    let robot_clock = clock(&base, 3 * SEC);
+    let (pp, sp) = (free_port(), free_port());
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let slow = slow_server(sp, clock(&base, 0));
+    let model = remote_model(pp, 500, 10);
+    let policy_stats = model.stats();
+    let (slow_ch, slow_stats) = remote_slow(sp, robot_clock.clone());
+    let r = go(model, Some(slow_ch), robot_clock, 75, Some(SEC));
+    let (m, _) = r.result.expect("remote run");
+    policy.kill();
+    slow.kill();
+
+    assert_eq!(m.ticks, 75);
+    assert!(m.swaps >= 10, "swaps {}", m.swaps);
+    let p = policy_stats.counters();
+    assert!(p.calls >= m.swaps, "{p:?}");
+    assert_eq!(
+        (p.timeouts, p.failed_calls, p.server_errors),
+        (0, 0, 0),
+        "{p:?}"
+    );
+    let s = slow_stats.counters();
+    assert!(s.frames >= 5, "{s:?}");
+    assert!(s.clock_syncs >= 1 && s.reconnects == 0, "{s:?}");
+    // Min-RTT estimate: the error is at most half the chosen sample's round trip.
+    let err = (s.offset_ns + 3 * SEC as i64).unsigned_abs();
+    assert!(
+        err <= s.offset_rtt_ns / 2 + 1,
+        "offset error {err} ns > RTT/2 = {} ns",
+        s.offset_rtt_ns / 2
+    );
+    // Camera 30 ms + backbone 10 ms + transport: a few ticks, never the clamp.
+    let d_vis = median(m.calls.iter().map(|c| c.d_vis).collect());
+    assert!(d_vis <= 3, "median d_vis {d_vis}");
+}
+
+#[test]
+fn injected_network_delay_raises_d() {
+    let (pp,) = (free_port(),);
+    // Every reply waits 45 ms: a call takes > 2.25 ticks, so the window's d ≥ 2.
+    let policy = policy_server(pp, 0, Duration::from_millis(45));
+    let model = remote_model(pp, 500, 10);
+    let r = go(model, None, Arc::new(SystemClock::new()), 50, None);
+    let (m, _) = r.result.expect("remote run");
+    policy.kill();
+    let ds: Vec<usize> = m.calls.iter().skip(4).map(|c| c.d).collect();
+    assert!(!ds.is_empty());
+    assert!(ds.iter().all(|&d| d >= 2), "d per call {ds:?}");
+    assert!(m.calls.iter().skip(1).all(|c| c.latency >= 45_000_000));
+}
+
+#[test]
+fn policy_server_restart_mid_run_is_survived_and_counted() {
+    let pp = free_port();
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let model = remote_model(pp, 50, 60);
+    let stats = model.stats();
+    let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let runner = std::thread::spawn(move || go(model, None, robot_clock, 100, None));
+    std::thread::sleep(Duration::from_millis(600));
+    policy.kill();
+    std::thread::sleep(Duration::from_millis(400));
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let r = runner.join().unwrap();
+    policy.kill();
+    let (m, _) = r.result.expect("the run survives a policy server restart");
+    let c = stats.counters();
+    assert!(c.timeouts >= 1, "{c:?}");
+    assert!(c.reconnects >= 1, "{c:?}");
+    assert_eq!(c.failed_calls, 0, "{c:?}");
+    assert_eq!(c.attempts, c.calls + c.timeouts, "{c:?}");
+    // The 400 ms outage outlasts the clean slots: the overrun path ran.
+    assert!(m.overruns > 0, "overruns {}", m.overruns);
+    assert_eq!(r.sent, 100);
+    // The outage call's latency is in the trace (the window saw it).
+    let max_latency = m.calls.iter().map(|c| c.latency).max().unwrap();
+    assert!(max_latency >= 300_000_000, "max latency {max_latency}");
+}
+
+#[test]
+fn policy_server_gone_stops_the_robot_safely() {
+    let pp = free_port();
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let model = remote_model(pp, 30, 3);
+    let stats = model.stats();
+    let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let runner = std::thread::spawn(move || go(model, None, robot_clock, 500, None));
+    std::thread::sleep(Duration::from_millis(400));
+    policy.kill();
+    let r = runner.join().unwrap();
+    match r.result {
+        Err(Error::SafetyStop(msg)) => assert!(msg.contains("unreachable"), "{msg}"),
+        Err(e) => panic!("expected a safety stop, got {e}"),
+        Ok(_) => panic!("expected a safety stop, the run completed"),
+    }
+    let c = stats.counters();
+    assert_eq!((c.timeouts, c.failed_calls), (3, 1), "{c:?}");
+    assert!(r.sent < 500, "sent {}", r.sent);
+}
+
+#[test]
+fn slow_server_restart_resyncs_the_clock_and_resumes() {
+    let base = Arc::new(SystemClock::new());
+    let robot_clock = clock(&base, 5 * SEC);
+    let (pp, sp) = (free_port(), free_port());
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    // First server 2 s ahead of the base, the restarted one at the base: keeping the old
+    // offset would make every new feature look 2 s old and trip the safety stop.
+    let slow = slow_server(sp, clock(&base, 2 * SEC));
+    let model = remote_model(pp, 500, 10);
+    let (slow_ch, stats) = remote_slow(sp, robot_clock.clone());
+    let rc = robot_clock.clone();
+    let runner = std::thread::spawn(move || go(model, Some(slow_ch), rc, 100, Some(SEC / 2)));
+    std::thread::sleep(Duration::from_millis(700));
+    slow.kill();
+    std::thread::sleep(Duration::from_millis(200));
+    let slow = slow_server(sp, clock(&base, 0));
+    let r = runner.join().unwrap();
+    policy.kill();
+    slow.kill();
+    let (m, _) = r.result.expect("the run survives a slow server restart");
+    let c = stats.counters();
+    assert_eq!(c.reconnects, 1, "{c:?}");
+    assert!(c.clock_syncs >= 2, "{c:?}");
+    assert!(c.stale_polls >= 1 && c.stale_episodes >= 1, "{c:?}");
+    let err = (c.offset_ns + 5 * SEC as i64).unsigned_abs();
+    assert!(err <= c.offset_rtt_ns / 2 + 1, "offset {c:?}");
+    // The outage shows in d_vis, and the features are fresh again at the end.
+    let max_dvis = m.calls.iter().map(|c| c.d_vis).max().unwrap();
+    assert!(max_dvis >= 5, "max d_vis {max_dvis}");
+    let tail: Vec<usize> = m.calls.iter().rev().take(5).map(|c| c.d_vis).collect();
+    assert!(tail.iter().all(|&d| d <= 4), "last d_vis {tail:?}");
+}
+
+#[test]
+fn slow_server_gone_stops_the_robot_once_d_vis_exceeds_its_max() {
+    let (pp, sp) = (free_port(), free_port());
+    let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let slow = slow_server(sp, robot_clock.clone());
+    let model = remote_model(pp, 500, 10);
+    let (slow_ch, stats) = remote_slow(sp, robot_clock.clone());
+    let rc = robot_clock.clone();
+    let runner = std::thread::spawn(move || go(model, Some(slow_ch), rc, 500, Some(SEC / 10)));
+    std::thread::sleep(Duration::from_millis(500));
+    slow.kill();
+    let r = runner.join().unwrap();
+    policy.kill();
+    match r.result {
+        Err(Error::SafetyStop(msg)) => assert!(msg.contains("slow features"), "{msg}"),
+        Err(e) => panic!("expected a safety stop, got {e}"),
+        Ok(_) => panic!("expected a safety stop, the run completed"),
+    }
+    let c = stats.counters();
+    assert!(c.stale_polls >= 1 && c.stale_episodes == 1, "{c:?}");
+    // Stopped within (d_vis_max + ½)·T + grace ≈ 0.21 s of the outage, long before 500 ticks.
+    assert!(r.sent < 500, "sent {}", r.sent);
+}
