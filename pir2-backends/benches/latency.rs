@@ -8,7 +8,7 @@
 
 use std::time::Instant;
 
-use pir2_backends::onnx::models::{Activation, MlpSpec, UnetSpec};
+use pir2_backends::onnx::models::{MlpSpec, ObsNorm, UnetSpec};
 use pir2_backends::onnx::ops::NamedWeights;
 use pir2_backends::onnx::{ContractDims, ModelSpec, SlowSpec};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
@@ -28,11 +28,12 @@ fn specs() -> Vec<ModelSpec> {
     vec![
         ModelSpec::Mlp(MlpSpec {
             dims: leap_dims(),
-            tau_dim: 16,
-            tau_scale: 100.0,
-            hidden: 512,
+            width: 256,
             depth: 3,
-            activation: Activation::Mish,
+            tau_freqs: 2,
+            dvis_dim: 8,
+            d_vis_max: 5,
+            norm: ObsNorm::identity(&leap_dims()),
         }),
         ModelSpec::Unet(UnetSpec {
             dims: leap_dims(),

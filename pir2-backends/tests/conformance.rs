@@ -621,3 +621,152 @@ mod tch_backend {
         assert!(e.to_string().contains("/nonexistent/model.pt"), "{e}");
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// Exported model definitions (MLP, U-Net): every enabled native backend runs the same
+// definition with the same weights; with both enabled they must agree with each other.
+// ---------------------------------------------------------------------------------------------
+
+mod exported {
+    use super::*;
+    use pir2_backends::onnx::models::{MlpSpec, ObsNorm, UnetSpec};
+    use pir2_backends::onnx::ops::NamedWeights;
+    use pir2_backends::onnx::ModelSpec;
+
+    pub(super) fn dims(slow: SlowSpec) -> ContractDims {
+        ContractDims {
+            horizon: 8,
+            action_dim: 3,
+            n_obs: 2,
+            fast_dim: 4,
+            slow,
+            has_d_vis: true,
+        }
+    }
+
+    pub(super) fn norm(d: &ContractDims) -> ObsNorm {
+        // Non-trivial statistics so the in-graph normalisation is exercised.
+        let mut n = ObsNorm::identity(d);
+        for (i, v) in n.fast.0.iter_mut().enumerate() {
+            *v = 0.1 * i as f32;
+        }
+        for (i, v) in n.fast.1.iter_mut().enumerate() {
+            *v = 0.5 + 0.25 * i as f32;
+        }
+        for v in n.fast_diff.1.iter_mut() {
+            *v = 2.0;
+        }
+        for (i, v) in n.slow.0.iter_mut().enumerate() {
+            *v = -0.2 * i as f32;
+        }
+        for v in n.slow.1.iter_mut() {
+            *v = 3.0;
+        }
+        n
+    }
+
+    pub(super) fn specs() -> Vec<ModelSpec> {
+        let mut v = Vec::new();
+        for slow in slow_variants() {
+            let d = dims(slow);
+            v.push(ModelSpec::Mlp(MlpSpec {
+                dims: d,
+                width: 32,
+                depth: 2,
+                tau_freqs: 2,
+                dvis_dim: 4,
+                d_vis_max: 2,
+                norm: norm(&d),
+            }));
+        }
+        let d = dims(SlowSpec::Vector { dim: 6 });
+        v.push(ModelSpec::Unet(UnetSpec {
+            dims: d,
+            down_dims: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            tau_scale: 10.0,
+        }));
+        v
+    }
+
+    pub(super) fn weights(spec: &ModelSpec) -> NamedWeights {
+        NamedWeights::random(&spec.weight_shapes(), 11)
+    }
+
+    #[test]
+    fn weight_shapes_name_every_weight_the_definition_reads() {
+        // Exporting with one weight missing must fail and name that weight.
+        for spec in specs() {
+            let shapes = spec.weight_shapes();
+            let w = weights(&spec);
+            assert!(onnx::export(&spec, &w).is_ok(), "{}", spec.kind());
+            let (drop, _) = &shapes[shapes.len() / 2];
+            let mut partial = NamedWeights::new();
+            for (n, s, d) in w.iter().filter(|(n, _, _)| n != drop) {
+                partial.insert(n, s.to_vec(), d.to_vec());
+            }
+            let e = onnx::export(&spec, &partial).unwrap_err();
+            assert!(e.to_string().contains(drop.as_str()), "{e}");
+        }
+    }
+
+    #[test]
+    fn export_rejects_a_misshapen_weight() {
+        let spec = &specs()[0];
+        let mut w = weights(spec);
+        w.insert("mlp.out.bias", vec![7], vec![0.0; 7]);
+        let e = onnx::export(spec, &w).unwrap_err();
+        assert!(
+            e.to_string().contains("mlp.out.bias") && e.to_string().contains("[7]"),
+            "{e}"
+        );
+    }
+}
+
+#[cfg(all(feature = "ort", feature = "tch"))]
+mod exported_ort_vs_tch {
+    use super::exported::{specs, weights};
+    use super::*;
+    use pir2_backends::ort::{OrtModel, OrtOptions};
+    use pir2_backends::tch::{export_torchscript, TchModel};
+
+    #[test]
+    fn ort_and_tch_agree_on_every_exported_definition() {
+        let dir =
+            std::env::temp_dir().join(format!("pir2-conformance-spec-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (i, spec) in specs().iter().enumerate() {
+            let w = weights(spec);
+            let mut ort = OrtModel::from_bytes(
+                &onnx::export(spec, &w).unwrap().encode(),
+                &OrtOptions::default(),
+            )
+            .unwrap();
+            let path = dir.join(format!("{}-{i}.pt", spec.kind()));
+            export_torchscript(spec, &w, &path).unwrap();
+            let mut tch = TchModel::load(&path).unwrap();
+            for batch in [1, 4] {
+                let inp = Inputs::random(*spec.dims(), batch, 3 + batch as u64);
+                let n = batch * spec.dims().horizon * spec.dims().action_dim;
+                let (mut a, mut b) = (vec![0f32; n], vec![0f32; n]);
+                ort.velocity(&inp.view(), &mut a).unwrap();
+                tch.velocity(&inp.view(), &mut b).unwrap();
+                assert!(
+                    a.iter().any(|v| v.abs() > 1e-3),
+                    "{}: degenerate output",
+                    spec.kind()
+                );
+                assert_close(
+                    &format!(
+                        "{} #{i} batch {batch}: onnxruntime vs libtorch",
+                        spec.kind()
+                    ),
+                    &a,
+                    &b,
+                );
+            }
+        }
+    }
+}

@@ -97,6 +97,15 @@ impl GraphBuilder {
         name
     }
 
+    /// Add a scalar `i64` constant.
+    pub fn const_i64_scalar(&mut self, v: i64) -> String {
+        let name = self.fresh("int");
+        self.graph
+            .initializers
+            .push(TensorProto::i64(name.clone(), &[], &[v]));
+        name
+    }
+
     fn node_named(&mut self, op: &str, inputs: &[&str], attributes: Vec<Attribute>, out: &str) {
         let name = self.fresh(op);
         self.graph.nodes.push(NodeProto {
@@ -233,7 +242,7 @@ impl GraphBuilder {
         in_dim: usize,
         out_dim: usize,
     ) -> String {
-        assert_eq!(w.len(), in_dim * out_dim, "linear `{name}`: weight length");
+        debug_assert_eq!(w.len(), in_dim * out_dim, "linear `{name}`: weight length");
         let mut wt = vec![0f32; w.len()];
         for o in 0..out_dim {
             for i in 0..in_dim {
@@ -244,7 +253,7 @@ impl GraphBuilder {
         let y = self.op("MatMul", &[x, &wn], vec![]);
         match b {
             Some(b) => {
-                assert_eq!(b.len(), out_dim, "linear `{name}`: bias length");
+                debug_assert_eq!(b.len(), out_dim, "linear `{name}`: bias length");
                 let bn = self.weight(&format!("{name}.bias"), &[out_dim], b);
                 self.add(&y, &bn)
             }
@@ -266,11 +275,11 @@ impl GraphBuilder {
         stride: usize,
         pad: usize,
     ) -> String {
-        assert_eq!(w.len(), c_out * c_in * k, "conv1d `{name}`: weight length");
+        debug_assert_eq!(w.len(), c_out * c_in * k, "conv1d `{name}`: weight length");
         let wn = self.weight(&format!("{name}.weight"), &[c_out, c_in, k], w);
         let mut inputs = vec![x.to_string(), wn];
         if let Some(b) = b {
-            assert_eq!(b.len(), c_out, "conv1d `{name}`: bias length");
+            debug_assert_eq!(b.len(), c_out, "conv1d `{name}`: bias length");
             inputs.push(self.weight(&format!("{name}.bias"), &[c_out], b));
         }
         let refs: Vec<&str> = inputs.iter().map(String::as_str).collect();
@@ -300,7 +309,7 @@ impl GraphBuilder {
         pad: usize,
         output_padding: usize,
     ) -> String {
-        assert_eq!(
+        debug_assert_eq!(
             w.len(),
             c_out * c_in * k,
             "conv_transpose1d `{name}`: weight length"
@@ -308,7 +317,7 @@ impl GraphBuilder {
         let wn = self.weight(&format!("{name}.weight"), &[c_in, c_out, k], w);
         let mut inputs = vec![x.to_string(), wn];
         if let Some(b) = b {
-            assert_eq!(b.len(), c_out, "conv_transpose1d `{name}`: bias length");
+            debug_assert_eq!(b.len(), c_out, "conv_transpose1d `{name}`: bias length");
             inputs.push(self.weight(&format!("{name}.bias"), &[c_out], b));
         }
         let refs: Vec<&str> = inputs.iter().map(String::as_str).collect();
@@ -342,13 +351,13 @@ impl GraphBuilder {
         groups: usize,
         eps: f32,
     ) -> String {
-        assert_eq!(
+        debug_assert_eq!(
             channels % groups,
             0,
             "group_norm `{name}`: {channels} channels not divisible by {groups} groups"
         );
-        assert_eq!(gamma.len(), channels);
-        assert_eq!(beta.len(), channels);
+        debug_assert_eq!(gamma.len(), channels);
+        debug_assert_eq!(beta.len(), channels);
         let g = self.reshape(x, &[0, groups as i64, -1]);
         let ones = self.const_f32(&[groups], &vec![1.0; groups]);
         let zeros = self.const_f32(&[groups], &vec![0.0; groups]);

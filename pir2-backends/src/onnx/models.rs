@@ -94,52 +94,147 @@ pub fn linear<O: Ops, W: WeightSource>(
 }
 
 // ------------------------------------------------------------------------------------------
+// Observation normalisation and τ features (as the candle models compute them)
+// ------------------------------------------------------------------------------------------
+
+/// Per-dimension `(mean, std)` used to normalise observations inside the graph (the candle
+/// models' `Stats`: fast `o_t`, fast differences, slow features).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObsNorm {
+    /// Mean and std of `o_t` (width `F`).
+    pub fast: (Vec<f32>, Vec<f32>),
+    /// Mean and std of `o_t − o_{t−1}` (width `F`).
+    pub fast_diff: (Vec<f32>, Vec<f32>),
+    /// Mean and std of the slow features (width `S` or `D`; empty without a slow input).
+    pub slow: (Vec<f32>, Vec<f32>),
+}
+
+impl ObsNorm {
+    /// The identity normalisation for `dims`.
+    pub fn identity(d: &ContractDims) -> Self {
+        let sw = match d.slow {
+            SlowSpec::None => 0,
+            SlowSpec::Vector { dim } | SlowSpec::Tokens { dim, .. } => dim,
+        };
+        ObsNorm {
+            fast: (vec![0.0; d.fast_dim], vec![1.0; d.fast_dim]),
+            fast_diff: (vec![0.0; d.fast_dim], vec![1.0; d.fast_dim]),
+            slow: (vec![0.0; sw], vec![1.0; sw]),
+        }
+    }
+}
+
+/// The encoded fast history `[norm(o_t), norm_d(o_t − o_{t−1}), norm_d(o_{t−1} − o_{t−2}), …]`
+/// → `[B, n_obs·F]` (oldest-first input `[B, n_obs, F]`).
+pub fn encode_fast<O: Ops>(o: &mut O, d: &ContractDims, norm: &ObsNorm, obs: &O::T) -> O::T {
+    let (n, f) = (d.n_obs as i64, d.fast_dim as i64);
+    let row = |o: &mut O, i: i64| {
+        let r = o.slice(obs, 1, i, i + 1);
+        o.reshape(&r, &[-1, f])
+    };
+    let fm = o.constant("stats.fast.mean", &[d.fast_dim], &norm.fast.0);
+    let fs = o.constant("stats.fast.std", &[d.fast_dim], &norm.fast.1);
+    let last = row(o, n - 1);
+    let c = o.sub(&last, &fm);
+    let mut parts = vec![o.div(&c, &fs)];
+    if n > 1 {
+        let dm = o.constant("stats.fast_diff.mean", &[d.fast_dim], &norm.fast_diff.0);
+        let ds = o.constant("stats.fast_diff.std", &[d.fast_dim], &norm.fast_diff.1);
+        for k in 1..n {
+            let newer = row(o, n - k);
+            let older = row(o, n - k - 1);
+            let diff = o.sub(&newer, &older);
+            let c = o.sub(&diff, &dm);
+            parts.push(o.div(&c, &ds));
+        }
+    }
+    if parts.len() == 1 {
+        parts.pop().expect("one part")
+    } else {
+        o.concat(&parts, 1)
+    }
+}
+
+/// The normalised, flattened slow features `[B, S]` or `[B, T·D]`.
+pub fn encode_slow<O: Ops>(o: &mut O, d: &ContractDims, norm: &ObsNorm, slow: &O::T) -> O::T {
+    let w = norm.slow.0.len();
+    let m = o.constant("stats.slow.mean", &[w], &norm.slow.0);
+    let s = o.constant("stats.slow.std", &[w], &norm.slow.1);
+    let c = o.sub(slow, &m);
+    let n = o.div(&c, &s);
+    o.reshape(&n, &[-1, slow_width(d.slow) as i64])
+}
+
+/// The clean-clamped `τ` and the hidden flag per position: `flag = [τ < 0]`,
+/// `τ_c = flag + (1 − flag)·min(τ, 1)` (a hidden front slot reads as clean).
+pub fn tau_and_flag<O: Ops>(o: &mut O, tau: &O::T) -> (O::T, O::T) {
+    let flag = o.is_negative(tau);
+    let m = o.min_scalar(tau, 1.0);
+    let nf = o.scale(&flag, -1.0);
+    let keep = o.offset(&nf, 1.0);
+    let km = o.mul(&keep, &m);
+    (o.add(&flag, &km), flag)
+}
+
+// ------------------------------------------------------------------------------------------
 // MLP
 // ------------------------------------------------------------------------------------------
 
-/// The flat MLP velocity head.
+/// The MLP velocity head, as the candle `Mlp` computes it.
 ///
-/// `z = concat(flat(x), flat(sinusoidal(τ, tau_dim)), flat(obs_fast), flat(obs_slow))`, then
-/// `depth` hidden layers `layers.{i}` (`Linear → activation`) of width `hidden`, then `out`
-/// (`Linear` to `H·A`), reshaped to `[B,H,A]`.
+/// `z = concat(flat(x), flat(τ features), encoded fast history, normalised slow, e(d_vis))`
+/// with per-position `τ` features `[τ_c, flag, sin(πkτ_c), cos(πkτ_c) for k = 1..=tau_freqs]`
+/// and `e` the `dvis_embed` table `[d_vis_max + 1, dvis_dim]` (ages clamped); `depth` hidden
+/// layers `mlp.{i}` (Linear → SiLU) of width `width`, then `mlp.out` (Linear to `H·A`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MlpSpec {
     /// Sizes of the contract tensors.
     pub dims: ContractDims,
-    /// Per-position τ feature width (even).
-    pub tau_dim: usize,
-    /// Scale applied to τ inside the sinusoid.
-    pub tau_scale: f32,
     /// Hidden width.
-    pub hidden: usize,
+    pub width: usize,
     /// Number of hidden layers (≥ 1).
     pub depth: usize,
-    /// Hidden activation.
-    pub activation: Activation,
+    /// Fourier frequencies per position for `τ`.
+    pub tau_freqs: usize,
+    /// Width of the `d_vis` embedding.
+    pub dvis_dim: usize,
+    /// Largest slow age the embedding knows.
+    pub d_vis_max: usize,
+    /// Observation normalisation.
+    pub norm: ObsNorm,
 }
 
 impl MlpSpec {
+    /// Per-position τ feature width.
+    pub fn tau_width(&self) -> usize {
+        2 + 2 * self.tau_freqs
+    }
+
     /// Input width of the first layer.
     pub fn z_dim(&self) -> usize {
         let d = &self.dims;
         d.horizon * d.action_dim
-            + d.horizon * self.tau_dim
+            + d.horizon * self.tau_width()
             + d.n_obs * d.fast_dim
             + slow_width(d.slow)
+            + self.dvis_dim
     }
 
-    /// `(name, shape)` of every weight, in order.
+    /// `(name, shape)` of every weight.
     pub fn weight_shapes(&self) -> Vec<(String, Vec<usize>)> {
-        let mut v = Vec::new();
+        let mut v = vec![(
+            "dvis_embed".to_string(),
+            vec![self.d_vis_max + 1, self.dvis_dim],
+        )];
         let mut i = self.z_dim();
         for l in 0..self.depth {
-            v.push((format!("layers.{l}.weight"), vec![self.hidden, i]));
-            v.push((format!("layers.{l}.bias"), vec![self.hidden]));
-            i = self.hidden;
+            v.push((format!("mlp.{l}.weight"), vec![self.width, i]));
+            v.push((format!("mlp.{l}.bias"), vec![self.width]));
+            i = self.width;
         }
         let o = self.dims.horizon * self.dims.action_dim;
-        v.push(("out.weight".to_string(), vec![o, i]));
-        v.push(("out.bias".to_string(), vec![o]));
+        v.push(("mlp.out.weight".to_string(), vec![o, i]));
+        v.push(("mlp.out.bias".to_string(), vec![o]));
         v
     }
 
@@ -151,29 +246,54 @@ impl MlpSpec {
         inp: &Inputs<O::T>,
     ) -> Result<O::T, ExportError> {
         const M: &str = "MLP";
-        if self.depth == 0 || self.tau_dim % 2 != 0 {
+        if self.depth == 0 {
             return Err(ExportError::Unsupported {
                 model: M,
-                message: format!(
-                    "depth {} must be ≥ 1 and tau_dim {} even",
-                    self.depth, self.tau_dim
-                ),
+                message: "depth must be >= 1".to_string(),
             });
         }
         let d = &self.dims;
         let (h, a) = (d.horizon as i64, d.action_dim as i64);
         let xf = o.reshape(&inp.x, &[-1, h * a]);
-        let te = sinusoidal(o, &inp.tau, self.tau_dim, self.tau_scale);
-        let tf = o.reshape(&te, &[-1, h * self.tau_dim as i64]);
-        let ob = obs_vector(o, d, inp);
-        let mut z = o.concat(&[xf, tf, ob], 1);
+        // τ features.
+        let (tc, flag) = tau_and_flag(o, &inp.tau);
+        let tcu = o.unsqueeze(&tc, -1);
+        let flu = o.unsqueeze(&flag, -1);
+        let mut tparts = vec![tcu.clone(), flu];
+        if self.tau_freqs > 0 {
+            let k = self.tau_freqs;
+            let freqs: Vec<f32> = (1..=k).map(|k| std::f32::consts::PI * k as f32).collect();
+            let fr = o.constant("mlp.tau_freqs", &[k], &freqs);
+            let arg = o.mul(&tcu, &fr); // [B, H, K]
+            let s = o.unary(Unary::Sin, &arg);
+            let c = o.unary(Unary::Cos, &arg);
+            let s = o.unsqueeze(&s, -1);
+            let c = o.unsqueeze(&c, -1);
+            let sc = o.concat(&[s, c], -1); // [B, H, K, 2]: s1 c1 s2 c2 …
+            tparts.push(o.reshape(&sc, &[-1, h, 2 * k as i64]));
+        }
+        let tf = o.concat(&tparts, -1);
+        let tf = o.reshape(&tf, &[-1, h * self.tau_width() as i64]);
+        let mut parts = vec![xf, tf, encode_fast(o, d, &self.norm, &inp.obs_fast)];
+        if let Some(s) = &inp.obs_slow {
+            parts.push(encode_slow(o, d, &self.norm, s));
+        }
+        if self.dvis_dim > 0 {
+            let ids = inp.d_vis.as_ref().ok_or_else(|| ExportError::Unsupported {
+                model: M,
+                message: "the graph needs a `d_vis` input".to_string(),
+            })?;
+            let table = w.weight(M, "dvis_embed", &[self.d_vis_max + 1, self.dvis_dim])?;
+            parts.push(o.embedding(ids, "dvis_embed", &table, self.d_vis_max + 1, self.dvis_dim));
+        }
+        let mut z = o.concat(&parts, 1);
         let mut i = self.z_dim();
         for l in 0..self.depth {
-            let y = linear(o, w, M, &format!("layers.{l}"), &z, i, self.hidden)?;
-            z = act(o, self.activation, &y);
-            i = self.hidden;
+            let y = linear(o, w, M, &format!("mlp.{l}"), &z, i, self.width)?;
+            z = o.silu(&y);
+            i = self.width;
         }
-        let y = linear(o, w, M, "out", &z, i, d.horizon * d.action_dim)?;
+        let y = linear(o, w, M, "mlp.out", &z, i, d.horizon * d.action_dim)?;
         Ok(o.reshape(&y, &[-1, h, a]))
     }
 }

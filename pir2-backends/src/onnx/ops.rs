@@ -92,6 +92,22 @@ pub trait Ops {
     fn sub(&mut self, a: &Self::T, b: &Self::T) -> Self::T;
     /// `a · b` (broadcasting).
     fn mul(&mut self, a: &Self::T, b: &Self::T) -> Self::T;
+    /// `a / b` (broadcasting).
+    fn div(&mut self, a: &Self::T, b: &Self::T) -> Self::T;
+    /// `1.0` where `x < 0`, else `0.0`.
+    fn is_negative(&mut self, x: &Self::T) -> Self::T;
+    /// `min(x, s)`.
+    fn min_scalar(&mut self, x: &Self::T, s: f32) -> Self::T;
+    /// Embedding lookup: `ids` (int64 `[B]`) clamped to `[0, rows − 1]`, rows of `table`
+    /// (`[rows, dim]`) → `[B, dim]`.
+    fn embedding(
+        &mut self,
+        ids: &Self::T,
+        name: &str,
+        table: &[f32],
+        rows: usize,
+        dim: usize,
+    ) -> Self::T;
     /// `x · s`.
     fn scale(&mut self, x: &Self::T, s: f32) -> Self::T;
     /// `x + s`.
@@ -202,6 +218,36 @@ impl Ops for GraphBuilder {
     }
     fn mul(&mut self, a: &String, b: &String) -> String {
         GraphBuilder::mul(self, a, b)
+    }
+    fn div(&mut self, a: &String, b: &String) -> String {
+        GraphBuilder::div(self, a, b)
+    }
+    fn is_negative(&mut self, x: &String) -> String {
+        let z = self.const_f32(&[], &[0.0]);
+        let m = self.op("Less", &[x, &z], vec![]);
+        self.cast_f32(&m)
+    }
+    fn min_scalar(&mut self, x: &String, s: f32) -> String {
+        let c = self.const_f32(&[], &[s]);
+        self.op("Min", &[x, &c], vec![])
+    }
+    fn embedding(
+        &mut self,
+        ids: &String,
+        name: &str,
+        table: &[f32],
+        rows: usize,
+        dim: usize,
+    ) -> String {
+        let t = self.weight(name, &[rows, dim], table);
+        let lo = self.const_i64_scalar(0);
+        let hi = self.const_i64_scalar(rows as i64 - 1);
+        let c = self.op("Clip", &[ids, &lo, &hi], vec![]);
+        self.op(
+            "Gather",
+            &[&t, &c],
+            vec![super::graph::attr("axis", super::proto::AttrValue::Int(0))],
+        )
     }
     fn scale(&mut self, x: &String, s: f32) -> String {
         GraphBuilder::scale(self, x, s)

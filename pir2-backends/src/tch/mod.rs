@@ -238,17 +238,31 @@ pub fn export_torchscript<W: crate::onnx::ops::WeightSource>(
     use crate::onnx::models::Inputs;
     use crate::onnx::SlowSpec;
     let has_slow = spec.dims().slow != SlowSpec::None;
-    let mut failure: Option<crate::onnx::ExportError> = None;
     let example = example_inputs(spec.dims());
+    let inputs = |xs: &[Tensor]| Inputs {
+        x: TchValue(xs[0].shallow_clone()),
+        tau: TchValue(xs[1].shallow_clone()),
+        obs_fast: TchValue(xs[2].shallow_clone()),
+        obs_slow: has_slow.then(|| TchValue(xs[3].shallow_clone())),
+        d_vis: Some(TchValue(xs[4].shallow_clone())),
+    };
+    // Eager run first: validates the weights and creates every constant outside the trace.
+    let mut rec = TchOps::record();
+    {
+        let _guard = ::tch::no_grad_guard();
+        spec.forward(&mut rec, weights, &inputs(&example))?;
+    }
+    let mut ops = TchOps::replay(rec);
+    let mut failure: Option<crate::onnx::ExportError> = None;
     trace_to_file(path, &example, |x, tau, obs, slow, d_vis| {
-        let inp = Inputs {
-            x: TchValue(x.shallow_clone()),
-            tau: TchValue(tau.shallow_clone()),
-            obs_fast: TchValue(obs.shallow_clone()),
-            obs_slow: has_slow.then(|| TchValue(slow.shallow_clone())),
-            d_vis: Some(TchValue(d_vis.shallow_clone())),
-        };
-        match spec.forward(&mut TchOps, weights, &inp) {
+        let xs = [
+            x.shallow_clone(),
+            tau.shallow_clone(),
+            obs.shallow_clone(),
+            slow.shallow_clone(),
+            d_vis.shallow_clone(),
+        ];
+        match spec.forward(&mut ops, weights, &inputs(&xs)) {
             Ok(v) => v.0,
             Err(e) => {
                 failure = Some(e);
