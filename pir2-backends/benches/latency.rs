@@ -8,7 +8,7 @@
 
 use std::time::Instant;
 
-use pir2_backends::onnx::models::{MlpSpec, ObsNorm, UnetSpec};
+use pir2_backends::onnx::models::{Film, MlpSpec, ObsNorm, UnetSpec};
 use pir2_backends::onnx::ops::NamedWeights;
 use pir2_backends::onnx::{ContractDims, ModelSpec, SlowSpec};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
@@ -37,11 +37,14 @@ fn specs() -> Vec<ModelSpec> {
         }),
         ModelSpec::Unet(UnetSpec {
             dims: leap_dims(),
-            down_dims: vec![64, 128, 256],
+            widths: vec![64, 128, 256],
             kernel: 5,
             groups: 8,
             tau_dim: 64,
-            tau_scale: 100.0,
+            dvis_dim: 16,
+            d_vis_max: 5,
+            film: Film::PerPosition,
+            norm: ObsNorm::identity(&leap_dims()),
         }),
     ]
 }

@@ -629,7 +629,7 @@ mod tch_backend {
 
 mod exported {
     use super::*;
-    use pir2_backends::onnx::models::{MlpSpec, ObsNorm, UnetSpec};
+    use pir2_backends::onnx::models::{Film, MlpSpec, ObsNorm, UnetSpec};
     use pir2_backends::onnx::ops::NamedWeights;
     use pir2_backends::onnx::ModelSpec;
 
@@ -679,15 +679,24 @@ mod exported {
                 norm: norm(&d),
             }));
         }
-        let d = dims(SlowSpec::Vector { dim: 6 });
-        v.push(ModelSpec::Unet(UnetSpec {
-            dims: d,
-            down_dims: vec![8, 16],
-            kernel: 3,
-            groups: 4,
-            tau_dim: 8,
-            tau_scale: 10.0,
-        }));
+        for (slow, film) in [
+            (SlowSpec::Vector { dim: 6 }, Film::PerPosition),
+            (SlowSpec::Tokens { tokens: 2, dim: 3 }, Film::Shared),
+            (SlowSpec::None, Film::PerPosition),
+        ] {
+            let d = dims(slow);
+            v.push(ModelSpec::Unet(UnetSpec {
+                dims: d,
+                widths: vec![8, 16],
+                kernel: 3,
+                groups: 4,
+                tau_dim: 8,
+                dvis_dim: 2,
+                d_vis_max: 2,
+                film,
+                norm: norm(&d),
+            }));
+        }
         v
     }
 

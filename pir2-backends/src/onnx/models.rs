@@ -302,109 +302,157 @@ impl MlpSpec {
 // Conditional U-Net 1D with per-position FiLM
 // ------------------------------------------------------------------------------------------
 
-/// Conditional U-Net 1D (Diffusion-Policy layout) with per-position FiLM.
+/// How `τ` conditions the U-Net's FiLM layers (mirrors the candle `FilmMode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Film {
+    /// One `(γ, β)` per sample from the shared condition.
+    Shared,
+    /// The shared pair plus a per-position term `film_pos(mish(pool_L(e))_l)`.
+    PerPosition,
+}
+
+/// The conditional U-Net 1D, as the candle `UNet` computes it.
 ///
-/// * τ encoder: `sinusoidal(τ_p, tau_dim)` → `tau_mlp.0` (Linear `tau_dim → 4·tau_dim`) →
-///   Mish → `tau_mlp.2` (Linear `4·tau_dim → tau_dim`): one embedding per position.
-/// * condition per position: `c_p = concat(τ-embedding_p, obs)` (`obs` = flattened fast +
-///   slow observation, the same for every position) → `[B, C_d, H]`; at level `l` it is
-///   average-pooled by `2^l` along the chunk.
-/// * residual block `…`: `block0` (Conv k, GroupNorm, Mish) → per-position FiLM
-///   (`cond.1`: Mish → Linear `C_d → 2·C_out` at every position; `γ = [:C_out]`, `β = [C_out:]`,
-///   `h = γ·h + β`) → `block1` (Conv k, GroupNorm, Mish) → `+ residual` (1×1 conv `res` when the
-///   width changes).
-/// * `down.{l}.{0,1}` residual blocks, `down.{l}.2` Conv(k 3, stride 2, pad 1) except at the last
-///   level; `mid.{0,1}`; `up.{l}.{0,1}` on `concat(h, skip)`, `up.{l}.2` ConvTranspose(k 4,
-///   stride 2, pad 1); `final.0` Conv block, `final.1` 1×1 Conv to `A`.
+/// * `τ` embedding per position: `e_p = tau_mlp.1(mish(tau_mlp.0([sin(1000τ_c·ω_k)], [cos(…)], flag)))`,
+///   `ω_k = exp(−k·ln(10⁴)/(E/2 − 1))`.
+/// * shared condition `mish([mean_p e_p, encoded fast, mean over tokens of normalised slow, e(d_vis)])`.
+/// * residual block `N`: `N.block0` (conv k → GroupNorm `gn` → Mish), FiLM
+///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·γ + β`, `N.block1`, `+ N.res(x)`
+///   (1×1 conv) or `+ x`.
+/// * `down.{i}.res0/res1`, `down.{i}.down` (conv 3, stride 2) except at the last level; `mid.0/1`;
+///   `up.{j}.res0/res1` on `concat(h, skip)`, then nearest ×2 and `up.{j}.up` (conv 3);
+///   `final.block` (conv block) and `final.conv` (1×1 to `A`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct UnetSpec {
     /// Sizes of the contract tensors.
     pub dims: ContractDims,
-    /// Channel widths per level, e.g. `[64, 128, 256]`.
-    pub down_dims: Vec<usize>,
+    /// Channel widths per level.
+    pub widths: Vec<usize>,
     /// Convolution kernel size (odd).
     pub kernel: usize,
     /// GroupNorm groups.
     pub groups: usize,
-    /// τ embedding width (even).
+    /// `τ` embedding width `E` (even).
     pub tau_dim: usize,
-    /// Scale applied to τ inside the sinusoid.
-    pub tau_scale: f32,
+    /// Width of the `d_vis` embedding.
+    pub dvis_dim: usize,
+    /// Largest slow age the embedding knows.
+    pub d_vis_max: usize,
+    /// FiLM variant.
+    pub film: Film,
+    /// Observation normalisation.
+    pub norm: ObsNorm,
 }
 
 const GN_EPS: f32 = 1e-5;
+const UNET: &str = "U-Net";
+
+/// The per-sample width of the slow part of the shared condition (`S`, or `D` after the token mean).
+fn slow_cond_width(s: SlowSpec) -> usize {
+    match s {
+        SlowSpec::None => 0,
+        SlowSpec::Vector { dim } | SlowSpec::Tokens { dim, .. } => dim,
+    }
+}
 
 impl UnetSpec {
-    /// Width of the per-position condition.
-    pub fn cond_dim(&self) -> usize {
+    /// Width of the shared condition `E + G`.
+    pub fn shared_dim(&self) -> usize {
         let d = &self.dims;
-        self.tau_dim + d.n_obs * d.fast_dim + slow_width(d.slow)
+        self.tau_dim + d.n_obs * d.fast_dim + slow_cond_width(d.slow) + self.dvis_dim
     }
 
-    fn levels(&self) -> Vec<(usize, usize)> {
-        let mut all = vec![self.dims.action_dim];
-        all.extend(&self.down_dims);
-        all.windows(2).map(|w| (w[0], w[1])).collect()
+    fn all_dims(&self) -> Vec<usize> {
+        let mut v = vec![self.dims.action_dim];
+        v.extend(&self.widths);
+        v
     }
 
     /// `(name, shape)` of every weight.
     pub fn weight_shapes(&self) -> Vec<(String, Vec<usize>)> {
-        let mut v = Vec::new();
+        let mut v: Vec<(String, Vec<usize>)> = Vec::new();
         let e = self.tau_dim;
-        let lin = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
+        let k = self.kernel;
+        let cs = self.shared_dim();
+        fn lin(v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize) {
             v.push((format!("{n}.weight"), vec![o, i]));
             v.push((format!("{n}.bias"), vec![o]));
+        }
+        fn conv(v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize, k: usize) {
+            v.push((format!("{n}.weight"), vec![o, i, k]));
+            v.push((format!("{n}.bias"), vec![o]));
+        }
+        let block = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
+            conv(v, &format!("{n}.conv"), i, o, k);
+            v.push((format!("{n}.gn.weight"), vec![o]));
+            v.push((format!("{n}.gn.bias"), vec![o]));
         };
-        lin(&mut v, "tau_mlp.0", e, 4 * e);
-        lin(&mut v, "tau_mlp.2", 4 * e, e);
-        let cd = self.cond_dim();
-        let k = self.kernel;
         let res = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
-            for (b, ci) in [("block0", i), ("block1", o)] {
-                v.push((format!("{n}.{b}.conv.weight"), vec![o, ci, k]));
-                v.push((format!("{n}.{b}.conv.bias"), vec![o]));
-                v.push((format!("{n}.{b}.norm.weight"), vec![o]));
-                v.push((format!("{n}.{b}.norm.bias"), vec![o]));
+            block(v, &format!("{n}.block0"), i, o);
+            block(v, &format!("{n}.block1"), o, o);
+            lin(v, &format!("{n}.film"), cs, 2 * o);
+            if self.film == Film::PerPosition {
+                lin(v, &format!("{n}.film_pos"), e, 2 * o);
             }
-            v.push((format!("{n}.cond.1.weight"), vec![2 * o, cd]));
-            v.push((format!("{n}.cond.1.bias"), vec![2 * o]));
             if i != o {
-                v.push((format!("{n}.res.weight"), vec![o, i, 1]));
-                v.push((format!("{n}.res.bias"), vec![o]));
+                conv(v, &format!("{n}.res"), i, o, 1);
             }
         };
-        let lv = self.levels();
-        for (l, &(i, o)) in lv.iter().enumerate() {
-            res(&mut v, &format!("down.{l}.0"), i, o);
-            res(&mut v, &format!("down.{l}.1"), o, o);
-            if l + 1 < lv.len() {
-                v.push((format!("down.{l}.2.weight"), vec![o, o, 3]));
-                v.push((format!("down.{l}.2.bias"), vec![o]));
+        lin(&mut v, "tau_mlp.0", e + 1, 4 * e);
+        lin(&mut v, "tau_mlp.1", 4 * e, e);
+        v.push((
+            "dvis_embed".to_string(),
+            vec![self.dims_dvis_rows(), self.dvis_dim],
+        ));
+        let dims = self.all_dims();
+        let n = self.widths.len();
+        for i in 0..n {
+            res(&mut v, &format!("down.{i}.res0"), dims[i], dims[i + 1]);
+            res(&mut v, &format!("down.{i}.res1"), dims[i + 1], dims[i + 1]);
+            if i + 1 < n {
+                conv(
+                    &mut v,
+                    &format!("down.{i}.down"),
+                    dims[i + 1],
+                    dims[i + 1],
+                    3,
+                );
             }
         }
-        let m = *self.down_dims.last().unwrap_or(&0);
-        res(&mut v, "mid.0", m, m);
-        res(&mut v, "mid.1", m, m);
-        for (u, &(i, o)) in lv[1..].iter().rev().enumerate() {
-            res(&mut v, &format!("up.{u}.0"), 2 * o, i);
-            res(&mut v, &format!("up.{u}.1"), i, i);
-            v.push((format!("up.{u}.2.weight"), vec![i, i, 4]));
-            v.push((format!("up.{u}.2.bias"), vec![i]));
+        let w = self.widths[n - 1];
+        res(&mut v, "mid.0", w, w);
+        res(&mut v, "mid.1", w, w);
+        for (j, i) in (1..n).rev().enumerate() {
+            res(&mut v, &format!("up.{j}.res0"), 2 * dims[i + 1], dims[i]);
+            res(&mut v, &format!("up.{j}.res1"), dims[i], dims[i]);
+            conv(&mut v, &format!("up.{j}.up"), dims[i], dims[i], 3);
         }
-        let s = self.down_dims[0];
-        v.push(("final.0.conv.weight".to_string(), vec![s, s, k]));
-        v.push(("final.0.conv.bias".to_string(), vec![s]));
-        v.push(("final.0.norm.weight".to_string(), vec![s]));
-        v.push(("final.0.norm.bias".to_string(), vec![s]));
-        v.push((
-            "final.1.weight".to_string(),
-            vec![self.dims.action_dim, s, 1],
-        ));
-        v.push(("final.1.bias".to_string(), vec![self.dims.action_dim]));
+        let w0 = self.widths[0];
+        block(&mut v, "final.block", w0, w0);
+        conv(&mut v, "final.conv", w0, self.dims.action_dim, 1);
         v
     }
 
-    #[allow(clippy::too_many_arguments)]
+    fn dims_dvis_rows(&self) -> usize {
+        self.d_vis_max + 1
+    }
+
+    fn conv<O: Ops, W: WeightSource>(
+        &self,
+        o: &mut O,
+        w: &W,
+        n: &str,
+        x: &O::T,
+        i: usize,
+        out: usize,
+        k: usize,
+        stride: usize,
+    ) -> Result<O::T, ExportError> {
+        let cw = w.weight(UNET, &format!("{n}.weight"), &[out, i, k])?;
+        let cb = w.weight(UNET, &format!("{n}.bias"), &[out])?;
+        Ok(o.conv1d(x, n, &cw, Some(&cb), i, out, k, stride, k / 2))
+    }
+
     fn conv_block<O: Ops, W: WeightSource>(
         &self,
         o: &mut O,
@@ -414,18 +462,14 @@ impl UnetSpec {
         i: usize,
         out: usize,
     ) -> Result<O::T, ExportError> {
-        const M: &str = "U-Net";
-        let k = self.kernel;
-        let cw = w.weight(M, &format!("{n}.conv.weight"), &[out, i, k])?;
-        let cb = w.weight(M, &format!("{n}.conv.bias"), &[out])?;
-        let y = o.conv1d(x, &format!("{n}.conv"), &cw, Some(&cb), i, out, k, 1, k / 2);
-        let g = w.weight(M, &format!("{n}.norm.weight"), &[out])?;
-        let b = w.weight(M, &format!("{n}.norm.bias"), &[out])?;
-        let y = o.group_norm(&y, &format!("{n}.norm"), &g, &b, out, self.groups, GN_EPS);
+        let y = self.conv(o, w, &format!("{n}.conv"), x, i, out, self.kernel, 1)?;
+        let g = w.weight(UNET, &format!("{n}.gn.weight"), &[out])?;
+        let b = w.weight(UNET, &format!("{n}.gn.bias"), &[out])?;
+        let y = o.group_norm(&y, &format!("{n}.gn"), &g, &b, out, self.groups, GN_EPS);
         Ok(o.mish(&y))
     }
 
-    /// `cond_t`: the condition as `[B, L, C_d]` at this block's resolution.
+    /// `shared`: `[B, E+G]`; `pos`: `mish(pool_L(e))` `[B, L, E]` (per-position FiLM only).
     #[allow(clippy::too_many_arguments)]
     fn res_block<O: Ops, W: WeightSource>(
         &self,
@@ -433,47 +477,53 @@ impl UnetSpec {
         w: &W,
         n: &str,
         x: &O::T,
-        cond_t: &O::T,
+        shared: &O::T,
+        pos: Option<&O::T>,
         i: usize,
         out: usize,
+        len: usize,
     ) -> Result<O::T, ExportError> {
-        const M: &str = "U-Net";
         let h = self.conv_block(o, w, &format!("{n}.block0"), x, i, out)?;
-        let c = o.mish(cond_t);
-        let film = linear(
+        let c = out as i64;
+        let f = linear(
             o,
             w,
-            M,
-            &format!("{n}.cond.1"),
-            &c,
-            self.cond_dim(),
+            UNET,
+            &format!("{n}.film"),
+            shared,
+            self.shared_dim(),
             2 * out,
-        )?; // [B, L, 2C]
-        let film = o.transpose(&film, &[0, 2, 1]); // [B, 2C, L]
-        let gamma = o.slice(&film, 1, 0, out as i64);
-        let beta = o.slice(&film, 1, out as i64, 2 * out as i64);
-        let h = o.mul(&gamma, &h);
-        let h = o.add(&h, &beta);
-        let h = self.conv_block(o, w, &format!("{n}.block1"), &h, out, out)?;
+        )?;
+        let mut f = o.reshape(&f, &[-1, 2, c, 1]);
+        let mut l = 1;
+        if let (Film::PerPosition, Some(p)) = (self.film, pos) {
+            let fp = linear(
+                o,
+                w,
+                UNET,
+                &format!("{n}.film_pos"),
+                p,
+                self.tau_dim,
+                2 * out,
+            )?; // [B, L, 2C]
+            let fp = o.transpose(&fp, &[0, 2, 1]);
+            let fp = o.reshape(&fp, &[-1, 2, c, len as i64]);
+            f = o.add(&fp, &f);
+            l = len as i64;
+        }
+        let scale = o.slice(&f, 1, 0, 1);
+        let scale = o.reshape(&scale, &[-1, c, l]);
+        let bias = o.slice(&f, 1, 1, 2);
+        let bias = o.reshape(&bias, &[-1, c, l]);
+        let hs = o.mul(&h, &scale);
+        let hb = o.add(&hs, &bias);
+        let h = self.conv_block(o, w, &format!("{n}.block1"), &hb, out, out)?;
         let r = if i != out {
-            let rw = w.weight(M, &format!("{n}.res.weight"), &[out, i, 1])?;
-            let rb = w.weight(M, &format!("{n}.res.bias"), &[out])?;
-            o.conv1d(x, &format!("{n}.res"), &rw, Some(&rb), i, out, 1, 1, 0)
+            self.conv(o, w, &format!("{n}.res"), x, i, out, 1, 1)?
         } else {
             x.clone()
         };
         Ok(o.add(&h, &r))
-    }
-
-    /// Average-pool `[B, L, C]` by 2 along `L`.
-    fn pool_cond<O: Ops>(&self, o: &mut O, c: &O::T, len: usize) -> O::T {
-        let cd = self.cond_dim() as i64;
-        let r = o.reshape(c, &[-1, (len / 2) as i64, 2, cd]);
-        let a = o.slice(&r, 2, 0, 1);
-        let b = o.slice(&r, 2, 1, 2);
-        let s = o.add(&a, &b);
-        let s = o.scale(&s, 0.5);
-        o.reshape(&s, &[-1, (len / 2) as i64, cd])
     }
 
     /// The forward pass.
@@ -483,93 +533,203 @@ impl UnetSpec {
         w: &W,
         inp: &Inputs<O::T>,
     ) -> Result<O::T, ExportError> {
-        const M: &str = "U-Net";
         let d = &self.dims;
-        let lv = self.levels();
-        let n_down = lv.len() - 1;
-        if self.down_dims.is_empty()
+        let n = self.widths.len();
+        if n == 0
             || self.kernel % 2 == 0
+            || self.tau_dim < 2
             || self.tau_dim % 2 != 0
-            || d.horizon % (1 << n_down) != 0
+            || d.horizon % (1 << (n - 1)) != 0
         {
             return Err(ExportError::Unsupported {
-                model: M,
+                model: UNET,
                 message: format!(
-                    "need ≥ 1 level, an odd kernel (got {}), an even tau_dim (got {}) and H = {} divisible by 2^{n_down}",
-                    self.kernel, self.tau_dim, d.horizon
+                    "need ≥ 1 level, an odd kernel (got {}), an even tau_dim ≥ 2 (got {}) and H = {} divisible by 2^{}",
+                    self.kernel,
+                    self.tau_dim,
+                    d.horizon,
+                    n.saturating_sub(1)
                 ),
             });
         }
-        if self.down_dims.iter().any(|c| c % self.groups != 0) {
+        if self.groups == 0 || self.widths.iter().any(|c| c % self.groups != 0) {
             return Err(ExportError::Unsupported {
-                model: M,
+                model: UNET,
                 message: format!(
-                    "channels {:?} not divisible by {} groups",
-                    self.down_dims, self.groups
+                    "{} groups must divide every width {:?}",
+                    self.groups, self.widths
                 ),
             });
         }
-        let hz = d.horizon;
-        // Per-position condition [B, H, C_d].
-        let e = self.tau_dim;
-        let te = sinusoidal(o, &inp.tau, e, self.tau_scale); // [B, H, E]
-        let te = linear(o, w, M, "tau_mlp.0", &te, e, 4 * e)?;
-        let te = o.mish(&te);
-        let te = linear(o, w, M, "tau_mlp.2", &te, 4 * e, e)?;
-        let ob = obs_vector(o, d, inp); // [B, G]
-        let ob = o.unsqueeze(&ob, 1); // [B, 1, G]
-        let g = d.n_obs * d.fast_dim + slow_width(d.slow);
-        let zeros = o.constant("unet.broadcast", &[hz, g], &vec![0.0; hz * g]);
-        let ob = o.add(&ob, &zeros); // [B, H, G]
-        let mut conds = vec![o.concat(&[te, ob], -1)];
-        let mut len = hz;
-        for _ in 0..n_down {
-            let c = self.pool_cond(o, conds.last().expect("level 0"), len);
-            conds.push(c);
-            len /= 2;
+        let (hz, e) = (d.horizon, self.tau_dim);
+        // τ embedding [B, H, E].
+        let half = e / 2;
+        let step = (10_000f32).ln() / (half.max(2) - 1) as f32;
+        let freqs: Vec<f32> = (0..half).map(|k| (-step * k as f32).exp()).collect();
+        let (tc, flag) = tau_and_flag(o, &inp.tau);
+        let s = o.scale(&tc, 1000.0);
+        let su = o.unsqueeze(&s, -1);
+        let fr = o.constant("unet.tau_freqs", &[half], &freqs);
+        let arg = o.mul(&su, &fr);
+        let sn = o.unary(Unary::Sin, &arg);
+        let cs = o.unary(Unary::Cos, &arg);
+        let fl = o.unsqueeze(&flag, -1);
+        let sin = o.concat(&[sn, cs, fl], -1); // [B, H, E+1]
+        let t0 = linear(o, w, UNET, "tau_mlp.0", &sin, e + 1, 4 * e)?;
+        let t0 = o.mish(&t0);
+        let emb = linear(o, w, UNET, "tau_mlp.1", &t0, 4 * e, e)?; // [B, H, E]
+                                                                   // Shared condition.
+        let mut parts = vec![
+            o.mean(&emb, 1),
+            encode_fast(o, d, &self.norm, &inp.obs_fast),
+        ];
+        if let Some(sl) = &inp.obs_slow {
+            let (t, dd) = match d.slow {
+                SlowSpec::Tokens { tokens, dim } => (tokens, dim),
+                SlowSpec::Vector { dim } => (1, dim),
+                SlowSpec::None => (0, 0),
+            };
+            let m = o.constant("stats.slow.mean", &[dd], &self.norm.slow.0);
+            let sd = o.constant("stats.slow.std", &[dd], &self.norm.slow.1);
+            let c = o.sub(sl, &m);
+            let nrm = o.div(&c, &sd);
+            let nrm = o.reshape(&nrm, &[-1, t as i64, dd as i64]);
+            parts.push(o.mean(&nrm, 1));
         }
-
-        let mut h = o.transpose(&inp.x, &[0, 2, 1]); // [B, A, H]
-        let mut skips = Vec::new();
-        for (l, &(i, out)) in lv.iter().enumerate() {
-            h = self.res_block(o, w, &format!("down.{l}.0"), &h, &conds[l], i, out)?;
-            h = self.res_block(o, w, &format!("down.{l}.1"), &h, &conds[l], out, out)?;
-            skips.push(h.clone());
-            if l + 1 < lv.len() {
-                let dw = w.weight(M, &format!("down.{l}.2.weight"), &[out, out, 3])?;
-                let db = w.weight(M, &format!("down.{l}.2.bias"), &[out])?;
-                h = o.conv1d(
-                    &h,
-                    &format!("down.{l}.2"),
-                    &dw,
-                    Some(&db),
-                    out,
-                    out,
-                    3,
-                    2,
-                    1,
-                );
+        if self.dvis_dim > 0 {
+            let ids = inp.d_vis.as_ref().ok_or_else(|| ExportError::Unsupported {
+                model: UNET,
+                message: "the graph needs a `d_vis` input".to_string(),
+            })?;
+            let table = w.weight(UNET, "dvis_embed", &[self.dims_dvis_rows(), self.dvis_dim])?;
+            parts.push(o.embedding(
+                ids,
+                "dvis_embed",
+                &table,
+                self.dims_dvis_rows(),
+                self.dvis_dim,
+            ));
+        }
+        let shared = o.concat(&parts, 1);
+        let shared = o.mish(&shared);
+        // Per-position term, pooled per level: [B, H >> i, E].
+        let pos = o.mish(&emb);
+        let mut pooled = Vec::with_capacity(n);
+        for i in 0..n {
+            let l = hz >> i;
+            if self.film == Film::Shared {
+                pooled.push(None);
+            } else if l == hz {
+                pooled.push(Some(pos.clone()));
+            } else {
+                let r = o.reshape(&pos, &[-1, l as i64, (hz / l) as i64, e as i64]);
+                pooled.push(Some(o.mean(&r, 2)));
             }
         }
-        let m = self.down_dims[self.down_dims.len() - 1];
-        h = self.res_block(o, w, "mid.0", &h, &conds[n_down], m, m)?;
-        h = self.res_block(o, w, "mid.1", &h, &conds[n_down], m, m)?;
-        let mut level = n_down;
-        for (u, &(i, out)) in lv[1..].iter().rev().enumerate() {
-            let skip = skips.pop().expect("one skip per level");
-            let cat = o.concat(&[h, skip], 1);
-            h = self.res_block(o, w, &format!("up.{u}.0"), &cat, &conds[level], 2 * out, i)?;
-            h = self.res_block(o, w, &format!("up.{u}.1"), &h, &conds[level], i, i)?;
-            let uw = w.weight(M, &format!("up.{u}.2.weight"), &[i, i, 4])?;
-            let ub = w.weight(M, &format!("up.{u}.2.bias"), &[i])?;
-            h = o.conv_transpose1d(&h, &format!("up.{u}.2"), &uw, Some(&ub), i, i, 4, 2, 1, 0);
-            level -= 1;
+
+        let dims = self.all_dims();
+        let mut x = o.transpose(&inp.x, &[0, 2, 1]); // [B, A, H]
+        let mut skips = Vec::with_capacity(n);
+        for i in 0..n {
+            let l = hz >> i;
+            let p = pooled[i].as_ref();
+            x = self.res_block(
+                o,
+                w,
+                &format!("down.{i}.res0"),
+                &x,
+                &shared,
+                p,
+                dims[i],
+                dims[i + 1],
+                l,
+            )?;
+            x = self.res_block(
+                o,
+                w,
+                &format!("down.{i}.res1"),
+                &x,
+                &shared,
+                p,
+                dims[i + 1],
+                dims[i + 1],
+                l,
+            )?;
+            skips.push(x.clone());
+            if i + 1 < n {
+                x = self.conv(
+                    o,
+                    w,
+                    &format!("down.{i}.down"),
+                    &x,
+                    dims[i + 1],
+                    dims[i + 1],
+                    3,
+                    2,
+                )?;
+            }
         }
-        let s = self.down_dims[0];
-        h = self.conv_block(o, w, "final.0", &h, s, s)?;
-        let fw = w.weight(M, "final.1.weight", &[d.action_dim, s, 1])?;
-        let fb = w.weight(M, "final.1.bias", &[d.action_dim])?;
-        h = o.conv1d(&h, "final.1", &fw, Some(&fb), s, d.action_dim, 1, 1, 0);
-        Ok(o.transpose(&h, &[0, 2, 1]))
+        let wm = self.widths[n - 1];
+        let lm = hz >> (n - 1);
+        x = self.res_block(
+            o,
+            w,
+            "mid.0",
+            &x,
+            &shared,
+            pooled[n - 1].as_ref(),
+            wm,
+            wm,
+            lm,
+        )?;
+        x = self.res_block(
+            o,
+            w,
+            "mid.1",
+            &x,
+            &shared,
+            pooled[n - 1].as_ref(),
+            wm,
+            wm,
+            lm,
+        )?;
+        for (j, i) in (1..n).rev().enumerate() {
+            let lvl = n - 1 - j;
+            let l = hz >> lvl;
+            let p = pooled[lvl].as_ref();
+            let skip = skips.pop().expect("one skip per level");
+            let cat = o.concat(&[x, skip], 1);
+            x = self.res_block(
+                o,
+                w,
+                &format!("up.{j}.res0"),
+                &cat,
+                &shared,
+                p,
+                2 * dims[i + 1],
+                dims[i],
+                l,
+            )?;
+            x = self.res_block(
+                o,
+                w,
+                &format!("up.{j}.res1"),
+                &x,
+                &shared,
+                p,
+                dims[i],
+                dims[i],
+                l,
+            )?;
+            // Nearest ×2, then conv 3.
+            let u = o.unsqueeze(&x, 3);
+            let u = o.concat(&[u.clone(), u], 3);
+            let u = o.reshape(&u, &[-1, dims[i] as i64, 2 * l as i64]);
+            x = self.conv(o, w, &format!("up.{j}.up"), &u, dims[i], dims[i], 3, 1)?;
+        }
+        let w0 = self.widths[0];
+        let y = self.conv_block(o, w, "final.block", &x, w0, w0)?;
+        let y = self.conv(o, w, "final.conv", &y, w0, d.action_dim, 1, 1)?;
+        Ok(o.transpose(&y, &[0, 2, 1]))
     }
 }

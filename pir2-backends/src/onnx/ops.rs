@@ -108,6 +108,8 @@ pub trait Ops {
         rows: usize,
         dim: usize,
     ) -> Self::T;
+    /// Mean over `axis` (the axis is removed).
+    fn mean(&mut self, x: &Self::T, axis: i64) -> Self::T;
     /// `x · s`.
     fn scale(&mut self, x: &Self::T, s: f32) -> Self::T;
     /// `x + s`.
@@ -247,6 +249,19 @@ impl Ops for GraphBuilder {
             "Gather",
             &[&t, &c],
             vec![super::graph::attr("axis", super::proto::AttrValue::Int(0))],
+        )
+    }
+    fn mean(&mut self, x: &String, axis: i64) -> String {
+        use super::graph::attr;
+        use super::proto::AttrValue;
+        // Opset 17: `axes` is an attribute.
+        self.op(
+            "ReduceMean",
+            &[x],
+            vec![
+                attr("axes", AttrValue::Ints(vec![axis])),
+                attr("keepdims", AttrValue::Int(0)),
+            ],
         )
     }
     fn scale(&mut self, x: &String, s: f32) -> String {

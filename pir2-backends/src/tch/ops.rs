@@ -174,6 +174,9 @@ impl Ops for TchOps {
         let c = ids.0.clamp(0, rows as i64 - 1);
         TchValue(t.index_select(0, &c))
     }
+    fn mean(&mut self, x: &TchValue, axis: i64) -> TchValue {
+        TchValue(x.0.mean_dim(&[axis][..], false, Kind::Float))
+    }
     fn scale(&mut self, x: &TchValue, s: f32) -> TchValue {
         TchValue(&x.0 * self.scalar(s))
     }
