@@ -779,3 +779,17 @@ mod exported_ort_vs_tch {
         }
     }
 }
+
+/// Writes the exported test models to `$PIR2_DUMP_ONNX` (a directory) so an external checker
+/// (`python -c "import onnx; onnx.checker.check_model(...)"`) can validate them; a no-op otherwise.
+#[test]
+fn dump_exported_models_for_external_checking() {
+    let Some(dir) = std::env::var_os("PIR2_DUMP_ONNX") else { return };
+    let dir = std::path::PathBuf::from(dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    for (i, spec) in exported::specs().iter().enumerate() {
+        let path = dir.join(format!("{}-{i}.onnx", spec.kind()));
+        onnx::export_to_file(spec, &exported::weights(spec), &path).unwrap();
+        assert!(std::fs::metadata(&path).unwrap().len() > 100);
+    }
+}
