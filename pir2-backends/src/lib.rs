@@ -1,1 +1,15 @@
-//! placeholder
+//! # pir2-backends
+//!
+//! Velocity-model backends implementing [`pir2_runtime::VelocityModel`]:
+//! candle (default, pure Rust), ONNX Runtime (feature `ort`, [`ort::OrtModel`]) and libtorch
+//! (feature `tch`, [`tch::TchModel`]); and ONNX export without Python ([`onnx`]).
+#![warn(missing_docs)]
+
+pub mod error;
+pub mod onnx;
+#[cfg(feature = "ort")]
+pub mod ort;
+#[cfg(feature = "tch")]
+pub mod tch;
+
+pub use error::{Error, Result};
