@@ -143,6 +143,11 @@ impl OrtRuntime {
     pub fn version(&self) -> &str {
         &self.version
     }
+    /// The process-wide ONNX Runtime environment, for callers that build their own sessions
+    /// (e.g. the multi-graph GR00T action head).
+    pub fn environment(&self) -> &::ort::environment::Environment {
+        &self.env
+    }
 }
 
 static RUNTIME: Mutex<Option<&'static OrtRuntime>> = Mutex::new(None);

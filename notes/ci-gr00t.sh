@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# CI fragment for the GR00T-N1.7 xArm6 + XHand stack (pir2-backends feature `gr00t`).
+# Run from the repository root after scripts/setup-native.sh; `source .native/env.sh` provides
+# ORT_DYLIB_PATH (ONNX Runtime 1.31) and PIR2_PYTHON (a venv with `onnx`, used by the tests to
+# write the tiny synthetic graphs). PIR2_NATIVE_ENV overrides the env file.
+# The end-to-end test runs the real-time driver for 2 s at 25 Hz on the xArm6/XHand emulators;
+# the whole suite is bounded (< ~30 s once built).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source "${PIR2_NATIVE_ENV:-.native/env.sh}"
+cargo fmt --all -- --check
+cargo clippy -p pir2-backends --all-targets --features gr00t -- -D warnings
+RUSTDOCFLAGS="-D warnings" cargo doc -p pir2-backends --features gr00t --no-deps -q
+cargo test -p pir2-backends --features gr00t -- --test-threads=1
