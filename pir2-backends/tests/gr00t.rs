@@ -19,7 +19,9 @@ use pir2_backends::gr00t::{
     Gr00tRunOptions, Normalizer, VocabTokenizer,
 };
 use pir2_backends::ort::OrtOptions;
-use pir2_runtime::{Clock, ModelInput, SlowFrame, SlowInput, SlowSource, SystemClock, VelocityModel};
+use pir2_runtime::{
+    Clock, ModelInput, SlowFrame, SlowInput, SlowSource, SystemClock, VelocityModel,
+};
 
 const D_IN: usize = 32;
 const D_VL: usize = 24;
@@ -83,7 +85,9 @@ fn fixture(name: &str, variant: &str) -> PathBuf {
     std::fs::write(dir.join("embodiment.toml"), cfg.to_toml().unwrap()).unwrap();
     std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
     std::fs::write(dir.join("embodiment_id.json"), r#"{"new_embodiment": 3}"#).unwrap();
-    let pos: Vec<f32> = (0..64 * D_IN).map(|i| ((i % 7) as f32 - 3.0) * 0.01).collect();
+    let pos: Vec<f32> = (0..64 * D_IN)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
+        .collect();
     write_f32(
         &dir.join("pir2_gr00t.safetensors"),
         &[
@@ -108,7 +112,9 @@ fn load_head(dir: &Path) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
 
 fn call(head: &mut Gr00tActionHead, tau: &[f32], d_vis: u32, vl: &[f32]) -> Vec<f32> {
     let (h, a) = (50, 18);
-    let x: Vec<f32> = (0..h * a).map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0).collect();
+    let x: Vec<f32> = (0..h * a)
+        .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
+        .collect();
     let obs: Vec<f32> = (0..45).map(|i| (i as f32 * 0.1).sin()).collect();
     let dv = [d_vis];
     let input = ModelInput {
@@ -177,6 +183,7 @@ fn load_err(variant: &str) -> String {
     let dir = fixture(variant, variant);
     let e = load_head(&dir).unwrap_err().to_string();
     std::fs::remove_dir_all(&dir).ok();
+    eprintln!("{variant}: {e}");
     e
 }
 
@@ -194,7 +201,10 @@ fn contract_violations_name_the_file_and_the_tensor() {
     );
     let e = load_err("wrong_dim");
     assert!(
-        e.contains("dit.onnx") && e.contains("`sa_embs`") && e.contains("D_in") && e.contains("state_encoder.onnx"),
+        e.contains("dit.onnx")
+            && e.contains("`sa_embs`")
+            && e.contains("D_in")
+            && e.contains("state_encoder.onnx"),
         "{e}"
     );
     let e = load_err("wrong_type");
@@ -213,7 +223,9 @@ fn contract_violations_name_the_file_and_the_tensor() {
     .unwrap();
     let e = load_head(&dir).unwrap_err().to_string();
     assert!(
-        e.contains("statistics.json") && e.contains("new_embodiment.state.fingertip_forces.min") && e.contains("missing"),
+        e.contains("statistics.json")
+            && e.contains("new_embodiment.state.fingertip_forces.min")
+            && e.contains("missing"),
         "{e}"
     );
     std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
@@ -224,7 +236,9 @@ fn contract_violations_name_the_file_and_the_tensor() {
     .unwrap();
     let e = load_head(&dir).unwrap_err().to_string();
     assert!(
-        e.contains("pir2_gr00t.safetensors") && e.contains(DELAY_EMBEDDING) && e.contains("[6, 32]"),
+        e.contains("pir2_gr00t.safetensors")
+            && e.contains(DELAY_EMBEDDING)
+            && e.contains("[6, 32]"),
         "{e}"
     );
     std::fs::remove_file(dir.join("onnx/dit.onnx")).unwrap();
@@ -277,8 +291,14 @@ fn backbone_encodes_camera_frames_into_tokens() {
     .unwrap();
     assert_eq!(bb.output_shape(), (8, D_VL));
     assert_eq!(bb.sequence().ids, vec![2, 2, 2, 2, 3, 4, 5, 0]);
-    let a = bb.encode_image(&vec![10u8; 480 * 640 * 3], (480, 640)).unwrap().to_vec();
-    let b = bb.encode_image(&vec![200u8; 480 * 640 * 3], (480, 640)).unwrap().to_vec();
+    let a = bb
+        .encode_image(&vec![10u8; 480 * 640 * 3], (480, 640))
+        .unwrap()
+        .to_vec();
+    let b = bb
+        .encode_image(&vec![200u8; 480 * 640 * 3], (480, 640))
+        .unwrap()
+        .to_vec();
     assert_eq!(a.len(), 8 * D_VL);
     assert_ne!(a, b, "the image reaches the features");
     // A backbone width that disagrees with the DiT is a contract error naming both.
@@ -293,14 +313,19 @@ fn backbone_encodes_camera_frames_into_tokens() {
     )
     .unwrap_err()
     .to_string();
-    assert!(e.contains("backbone.onnx") && e.contains("D_vl") && e.contains("dit.onnx"), "{e}");
+    assert!(
+        e.contains("backbone.onnx") && e.contains("D_vl") && e.contains("dit.onnx"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
 fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
     use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
-    use pir2_robots::{split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig};
+    use pir2_robots::{
+        split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
+    };
 
     let dir = fixture("e2e", "");
     let local = IpAddr::V4(Ipv4Addr::LOCALHOST);
@@ -345,10 +370,29 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
     };
     let report = run_gr00t_report(&dir, "catch_book", source, actuator, camera, opts).unwrap();
     let m = &report.metrics;
+    let lat = m.call_latency.summary();
+    eprintln!(
+        "ticks {} calls {} swaps {} overruns {} call p50 {} µs p99 {} µs; d {:?}; d_vis {:?}; model d_vis counts {:?}; frames {}",
+        m.ticks,
+        m.calls.len(),
+        m.swaps,
+        m.overruns,
+        lat.p50 / 1000,
+        lat.p99 / 1000,
+        m.calls.iter().map(|c| c.d).collect::<Vec<_>>(),
+        m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>(),
+        report.d_vis_counts,
+        frames.load(Ordering::Relaxed)
+    );
     assert_eq!(report.prompt, "catch the book");
     assert_eq!(m.ticks, ticks);
     // The action head ran on the worker and its chunks reached the robot.
-    assert!(!m.calls.is_empty() && m.swaps >= 1, "calls {} swaps {}", m.calls.len(), m.swaps);
+    assert!(
+        !m.calls.is_empty() && m.swaps >= 1,
+        "calls {} swaps {}",
+        m.calls.len(),
+        m.swaps
+    );
     assert!(hand_emu.handle().commands() >= ticks);
     // The backbone refreshed the cache more than once while the robot ran.
     assert!(frames.load(Ordering::Relaxed) >= 3);
@@ -363,7 +407,11 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
         );
     }
     // Cached features age between frames (60 ms capture period > one 40 ms tick).
-    assert!(m.calls.iter().any(|c| c.d_vis >= 1), "{:?}", m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>());
+    assert!(
+        m.calls.iter().any(|c| c.d_vis >= 1),
+        "{:?}",
+        m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>()
+    );
     drop(arm_emu);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -105,7 +105,11 @@ impl VocabTokenizer {
             let mut found = None;
             while end > start {
                 let a = chars[start].0;
-                let b = if end < chars.len() { chars[end].0 } else { w.len() };
+                let b = if end < chars.len() {
+                    chars[end].0
+                } else {
+                    w.len()
+                };
                 let piece = if start == 0 {
                     w[a..b].to_string()
                 } else {
@@ -300,7 +304,11 @@ impl Gr00tBackbone {
         let seq = build_sequence(tokenizer, prompt, prompt_cfg)?;
         let mut b = Bindings::default();
         b.bind("crop", image.crop, "<embodiment config: image.crop>");
-        b.bind("T", seq.ids.len(), "<embodiment config: prompt.image_tokens + text_tokens>");
+        b.bind(
+            "T",
+            seq.ids.len(),
+            "<embodiment config: prompt.image_tokens + text_tokens>",
+        );
         if let Some((d, src)) = d_vl {
             b.bind("D_vl", d, src);
         }
@@ -371,7 +379,10 @@ impl Gr00tBackbone {
         r?;
         if self.feats.len() != t * d {
             return Err(Gr00tError::input(
-                format!("`{}` output embeddings [1,T,D_vl]", self.backbone.path().display()),
+                format!(
+                    "`{}` output embeddings [1,T,D_vl]",
+                    self.backbone.path().display()
+                ),
                 t * d,
                 self.feats.len(),
             ));
@@ -420,7 +431,9 @@ mod tests {
     use super::*;
 
     fn vocab() -> VocabTokenizer {
-        let lines = ["<pad>", "<unk>", "<image>", "catch", "the", "book", "put", "in", "bask", "##et", "."];
+        let lines = [
+            "<pad>", "<unk>", "<image>", "catch", "the", "book", "put", "in", "bask", "##et", ".",
+        ];
         VocabTokenizer::from_lines(lines.into_iter(), Path::new("vocab.txt")).unwrap()
     }
 
@@ -428,7 +441,10 @@ mod tests {
     fn vocab_tokenizer_splits_words_pieces_and_punctuation() {
         let v = vocab();
         assert_eq!(v.encode("Catch the book.").unwrap(), vec![3, 4, 5, 10]);
-        assert_eq!(v.encode("put the book in the basket").unwrap(), vec![6, 4, 5, 7, 4, 8, 9]);
+        assert_eq!(
+            v.encode("put the book in the basket").unwrap(),
+            vec![6, 4, 5, 7, 4, 8, 9]
+        );
         assert_eq!(v.encode("catch the ball").unwrap(), vec![3, 4, 1]);
         let e = VocabTokenizer::from_lines(["<pad>", "<unk>"].into_iter(), Path::new("v.txt"))
             .unwrap_err()

@@ -333,16 +333,12 @@ impl Normalizer {
     }
 
     fn from_stats(stats: &StatsFile, path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
-        let err = |modality: &str, group: &str, stat: &str, problem: String| {
-            Gr00tError::Statistics {
+        let err =
+            |modality: &str, group: &str, stat: &str, problem: String| Gr00tError::Statistics {
                 path: path.to_path_buf(),
-                embodiment: cfg.embodiment_tag.clone(),
-                modality: modality.to_string(),
-                group: group.to_string(),
-                stat: stat.to_string(),
+                key: format!("{}.{modality}.{group}.{stat}", cfg.embodiment_tag),
                 problem,
-            }
-        };
+            };
         let emb = stats.get(&cfg.embodiment_tag).ok_or_else(|| {
             err(
                 "*",
@@ -356,7 +352,9 @@ impl Normalizer {
             )
         })?;
         // (offset, scale) per dim: norm = (x − offset)/scale; raw = scale·norm + offset.
-        let affine = |modality: &str, groups: &[Group]| -> Result<(Vec<f32>, Vec<f32>, Vec<bool>)> {
+        let affine = |modality: &str,
+                      groups: &[Group]|
+         -> Result<(Vec<f32>, Vec<f32>, Vec<bool>)> {
             let (mut off, mut scale, mut clip) = (Vec::new(), Vec::new(), Vec::new());
             for g in groups {
                 let get = |stat: &str| -> Result<Vec<f64>> {
@@ -465,10 +463,11 @@ pub fn read_embodiment_id(path: &Path, tag: &str) -> Result<Option<i64>> {
         path: path.to_path_buf(),
         source,
     })?;
-    let map: BTreeMap<String, i64> = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
-        path: path.to_path_buf(),
-        message: format!("expected {{tag: id}}: {e}"),
-    })?;
+    let map: BTreeMap<String, i64> =
+        serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+            path: path.to_path_buf(),
+            message: format!("expected {{tag: id}}: {e}"),
+        })?;
     Ok(map.get(tag).copied())
 }
 

@@ -290,10 +290,16 @@ pub fn check(
             ));
         }
         if shape.len() != ts.dims.len() {
+            let hint = if ts.name.starts_with("timestep") && shape.len() + 1 == ts.dims.len() {
+                "; this is GR00T's stock per-sample timestep: πR² needs one timestep per \
+                 position (per-position AdaLN), see docs/gr00t-contract.md"
+            } else {
+                ""
+            };
             return Err(bad(
                 ts.name,
                 format!(
-                    "rank {} (shape {shape:?}), expected rank {} [{}]",
+                    "rank {} (shape {shape:?}), expected rank {} [{}]{hint}",
                     shape.len(),
                     ts.dims.len(),
                     want.join(", ")
@@ -335,7 +341,11 @@ pub fn check(
                         if matches!(d, Static(_)) && !is_output {
                             return Err(mismatch(format!(
                                 "a fixed size `{name}` (only the batch{} may be dynamic)",
-                                if spec.inputs.iter().any(|t| t.dims.iter().any(|d| matches!(d, Dynamic(_)))) {
+                                if spec
+                                    .inputs
+                                    .iter()
+                                    .any(|t| t.dims.iter().any(|d| matches!(d, Dynamic(_))))
+                                {
                                     " and the token count"
                                 } else {
                                     ""

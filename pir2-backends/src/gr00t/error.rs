@@ -28,20 +28,12 @@ pub enum Gr00tError {
     #[error("invalid GR00T embodiment configuration: {0}")]
     Config(String),
     /// A normalisation statistic is missing or malformed.
-    #[error(
-        "statistics file `{path}`: `{embodiment}.{modality}.{group}.{stat}` {problem}"
-    )]
+    #[error("statistics file `{path}`: `{key}` {problem}")]
     Statistics {
         /// The statistics file.
         path: PathBuf,
-        /// Embodiment tag (top-level key).
-        embodiment: String,
-        /// `state` or `action`.
-        modality: String,
-        /// Joint group.
-        group: String,
-        /// Statistic (`min`, `max`, `mean`, `std`, `q01`, `q99`).
-        stat: String,
+        /// `embodiment.modality.group.stat`.
+        key: String,
         /// What is wrong.
         problem: String,
     },

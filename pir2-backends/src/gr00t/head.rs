@@ -26,9 +26,7 @@ use std::path::Path;
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 use super::config::{CheckpointFiles, EmbodimentConfig, Normalizer};
-use super::contract::{
-    feed, Bindings, Graph, ACTION_DECODER, ACTION_ENCODER, DIT, STATE_ENCODER,
-};
+use super::contract::{feed, Bindings, Graph, ACTION_DECODER, ACTION_ENCODER, DIT, STATE_ENCODER};
 use super::error::{Gr00tError, Result};
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
@@ -217,7 +215,10 @@ impl Gr00tActionHead {
         if d_vis > self.dims.d_vis_max || row.len() != self.dims.d_in {
             return Err(Gr00tError::input(
                 "delay row",
-                format!("d_vis <= {} and {} values", self.dims.d_vis_max, self.dims.d_in),
+                format!(
+                    "d_vis <= {} and {} values",
+                    self.dims.d_vis_max, self.dims.d_in
+                ),
                 format!("d_vis {d_vis}, {} values", row.len()),
             ));
         }
@@ -341,7 +342,11 @@ impl Gr00tActionHead {
             &mut s_feat,
         )?;
         self.s_feat = s_feat;
-        chk("state encoder output [B,1,D_in]", b * d_in, self.s_feat.len())?;
+        chk(
+            "state encoder output [B,1,D_in]",
+            b * d_in,
+            self.s_feat.len(),
+        )?;
 
         // 2. action tokens with per-position timesteps
         self.actions.clear();
@@ -366,7 +371,11 @@ impl Gr00tActionHead {
             &mut a_feat,
         )?;
         self.a_feat = a_feat;
-        chk("action encoder output [B,H,D_in]", b * h * d_in, self.a_feat.len())?;
+        chk(
+            "action encoder output [B,H,D_in]",
+            b * h * d_in,
+            self.a_feat.len(),
+        )?;
 
         // 3. position and delay embeddings, then [state; actions]
         self.sa.clear();
@@ -428,7 +437,11 @@ impl Gr00tActionHead {
         let r = self.dit.run_into(feeds, "output", &mut y);
         self.y = y;
         r?;
-        chk("DiT output [B,1+H,D_hid]", b * (1 + h) * d_hid, self.y.len())?;
+        chk(
+            "DiT output [B,1+H,D_hid]",
+            b * (1 + h) * d_hid,
+            self.y.len(),
+        )?;
 
         // 5. decoder, drop the state token and the padding
         let mut dec = std::mem::take(&mut self.dec);

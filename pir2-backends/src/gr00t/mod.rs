@@ -39,7 +39,9 @@ pub mod head;
 pub mod run;
 pub mod weights;
 
-pub use backbone::{build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer};
+pub use backbone::{
+    build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
+};
 pub use config::{CheckpointFiles, EmbodimentConfig, Group, Norm, Normalizer, PAPER_TASKS};
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

@@ -128,8 +128,12 @@ impl SideWeights {
                 }
                 Ok(Some((w, b)))
             }
-            (Some(_), None) => Err(self.err(VLLN_BIAS, "is missing (vlln.weight is present)".into())),
-            (None, Some(_)) => Err(self.err(VLLN_WEIGHT, "is missing (vlln.bias is present)".into())),
+            (Some(_), None) => {
+                Err(self.err(VLLN_BIAS, "is missing (vlln.weight is present)".into()))
+            }
+            (None, Some(_)) => {
+                Err(self.err(VLLN_WEIGHT, "is missing (vlln.bias is present)".into()))
+            }
         }
     }
 }
