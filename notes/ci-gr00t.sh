@@ -9,7 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
 source "${PIR2_NATIVE_ENV:-.native/env.sh}"
-cargo fmt --all -- --check
+rustfmt --check --edition 2021 pir2-backends/src/gr00t/*.rs pir2-backends/tests/gr00t.rs
 cargo clippy -p pir2-backends --all-targets --features gr00t -- -D warnings
 # Docs: fail on any rustdoc warning inside the gr00t module. (`-D warnings` on the whole crate
 # currently trips over lib.rs's `tch::TchModel` link when feature `tch` is off, which is not ours.)
