@@ -415,3 +415,116 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
     drop(arm_emu);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The FakeRobot's `[q, q − cmd]` (36-d) laid out as the 45-d xArm6 + XHand state: arm
+/// joints, hand joints, hand "torques" (tracking error), zero fingertip forces.
+struct State45(pir2_runtime::testing::FakeRobot, [f32; 36]);
+
+impl pir2_runtime::FastSource for State45 {
+    fn dim(&self) -> usize {
+        45
+    }
+    fn read(&mut self, out: &mut [f32]) -> pir2_runtime::Result<pir2_runtime::Nanos> {
+        let t = self.0.read(&mut self.1)?;
+        out[..18].copy_from_slice(&self.1[..18]);
+        out[18..30].copy_from_slice(&self.1[24..36]);
+        out[30..].fill(0.0);
+        Ok(t)
+    }
+}
+
+/// A stand-in for a remote backbone: tokens computed from the frame's values.
+struct TokenEncoder {
+    encoded: Arc<AtomicU64>,
+}
+
+#[async_trait::async_trait]
+impl pir2_runtime::SlowEncoder for TokenEncoder {
+    async fn encode(
+        &mut self,
+        frame: SlowFrame,
+    ) -> pir2_runtime::Result<pir2_runtime::SlowFeatures> {
+        self.encoded.fetch_add(1, Ordering::Relaxed);
+        let v = frame.values.first().copied().unwrap_or(0.0);
+        Ok(pir2_runtime::SlowFeatures {
+            t_capture: frame.t_capture,
+            data: (0..8 * D_VL)
+                .map(|i| (v * 0.1 + i as f32 * 0.01).sin())
+                .collect(),
+            tokens: 8,
+            dim: D_VL,
+        })
+    }
+}
+
+#[test]
+fn custom_backbone_seam_drives_the_head_on_a_fake_robot() {
+    use pir2_backends::gr00t::{run_gr00t, BackboneChoice, VlLayout};
+    use pir2_runtime::testing::{CameraStub, FakeRobot};
+
+    let dir = fixture("custom", "");
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let robot = FakeRobot::new(18, clock.clone());
+    let sent = robot.sent.clone();
+    let encoded = Arc::new(AtomicU64::new(0));
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(25),
+        clock: clock.clone(),
+        warm_start_steps: 2,
+        backbone: BackboneChoice::Custom {
+            encoder: Box::new(TokenEncoder {
+                encoded: encoded.clone(),
+            }),
+            layout: VlLayout {
+                image_mask: (0..8).map(|i| i < 4).collect(),
+                attention_mask: vec![true; 8],
+            },
+        },
+        ..Default::default()
+    };
+    let camera = CameraStub::new(clock.clone(), Duration::from_millis(50), 1);
+    let m = run_gr00t(
+        &dir,
+        "put the box in the basket",
+        State45(robot.clone(), [0.0; 36]),
+        robot,
+        camera,
+        opts,
+    )
+    .unwrap();
+    assert_eq!(m.ticks, 25);
+    assert_eq!(sent.load(Ordering::Relaxed), 25);
+    assert!(!m.calls.is_empty());
+    assert!(encoded.load(Ordering::Relaxed) >= 2);
+
+    // A layout whose length disagrees with the features is refused before the robot moves.
+    let robot = FakeRobot::new(18, clock.clone());
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(5),
+        clock: clock.clone(),
+        backbone: BackboneChoice::Custom {
+            encoder: Box::new(TokenEncoder {
+                encoded: Arc::new(AtomicU64::new(0)),
+            }),
+            layout: VlLayout {
+                image_mask: vec![true; 3],
+                attention_mask: vec![true; 2],
+            },
+        },
+        ..Default::default()
+    };
+    let camera = CameraStub::new(clock.clone(), Duration::from_millis(10), 1);
+    let e = run_gr00t(
+        &dir,
+        "catch_book",
+        State45(robot.clone(), [0.0; 36]),
+        robot.clone(),
+        camera,
+        opts,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("VL layout"), "{e}");
+    assert_eq!(robot.sent.load(Ordering::Relaxed), 0);
+    std::fs::remove_dir_all(&dir).ok();
+}
