@@ -64,6 +64,8 @@ pub struct HeadDims {
     pub d_hid: usize,
     /// Rows of the delay table minus one.
     pub d_vis_max: usize,
+    /// Backbone token count `T` if the DiT fixes it (GR00T's exporter leaves it dynamic).
+    pub vl_tokens: Option<usize>,
 }
 
 /// GR00T N1.7's action head with the πR² changes (see the module docs).
@@ -155,6 +157,7 @@ impl Gr00tActionHead {
             d_vl: need("D_vl"),
             d_hid: need("D_hid"),
             d_vis_max: cfg.d_vis_max,
+            vl_tokens: b.get("T"),
         };
         if norm.state_dim() != dims.state_dim {
             return Err(Gr00tError::Config(format!(
@@ -288,6 +291,7 @@ impl Gr00tActionHead {
             d_vl: _,
             d_hid,
             d_vis_max,
+            vl_tokens: _,
         } = self.dims;
         let b = input.batch;
         let chk = |what: &str, want: usize, got: usize| {

@@ -125,6 +125,10 @@ pub struct Gr00tRunReport {
 /// Run the GR00T-N1.7 xArm6 + XHand stack on `fast`/`actuator` (the robot's proprioception
 /// source and command sink, e.g. `pir2_robots::split` of the safety-wrapped composite) and
 /// `camera`, with the task `task` (a key of the embodiment's `tasks` or a prompt verbatim).
+///
+/// The robot's state timestamps and the camera's capture times must be on `opts.clock`
+/// (`d_vis` is their difference). The robot is stopped (`Actuator::stop`) on every exit path
+/// of the driver; loading errors return before anything is sent.
 pub fn run_gr00t<F, A, C>(
     checkpoint_dir: &Path,
     task: &str,
@@ -198,6 +202,18 @@ where
             tokens,
             layout.attention_mask.len(),
         ));
+    }
+    if let Some(t) = model.dims().vl_tokens {
+        if t != tokens {
+            return Err(Gr00tError::Contract {
+                path: files.dit.clone(),
+                tensor: "vl_embs".to_string(),
+                problem: format!(
+                    "fixes T = {t} tokens but the backbone layout has {tokens} \
+                     (prompt.image_tokens + prompt.text_tokens)"
+                ),
+            });
+        }
     }
     model.set_vl_layout(layout);
 
