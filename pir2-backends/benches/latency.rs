@@ -1,51 +1,47 @@
 //! One-NFE latency at batch 1, single thread, for the MLP and the U-Net of the Leap-cube stack
 //! (`H = 16`, `A = 16`, `n_obs = 2`, 32-d fast + 9-d slow observation), on every enabled
-//! backend with the same weights, printed side by side as ratios to ONNX Runtime.
+//! backend with the same weights (a candle model, exported to ONNX and traced to TorchScript),
+//! printed side by side with ratios to ONNX Runtime.
 //!
 //! `cargo bench -p pir2-backends --features ort,tch --bench latency`
-//! (`PIR2_BENCH_ITERS`, default 300, sets the timed iterations per cell). A plain timing loop
-//! (warm-up, then median and p90 of per-call wall time), so that all backends share one table.
+//! (`PIR2_BENCH_ITERS`, default 300, sets the timed calls per cell). A plain timing loop
+//! (warm-up, then median and p90 of per-call wall time) so that all backends share one table.
+//! Single thread: `RAYON_NUM_THREADS=1` for candle (set here before candle starts its pool),
+//! intra/inter-op 1 for ONNX Runtime and libtorch (their defaults in this crate).
 
 use std::time::Instant;
 
-use pir2_backends::onnx::models::{Film, MlpSpec, ObsNorm, UnetSpec};
-use pir2_backends::onnx::ops::NamedWeights;
-use pir2_backends::onnx::{ContractDims, ModelSpec, SlowSpec};
+use pir2_backends::candle::CandleModel;
+use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
-fn leap_dims() -> ContractDims {
-    ContractDims {
+fn leap_spec() -> Spec {
+    Spec {
         horizon: 16,
         action_dim: 16,
         n_obs: 2,
         fast_dim: 32,
         slow: SlowSpec::Vector { dim: 9 },
-        has_d_vis: true,
+        d_vis_max: 5,
     }
 }
 
-fn specs() -> Vec<ModelSpec> {
+fn configs() -> Vec<(&'static str, Config)> {
     vec![
-        ModelSpec::Mlp(MlpSpec {
-            dims: leap_dims(),
-            width: 256,
-            depth: 3,
-            tau_freqs: 2,
-            dvis_dim: 8,
-            d_vis_max: 5,
-            norm: ObsNorm::identity(&leap_dims()),
-        }),
-        ModelSpec::Unet(UnetSpec {
-            dims: leap_dims(),
-            widths: vec![64, 128, 256],
-            kernel: 5,
-            groups: 8,
-            tau_dim: 64,
-            dvis_dim: 16,
-            d_vis_max: 5,
-            film: Film::PerPosition,
-            norm: ObsNorm::identity(&leap_dims()),
-        }),
+        (
+            "mlp",
+            Config {
+                spec: leap_spec(),
+                model: ModelConfig::Mlp(MlpConfig::default()),
+            },
+        ),
+        (
+            "unet",
+            Config {
+                spec: leap_spec(),
+                model: ModelConfig::UNet(UNetConfig::default()),
+            },
+        ),
     ]
 }
 
@@ -74,11 +70,13 @@ fn time(model: &mut dyn VelocityModel, input: &ModelInput<'_>, iters: usize) -> 
 }
 
 #[allow(unused_variables, unused_mut)]
-fn backends(spec: &ModelSpec, weights: &NamedWeights) -> Vec<Box<dyn VelocityModel>> {
+fn native(kind: &str, model: &CandleModel) -> Vec<Box<dyn VelocityModel>> {
     let mut v: Vec<Box<dyn VelocityModel>> = Vec::new();
+    let spec = pir2_backends::onnx::candle_bridge::spec_from_config(model.config(), model.stats())
+        .expect("exportable");
     #[cfg(feature = "ort")]
     {
-        let bytes = pir2_backends::onnx::export(spec, weights)
+        let bytes = pir2_backends::onnx::export(&spec, model)
             .expect("export")
             .encode();
         v.push(Box::new(
@@ -88,62 +86,66 @@ fn backends(spec: &ModelSpec, weights: &NamedWeights) -> Vec<Box<dyn VelocityMod
     }
     #[cfg(feature = "tch")]
     {
-        let path = std::env::temp_dir().join(format!(
-            "pir2-bench-{}-{}.pt",
-            spec.kind(),
-            std::process::id()
-        ));
-        pir2_backends::tch::export_torchscript(spec, weights, &path).expect("trace");
+        let path =
+            std::env::temp_dir().join(format!("pir2-bench-{kind}-{}.pt", std::process::id()));
+        pir2_backends::tch::export_torchscript(&spec, model, &path).expect("trace");
         v.push(Box::new(
             pir2_backends::tch::TchModel::load(&path).expect("libtorch"),
         ));
+        let _ = std::fs::remove_file(&path);
     }
     v
 }
 
 fn main() {
+    // Before candle's first use: its CPU kernels use a rayon pool.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
     let iters: usize = std::env::var("PIR2_BENCH_ITERS")
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(300);
-    println!("one NFE, batch 1, single thread, {iters} timed calls per cell (median / p90 in µs; ratio = median / onnxruntime median)");
+    println!("one NFE, batch 1, single thread, {iters} timed calls per cell (µs; ratio = median / onnxruntime median)");
     println!(
         "{:<6} {:<12} {:>10} {:>10} {:>8}",
         "model", "backend", "median", "p90", "ratio"
     );
-    for spec in specs() {
-        let weights = NamedWeights::random(&spec.weight_shapes(), 0);
-        let n_params: usize = weights.iter().map(|(_, _, d)| d.len()).sum();
-        let d = *spec.dims();
+    for (kind, cfg) in configs() {
+        let spec = cfg.spec;
+        let candle = CandleModel::new(cfg, Stats::identity(&spec), 0).expect("candle model");
+        let n_params = candle.num_params();
         let mut rng = pir2_schedule::Rng::new(1);
         let mut normal = |n: usize| {
             let mut v = vec![0f32; n];
             rng.fill_normal(&mut v);
             v
         };
-        let x = normal(d.horizon * d.action_dim);
-        let obs = normal(d.n_obs * d.fast_dim);
+        let x = normal(spec.horizon * spec.action_dim);
+        let obs = normal(spec.n_obs * spec.fast_dim);
         let slow = normal(9);
-        let tau: Vec<f32> = (0..d.horizon)
-            .map(|p| 1.0 - p as f32 / d.horizon as f32)
+        let tau: Vec<f32> = (0..spec.horizon)
+            .map(|p| 1.0 - p as f32 / spec.horizon as f32)
             .collect();
         let input = ModelInput {
             batch: 1,
-            horizon: d.horizon,
-            action_dim: d.action_dim,
+            horizon: spec.horizon,
+            action_dim: spec.action_dim,
             x: &x,
             tau: &tau,
             obs_fast: &obs,
-            n_obs: d.n_obs,
-            fast_dim: d.fast_dim,
+            n_obs: spec.n_obs,
+            fast_dim: spec.fast_dim,
             slow: SlowInput::Vector {
                 data: &slow,
                 dim: 9,
             },
             d_vis: &[0],
         };
+        let mut models = native(kind, &candle);
+        models.insert(0, Box::new(candle));
         let mut rows = Vec::new();
-        for mut m in backends(&spec, &weights) {
+        for m in models.iter_mut() {
             let t = time(m.as_mut(), &input, iters);
             rows.push((m.backend(), t));
         }
@@ -155,13 +157,9 @@ fn main() {
             let ratio = base.map_or("-".to_string(), |o| format!("{:.2}x", t.median_us / o));
             println!(
                 "{:<6} {:<12} {:>10.1} {:>10.1} {:>8}",
-                spec.kind(),
-                b,
-                t.median_us,
-                t.p90_us,
-                ratio
+                kind, b, t.median_us, t.p90_us, ratio
             );
         }
-        println!("{:<6} ({} parameters)", spec.kind(), n_params);
+        println!("{kind:<6} ({n_params} parameters)");
     }
 }

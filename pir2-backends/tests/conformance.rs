@@ -784,12 +784,184 @@ mod exported_ort_vs_tch {
 /// (`python -c "import onnx; onnx.checker.check_model(...)"`) can validate them; a no-op otherwise.
 #[test]
 fn dump_exported_models_for_external_checking() {
-    let Some(dir) = std::env::var_os("PIR2_DUMP_ONNX") else { return };
+    let Some(dir) = std::env::var_os("PIR2_DUMP_ONNX") else {
+        return;
+    };
     let dir = std::path::PathBuf::from(dir);
     std::fs::create_dir_all(&dir).unwrap();
     for (i, spec) in exported::specs().iter().enumerate() {
         let path = dir.join(format!("{}-{i}.onnx", spec.kind()));
         onnx::export_to_file(spec, &exported::weights(spec), &path).unwrap();
         assert!(std::fs::metadata(&path).unwrap().len() > 100);
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// candle (the trained models) vs the exported definitions, on the same candle weights.
+// ---------------------------------------------------------------------------------------------
+
+#[cfg(feature = "candle")]
+mod candle_models {
+    use super::*;
+    use pir2_backends::candle::CandleModel;
+    use pir2_backends::config::{
+        self, Config, FilmMode, MlpConfig, ModelConfig, Norm, Spec, Stats, UNetConfig,
+    };
+
+    fn spec(slow: config::SlowSpec) -> Spec {
+        Spec {
+            horizon: 8,
+            action_dim: 3,
+            n_obs: 2,
+            fast_dim: 4,
+            slow,
+            d_vis_max: 2,
+        }
+    }
+
+    fn stats(s: &Spec) -> Stats {
+        let mut st = Stats::identity(s);
+        st.fast = Norm {
+            mean: (0..s.fast_dim).map(|i| 0.1 * i as f32).collect(),
+            std: (0..s.fast_dim).map(|i| 0.5 + 0.25 * i as f32).collect(),
+        };
+        st.fast_diff.std = vec![2.0; s.fast_dim];
+        let w = s.slow.width();
+        st.slow = Norm {
+            mean: (0..w).map(|i| -0.2 * i as f32).collect(),
+            std: vec![3.0; w],
+        };
+        st
+    }
+
+    /// Every candle configuration the exporter supports, with all weights perturbed away from
+    /// their (partly zero) initial values so every path (d_vis embedding, per-position FiLM)
+    /// contributes.
+    pub(super) fn models() -> Vec<CandleModel> {
+        let slows = [
+            config::SlowSpec::None,
+            config::SlowSpec::Vector { dim: 6 },
+            config::SlowSpec::Tokens { tokens: 2, dim: 3 },
+        ];
+        let mut out = Vec::new();
+        for (i, slow) in slows.into_iter().enumerate() {
+            let s = spec(slow);
+            let mlp = Config {
+                spec: s,
+                model: ModelConfig::Mlp(MlpConfig {
+                    width: 32,
+                    depth: 2,
+                    tau_freqs: 2,
+                    dvis_dim: 4,
+                }),
+            };
+            let film = if i == 2 {
+                FilmMode::Shared
+            } else {
+                FilmMode::PerPosition
+            };
+            let unet = Config {
+                spec: s,
+                model: ModelConfig::UNet(UNetConfig {
+                    widths: vec![8, 16],
+                    kernel: 3,
+                    groups: 4,
+                    tau_dim: 8,
+                    dvis_dim: 2,
+                    film,
+                }),
+            };
+            for cfg in [mlp, unet] {
+                let m = CandleModel::new(cfg, stats(&s), 5).unwrap();
+                let mut rng = Rng::new(77 + i as u64);
+                for (_, var) in m.vars() {
+                    let t = var.as_tensor();
+                    let n = t.elem_count();
+                    let noise: Vec<f32> = (0..n).map(|_| rng.uniform_range(-0.3, 0.3)).collect();
+                    let noise = candle_core::Tensor::from_vec(noise, t.dims(), t.device()).unwrap();
+                    var.set(&(t + noise).unwrap()).unwrap();
+                }
+                out.push(m);
+            }
+        }
+        out
+    }
+
+    pub(super) fn dims_of(m: &CandleModel) -> ContractDims {
+        *onnx::candle_bridge::spec_from_config(m.config(), m.stats())
+            .unwrap()
+            .dims()
+    }
+
+    pub(super) fn check_against_candle(
+        name: &str,
+        m: &mut CandleModel,
+        other: &mut dyn VelocityModel,
+    ) {
+        let d = dims_of(m);
+        for batch in [1, 5] {
+            let inp = Inputs::random(d, batch, 40 + batch as u64);
+            let n = batch * d.horizon * d.action_dim;
+            let (mut want, mut got) = (vec![0f32; n], vec![0f32; n]);
+            m.velocity(&inp.view(), &mut want).unwrap();
+            other.velocity(&inp.view(), &mut got).unwrap();
+            assert!(
+                want.iter().any(|v| v.abs() > 1e-3),
+                "degenerate candle output"
+            );
+            assert_close(
+                &format!("{name} vs candle ({:?}, batch {batch})", m.config().model),
+                &got,
+                &want,
+            );
+        }
+    }
+
+    #[test]
+    fn candle_models_export_to_valid_contract_graphs() {
+        for m in models() {
+            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
+            let model = onnx::export(&spec, &m).unwrap();
+            assert_eq!(model.graph.outputs[0].name, "v");
+        }
+    }
+
+    #[cfg(feature = "ort")]
+    #[test]
+    fn ort_matches_candle_on_the_same_weights() {
+        use pir2_backends::ort::{OrtModel, OrtOptions};
+        for mut m in models() {
+            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
+            let bytes = onnx::export(&spec, &m).unwrap().encode();
+            let mut ort = OrtModel::from_bytes(&bytes, &OrtOptions::default()).unwrap();
+            check_against_candle("onnxruntime", &mut m, &mut ort);
+        }
+    }
+
+    #[cfg(feature = "tch")]
+    #[test]
+    fn tch_matches_candle_on_the_same_weights() {
+        use pir2_backends::tch::{export_torchscript, TchModel};
+        let dir =
+            std::env::temp_dir().join(format!("pir2-conformance-candle-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (i, mut m) in models().into_iter().enumerate() {
+            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
+            let path = dir.join(format!("m{i}.pt"));
+            export_torchscript(&spec, &m, &path).unwrap();
+            let mut t = TchModel::load(&path).unwrap();
+            check_against_candle("libtorch", &mut m, &mut t);
+        }
+    }
+
+    #[test]
+    fn dit_export_is_reported_unsupported() {
+        let s = spec(config::SlowSpec::Tokens { tokens: 2, dim: 3 });
+        let cfg = Config {
+            spec: s,
+            model: ModelConfig::Dit(Default::default()),
+        };
+        let e = onnx::candle_bridge::spec_from_config(&cfg, &Stats::identity(&s)).unwrap_err();
+        assert!(e.to_string().contains("DiT"), "{e}");
     }
 }

@@ -317,7 +317,7 @@ pub enum Film {
 ///   `ω_k = exp(−k·ln(10⁴)/(E/2 − 1))`.
 /// * shared condition `mish([mean_p e_p, encoded fast, mean over tokens of normalised slow, e(d_vis)])`.
 /// * residual block `N`: `N.block0` (conv k → GroupNorm `gn` → Mish), FiLM
-///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·γ + β`, `N.block1`, `+ N.res(x)`
+///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·(1 + γ) + β`, `N.block1`, `+ N.res(x)`
 ///   (1×1 conv) or `+ x`.
 /// * `down.{i}.res0/res1`, `down.{i}.down` (conv 3, stride 2) except at the last level; `mid.0/1`;
 ///   `up.{j}.res0/res1` on `concat(h, skip)`, then nearest ×2 and `up.{j}.up` (conv 3);
@@ -515,7 +515,8 @@ impl UnetSpec {
         let scale = o.reshape(&scale, &[-1, c, l]);
         let bias = o.slice(&f, 1, 1, 2);
         let bias = o.reshape(&bias, &[-1, c, l]);
-        let hs = o.mul(&h, &scale);
+        let scale1 = o.offset(&scale, 1.0);
+        let hs = o.mul(&h, &scale1);
         let hb = o.add(&hs, &bias);
         let h = self.conv_block(o, w, &format!("{n}.block1"), &hb, out, out)?;
         let r = if i != out {

@@ -174,8 +174,9 @@ struct OrtApiBase {
     get_version_string: unsafe extern "system" fn() -> *const c_char,
 }
 
-/// Read the version string of the library at `path` without initialising anything.
-fn library_version(path: &Path) -> Result<String, OrtError> {
+/// Read the version string of the ONNX Runtime library at `path` without initialising it
+/// (diagnostics; [`runtime`] does the same check before loading).
+pub fn probe_library(path: &Path) -> Result<String, OrtError> {
     let load_err = |reason: String| OrtError::Load {
         path: path.to_path_buf(),
         expected: EXPECTED_VERSION,
@@ -218,7 +219,7 @@ pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime, OrtError>
         return Ok(rt);
     }
     let path = resolve_dylib_path(explicit);
-    let version = library_version(&path)?;
+    let version = probe_library(&path)?;
     if !version_ok(&version) {
         return Err(OrtError::Version {
             path,
@@ -633,4 +634,45 @@ fn validate_contract(
         has_d_vis,
     };
     Ok((dims, batch.filter(|&b| b > 0).map(|b| b as usize)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn version_check_accepts_1_31_and_newer_1_x_only() {
+        assert!(version_ok("1.31.1"));
+        assert!(version_ok("1.32.0"));
+        assert!(!version_ok("1.30.2"));
+        assert!(!version_ok("2.0.0"));
+        assert!(!version_ok("garbage"));
+    }
+
+    #[test]
+    fn load_error_names_the_path_and_the_expected_version() {
+        let e = probe_library(Path::new("/nonexistent/libonnxruntime.so")).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("/nonexistent/libonnxruntime.so"), "{msg}");
+        assert!(msg.contains("1.31.x"), "{msg}");
+    }
+
+    #[test]
+    fn a_library_that_is_not_onnxruntime_is_named_as_such() {
+        // libm exists on every Linux system and has no `OrtGetApiBase`.
+        if cfg!(target_os = "linux") {
+            let e = probe_library(Path::new("libm.so.6")).unwrap_err();
+            assert!(e.to_string().contains("not an ONNX Runtime library"), "{e}");
+        }
+    }
+
+    #[test]
+    fn explicit_path_is_used_only_without_the_environment_variable() {
+        let explicit = Path::new("/opt/ort/libonnxruntime.so");
+        let got = resolve_dylib_path(Some(explicit));
+        match std::env::var_os("ORT_DYLIB_PATH") {
+            Some(p) if !p.is_empty() => assert_eq!(got, PathBuf::from(p)),
+            _ => assert_eq!(got, explicit),
+        }
+    }
 }
