@@ -30,6 +30,9 @@ pub mod xarm;
 pub mod xhand;
 
 pub use check::{check, check_with, CheckOptions, CheckReport};
+#[cfg(unix)]
+pub use emu::run_xhand_emulator_pty;
+pub use emu::{run_xarm_emulator, XArmPorts};
 pub use error::{Error, Result};
 pub use robot::{split, ArmHand, Robot, RobotActuator, RobotSource, StateLayout};
 pub use safety::{SafetyConfig, SafetyLayer, SafetyStats};

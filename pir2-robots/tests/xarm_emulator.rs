@@ -91,7 +91,7 @@ fn answers_what_a_client_asks_at_connect() {
             .error,
         0
     );
-    let rich = e.report_addr(ReportKind::Normal, 187).unwrap();
+    let rich = e.report_addr(ReportKind::Normal, 233).unwrap();
     let mut rx =
         ReportReader::connect(rich, ReportKind::Normal, Duration::from_millis(300)).unwrap();
     assert!(rx.next(&SystemClock::new(), Duration::from_secs(2)).is_ok());
@@ -363,4 +363,41 @@ fn check_reports_an_emulated_arm_without_moving_it() {
     std::thread::sleep(Duration::from_millis(50));
     let err = pir2_robots::check(Some(addr), None).unwrap_err();
     assert!(matches!(err, Error::Connect { .. }), "{err}");
+}
+
+#[test]
+fn controller_side_stop_is_detected_from_the_report_stream() {
+    let e = emu();
+    let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    let mut s = [0f32; 12];
+    arm.read_state(&mut s).unwrap();
+    e.handle().inject(XArmFault::EmergencyStop);
+    assert!(wait_until(
+        || arm.read_state(&mut s).is_err(),
+        Duration::from_secs(2)
+    ));
+    let err = arm.send_targets(&[0.0; 6]).unwrap_err();
+    assert!(
+        matches!(err, Error::Stopped { ref reason, .. } if reason.contains("state 4")),
+        "{err}"
+    );
+}
+
+#[test]
+fn controller_side_stop_is_detected_from_servoj_replies_without_reports() {
+    let e = emu();
+    let mut cfg = arm_cfg(&e);
+    cfg.report_addr = None;
+    let mut arm = XArm6::connect(cfg, clock()).unwrap();
+    e.handle().inject(XArmFault::EmergencyStop);
+    let mut s = [0f32; 12];
+    assert!(wait_until(
+        || arm.read_state(&mut s).is_err(),
+        Duration::from_secs(2)
+    ));
+    let err = arm.read_state(&mut s).unwrap_err();
+    assert!(
+        matches!(err, Error::Stopped { ref reason, .. } if reason.contains("not ready")),
+        "{err}"
+    );
 }

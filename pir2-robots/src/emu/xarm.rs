@@ -4,8 +4,9 @@
 //! Ports: the standard ones (502, 30001 normal, 30002 rich, 30003 real) with
 //! [`XArmPorts::standard`], or ephemeral ones (port 0, chosen by the OS) with
 //! [`XArmPorts::ephemeral`]; [`XArmEmulator::cmd_addr`] and [`XArmEmulator::report_addr`] tell
-//! where it listens. The rich stream sends the normal layout padded with zeros to 187 bytes
-//! (fields past the normal layout are not emulated).
+//! where it listens. The rich stream sends the normal layout padded with zeros to 233 bytes
+//! (`TCP_REPORT_RICH_BUF_SIZE` in the SDK's `x_config.py`); fields past the normal layout are
+//! not emulated.
 //!
 //! Behaviour: the arm starts stopped (state 4), mode 0, motors disabled. `MOTION_EN [8, 1]`,
 //! `SET_MODE [1]` and `SET_STATE [0]` make it ready (state 2); servo-j is then applied
@@ -86,6 +87,8 @@ pub enum XArmFault {
     WrongProtocol,
     /// Set the controller error code (sticky until CLEAN_ERR; the arm stops).
     ErrorCode(u8),
+    /// Stop the arm from the controller side (state 4, no error), like an emergency stop.
+    EmergencyStop,
     /// Pause the report stream this long.
     ReportStall(Duration),
     /// Close the report connection.
@@ -285,6 +288,10 @@ impl XArmEmuHandle {
             XArmFault::ReportStall(_) | XArmFault::ReportDisconnect | XArmFault::ReportGarbage => {
                 q.report.push_back(f)
             }
+            XArmFault::EmergencyStop => {
+                drop(q);
+                lock(&self.sim).state = state::STOP;
+            }
             XArmFault::ErrorCode(code) => {
                 drop(q);
                 let mut s = lock(&self.sim);
@@ -392,7 +399,7 @@ impl XArmEmulator {
         self.cmd_addr
     }
     /// Where a report stream listens: `(Real, _)` → 30003, `(Normal, 133)` → 30001,
-    /// `(Normal, 187)` → 30002.
+    /// `(Normal, 233)` → 30002.
     pub fn report_addr(&self, kind: ReportKind, size: usize) -> Option<SocketAddr> {
         self.reports
             .iter()

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use pir2_runtime::{Clock, Nanos};
 
-use super::proto::{self, reg, status, Command, FrameBuf, Reply, Report, ReportBuf, ReportKind};
+use super::proto::{self, reg, status, FrameBuf, Reply, Report, ReportBuf, ReportKind};
 use crate::error::{Error, Result};
 
 const CH_CMD: &str = "xArm command port";
@@ -97,13 +97,7 @@ impl XArmClient {
         let tid = self.tid;
         self.tid = proto::next_tid(self.tid);
         self.scratch.clear();
-        Command {
-            tid,
-            proto: self.proto,
-            register,
-            params: params.to_vec(),
-        }
-        .encode_into(&mut self.scratch)?;
+        proto::encode_command(tid, self.proto, register, params, &mut self.scratch)?;
         let Some(stream) = self.stream.as_mut() else {
             return Err(Error::Disconnected { channel: CH_CMD });
         };

@@ -15,9 +15,12 @@
 //! [`Robot::stop`] halts the streaming thread first (so no further servo-j leaves), then sends
 //! `SET_STATE 4` (stop). The driver then refuses new targets; reconnect to move again.
 //! A fault in the streaming thread (I/O error, timeout, framing error, controller error bit in
-//! a reply) ends the thread — servo mode holds the last target it received — and the fault is
-//! returned by the next `send_targets`/`read_state`. A lost or silent report stream leaves the
-//! state timestamp old, which the safety layer's watchdog turns into a stop.
+//! a reply, 10 consecutive replies with the not-ready bit) ends the thread — servo mode holds
+//! the last target it received — and the fault is returned by the next
+//! `send_targets`/`read_state`. A report with state 4 or 5 (a stop from the controller side,
+//! e.g. an emergency stop) or a broken report stream is a fault too and also ends streaming.
+//! A silent report stream leaves the state timestamp old, which the safety layer's watchdog
+//! turns into a stop.
 //!
 //! Hardware tests live in `tests/hardware.rs` and are `#[ignore]`d.
 
@@ -38,6 +41,8 @@ pub use client::{ClientStats, ReportReader, XArmClient};
 use proto::{status, ReportKind};
 
 const DEVICE: &str = "xArm6";
+/// Consecutive servo-j replies with the not-ready bit before the stream gives up.
+const NOT_READY_LIMIT: u32 = 10;
 
 /// Settings of an [`XArm6`].
 #[derive(Debug, Clone)]
@@ -277,6 +282,13 @@ fn report_loop(
                 s.q.copy_from_slice(&r.angles[..6]);
                 s.tau.copy_from_slice(&r.torques[..6]);
                 s.t_state = t;
+                // States 4 (stop) and 5 are "not ready" (SDK report handler): an emergency
+                // stop or a controller-side stop. Servo-j is ignored from then on.
+                if r.state == proto::state::STOP || r.state == 5 {
+                    s.fault.get_or_insert_with(|| {
+                        format!("controller reports state {} (stopped)", r.state)
+                    });
+                }
             }
             Ok(None) => {}
             Err(e) => {
@@ -298,15 +310,35 @@ fn stream_loop(
     poll_state: bool,
 ) {
     let mut next = clock.now();
+    let mut not_ready = 0u32;
     while !halt.load(Ordering::SeqCst) {
         let t = clock.now();
-        let q = lock(&shared).interp.sample(t);
+        let q = {
+            let s = lock(&shared);
+            if s.fault.is_some() {
+                return;
+            }
+            s.interp.sample(t)
+        };
         let res = {
             let mut c = lock(&client);
             c.servo_j(&q).and_then(|st| {
                 if st & status::ERROR != 0 {
                     let (error, warning) = c.error_codes().unwrap_or((0, 0));
                     return Err(Error::XArmController { error, warning });
+                }
+                if st & status::NOT_READY != 0 {
+                    not_ready += 1;
+                    if not_ready >= NOT_READY_LIMIT {
+                        return Err(Error::Stopped {
+                            device: DEVICE,
+                            reason: format!(
+                                "controller not ready for {not_ready} servo-j frames in a row"
+                            ),
+                        });
+                    }
+                } else {
+                    not_ready = 0;
                 }
                 if poll_state {
                     let qp = c.joint_positions()?;

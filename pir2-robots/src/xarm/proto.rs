@@ -138,6 +138,28 @@ pub fn next_tid(tid: u16) -> u16 {
     tid % u16::MAX + 1
 }
 
+/// Append one command frame to `out` (no intermediate allocation).
+pub fn encode_command(
+    tid: u16,
+    proto: u16,
+    register: u8,
+    params: &[u8],
+    out: &mut Vec<u8>,
+) -> Result<()> {
+    let len = 1 + params.len();
+    if len > MAX_LENGTH_FIELD as usize {
+        return Err(Error::XArmFrame {
+            reason: format!("command of {len} bytes exceeds {MAX_LENGTH_FIELD}"),
+        });
+    }
+    out.extend_from_slice(&tid.to_be_bytes());
+    out.extend_from_slice(&proto.to_be_bytes());
+    out.extend_from_slice(&(len as u16).to_be_bytes());
+    out.push(register);
+    out.extend_from_slice(params);
+    Ok(())
+}
+
 /// One command frame.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Command {
@@ -169,18 +191,7 @@ pub struct Reply {
 impl Command {
     /// Append the encoded frame to `out`.
     pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<()> {
-        let len = 1 + self.params.len();
-        if len > MAX_LENGTH_FIELD as usize {
-            return Err(Error::XArmFrame {
-                reason: format!("command of {len} bytes exceeds {MAX_LENGTH_FIELD}"),
-            });
-        }
-        out.extend_from_slice(&self.tid.to_be_bytes());
-        out.extend_from_slice(&self.proto.to_be_bytes());
-        out.extend_from_slice(&(len as u16).to_be_bytes());
-        out.push(self.register);
-        out.extend_from_slice(&self.params);
-        Ok(())
+        encode_command(self.tid, self.proto, self.register, &self.params, out)
     }
     /// The encoded frame.
     pub fn encode(&self) -> Result<Vec<u8>> {
@@ -354,7 +365,7 @@ pub const REPORT_REAL_LEN: usize = 87;
 /// Size of a "normal" report on older firmware.
 pub const REPORT_NORMAL_LEN: usize = 133;
 /// Size of a "rich" report (normal layout plus configuration blocks).
-pub const REPORT_RICH_LEN: usize = 187;
+pub const REPORT_RICH_LEN: usize = 233;
 /// Largest report size we accept.
 pub const REPORT_MAX_LEN: u32 = 1024;
 

@@ -105,6 +105,7 @@ pub struct XHand<T> {
     stats: XHandStats,
     tx: Vec<u8>,
     rx: Vec<u8>,
+    cmd_buf: Vec<u8>,
 }
 
 impl<T: Transport> XHand<T> {
@@ -123,6 +124,7 @@ impl<T: Transport> XHand<T> {
                 consts::HEADER_LEN + consts::COMMAND_PAYLOAD_LEN + consts::CRC_LEN,
             ),
             rx: vec![0; 4096],
+            cmd_buf: Vec::with_capacity(consts::COMMAND_PAYLOAD_LEN),
         }
     }
 
@@ -149,13 +151,13 @@ impl<T: Transport> XHand<T> {
         // Anything still buffered answers an older request: drop it.
         self.parser.clear();
         self.tx.clear();
-        Frame {
-            src: consts::HOST_ID,
-            dst: self.cfg.hand_id,
+        proto::encode_frame(
+            consts::HOST_ID,
+            self.cfg.hand_id,
             cmd,
-            payload: payload.to_vec(),
-        }
-        .encode_into(&mut self.tx)?;
+            payload,
+            &mut self.tx,
+        )?;
         self.stats.requests += 1;
         self.port.write_all(&self.tx).map_err(io_err)?;
         self.port.flush().map_err(io_err)?;
@@ -229,9 +231,11 @@ impl<T: Transport> XHand<T> {
         &mut self,
         fingers: &[FingerCommand; consts::JOINTS],
     ) -> Result<&HandState> {
-        let payload = proto::encode_hand_command(fingers);
-        let f = self.transact(consts::CMD_SET_COMMAND, &payload)?;
-        self.accept_state(f)
+        let mut payload = std::mem::take(&mut self.cmd_buf);
+        proto::encode_hand_command_into(fingers, &mut payload);
+        let r = self.transact(consts::CMD_SET_COMMAND, &payload);
+        self.cmd_buf = payload;
+        self.accept_state(r?)
     }
 
     fn position_commands(

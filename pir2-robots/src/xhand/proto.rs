@@ -47,6 +47,26 @@ pub fn crc16_xmodem(data: &[u8]) -> u16 {
     crc
 }
 
+/// Append one frame with the given header and payload to `out` (no intermediate allocation).
+pub fn encode_frame(src: u8, dst: u8, cmd: u8, payload: &[u8], out: &mut Vec<u8>) -> Result<()> {
+    if payload.len() > consts::MAX_PAYLOAD {
+        return Err(Error::XHandFrame {
+            reason: format!(
+                "payload of {} bytes exceeds {}",
+                payload.len(),
+                consts::MAX_PAYLOAD
+            ),
+        });
+    }
+    let start = out.len();
+    out.extend_from_slice(&[consts::SYNC0, consts::SYNC1, src, dst, cmd]);
+    out.extend_from_slice(&(payload.len() as u16).to_le_bytes());
+    out.extend_from_slice(payload);
+    let crc = crc16_xmodem(&out[start..]);
+    out.extend_from_slice(&crc.to_le_bytes());
+    Ok(())
+}
+
 /// One XHand frame.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Frame {
@@ -63,22 +83,7 @@ pub struct Frame {
 impl Frame {
     /// Append the encoded frame to `out`.
     pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<()> {
-        if self.payload.len() > consts::MAX_PAYLOAD {
-            return Err(Error::XHandFrame {
-                reason: format!(
-                    "payload of {} bytes exceeds {}",
-                    self.payload.len(),
-                    consts::MAX_PAYLOAD
-                ),
-            });
-        }
-        let start = out.len();
-        out.extend_from_slice(&[consts::SYNC0, consts::SYNC1, self.src, self.dst, self.cmd]);
-        out.extend_from_slice(&(self.payload.len() as u16).to_le_bytes());
-        out.extend_from_slice(&self.payload);
-        let crc = crc16_xmodem(&out[start..]);
-        out.extend_from_slice(&crc.to_le_bytes());
-        Ok(())
+        encode_frame(self.src, self.dst, self.cmd, &self.payload, out)
     }
     /// The encoded frame.
     pub fn encode(&self) -> Result<Vec<u8>> {
@@ -278,14 +283,21 @@ impl FingerCommand {
 
 /// Encode 12 finger commands as the 288-byte command payload.
 pub fn encode_hand_command(fingers: &[FingerCommand; consts::JOINTS]) -> Vec<u8> {
-    let mut p = vec![0u8; consts::COMMAND_PAYLOAD_LEN];
+    let mut p = Vec::with_capacity(consts::COMMAND_PAYLOAD_LEN);
+    encode_hand_command_into(fingers, &mut p);
+    p
+}
+
+/// Write the 288-byte command payload into `p` (cleared first; reuses its allocation).
+pub fn encode_hand_command_into(fingers: &[FingerCommand; consts::JOINTS], p: &mut Vec<u8>) {
+    p.clear();
+    p.resize(consts::COMMAND_PAYLOAD_LEN, 0);
     for (f, chunk) in fingers
         .iter()
         .zip(p.chunks_exact_mut(consts::FINGER_COMMAND_LEN))
     {
         f.write(chunk);
     }
-    p
 }
 
 /// Decode the 288-byte command payload.
