@@ -20,4 +20,5 @@ if echo "$doc_log" | grep -q -- "--> pir2-backends/src/gr00t/"; then
   echo "rustdoc warnings in src/gr00t" >&2
   exit 1
 fi
-cargo test -p pir2-backends --features gr00t -- --test-threads=1
+# The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests.
+cargo test -p pir2-backends --features gr00t --lib --test gr00t -- --test-threads=1

@@ -5,6 +5,17 @@
 //! runtime's real-time driver: the action head makes one πR² call per tick on the action
 //! worker, the backbone runs on the slow worker (`SlowChannel::Async`) and its features are
 //! cached with the frame's capture time, so each call sees `d_vis = round((t_state − t_image)/T)`.
+//!
+//! Wiring for `pir2 run gr00t-xarm-xhand --checkpoint DIR --task "catch the book"` (the robot
+//! from `pir2-robots`, any camera implementing [`SlowSource`] on the same clock):
+//!
+//! ```ignore
+//! let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+//! let robot = pir2_robots::connect_arm_hand(/* addresses, safety config */, clock.clone())?;
+//! let (source, actuator) = pir2_robots::split(robot);
+//! let opts = Gr00tRunOptions { clock: clock.clone(), stop: ctrl_c_flag, ..Default::default() };
+//! let metrics = run_gr00t(&dir, "catch the book", source, actuator, camera, opts)?;
+//! ```
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
