@@ -100,6 +100,19 @@ pub enum Error {
         message: String,
     },
 
+    // ---- export and native backends ----
+    /// ONNX export failed (names the model and the weight or option).
+    #[error(transparent)]
+    Export(#[from] crate::onnx::ExportError),
+    /// The ONNX Runtime backend could not load its library or a model.
+    #[cfg(feature = "ort")]
+    #[error(transparent)]
+    Ort(#[from] crate::ort::OrtError),
+    /// The libtorch backend could not load, trace or save a module.
+    #[cfg(feature = "tch")]
+    #[error(transparent)]
+    Tch(#[from] crate::tch::TchError),
+
     // ---- backend / training ----
     /// The candle backend failed.
     #[cfg(feature = "candle")]

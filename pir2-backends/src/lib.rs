@@ -3,7 +3,10 @@
 //! Velocity-model backends for πR². The default `candle` feature provides pure-Rust models
 //! (MLP, conditional U-Net 1D with per-position FiLM, DiT with per-position AdaLN) that
 //! implement [`pir2_runtime::model::VelocityModel`], checkpoints (safetensors + JSON), and the
-//! trainer ([`train`]). Native backends (ONNX Runtime, libtorch) sit behind their own features.
+//! trainer ([`train`]). Native backends sit behind their own features: ONNX Runtime (`ort`,
+//! `ort::OrtModel`) and libtorch (`tch`, `tch::TchModel`). ONNX export ([`onnx`]) is pure
+//! Rust and always available. The GR00T-N1.7 xArm6 + XHand stack is behind feature `gr00t`
+//! (module `gr00t`, `docs/gr00t-contract.md`).
 //!
 //! Models work in normalised action space; see [`config`].
 #![warn(missing_docs)]
@@ -11,9 +14,16 @@
 pub mod checkpoint;
 pub mod config;
 pub mod error;
+#[cfg(feature = "gr00t")]
+pub mod gr00t;
+pub mod onnx;
 
 #[cfg(feature = "candle")]
 pub mod candle;
+#[cfg(feature = "ort")]
+pub mod ort;
+#[cfg(feature = "tch")]
+pub mod tch;
 #[cfg(feature = "candle")]
 pub mod train;
 

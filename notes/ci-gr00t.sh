@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# CI fragment for the GR00T-N1.7 xArm6 + XHand stack (pir2-backends feature `gr00t`).
+# Run from the repository root after scripts/setup-native.sh; `source .native/env.sh` provides
+# ORT_DYLIB_PATH (ONNX Runtime 1.31) and PIR2_PYTHON (a venv with `onnx`, used by the tests to
+# write the tiny synthetic graphs). PIR2_NATIVE_ENV overrides the env file.
+# The end-to-end test runs the real-time driver for 2 s at 25 Hz on the xArm6/XHand emulators;
+# the whole suite is bounded (< ~30 s once built).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source "${PIR2_NATIVE_ENV:-.native/env.sh}"
+rustfmt --check --edition 2021 pir2-backends/src/gr00t/*.rs pir2-backends/tests/gr00t.rs
+# Lib + the gr00t test target (other test targets belong to the backends/ortch owners).
+cargo clippy -p pir2-backends --lib --test gr00t --features gr00t -- -D warnings
+# Docs: fail on any rustdoc warning inside the gr00t module. (`-D warnings` on the whole crate
+# currently trips over lib.rs's `tch::TchModel` link when feature `tch` is off, which is not ours.)
+doc_log=$(cargo doc -p pir2-backends --features gr00t --no-deps 2>&1)
+echo "$doc_log"
+if echo "$doc_log" | grep -q -- "--> pir2-backends/src/gr00t/"; then
+  echo "rustdoc warnings in src/gr00t" >&2
+  exit 1
+fi
+# The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests.
+cargo test -p pir2-backends --features gr00t --lib --test gr00t -- --test-threads=1

@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# CI fragment for the native backends of pir2-backends (features `ort`, `tch`).
+# Run by .ci/run after scripts/setup-native.sh, from the repository root.
+# PIR2_NATIVE_ENV overrides the env file (e.g. /work/main/.native/env.sh from a worktree).
+# Both features are single-threaded in tests; libtorch needs LD_LIBRARY_PATH (set by env.sh).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+# shellcheck disable=SC1091
+source "${PIR2_NATIVE_ENV:-.native/env.sh}"
+cargo clippy -p pir2-backends --all-targets --features ort,tch -- -D warnings
+cargo test -p pir2-backends --features ort,tch -- --test-threads=1
+# The default build (candle only) must still pass without any native library.
+env -u ORT_DYLIB_PATH -u LIBTORCH cargo test -p pir2-backends
+# Latency smoke run (prints the side-by-side table; no timing asserts).
+PIR2_BENCH_ITERS=20 cargo bench -p pir2-backends --features ort,tch --bench latency

@@ -1,0 +1,165 @@
+//! One-NFE latency at batch 1, single thread, for the MLP and the U-Net of the Leap-cube stack
+//! (`H = 16`, `A = 16`, `n_obs = 2`, 32-d fast + 9-d slow observation), on every enabled
+//! backend with the same weights (a candle model, exported to ONNX and traced to TorchScript),
+//! printed side by side with ratios to ONNX Runtime.
+//!
+//! `cargo bench -p pir2-backends --features ort,tch --bench latency`
+//! (`PIR2_BENCH_ITERS`, default 300, sets the timed calls per cell). A plain timing loop
+//! (warm-up, then median and p90 of per-call wall time) so that all backends share one table.
+//! Single thread: `RAYON_NUM_THREADS=1` for candle (set here before candle starts its pool),
+//! intra/inter-op 1 for ONNX Runtime and libtorch (their defaults in this crate).
+
+use std::time::Instant;
+
+use pir2_backends::candle::CandleModel;
+use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig};
+use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
+
+fn leap_spec() -> Spec {
+    Spec {
+        horizon: 16,
+        action_dim: 16,
+        n_obs: 2,
+        fast_dim: 32,
+        slow: SlowSpec::Vector { dim: 9 },
+        d_vis_max: 5,
+    }
+}
+
+fn configs() -> Vec<(&'static str, Config)> {
+    vec![
+        (
+            "mlp",
+            Config {
+                spec: leap_spec(),
+                model: ModelConfig::Mlp(MlpConfig::default()),
+            },
+        ),
+        (
+            "unet",
+            Config {
+                spec: leap_spec(),
+                model: ModelConfig::UNet(UNetConfig::default()),
+            },
+        ),
+    ]
+}
+
+struct Timing {
+    median_us: f64,
+    p90_us: f64,
+}
+
+fn time(model: &mut dyn VelocityModel, input: &ModelInput<'_>, iters: usize) -> Timing {
+    let mut out = vec![0f32; input.batch * input.horizon * input.action_dim];
+    for _ in 0..iters.div_ceil(5).max(5) {
+        model.velocity(input, &mut out).expect("warm-up call");
+    }
+    let mut us: Vec<f64> = (0..iters)
+        .map(|_| {
+            let t = Instant::now();
+            model.velocity(input, &mut out).expect("timed call");
+            t.elapsed().as_secs_f64() * 1e6
+        })
+        .collect();
+    us.sort_by(f64::total_cmp);
+    Timing {
+        median_us: us[us.len() / 2],
+        p90_us: us[(us.len() * 9) / 10],
+    }
+}
+
+#[allow(unused_variables, unused_mut)]
+fn native(kind: &str, model: &CandleModel) -> Vec<Box<dyn VelocityModel>> {
+    let mut v: Vec<Box<dyn VelocityModel>> = Vec::new();
+    let spec = pir2_backends::onnx::candle_bridge::spec_from_config(model.config(), model.stats())
+        .expect("exportable");
+    #[cfg(feature = "ort")]
+    {
+        let bytes = pir2_backends::onnx::export(&spec, model)
+            .expect("export")
+            .encode();
+        v.push(Box::new(
+            pir2_backends::ort::OrtModel::from_bytes(&bytes, &Default::default())
+                .expect("onnxruntime"),
+        ));
+    }
+    #[cfg(feature = "tch")]
+    {
+        let path =
+            std::env::temp_dir().join(format!("pir2-bench-{kind}-{}.pt", std::process::id()));
+        pir2_backends::tch::export_torchscript(&spec, model, &path).expect("trace");
+        v.push(Box::new(
+            pir2_backends::tch::TchModel::load(&path).expect("libtorch"),
+        ));
+        let _ = std::fs::remove_file(&path);
+    }
+    v
+}
+
+fn main() {
+    // Before candle's first use: its CPU kernels use a rayon pool.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
+    let iters: usize = std::env::var("PIR2_BENCH_ITERS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(300);
+    println!("one NFE, batch 1, single thread, {iters} timed calls per cell (µs; ratio = median / onnxruntime median)");
+    println!(
+        "{:<6} {:<12} {:>10} {:>10} {:>8}",
+        "model", "backend", "median", "p90", "ratio"
+    );
+    for (kind, cfg) in configs() {
+        let spec = cfg.spec;
+        let candle = CandleModel::new(cfg, Stats::identity(&spec), 0).expect("candle model");
+        let n_params = candle.num_params();
+        let mut rng = pir2_schedule::Rng::new(1);
+        let mut normal = |n: usize| {
+            let mut v = vec![0f32; n];
+            rng.fill_normal(&mut v);
+            v
+        };
+        let x = normal(spec.horizon * spec.action_dim);
+        let obs = normal(spec.n_obs * spec.fast_dim);
+        let slow = normal(9);
+        let tau: Vec<f32> = (0..spec.horizon)
+            .map(|p| 1.0 - p as f32 / spec.horizon as f32)
+            .collect();
+        let input = ModelInput {
+            batch: 1,
+            horizon: spec.horizon,
+            action_dim: spec.action_dim,
+            x: &x,
+            tau: &tau,
+            obs_fast: &obs,
+            n_obs: spec.n_obs,
+            fast_dim: spec.fast_dim,
+            slow: SlowInput::Vector {
+                data: &slow,
+                dim: 9,
+            },
+            d_vis: &[0],
+        };
+        let mut models = native(kind, &candle);
+        models.insert(0, Box::new(candle));
+        let mut rows = Vec::new();
+        for m in models.iter_mut() {
+            let t = time(m.as_mut(), &input, iters);
+            rows.push((m.backend(), t));
+        }
+        let base = rows
+            .iter()
+            .find(|(b, _)| *b == "onnxruntime")
+            .map(|(_, t)| t.median_us);
+        for (b, t) in &rows {
+            let ratio = base.map_or("-".to_string(), |o| format!("{:.2}x", t.median_us / o));
+            println!(
+                "{:<6} {:<12} {:>10.1} {:>10.1} {:>8}",
+                kind, b, t.median_us, t.p90_us, ratio
+            );
+        }
+        println!("{kind:<6} ({n_params} parameters)");
+    }
+}

@@ -1,0 +1,502 @@
+//! The slow channel: image + prompt → backbone tokens `[T, D_vl]`.
+//!
+//! [`Gr00tBackbone`] implements the runtime's [`SlowEncoder`], so the real-time driver runs it
+//! on its own thread (`SlowChannel::Async`) and caches its output with the frame's capture
+//! time. Its pipeline:
+//!
+//! 1. [`preprocess_image`]: HWC `u8` RGB → shorter side resized to `image.resize` (bilinear,
+//!    half-pixel centres) → center crop `image.crop`² → `(x/255 − mean)/std` → `[1, 3, crop, crop]`;
+//! 2. [`build_sequence`]: `image_tokens` image placeholders, then the prompt's tokens padded /
+//!    truncated to `text_tokens` → `input_ids [1, T]`, `attention_mask [1, T]` and the
+//!    [`VlLayout`] the DiT's masks need;
+//! 3. `backbone.onnx` (ViT + LLM, fused by the user: see `docs/gr00t-contract.md`) →
+//!    `embeddings [1, T, D_vl]`;
+//! 4. GR00T's `vlln` LayerNorm (if the side weights carry it) and `vl_self_attention.onnx`
+//!    (if present; GR00T's exporter writes it unchanged).
+//!
+//! The prompt is tokenised by a [`PromptTokenizer`]: [`VocabTokenizer`] reads a vocabulary
+//! file; the real Qwen3-VL tokenizer can be plugged in by implementing the trait.
+//!
+//! A remote backbone is any other [`SlowEncoder`] returning `[T, D_vl]` tokens (see
+//! [`super::run::BackboneChoice::Custom`]).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame};
+
+use super::config::{CheckpointFiles, ImageConfig, PromptConfig};
+use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
+use super::error::{Gr00tError, Result};
+use super::head::VlLayout;
+use super::weights::SideWeights;
+use crate::ort::OrtOptions;
+
+/// Turns prompt text into token ids. Implement it to plug in the model's real tokenizer.
+pub trait PromptTokenizer: Send {
+    /// Ids of the prompt text (no special tokens, no padding).
+    fn encode(&self, text: &str) -> Result<Vec<i64>>;
+    /// Id of the padding token.
+    fn pad_id(&self) -> i64;
+    /// Id of the image placeholder token.
+    fn image_token_id(&self) -> i64;
+}
+
+/// A vocabulary-file tokenizer: one token per line, id = line number (0-based).
+///
+/// Text is lower-cased and split on whitespace, with ASCII punctuation as separate tokens;
+/// a word missing from the vocabulary is split greedily into the longest known prefix and
+/// `##`-continuations (WordPiece), else it becomes `<unk>`. The file must contain `<pad>`,
+/// `<unk>` and `<image>`.
+#[derive(Debug, Clone)]
+pub struct VocabTokenizer {
+    vocab: HashMap<String, i64>,
+    pad: i64,
+    unk: i64,
+    image: i64,
+}
+
+impl VocabTokenizer {
+    /// Special tokens that must be present.
+    pub const SPECIALS: [&'static str; 3] = ["<pad>", "<unk>", "<image>"];
+
+    /// Read a vocabulary file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_lines(text.lines(), path)
+    }
+
+    /// Build from lines (`path` names the source in errors).
+    pub fn from_lines<'a>(lines: impl Iterator<Item = &'a str>, path: &Path) -> Result<Self> {
+        let mut vocab = HashMap::new();
+        for (i, l) in lines.enumerate() {
+            let tok = l.trim_end_matches(['\r', '\n']);
+            if !tok.is_empty() {
+                vocab.entry(tok.to_string()).or_insert(i as i64);
+            }
+        }
+        let get = |t: &str| {
+            vocab.get(t).copied().ok_or_else(|| Gr00tError::Parse {
+                path: path.to_path_buf(),
+                message: format!("vocabulary has no `{t}` token (needs {:?})", Self::SPECIALS),
+            })
+        };
+        Ok(VocabTokenizer {
+            pad: get("<pad>")?,
+            unk: get("<unk>")?,
+            image: get("<image>")?,
+            vocab,
+        })
+    }
+
+    fn word(&self, w: &str, out: &mut Vec<i64>) {
+        if let Some(&id) = self.vocab.get(w) {
+            out.push(id);
+            return;
+        }
+        let chars: Vec<(usize, char)> = w.char_indices().collect();
+        let mut start = 0;
+        let mut pieces = Vec::new();
+        while start < chars.len() {
+            let mut end = chars.len();
+            let mut found = None;
+            while end > start {
+                let a = chars[start].0;
+                let b = if end < chars.len() {
+                    chars[end].0
+                } else {
+                    w.len()
+                };
+                let piece = if start == 0 {
+                    w[a..b].to_string()
+                } else {
+                    format!("##{}", &w[a..b])
+                };
+                if let Some(&id) = self.vocab.get(&piece) {
+                    found = Some(id);
+                    break;
+                }
+                end -= 1;
+            }
+            match found {
+                Some(id) => {
+                    pieces.push(id);
+                    start = end;
+                }
+                None => {
+                    out.push(self.unk);
+                    return;
+                }
+            }
+        }
+        out.extend(pieces);
+    }
+}
+
+impl PromptTokenizer for VocabTokenizer {
+    fn encode(&self, text: &str) -> Result<Vec<i64>> {
+        let mut out = Vec::new();
+        let lower = text.to_lowercase();
+        for raw in lower.split_whitespace() {
+            let mut cur = String::new();
+            for c in raw.chars() {
+                if c.is_ascii_punctuation() {
+                    if !cur.is_empty() {
+                        self.word(&cur, &mut out);
+                        cur.clear();
+                    }
+                    self.word(&c.to_string(), &mut out);
+                } else {
+                    cur.push(c);
+                }
+            }
+            if !cur.is_empty() {
+                self.word(&cur, &mut out);
+            }
+        }
+        Ok(out)
+    }
+    fn pad_id(&self) -> i64 {
+        self.pad
+    }
+    fn image_token_id(&self) -> i64 {
+        self.image
+    }
+}
+
+/// Token ids, attention mask and layout of one prompt (see the module docs).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Sequence {
+    /// `input_ids`, length `T`.
+    pub ids: Vec<i64>,
+    /// `attention_mask` (1 = valid), length `T`.
+    pub attention: Vec<i64>,
+    /// The layout for the DiT.
+    pub layout: VlLayout,
+    /// Prompt tokens dropped by truncation.
+    pub truncated: usize,
+}
+
+/// `[image placeholder × image_tokens] + prompt tokens`, padded/truncated to `text_tokens`.
+pub fn build_sequence(
+    tok: &dyn PromptTokenizer,
+    prompt: &str,
+    cfg: &PromptConfig,
+) -> Result<Sequence> {
+    let text = tok.encode(prompt)?;
+    let n = text.len().min(cfg.text_tokens);
+    let t = cfg.image_tokens + cfg.text_tokens;
+    let mut ids = vec![tok.image_token_id(); cfg.image_tokens];
+    ids.extend_from_slice(&text[..n]);
+    ids.resize(t, tok.pad_id());
+    let valid = cfg.image_tokens + n;
+    let attention: Vec<i64> = (0..t).map(|i| i64::from(i < valid)).collect();
+    let layout = VlLayout {
+        image_mask: (0..t).map(|i| i < cfg.image_tokens).collect(),
+        attention_mask: (0..t).map(|i| i < valid).collect(),
+    };
+    Ok(Sequence {
+        ids,
+        attention,
+        layout,
+        truncated: text.len() - n,
+    })
+}
+
+/// Resize (shorter side → `cfg.resize`, bilinear), center-crop and normalise an HWC `u8` RGB
+/// image into `out` as CHW `f32` `[3, crop, crop]`.
+pub fn preprocess_image(
+    rgb: &[u8],
+    (h, w): (usize, usize),
+    cfg: &ImageConfig,
+    out: &mut Vec<f32>,
+) -> Result<()> {
+    if h == 0 || w == 0 || rgb.len() != h * w * 3 {
+        return Err(Gr00tError::input(
+            "camera image (HWC u8 RGB)",
+            format!("{h}×{w}×3 = {} bytes, non-empty", h * w * 3),
+            format!("{} bytes", rgb.len()),
+        ));
+    }
+    let s = cfg.resize as f32 / h.min(w) as f32;
+    let (rh, rw) = (
+        ((h as f32 * s).round() as usize).max(cfg.crop),
+        ((w as f32 * s).round() as usize).max(cfg.crop),
+    );
+    let (oy, ox) = ((rh - cfg.crop) / 2, (rw - cfg.crop) / 2);
+    let (sy, sx) = (h as f32 / rh as f32, w as f32 / rw as f32);
+    let c = cfg.crop;
+    out.clear();
+    out.resize(3 * c * c, 0.0);
+    for y in 0..c {
+        let fy = ((y + oy) as f32 + 0.5) * sy - 0.5;
+        let y0 = fy.floor().clamp(0.0, (h - 1) as f32) as usize;
+        let y1 = (y0 + 1).min(h - 1);
+        let wy = (fy - y0 as f32).clamp(0.0, 1.0);
+        for x in 0..c {
+            let fx = ((x + ox) as f32 + 0.5) * sx - 0.5;
+            let x0 = fx.floor().clamp(0.0, (w - 1) as f32) as usize;
+            let x1 = (x0 + 1).min(w - 1);
+            let wx = (fx - x0 as f32).clamp(0.0, 1.0);
+            for ch in 0..3 {
+                let p = |yy: usize, xx: usize| rgb[(yy * w + xx) * 3 + ch] as f32;
+                let top = p(y0, x0) * (1.0 - wx) + p(y0, x1) * wx;
+                let bot = p(y1, x0) * (1.0 - wx) + p(y1, x1) * wx;
+                let v = (top * (1.0 - wy) + bot * wy) / 255.0;
+                out[(ch * c + y) * c + x] = (v - cfg.mean[ch]) / cfg.std[ch];
+            }
+        }
+    }
+    Ok(())
+}
+
+fn layer_norm(x: &mut [f32], d: usize, w: &[f32], b: &[f32]) {
+    for row in x.chunks_exact_mut(d) {
+        let mean = row.iter().sum::<f32>() / d as f32;
+        let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
+        let inv = 1.0 / (var + 1e-5).sqrt();
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = (*v - mean) * inv * w[j] + b[j];
+        }
+    }
+}
+
+/// The ONNX backbone (see the module docs).
+pub struct Gr00tBackbone {
+    backbone: Graph,
+    vl_self_attention: Option<Graph>,
+    vlln: Option<(Vec<f32>, Vec<f32>)>,
+    image: ImageConfig,
+    seq: Sequence,
+    d_vl: usize,
+    pixels: Vec<f32>,
+    feats: Vec<f32>,
+    encoded: u64,
+}
+
+impl std::fmt::Debug for Gr00tBackbone {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Gr00tBackbone")
+            .field("backbone", &self.backbone)
+            .field("vl_self_attention", &self.vl_self_attention)
+            .field("tokens", &self.seq.ids.len())
+            .field("d_vl", &self.d_vl)
+            .finish()
+    }
+}
+
+impl Gr00tBackbone {
+    /// Load `backbone.onnx` (+ `vl_self_attention.onnx` if it exists, + `vlln` from the side
+    /// weights if present) and tokenise `prompt`. `d_vl`, when given (the DiT's `D_vl`), must
+    /// match the files.
+    pub fn load(
+        files: &CheckpointFiles,
+        image: &ImageConfig,
+        prompt_cfg: &PromptConfig,
+        tokenizer: &dyn PromptTokenizer,
+        prompt: &str,
+        d_vl: Option<(usize, PathBuf)>,
+        opts: &OrtOptions,
+    ) -> Result<Self> {
+        let seq = build_sequence(tokenizer, prompt, prompt_cfg)?;
+        let mut b = Bindings::default();
+        b.bind("crop", image.crop, "<embodiment config: image.crop>");
+        b.bind(
+            "T",
+            seq.ids.len(),
+            "<embodiment config: prompt.image_tokens + text_tokens>",
+        );
+        if let Some((d, src)) = d_vl {
+            b.bind("D_vl", d, src);
+        }
+        let backbone = Graph::load(&files.backbone, BACKBONE, opts, &mut b)?;
+        let vl_self_attention = if files.vl_self_attention.exists() {
+            Some(Graph::load(
+                &files.vl_self_attention,
+                VL_SELF_ATTENTION,
+                opts,
+                &mut b,
+            )?)
+        } else {
+            None
+        };
+        let d_vl = b.get("D_vl").expect("bound by the contract check");
+        let vlln = if files.weights.exists() {
+            SideWeights::load(&files.weights)?.vlln(d_vl)?
+        } else {
+            None
+        };
+        Ok(Gr00tBackbone {
+            backbone,
+            vl_self_attention,
+            vlln,
+            image: image.clone(),
+            seq,
+            d_vl,
+            pixels: Vec::new(),
+            feats: Vec::new(),
+            encoded: 0,
+        })
+    }
+
+    /// The token layout of this backbone's output.
+    pub fn layout(&self) -> &VlLayout {
+        &self.seq.layout
+    }
+
+    /// The tokenised prompt.
+    pub fn sequence(&self) -> &Sequence {
+        &self.seq
+    }
+
+    /// Tokens `T` and width `D_vl` of the output.
+    pub fn output_shape(&self) -> (usize, usize) {
+        (self.seq.ids.len(), self.d_vl)
+    }
+
+    /// Frames encoded so far.
+    pub fn encoded(&self) -> u64 {
+        self.encoded
+    }
+
+    /// Encode one image (HWC `u8` RGB) into `[T, D_vl]` tokens.
+    pub fn encode_image(&mut self, rgb: &[u8], hw: (usize, usize)) -> Result<&[f32]> {
+        preprocess_image(rgb, hw, &self.image, &mut self.pixels)?;
+        let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.crop);
+        let mut feeds = vec![
+            feed("pixel_values", &[1, 3, c, c], &self.pixels)?,
+            feed("input_ids", &[1, t], &self.seq.ids)?,
+        ];
+        if self.backbone.declared.has("attention_mask") {
+            feeds.push(feed("attention_mask", &[1, t], &self.seq.attention)?);
+        }
+        let mut feats = std::mem::take(&mut self.feats);
+        let r = self.backbone.run_into(feeds, "embeddings", &mut feats);
+        self.feats = feats;
+        r?;
+        if self.feats.len() != t * d {
+            return Err(Gr00tError::input(
+                format!(
+                    "`{}` output embeddings [1,T,D_vl]",
+                    self.backbone.path().display()
+                ),
+                t * d,
+                self.feats.len(),
+            ));
+        }
+        if let Some((w, b)) = &self.vlln {
+            layer_norm(&mut self.feats, d, w, b);
+        }
+        if let Some(g) = self.vl_self_attention.as_mut() {
+            let input = std::mem::take(&mut self.feats);
+            let mut out = Vec::with_capacity(input.len());
+            g.run_into(
+                vec![feed("hidden_states", &[1, t, d], &input)?],
+                "output",
+                &mut out,
+            )?;
+            if out.len() != t * d {
+                return Err(Gr00tError::input(
+                    format!("`{}` output [1,T,D_vl]", g.path().display()),
+                    t * d,
+                    out.len(),
+                ));
+            }
+            self.feats = out;
+        }
+        self.encoded += 1;
+        Ok(&self.feats)
+    }
+}
+
+#[async_trait::async_trait]
+impl SlowEncoder for Gr00tBackbone {
+    async fn encode(&mut self, frame: SlowFrame) -> pir2_runtime::Result<SlowFeatures> {
+        let (t, d) = self.output_shape();
+        let data = self.encode_image(&frame.image, frame.image_hw)?.to_vec();
+        Ok(SlowFeatures {
+            t_capture: frame.t_capture,
+            data,
+            tokens: t,
+            dim: d,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn vocab() -> VocabTokenizer {
+        let lines = [
+            "<pad>", "<unk>", "<image>", "catch", "the", "book", "put", "in", "bask", "##et", ".",
+        ];
+        VocabTokenizer::from_lines(lines.into_iter(), Path::new("vocab.txt")).unwrap()
+    }
+
+    #[test]
+    fn vocab_tokenizer_splits_words_pieces_and_punctuation() {
+        let v = vocab();
+        assert_eq!(v.encode("Catch the book.").unwrap(), vec![3, 4, 5, 10]);
+        assert_eq!(
+            v.encode("put the book in the basket").unwrap(),
+            vec![6, 4, 5, 7, 4, 8, 9]
+        );
+        assert_eq!(v.encode("catch the ball").unwrap(), vec![3, 4, 1]);
+        let e = VocabTokenizer::from_lines(["<pad>", "<unk>"].into_iter(), Path::new("v.txt"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("v.txt") && e.contains("<image>"), "{e}");
+    }
+
+    #[test]
+    fn sequence_layout_marks_image_and_padding() {
+        let cfg = PromptConfig {
+            image_tokens: 3,
+            text_tokens: 5,
+        };
+        let s = build_sequence(&vocab(), "catch the book", &cfg).unwrap();
+        assert_eq!(s.ids, vec![2, 2, 2, 3, 4, 5, 0, 0]);
+        assert_eq!(s.attention, vec![1, 1, 1, 1, 1, 1, 0, 0]);
+        assert_eq!(
+            s.layout.image_mask,
+            vec![true, true, true, false, false, false, false, false]
+        );
+        let cfg = PromptConfig {
+            image_tokens: 1,
+            text_tokens: 2,
+        };
+        let s = build_sequence(&vocab(), "catch the book", &cfg).unwrap();
+        assert_eq!((s.ids.len(), s.truncated), (3, 1));
+    }
+
+    #[test]
+    fn preprocessing_crops_the_center_and_normalises() {
+        // 4×8 image: left half black, right half white; resize 4 → crop 4 keeps the middle.
+        let (h, w) = (4, 8);
+        let mut img = vec![0u8; h * w * 3];
+        for y in 0..h {
+            for x in 4..w {
+                for c in 0..3 {
+                    img[(y * w + x) * 3 + c] = 255;
+                }
+            }
+        }
+        let cfg = ImageConfig {
+            resize: 4,
+            crop: 4,
+            mean: [0.5; 3],
+            std: [0.5; 3],
+        };
+        let mut out = Vec::new();
+        preprocess_image(&img, (h, w), &cfg, &mut out).unwrap();
+        assert_eq!(out.len(), 3 * 16);
+        // Center crop = columns 2..6: black, black, white, white (no resampling at scale 1).
+        let row0: Vec<f32> = out[0..4].to_vec();
+        assert_eq!(row0, vec![-1.0, -1.0, 1.0, 1.0]);
+        assert!(preprocess_image(&img[1..], (h, w), &cfg, &mut out).is_err());
+    }
+}

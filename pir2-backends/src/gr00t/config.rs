@@ -1,0 +1,587 @@
+//! The embodiment configuration (serde TOML/JSON) and GR00T's normalisation statistics.
+//!
+//! [`EmbodimentConfig::xarm6_xhand`] is the paper's real-robot setup: 45-d proprioception
+//! (6 arm joints, 12 hand joints, 12 hand torques, 15 fingertip forces), 18-d absolute joint
+//! targets, `H = 50` at 25 Hz, `d_max = d_vis_max = 5`, and the four task prompts of the
+//! paper's task-prompt table.
+//!
+//! Statistics come from the checkpoint's `statistics.json` in GR00T's layout
+//! `{embodiment_tag: {"state"|"action": {group: {"min","max","mean","std","q01","q99": [..]}}}}`.
+//! Per group, [`Norm`] picks the map (GR00T's `StateActionProcessor`):
+//! - `min_max`: `2·(x − min)/max(max − min, 1e-8) − 1`, clipped to `[-1, 1]` for states;
+//! - `q01_q99`: the same with `q01`/`q99` in place of `min`/`max`;
+//! - `mean_std`: `(x − mean)/std` (`std` floored at `1e-8`);
+//! - `none`: identity.
+//!
+//! Actions are denormalised by the runtime's output map (`scale·x + offset`), see
+//! [`Normalizer::action_output_map`].
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::error::{Gr00tError, Result};
+
+/// The four task prompts of the paper (Table "Real-world task prompts"): `(task, prompt)`.
+pub const PAPER_TASKS: [(&str, &str); 4] = [
+    (
+        "dont_spill",
+        "put the ball in the bowl and put them on the cutting board",
+    ),
+    ("tidy_up_book", "put the books in the basket"),
+    ("insert_box", "put the box in the basket"),
+    ("catch_book", "catch the book"),
+];
+
+/// A normalisation map for one joint group.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Norm {
+    /// Min/max to `[-1, 1]` (GR00T's default).
+    #[default]
+    MinMax,
+    /// Percentiles `q01`/`q99` to `[-1, 1]` (GR00T's `use_percentiles`).
+    Q01Q99,
+    /// Mean/std.
+    MeanStd,
+    /// No normalisation.
+    None,
+}
+
+/// One named slice of the state or action vector.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Group {
+    /// The key in `statistics.json` (GR00T's modality key).
+    pub name: String,
+    /// Width of the slice.
+    pub dim: usize,
+    /// Normalisation.
+    #[serde(default)]
+    pub norm: Norm,
+}
+
+impl Group {
+    fn new(name: &str, dim: usize) -> Self {
+        Group {
+            name: name.to_string(),
+            dim,
+            norm: Norm::MinMax,
+        }
+    }
+}
+
+/// Camera preprocessing: resize the shorter side, center-crop, normalise per channel.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ImageConfig {
+    /// Shorter side after resizing (GR00T N1.7: 256).
+    pub resize: usize,
+    /// Side of the square center crop (GR00T N1.7: 230); `pixel_values` is `[1, 3, crop, crop]`.
+    pub crop: usize,
+    /// Per-channel mean subtracted after scaling to `[0, 1]` (RGB).
+    pub mean: [f32; 3],
+    /// Per-channel std divided by (RGB).
+    pub std: [f32; 3],
+}
+
+impl Default for ImageConfig {
+    fn default() -> Self {
+        // Qwen-VL image processors normalise with mean = std = 0.5 per channel.
+        ImageConfig {
+            resize: 256,
+            crop: 230,
+            mean: [0.5; 3],
+            std: [0.5; 3],
+        }
+    }
+}
+
+/// Prompt layout of the backbone input (see [`super::backbone`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PromptConfig {
+    /// Image placeholder tokens in the sequence (the ViT's merged patch count).
+    pub image_tokens: usize,
+    /// Text tokens after the image, padded/truncated to this length.
+    pub text_tokens: usize,
+}
+
+impl Default for PromptConfig {
+    fn default() -> Self {
+        PromptConfig {
+            image_tokens: 64,
+            text_tokens: 32,
+        }
+    }
+}
+
+/// The embodiment: sizes, timing, groups, prompts and the GR00T-specific constants.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EmbodimentConfig {
+    /// A name for logs.
+    pub name: String,
+    /// The top-level key in `statistics.json` and `embodiment_id.json`.
+    pub embodiment_tag: String,
+    /// Embodiment slot fed as `embodiment_id` (overridden by `embodiment_id.json` if present).
+    pub embodiment_id: i64,
+    /// Control rate, Hz.
+    pub control_hz: f64,
+    /// Chunk length `H`.
+    pub horizon: usize,
+    /// Largest action-head delay trained for.
+    pub d_max: usize,
+    /// Largest slow-feature age trained for (the delay table has `d_vis_max + 1` rows).
+    pub d_vis_max: usize,
+    /// Proprioception history length (GR00T's `state_history_length`).
+    pub n_obs: usize,
+    /// Timestep buckets (GR00T: 1000): `t = floor(τ · buckets)`, clamped to `buckets − 1`.
+    pub num_timestep_buckets: i64,
+    /// Timestep of the state token in the per-position `timestep [B, 1+H]`
+    /// (default `buckets − 1`: the state is an observation, i.e. clean).
+    pub state_token_timestep: Option<i64>,
+    /// State groups, in vector order.
+    pub state: Vec<Group>,
+    /// Action groups, in vector order.
+    pub action: Vec<Group>,
+    /// Named task prompts.
+    pub tasks: BTreeMap<String, String>,
+    /// Camera preprocessing.
+    #[serde(default)]
+    pub image: ImageConfig,
+    /// Prompt layout.
+    #[serde(default)]
+    pub prompt: PromptConfig,
+}
+
+impl EmbodimentConfig {
+    /// The paper's xArm6 + XHand setup (DESIGN.md §4).
+    pub fn xarm6_xhand() -> Self {
+        EmbodimentConfig {
+            name: "gr00t-xarm-xhand".to_string(),
+            embodiment_tag: "new_embodiment".to_string(),
+            embodiment_id: 10,
+            control_hz: 25.0,
+            horizon: 50,
+            d_max: 5,
+            d_vis_max: 5,
+            n_obs: 1,
+            num_timestep_buckets: 1000,
+            state_token_timestep: None,
+            state: vec![
+                Group::new("arm_joints", 6),
+                Group::new("hand_joints", 12),
+                Group::new("hand_torques", 12),
+                Group::new("fingertip_forces", 15),
+            ],
+            action: vec![Group::new("arm_joints", 6), Group::new("hand_joints", 12)],
+            tasks: PAPER_TASKS
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect(),
+            image: ImageConfig::default(),
+            prompt: PromptConfig::default(),
+        }
+    }
+
+    /// Read a TOML (`.toml`) or JSON (anything else) file and validate it.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let parse = |message: String| Gr00tError::Parse {
+            path: path.to_path_buf(),
+            message,
+        };
+        let cfg: EmbodimentConfig = if path.extension().is_some_and(|e| e == "toml") {
+            toml::from_str(&text).map_err(|e| parse(e.to_string()))?
+        } else {
+            serde_json::from_str(&text).map_err(|e| parse(e.to_string()))?
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// TOML text of this configuration.
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string(self).map_err(|e| Gr00tError::Config(e.to_string()))
+    }
+
+    /// Proprioception width (sum of the state groups).
+    pub fn state_dim(&self) -> usize {
+        self.state.iter().map(|g| g.dim).sum()
+    }
+
+    /// Action width (sum of the action groups).
+    pub fn action_dim(&self) -> usize {
+        self.action.iter().map(|g| g.dim).sum()
+    }
+
+    /// Control period in nanoseconds.
+    pub fn period_ns(&self) -> u64 {
+        (1e9 / self.control_hz).round() as u64
+    }
+
+    /// The state token's timestep.
+    pub fn state_timestep(&self) -> i64 {
+        self.state_token_timestep
+            .unwrap_or(self.num_timestep_buckets - 1)
+    }
+
+    /// Resolve a task: a key of [`tasks`](Self::tasks) or a prompt given verbatim.
+    pub fn prompt_for<'a>(&'a self, task: &'a str) -> &'a str {
+        self.tasks.get(task).map(String::as_str).unwrap_or(task)
+    }
+
+    /// Check sizes and limits; the message names the field.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Gr00tError::Config(m));
+        if !(self.control_hz.is_finite() && self.control_hz > 0.0) {
+            return bad(format!("control_hz must be > 0, got {}", self.control_hz));
+        }
+        if self.horizon == 0 || self.n_obs == 0 {
+            return bad(format!(
+                "horizon ({}) and n_obs ({}) must be positive",
+                self.horizon, self.n_obs
+            ));
+        }
+        if self.d_max == 0 || self.d_max >= self.horizon {
+            return bad(format!(
+                "d_max must be in [1, H), got {} with H = {}",
+                self.d_max, self.horizon
+            ));
+        }
+        if self.num_timestep_buckets < 1 {
+            return bad(format!(
+                "num_timestep_buckets must be >= 1, got {}",
+                self.num_timestep_buckets
+            ));
+        }
+        let st = self.state_timestep();
+        if !(0..self.num_timestep_buckets).contains(&st) {
+            return bad(format!(
+                "state_token_timestep {st} outside [0, {})",
+                self.num_timestep_buckets
+            ));
+        }
+        for (what, groups) in [("state", &self.state), ("action", &self.action)] {
+            if groups.is_empty() {
+                return bad(format!("no {what} groups"));
+            }
+            for g in groups.iter() {
+                if g.dim == 0 {
+                    return bad(format!("{what} group `{}` has dim 0", g.name));
+                }
+            }
+        }
+        if self.image.crop == 0 || self.image.crop > self.image.resize {
+            return bad(format!(
+                "image crop {} must be in [1, resize = {}]",
+                self.image.crop, self.image.resize
+            ));
+        }
+        if self.image.std.iter().any(|s| *s <= 0.0) {
+            return bad(format!("image std must be > 0: {:?}", self.image.std));
+        }
+        if self.prompt.text_tokens == 0 {
+            return bad("prompt.text_tokens must be positive".to_string());
+        }
+        Ok(())
+    }
+}
+
+/// Per-dimension affine normalisation of the state and the action (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Normalizer {
+    /// `norm(x) = (x − state_offset) · state_inv_scale`, per state dimension.
+    state_offset: Vec<f32>,
+    state_inv_scale: Vec<f32>,
+    /// Clip the normalised state to `[-1, 1]` (min/max and percentile groups).
+    state_clip: Vec<bool>,
+    /// `raw = scale · x + offset`, per action dimension.
+    action_scale: Vec<f32>,
+    action_offset: Vec<f32>,
+}
+
+type StatsFile = BTreeMap<String, BTreeMap<String, BTreeMap<String, BTreeMap<String, Vec<f64>>>>>;
+
+impl Normalizer {
+    /// The identity (no statistics).
+    pub fn identity(state_dim: usize, action_dim: usize) -> Self {
+        Normalizer {
+            state_offset: vec![0.0; state_dim],
+            state_inv_scale: vec![1.0; state_dim],
+            state_clip: vec![false; state_dim],
+            action_scale: vec![1.0; action_dim],
+            action_offset: vec![0.0; action_dim],
+        }
+    }
+
+    /// Load GR00T's `statistics.json` for `cfg` (every group and statistic its norm needs
+    /// must be present with the group's width; the error names the missing key).
+    pub fn load(path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let stats: StatsFile = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+            path: path.to_path_buf(),
+            message: format!(
+                "expected {{embodiment: {{modality: {{group: {{stat: [numbers]}}}}}}}}: {e}"
+            ),
+        })?;
+        Self::from_stats(&stats, path, cfg)
+    }
+
+    fn from_stats(stats: &StatsFile, path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
+        let err =
+            |modality: &str, group: &str, stat: &str, problem: String| Gr00tError::Statistics {
+                path: path.to_path_buf(),
+                key: format!("{}.{modality}.{group}.{stat}", cfg.embodiment_tag),
+                problem,
+            };
+        let emb = stats.get(&cfg.embodiment_tag).ok_or_else(|| {
+            err(
+                "*",
+                "*",
+                "*",
+                format!(
+                    "is missing: no embodiment `{}` (found {:?})",
+                    cfg.embodiment_tag,
+                    stats.keys().collect::<Vec<_>>()
+                ),
+            )
+        })?;
+        // (offset, scale) per dim: norm = (x − offset)/scale; raw = scale·norm + offset.
+        let affine = |modality: &str,
+                      groups: &[Group]|
+         -> Result<(Vec<f32>, Vec<f32>, Vec<bool>)> {
+            let (mut off, mut scale, mut clip) = (Vec::new(), Vec::new(), Vec::new());
+            for g in groups {
+                let get = |stat: &str| -> Result<Vec<f64>> {
+                    let v = emb
+                        .get(modality)
+                        .and_then(|m| m.get(&g.name))
+                        .and_then(|s| s.get(stat))
+                        .ok_or_else(|| err(modality, &g.name, stat, "is missing".to_string()))?;
+                    if v.len() != g.dim {
+                        return Err(err(
+                            modality,
+                            &g.name,
+                            stat,
+                            format!("has {} values, the group has dim {}", v.len(), g.dim),
+                        ));
+                    }
+                    if v.iter().any(|x| !x.is_finite()) {
+                        return Err(err(modality, &g.name, stat, "is not finite".to_string()));
+                    }
+                    Ok(v.clone())
+                };
+                match g.norm {
+                    Norm::MinMax | Norm::Q01Q99 => {
+                        let (lo, hi) = if g.norm == Norm::MinMax {
+                            ("min", "max")
+                        } else {
+                            ("q01", "q99")
+                        };
+                        let (lo, hi) = (get(lo)?, get(hi)?);
+                        for (l, h) in lo.iter().zip(&hi) {
+                            let range = (h - l).max(1e-8);
+                            off.push((l + range / 2.0) as f32);
+                            scale.push((range / 2.0) as f32);
+                            clip.push(true);
+                        }
+                    }
+                    Norm::MeanStd => {
+                        let (mean, std) = (get("mean")?, get("std")?);
+                        for (m, s) in mean.iter().zip(&std) {
+                            off.push(*m as f32);
+                            scale.push(s.max(1e-8) as f32);
+                            clip.push(false);
+                        }
+                    }
+                    Norm::None => {
+                        for _ in 0..g.dim {
+                            off.push(0.0);
+                            scale.push(1.0);
+                            clip.push(false);
+                        }
+                    }
+                }
+            }
+            Ok((off, scale, clip))
+        };
+        let (so, ss, sc) = affine("state", &cfg.state)?;
+        let (ao, ascale, _) = affine("action", &cfg.action)?;
+        Ok(Normalizer {
+            state_offset: so,
+            state_inv_scale: ss.iter().map(|s| 1.0 / s).collect(),
+            state_clip: sc,
+            action_scale: ascale,
+            action_offset: ao,
+        })
+    }
+
+    /// State width.
+    pub fn state_dim(&self) -> usize {
+        self.state_offset.len()
+    }
+
+    /// Normalise one raw state vector into `out` (same length).
+    pub fn normalize_state(&self, raw: &[f32], out: &mut [f32]) {
+        for i in 0..raw.len().min(out.len()).min(self.state_offset.len()) {
+            let v = (raw[i] - self.state_offset[i]) * self.state_inv_scale[i];
+            out[i] = if self.state_clip[i] {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
+            };
+        }
+    }
+
+    /// Denormalise one action vector in place.
+    pub fn denormalize_action(&self, a: &mut [f32]) {
+        for (i, x) in a.iter_mut().enumerate() {
+            *x = self.action_scale[i] * *x + self.action_offset[i];
+        }
+    }
+
+    /// The runtime's output map that turns model actions into absolute joint targets.
+    pub fn action_output_map(&self) -> pir2_runtime::OutputMap {
+        pir2_runtime::OutputMap {
+            scale: self.action_scale.clone(),
+            offset: self.action_offset.clone(),
+        }
+    }
+}
+
+/// Read the embodiment slot from GR00T's `embodiment_id.json` (`{tag: id}`), if the file exists.
+pub fn read_embodiment_id(path: &Path, tag: &str) -> Result<Option<i64>> {
+    if !path.exists() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let map: BTreeMap<String, i64> =
+        serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+            path: path.to_path_buf(),
+            message: format!("expected {{tag: id}}: {e}"),
+        })?;
+    Ok(map.get(tag).copied())
+}
+
+/// The files of a checkpoint directory (names relative to it; see `docs/gr00t-contract.md`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CheckpointFiles {
+    /// Embodiment configuration (optional: the built-in xArm6 + XHand is used without it).
+    pub embodiment: PathBuf,
+    /// GR00T normalisation statistics.
+    pub statistics: PathBuf,
+    /// GR00T embodiment slots (optional).
+    pub embodiment_id: PathBuf,
+    /// State encoder ONNX.
+    pub state_encoder: PathBuf,
+    /// Action encoder ONNX.
+    pub action_encoder: PathBuf,
+    /// DiT ONNX.
+    pub dit: PathBuf,
+    /// Action decoder ONNX.
+    pub action_decoder: PathBuf,
+    /// Backbone (ViT + LLM) ONNX.
+    pub backbone: PathBuf,
+    /// VL self-attention ONNX (optional).
+    pub vl_self_attention: PathBuf,
+    /// pir2 side weights: delay table, position embedding, `vlln`.
+    pub weights: PathBuf,
+    /// Tokenizer vocabulary.
+    pub vocab: PathBuf,
+}
+
+impl CheckpointFiles {
+    /// The default layout under `dir`.
+    pub fn in_dir(dir: &Path) -> Self {
+        let onnx = dir.join("onnx");
+        CheckpointFiles {
+            embodiment: dir.join("embodiment.toml"),
+            statistics: dir.join("statistics.json"),
+            embodiment_id: dir.join("embodiment_id.json"),
+            state_encoder: onnx.join("state_encoder.onnx"),
+            action_encoder: onnx.join("action_encoder.onnx"),
+            dit: onnx.join("dit.onnx"),
+            action_decoder: onnx.join("action_decoder.onnx"),
+            backbone: onnx.join("backbone.onnx"),
+            vl_self_attention: onnx.join("vl_self_attention.onnx"),
+            weights: dir.join("pir2_gr00t.safetensors"),
+            vocab: dir.join("vocab.txt"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn xarm6_xhand_matches_the_paper() {
+        let c = EmbodimentConfig::xarm6_xhand();
+        c.validate().unwrap();
+        assert_eq!(c.state_dim(), 45);
+        assert_eq!(c.action_dim(), 18);
+        assert_eq!((c.horizon, c.d_max, c.d_vis_max), (50, 5, 5));
+        assert_eq!(c.period_ns(), 40_000_000);
+        assert_eq!(c.prompt_for("catch_book"), "catch the book");
+        assert_eq!(c.prompt_for("catch the book"), "catch the book");
+        assert_eq!(c.tasks.len(), 4);
+        let back: EmbodimentConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
+        assert_eq!(back, c);
+    }
+
+    fn stats_json(drop: Option<&str>) -> String {
+        let c = EmbodimentConfig::xarm6_xhand();
+        let mut emb = serde_json::Map::new();
+        for (m, groups) in [("state", &c.state), ("action", &c.action)] {
+            let mut gm = serde_json::Map::new();
+            for g in groups.iter() {
+                let mut s = serde_json::Map::new();
+                for (k, v) in [("min", -2.0), ("max", 4.0), ("mean", 1.0), ("std", 2.0)] {
+                    if drop == Some(&format!("{m}.{}.{k}", g.name)) {
+                        continue;
+                    }
+                    s.insert(k.into(), serde_json::json!(vec![v; g.dim]));
+                }
+                gm.insert(g.name.clone(), s.into());
+            }
+            emb.insert(m.into(), gm.into());
+        }
+        serde_json::json!({ "new_embodiment": emb }).to_string()
+    }
+
+    #[test]
+    fn min_max_maps_to_unit_interval_and_back() {
+        let dir = std::env::temp_dir().join(format!("pir2-gr00t-stats-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("statistics.json");
+        std::fs::write(&p, stats_json(None)).unwrap();
+        let c = EmbodimentConfig::xarm6_xhand();
+        let n = Normalizer::load(&p, &c).unwrap();
+        let mut out = vec![0.0; 45];
+        n.normalize_state(&[-2.0; 45], &mut out);
+        assert!(out.iter().all(|x| (*x + 1.0).abs() < 1e-6), "{out:?}");
+        n.normalize_state(&[1.0; 45], &mut out);
+        assert!(out.iter().all(|x| x.abs() < 1e-6));
+        n.normalize_state(&[100.0; 45], &mut out);
+        assert!(out.iter().all(|x| *x == 1.0), "clipped");
+        let mut a = vec![1.0; 18];
+        n.denormalize_action(&mut a);
+        assert!(a.iter().all(|x| (*x - 4.0).abs() < 1e-6));
+
+        std::fs::write(&p, stats_json(Some("state.hand_torques.max"))).unwrap();
+        let e = Normalizer::load(&p, &c).unwrap_err().to_string();
+        assert!(
+            e.contains("new_embodiment.state.hand_torques.max") && e.contains("missing"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

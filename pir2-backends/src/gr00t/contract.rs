@@ -1,0 +1,609 @@
+//! The export contract of every GR00T ONNX file, checked on load.
+//!
+//! Each file is described by a [`GraphSpec`]: its inputs and outputs with element types and
+//! dimensions. A dimension is either the batch (`B`, fixed or dynamic), a named size that must
+//! be fixed in the file and agree across all files of the checkpoint (`D_in`, `H`, …), or a
+//! named size that may be dynamic (the token count `T`). [`Bindings`] carries the named sizes
+//! from one file to the next, so a `D_in` of 1536 in the state encoder and 1024 in the action
+//! encoder is reported with both files named. The tables are rendered in
+//! `docs/gr00t-contract.md`.
+
+use std::borrow::Cow;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use ::ort::session::builder::GraphOptimizationLevel;
+use ::ort::session::{Session, SessionInputValue};
+use ::ort::value::{TensorElementType, ValueType};
+
+use super::error::{Gr00tError, Result};
+use crate::ort::{runtime, OrtError, OrtOptions};
+
+/// Element type of a tensor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Elem {
+    /// `float32`.
+    F32,
+    /// `int64`.
+    I64,
+    /// `bool`.
+    Bool,
+}
+
+impl Elem {
+    fn ort(self) -> TensorElementType {
+        match self {
+            Elem::F32 => TensorElementType::Float32,
+            Elem::I64 => TensorElementType::Int64,
+            Elem::Bool => TensorElementType::Bool,
+        }
+    }
+    fn name(self) -> &'static str {
+        match self {
+            Elem::F32 => "float32",
+            Elem::I64 => "int64",
+            Elem::Bool => "bool",
+        }
+    }
+}
+
+/// One dimension of a tensor in the contract.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dim {
+    /// The batch: fixed or dynamic, the same in every tensor of a file.
+    Batch,
+    /// Exactly this size.
+    Fixed(usize),
+    /// A named size, fixed in the file, the same wherever the name appears.
+    Static(&'static str),
+    /// A named size that may be dynamic; when fixed, it must agree with the other uses.
+    Dynamic(&'static str),
+}
+
+impl std::fmt::Display for Dim {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Dim::Batch => f.write_str("B"),
+            Dim::Fixed(n) => write!(f, "{n}"),
+            Dim::Static(n) => f.write_str(n),
+            Dim::Dynamic(n) => write!(f, "{n}*"),
+        }
+    }
+}
+
+/// One input or output.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TensorSpec {
+    /// Its name in the graph.
+    pub name: &'static str,
+    /// Element type.
+    pub elem: Elem,
+    /// Dimensions (the rank is their count).
+    pub dims: &'static [Dim],
+    /// Whether the tensor must be present (optional inputs are fed when declared).
+    pub required: bool,
+}
+
+/// The contract of one file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GraphSpec {
+    /// Role, for messages (e.g. "DiT").
+    pub role: &'static str,
+    /// Inputs; no others are allowed.
+    pub inputs: &'static [TensorSpec],
+    /// Outputs that must be present (others are ignored).
+    pub outputs: &'static [TensorSpec],
+}
+
+const fn t(name: &'static str, elem: Elem, dims: &'static [Dim]) -> TensorSpec {
+    TensorSpec {
+        name,
+        elem,
+        dims,
+        required: true,
+    }
+}
+const fn opt(name: &'static str, elem: Elem, dims: &'static [Dim]) -> TensorSpec {
+    TensorSpec {
+        name,
+        elem,
+        dims,
+        required: false,
+    }
+}
+
+use Dim::{Batch, Dynamic, Fixed, Static};
+use Elem::{Bool, F32, I64};
+
+/// `state_encoder.onnx` (GR00T's exporter, unchanged): `S_in = n_obs · max_state_dim`.
+pub const STATE_ENCODER: GraphSpec = GraphSpec {
+    role: "state encoder",
+    inputs: &[
+        t("state", F32, &[Batch, Fixed(1), Static("S_in")]),
+        t("embodiment_id", I64, &[Batch]),
+    ],
+    outputs: &[t("output", F32, &[Batch, Fixed(1), Static("D_in")])],
+};
+
+/// `action_encoder.onnx` with the πR² change: `timesteps` is per position `[B, H]`.
+pub const ACTION_ENCODER: GraphSpec = GraphSpec {
+    role: "action encoder",
+    inputs: &[
+        t("actions", F32, &[Batch, Static("H"), Static("A_max")]),
+        t("timesteps", I64, &[Batch, Static("H")]),
+        t("embodiment_id", I64, &[Batch]),
+    ],
+    outputs: &[t("output", F32, &[Batch, Static("H"), Static("D_in")])],
+};
+
+/// `dit.onnx` with the πR² change: `timestep` is per token `[B, 1+H]` (per-position AdaLN).
+pub const DIT: GraphSpec = GraphSpec {
+    role: "DiT",
+    inputs: &[
+        t("sa_embs", F32, &[Batch, Static("SA"), Static("D_in")]),
+        t("vl_embs", F32, &[Batch, Dynamic("T"), Static("D_vl")]),
+        t("timestep", I64, &[Batch, Static("SA")]),
+        opt("image_mask", Bool, &[Batch, Dynamic("T")]),
+        opt("backbone_attention_mask", Bool, &[Batch, Dynamic("T")]),
+    ],
+    outputs: &[t("output", F32, &[Batch, Static("SA"), Static("D_hid")])],
+};
+
+/// `action_decoder.onnx` (GR00T's exporter, unchanged).
+pub const ACTION_DECODER: GraphSpec = GraphSpec {
+    role: "action decoder",
+    inputs: &[
+        t("model_output", F32, &[Batch, Static("SA"), Static("D_hid")]),
+        t("embodiment_id", I64, &[Batch]),
+    ],
+    outputs: &[t("output", F32, &[Batch, Static("SA"), Static("A_max")])],
+};
+
+/// `vl_self_attention.onnx` (GR00T's exporter, unchanged; optional).
+pub const VL_SELF_ATTENTION: GraphSpec = GraphSpec {
+    role: "VL self-attention",
+    inputs: &[t(
+        "hidden_states",
+        F32,
+        &[Batch, Dynamic("T"), Static("D_vl")],
+    )],
+    outputs: &[t("output", F32, &[Batch, Dynamic("T"), Static("D_vl")])],
+};
+
+/// `backbone.onnx`: ViT + LLM fused by the user (see `docs/gr00t-contract.md`).
+pub const BACKBONE: GraphSpec = GraphSpec {
+    role: "backbone",
+    inputs: &[
+        t(
+            "pixel_values",
+            F32,
+            &[Batch, Fixed(3), Static("crop"), Static("crop")],
+        ),
+        t("input_ids", I64, &[Batch, Dynamic("T")]),
+        opt("attention_mask", I64, &[Batch, Dynamic("T")]),
+    ],
+    outputs: &[t("embeddings", F32, &[Batch, Dynamic("T"), Static("D_vl")])],
+};
+
+/// Named sizes collected across files, with the file each was first read from.
+#[derive(Debug, Clone, Default)]
+pub struct Bindings {
+    dims: BTreeMap<&'static str, (usize, PathBuf)>,
+}
+
+impl Bindings {
+    /// Pre-bind a size from the configuration (`source` names where it came from).
+    pub fn bind(&mut self, name: &'static str, value: usize, source: impl Into<PathBuf>) {
+        self.dims.insert(name, (value, source.into()));
+    }
+    /// A bound size.
+    pub fn get(&self, name: &str) -> Option<usize> {
+        self.dims.get(name).map(|(v, _)| *v)
+    }
+}
+
+/// What a validated file declared.
+#[derive(Debug, Clone, Default)]
+pub struct Declared {
+    /// Batch size if fixed in the file.
+    pub batch: Option<usize>,
+    /// Optional inputs that are present.
+    pub optional_inputs: Vec<&'static str>,
+}
+
+impl Declared {
+    /// Whether an optional input is declared.
+    pub fn has(&self, name: &str) -> bool {
+        self.optional_inputs.contains(&name)
+    }
+}
+
+fn describe(ty: &ValueType) -> Option<(TensorElementType, Vec<i64>)> {
+    match (ty.tensor_type(), ty.tensor_shape()) {
+        (Some(t), Some(s)) => Some((t, s.iter().copied().collect())),
+        _ => None,
+    }
+}
+
+/// Check one file's declared inputs/outputs (`found`: name, element type, shape with `-1`
+/// for dynamic) against `spec`, binding named sizes. Separated from ONNX Runtime so the
+/// rules are unit-tested without the library.
+pub fn check(
+    spec: &GraphSpec,
+    path: &Path,
+    inputs: &[(String, TensorElementType, Vec<i64>)],
+    outputs: &[(String, TensorElementType, Vec<i64>)],
+    bindings: &mut Bindings,
+) -> Result<Declared> {
+    let bad = |tensor: &str, problem: String| Gr00tError::Contract {
+        path: path.to_path_buf(),
+        tensor: tensor.to_string(),
+        problem,
+    };
+    let allowed: Vec<&str> = spec.inputs.iter().map(|t| t.name).collect();
+    for (n, _, _) in inputs {
+        if !allowed.contains(&n.as_str()) {
+            return Err(bad(
+                n,
+                format!(
+                    "unexpected input for the {} (allowed: {allowed:?})",
+                    spec.role
+                ),
+            ));
+        }
+    }
+    let mut declared = Declared::default();
+    let mut batch: Option<i64> = None;
+    let mut one = |ts: &TensorSpec,
+                   found: Option<&(String, TensorElementType, Vec<i64>)>,
+                   is_output: bool|
+     -> Result<()> {
+        let kind = if is_output { "output" } else { "input" };
+        let Some((_, ty, shape)) = found else {
+            if ts.required {
+                let names: Vec<&str> = if is_output {
+                    outputs.iter().map(|o| o.0.as_str()).collect()
+                } else {
+                    inputs.iter().map(|o| o.0.as_str()).collect()
+                };
+                return Err(bad(
+                    ts.name,
+                    format!(
+                        "missing {kind} of the {} (the file declares {names:?})",
+                        spec.role
+                    ),
+                ));
+            }
+            return Ok(());
+        };
+        if !ts.required {
+            declared.optional_inputs.push(ts.name);
+        }
+        let want: Vec<String> = ts.dims.iter().map(|d| d.to_string()).collect();
+        if *ty != ts.elem.ort() {
+            return Err(bad(
+                ts.name,
+                format!(
+                    "element type {ty:?}, expected {} (export in float32; bf16/fp16 files are not supported)",
+                    ts.elem.name()
+                ),
+            ));
+        }
+        if shape.len() != ts.dims.len() {
+            let hint = if ts.name.starts_with("timestep") && shape.len() + 1 == ts.dims.len() {
+                "; this is GR00T's stock per-sample timestep: πR² needs one timestep per \
+                 position (per-position AdaLN), see docs/gr00t-contract.md"
+            } else {
+                ""
+            };
+            return Err(bad(
+                ts.name,
+                format!(
+                    "rank {} (shape {shape:?}), expected rank {} [{}]{hint}",
+                    shape.len(),
+                    ts.dims.len(),
+                    want.join(", ")
+                ),
+            ));
+        }
+        for (k, (d, &n)) in ts.dims.iter().zip(shape).enumerate() {
+            let fixed = (n > 0).then_some(n as usize);
+            let mismatch = |exp: String| {
+                bad(
+                    ts.name,
+                    format!(
+                        "dimension {k} is {n} (shape {shape:?}), expected {exp} in [{}]",
+                        want.join(", ")
+                    ),
+                )
+            };
+            match *d {
+                Batch => {
+                    if let Some(b) = fixed {
+                        match batch {
+                            Some(prev) if prev > 0 && prev as usize != b => {
+                                return Err(mismatch(format!(
+                                    "the batch {prev} of the other tensors"
+                                )));
+                            }
+                            _ => batch = Some(b as i64),
+                        }
+                    }
+                }
+                Fixed(want) => {
+                    // Outputs may have dims left unknown by shape inference.
+                    if fixed != Some(want) && !(is_output && fixed.is_none()) {
+                        return Err(mismatch(want.to_string()));
+                    }
+                }
+                Static(name) | Dynamic(name) => {
+                    let Some(v) = fixed else {
+                        if matches!(d, Static(_)) && !is_output {
+                            return Err(mismatch(format!(
+                                "a fixed size `{name}` (only the batch{} may be dynamic)",
+                                if spec
+                                    .inputs
+                                    .iter()
+                                    .any(|t| t.dims.iter().any(|d| matches!(d, Dynamic(_))))
+                                {
+                                    " and the token count"
+                                } else {
+                                    ""
+                                }
+                            )));
+                        }
+                        continue;
+                    };
+                    match bindings.dims.get(name) {
+                        Some((prev, src)) if *prev != v => {
+                            return Err(mismatch(format!(
+                                "`{name}` = {prev} (from `{}`)",
+                                src.display()
+                            )));
+                        }
+                        Some(_) => {}
+                        None => {
+                            bindings.dims.insert(name, (v, path.to_path_buf()));
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    };
+    for ts in spec.inputs {
+        one(ts, inputs.iter().find(|(n, _, _)| n == ts.name), false)?;
+    }
+    for ts in spec.outputs {
+        one(ts, outputs.iter().find(|(n, _, _)| n == ts.name), true)?;
+    }
+    declared.batch = batch.filter(|&b| b > 0).map(|b| b as usize);
+    Ok(declared)
+}
+
+/// One loaded ONNX file with its contract checked.
+pub struct Graph {
+    session: Session,
+    path: PathBuf,
+    spec: GraphSpec,
+    /// What the file declared.
+    pub declared: Declared,
+}
+
+impl std::fmt::Debug for Graph {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Graph")
+            .field("role", &self.spec.role)
+            .field("path", &self.path)
+            .field("declared", &self.declared)
+            .finish()
+    }
+}
+
+/// A feed: input name and value.
+pub type Feed<'a> = (Cow<'a, str>, SessionInputValue<'a>);
+
+impl Graph {
+    /// Load `path` with ONNX Runtime (initialised once per process by [`crate::ort::runtime`])
+    /// and check it against `spec`.
+    pub fn load(
+        path: &Path,
+        spec: GraphSpec,
+        opts: &OrtOptions,
+        bindings: &mut Bindings,
+    ) -> Result<Self> {
+        let rt = runtime(opts.dylib_path.as_deref())?;
+        let session_err = |e: String| {
+            Gr00tError::Ort(OrtError::Session {
+                path: path.to_path_buf(),
+                message: e,
+            })
+        };
+        if !path.exists() {
+            return Err(Gr00tError::Read {
+                path: path.to_path_buf(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    format!("the {} file is missing", spec.role),
+                ),
+            });
+        }
+        let session = Session::builder(rt.environment())
+            .map_err(|e| session_err(e.to_string()))?
+            .with_optimization_level(GraphOptimizationLevel::All)
+            .map_err(|e| session_err(e.to_string()))?
+            .with_intra_threads(opts.intra_threads.max(1))
+            .map_err(|e| session_err(e.to_string()))?
+            .with_inter_threads(opts.inter_threads.max(1))
+            .map_err(|e| session_err(e.to_string()))?
+            .with_parallel_execution(false)
+            .map_err(|e| session_err(e.to_string()))?
+            .commit_from_file(path)
+            .map_err(|e| session_err(e.to_string()))?;
+        let collect = |outlets: &[::ort::value::Outlet]| -> Result<Vec<_>> {
+            outlets
+                .iter()
+                .map(|o| {
+                    describe(o.dtype())
+                        .map(|(t, s)| (o.name().to_string(), t, s))
+                        .ok_or_else(|| Gr00tError::Contract {
+                            path: path.to_path_buf(),
+                            tensor: o.name().to_string(),
+                            problem: format!("is not a tensor ({:?})", o.dtype()),
+                        })
+                })
+                .collect()
+        };
+        let inputs = collect(session.inputs())?;
+        let outputs = collect(session.outputs())?;
+        let declared = check(&spec, path, &inputs, &outputs, bindings)?;
+        Ok(Graph {
+            session,
+            path: path.to_path_buf(),
+            spec,
+            declared,
+        })
+    }
+
+    /// The file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Run with `feeds` and copy the `f32` output `name` into `out`; returns its shape.
+    pub fn run_into(
+        &mut self,
+        feeds: Vec<Feed<'_>>,
+        name: &str,
+        out: &mut Vec<f32>,
+    ) -> Result<Vec<usize>> {
+        let path = self.path.clone();
+        let run_err = |m: String| Gr00tError::Run {
+            path: path.clone(),
+            message: m,
+        };
+        let outputs = self
+            .session
+            .run(feeds)
+            .map_err(|e| run_err(e.to_string()))?;
+        let v = outputs
+            .get(name)
+            .ok_or_else(|| run_err(format!("no output `{name}`")))?;
+        let (shape, data) = v
+            .try_extract_tensor::<f32>()
+            .map_err(|e| run_err(format!("output `{name}`: {e}")))?;
+        out.clear();
+        out.extend_from_slice(data);
+        Ok(shape.iter().map(|&d| d.max(0) as usize).collect())
+    }
+}
+
+/// Build a feed from a flat slice and a shape.
+pub fn feed<'a, T>(name: &'static str, shape: &[usize], data: &'a [T]) -> Result<Feed<'a>>
+where
+    T: ::ort::value::PrimitiveTensorElementType + Clone + std::fmt::Debug + 'static,
+{
+    let v = ::ort::value::TensorRef::from_array_view((shape.to_vec(), data)).map_err(|e| {
+        Gr00tError::input(
+            format!("{name} {shape:?}"),
+            "a tensor",
+            format!("{} elements: {e}", data.len()),
+        )
+    })?;
+    Ok((Cow::Borrowed(name), v.into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn f(name: &str, ty: TensorElementType, s: &[i64]) -> (String, TensorElementType, Vec<i64>) {
+        (name.to_string(), ty, s.to_vec())
+    }
+    const F: TensorElementType = TensorElementType::Float32;
+    const I: TensorElementType = TensorElementType::Int64;
+
+    #[test]
+    fn binds_named_dims_across_files_and_names_both_files() {
+        let mut b = Bindings::default();
+        let p1 = Path::new("a/state_encoder.onnx");
+        check(
+            &STATE_ENCODER,
+            p1,
+            &[f("state", F, &[1, 1, 64]), f("embodiment_id", I, &[1])],
+            &[f("output", F, &[1, 1, 32])],
+            &mut b,
+        )
+        .unwrap();
+        assert_eq!(b.get("D_in"), Some(32));
+        let p2 = Path::new("a/action_encoder.onnx");
+        let e = check(
+            &ACTION_ENCODER,
+            p2,
+            &[
+                f("actions", F, &[1, 4, 8]),
+                f("timesteps", I, &[1, 4]),
+                f("embodiment_id", I, &[1]),
+            ],
+            &[f("output", F, &[1, 4, 16])],
+            &mut b,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("action_encoder.onnx")
+                && e.contains("`output`")
+                && e.contains("state_encoder.onnx")
+                && e.contains("D_in"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn per_sample_timesteps_are_rejected_with_the_rank() {
+        let mut b = Bindings::default();
+        let e = check(
+            &ACTION_ENCODER,
+            Path::new("x.onnx"),
+            &[
+                f("actions", F, &[1, 4, 8]),
+                f("timesteps", I, &[1]),
+                f("embodiment_id", I, &[1]),
+            ],
+            &[f("output", F, &[1, 4, 16])],
+            &mut b,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("`timesteps`") && e.contains("rank 1"), "{e}");
+    }
+
+    #[test]
+    fn dynamic_static_dims_and_unknown_inputs_are_rejected() {
+        let mut b = Bindings::default();
+        let e = check(
+            &STATE_ENCODER,
+            Path::new("s.onnx"),
+            &[f("state", F, &[-1, 1, -1]), f("embodiment_id", I, &[-1])],
+            &[f("output", F, &[-1, 1, 32])],
+            &mut b,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("`state`") && e.contains("S_in"), "{e}");
+        let e = check(
+            &STATE_ENCODER,
+            Path::new("s.onnx"),
+            &[
+                f("state", F, &[1, 1, 8]),
+                f("embodiment_id", I, &[1]),
+                f("extra", F, &[1]),
+            ],
+            &[f("output", F, &[1, 1, 32])],
+            &mut b,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("`extra`") && e.contains("unexpected"), "{e}");
+    }
+}

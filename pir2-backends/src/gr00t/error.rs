@@ -1,0 +1,130 @@
+//! The GR00T stack's error type.
+
+use std::path::PathBuf;
+
+use crate::ort::OrtError;
+
+/// Errors of the GR00T stack (feature `gr00t`).
+#[derive(Debug, thiserror::Error)]
+pub enum Gr00tError {
+    // ---- files ----
+    /// A file could not be read.
+    #[error("cannot read `{path}`: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A file could not be parsed (JSON, TOML, safetensors, vocabulary).
+    #[error("cannot parse `{path}`: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// The embodiment configuration is inconsistent.
+    #[error("invalid GR00T embodiment configuration: {0}")]
+    Config(String),
+    /// A normalisation statistic is missing or malformed.
+    #[error("statistics file `{path}`: `{key}` {problem}")]
+    Statistics {
+        /// The statistics file.
+        path: PathBuf,
+        /// `embodiment.modality.group.stat`.
+        key: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// A weight in the pir2 side file (`pir2_gr00t.safetensors`) is missing or malformed.
+    #[error("weights file `{path}`: tensor `{tensor}` {problem}")]
+    Weights {
+        /// The safetensors file.
+        path: PathBuf,
+        /// The tensor name.
+        tensor: String,
+        /// What is wrong.
+        problem: String,
+    },
+
+    // ---- ONNX contract ----
+    /// An ONNX file does not meet the GR00T export contract (see `docs/gr00t-contract.md`).
+    #[error("ONNX model `{path}` breaks the GR00T contract at `{tensor}`: {problem}")]
+    Contract {
+        /// The ONNX file.
+        path: PathBuf,
+        /// The input/output name concerned.
+        tensor: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// ONNX Runtime failed (loading the library, creating a session, running a graph).
+    #[error(transparent)]
+    Ort(#[from] OrtError),
+    /// Running an ONNX graph failed.
+    #[error("running `{path}`: {message}")]
+    Run {
+        /// The ONNX file.
+        path: PathBuf,
+        /// ONNX Runtime's message.
+        message: String,
+    },
+
+    // ---- inputs ----
+    /// The prompt tokenizer failed.
+    #[error("tokenizer: {0}")]
+    Tokenizer(String),
+    /// An input had the wrong size.
+    #[error("GR00T input `{what}`: expected {expected}, got {got}")]
+    Input {
+        /// What was being checked.
+        what: String,
+        /// Expected.
+        expected: String,
+        /// Received.
+        got: String,
+    },
+
+    // ---- runtime ----
+    /// An error of the runtime (driver, robot, camera).
+    #[error(transparent)]
+    Runtime(#[from] pir2_runtime::Error),
+}
+
+impl Gr00tError {
+    pub(crate) fn input(
+        what: impl Into<String>,
+        expected: impl std::fmt::Display,
+        got: impl std::fmt::Display,
+    ) -> Self {
+        Gr00tError::Input {
+            what: what.into(),
+            expected: expected.to_string(),
+            got: got.to_string(),
+        }
+    }
+}
+
+/// Errors crossing into the runtime's traits become [`pir2_runtime::Error`]s that keep the
+/// message (and the runtime's own errors unchanged).
+impl From<Gr00tError> for pir2_runtime::Error {
+    fn from(e: Gr00tError) -> Self {
+        match e {
+            Gr00tError::Runtime(r) => r,
+            Gr00tError::Input {
+                what,
+                expected,
+                got,
+            } => pir2_runtime::Error::Shape {
+                what,
+                expected,
+                got,
+            },
+            other => pir2_runtime::Error::Model(format!("gr00t: {other}")),
+        }
+    }
+}
+
+/// Result alias of the GR00T stack.
+pub type Result<T, E = Gr00tError> = std::result::Result<T, E>;

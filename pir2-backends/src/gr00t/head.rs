@@ -1,0 +1,490 @@
+//! [`Gr00tActionHead`]: GR00T N1.7's action head as four ONNX graphs, one NFE per call.
+//!
+//! One call (`velocity`) on `x [B,H,A]`, `τ [B,H]`, proprioception `[B,n_obs,45]`, backbone
+//! tokens `[B,T,D_vl]` and `d_vis [B]`:
+//!
+//! ```text
+//! state   = pad(normalise(obs), max_state_dim) per history step → [B, 1, S_in]
+//! s       = state_encoder(state, embodiment_id)                  → [B, 1, D_in]
+//! t_p     = min(floor(clamp(τ_p, 0, 1)·buckets), buckets − 1)     (per position, int64)
+//! a       = action_encoder(pad(x, A_max), t [B,H], embodiment_id) → [B, H, D_in]
+//! a      += position_embedding[0..H]           (if the side file has one; GR00T adds it outside ONNX)
+//! a      += delay_embedding[min(d_vis, d_vis_max)]   (πR²: broadcast over the H action tokens)
+//! y       = DiT(sa_embs = [s; a], vl_embs, timestep = [t_state, t_0..t_{H-1}], masks) → [B, 1+H, D_hid]
+//! v       = action_decoder(y, embodiment_id)[:, 1:, :A]           → [B, H, A]
+//! ```
+//!
+//! The velocity is in GR00T's normalised action space (`x_τ = (1−τ)·ε + τ·a`, `v = a − ε`,
+//! the same convention as pir2); the runtime's output map denormalises the executed actions
+//! ([`super::Normalizer::action_output_map`]).
+//!
+//! The slow input may be [`SlowInput::Tokens`] (`dim = D_vl`) or, as the runtime's action head
+//! passes it, a flat [`SlowInput::Vector`] of `T·D_vl` values that is read as `[T, D_vl]`.
+
+use std::path::Path;
+
+use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
+
+use super::config::{CheckpointFiles, EmbodimentConfig, Normalizer};
+use super::contract::{feed, Bindings, Graph, ACTION_DECODER, ACTION_ENCODER, DIT, STATE_ENCODER};
+use super::error::{Gr00tError, Result};
+use super::weights::SideWeights;
+use crate::ort::OrtOptions;
+
+/// Which tokens of the backbone sequence are image tokens and which are valid (not padding);
+/// fed to the DiT as `image_mask` / `backbone_attention_mask` when it declares them.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct VlLayout {
+    /// `true` for image tokens, length `T`.
+    pub image_mask: Vec<bool>,
+    /// `true` for valid tokens, length `T`.
+    pub attention_mask: Vec<bool>,
+}
+
+/// Sizes read from the ONNX files and the side weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HeadDims {
+    /// Chunk length `H`.
+    pub horizon: usize,
+    /// Robot action width `A`.
+    pub action_dim: usize,
+    /// Padded action width of the model.
+    pub max_action_dim: usize,
+    /// Robot state width.
+    pub state_dim: usize,
+    /// Padded state width per history step.
+    pub max_state_dim: usize,
+    /// History length.
+    pub n_obs: usize,
+    /// Token width of the state/action tokens.
+    pub d_in: usize,
+    /// Backbone token width.
+    pub d_vl: usize,
+    /// DiT output width.
+    pub d_hid: usize,
+    /// Rows of the delay table minus one.
+    pub d_vis_max: usize,
+    /// Backbone token count `T` if the DiT fixes it (GR00T's exporter leaves it dynamic).
+    pub vl_tokens: Option<usize>,
+}
+
+/// GR00T N1.7's action head with the πR² changes (see the module docs).
+#[derive(Debug)]
+pub struct Gr00tActionHead {
+    dims: HeadDims,
+    norm: Normalizer,
+    embodiment_id: i64,
+    buckets: i64,
+    state_timestep: i64,
+    state_encoder: Graph,
+    action_encoder: Graph,
+    dit: Graph,
+    action_decoder: Graph,
+    delay: Vec<f32>,
+    position: Option<Vec<f32>>,
+    layout: Option<VlLayout>,
+    d_vis_counts: Vec<u64>,
+    // scratch
+    state: Vec<f32>,
+    actions: Vec<f32>,
+    t_act: Vec<i64>,
+    t_all: Vec<i64>,
+    emb_id: Vec<i64>,
+    s_feat: Vec<f32>,
+    a_feat: Vec<f32>,
+    sa: Vec<f32>,
+    y: Vec<f32>,
+    dec: Vec<f32>,
+    img_mask: Vec<bool>,
+    att_mask: Vec<bool>,
+}
+
+impl Gr00tActionHead {
+    /// Load the four graphs and the side weights of `files`, checking every file against the
+    /// contract and against `cfg` (horizon, state and action widths, delay-table rows).
+    pub fn load(
+        files: &CheckpointFiles,
+        cfg: &EmbodimentConfig,
+        norm: Normalizer,
+        embodiment_id: i64,
+        opts: &OrtOptions,
+    ) -> Result<Self> {
+        cfg.validate()?;
+        let mut b = Bindings::default();
+        let src = Path::new("<embodiment config: horizon>");
+        b.bind("H", cfg.horizon, src);
+        b.bind("SA", cfg.horizon + 1, src);
+        let state_encoder = Graph::load(&files.state_encoder, STATE_ENCODER, opts, &mut b)?;
+        let action_encoder = Graph::load(&files.action_encoder, ACTION_ENCODER, opts, &mut b)?;
+        let dit = Graph::load(&files.dit, DIT, opts, &mut b)?;
+        let action_decoder = Graph::load(&files.action_decoder, ACTION_DECODER, opts, &mut b)?;
+        let need = |n: &str| b.get(n).expect("bound by the contract check");
+        let (s_in, a_max) = (need("S_in"), need("A_max"));
+        let contract_err = |path: &Path, tensor: &str, problem: String| Gr00tError::Contract {
+            path: path.to_path_buf(),
+            tensor: tensor.to_string(),
+            problem,
+        };
+        if s_in % cfg.n_obs != 0 || s_in / cfg.n_obs < cfg.state_dim() {
+            return Err(contract_err(
+                &files.state_encoder,
+                "state",
+                format!(
+                    "last dimension {s_in} must be n_obs ({}) × max_state_dim with max_state_dim >= {} (the state width)",
+                    cfg.n_obs,
+                    cfg.state_dim()
+                ),
+            ));
+        }
+        if a_max < cfg.action_dim() {
+            return Err(contract_err(
+                &files.action_encoder,
+                "actions",
+                format!(
+                    "max_action_dim {a_max} is smaller than the action width {}",
+                    cfg.action_dim()
+                ),
+            ));
+        }
+        let dims = HeadDims {
+            horizon: cfg.horizon,
+            action_dim: cfg.action_dim(),
+            max_action_dim: a_max,
+            state_dim: cfg.state_dim(),
+            max_state_dim: s_in / cfg.n_obs,
+            n_obs: cfg.n_obs,
+            d_in: need("D_in"),
+            d_vl: need("D_vl"),
+            d_hid: need("D_hid"),
+            d_vis_max: cfg.d_vis_max,
+            vl_tokens: b.get("T"),
+        };
+        if norm.state_dim() != dims.state_dim {
+            return Err(Gr00tError::Config(format!(
+                "normaliser has {} state dims, the embodiment {}",
+                norm.state_dim(),
+                dims.state_dim
+            )));
+        }
+        let side = SideWeights::load(&files.weights)?;
+        let delay = side.delay_embedding(cfg.d_vis_max, dims.d_in)?;
+        let position = side.position_embedding(cfg.horizon, dims.d_in)?;
+        Ok(Gr00tActionHead {
+            dims,
+            norm,
+            embodiment_id,
+            buckets: cfg.num_timestep_buckets,
+            state_timestep: cfg.state_timestep(),
+            state_encoder,
+            action_encoder,
+            dit,
+            action_decoder,
+            delay,
+            position,
+            layout: None,
+            d_vis_counts: vec![0; cfg.d_vis_max + 1],
+            state: Vec::new(),
+            actions: Vec::new(),
+            t_act: Vec::new(),
+            t_all: Vec::new(),
+            emb_id: Vec::new(),
+            s_feat: Vec::new(),
+            a_feat: Vec::new(),
+            sa: Vec::new(),
+            y: Vec::new(),
+            dec: Vec::new(),
+            img_mask: Vec::new(),
+            att_mask: Vec::new(),
+        })
+    }
+
+    /// The sizes.
+    pub fn dims(&self) -> &HeadDims {
+        &self.dims
+    }
+
+    /// Set the token layout of the backbone features (required when the DiT declares masks).
+    pub fn set_vl_layout(&mut self, layout: VlLayout) {
+        self.layout = Some(layout);
+    }
+
+    /// How many calls saw each `d_vis` (after clamping to `d_vis_max`).
+    pub fn d_vis_counts(&self) -> &[u64] {
+        &self.d_vis_counts
+    }
+
+    /// Overwrite one row of the delay table (tests, ablations).
+    pub fn set_delay_row(&mut self, d_vis: usize, row: &[f32]) -> Result<()> {
+        if d_vis > self.dims.d_vis_max || row.len() != self.dims.d_in {
+            return Err(Gr00tError::input(
+                "delay row",
+                format!(
+                    "d_vis <= {} and {} values",
+                    self.dims.d_vis_max, self.dims.d_in
+                ),
+                format!("d_vis {d_vis}, {} values", row.len()),
+            ));
+        }
+        let d = self.dims.d_in;
+        self.delay[d_vis * d..(d_vis + 1) * d].copy_from_slice(row);
+        Ok(())
+    }
+
+    fn bucket(&self, tau: f32) -> i64 {
+        // Hidden-front slots carry τ < 0: they are fed as noise-level 0.
+        let t = if tau.is_finite() {
+            tau.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        ((t * self.buckets as f32).floor() as i64).min(self.buckets - 1)
+    }
+
+    fn tokens<'a>(&self, slow: &SlowInput<'a>, batch: usize) -> Result<(&'a [f32], usize)> {
+        let d_vl = self.dims.d_vl;
+        let (data, t) = match *slow {
+            SlowInput::Tokens { data, tokens, dim } => {
+                if dim != d_vl {
+                    return Err(Gr00tError::input("backbone token width", d_vl, dim));
+                }
+                (data, tokens)
+            }
+            SlowInput::Vector { data, dim } => {
+                if dim == 0 || dim % d_vl != 0 {
+                    return Err(Gr00tError::input(
+                        "backbone features (flat T·D_vl)",
+                        format!("a multiple of D_vl = {d_vl}"),
+                        dim,
+                    ));
+                }
+                (data, dim / d_vl)
+            }
+            SlowInput::None => {
+                return Err(Gr00tError::input(
+                    "backbone features",
+                    format!("[B, T, {d_vl}] tokens"),
+                    "none",
+                ))
+            }
+        };
+        if data.len() != batch * t * d_vl {
+            return Err(Gr00tError::input(
+                "backbone features [B,T,D_vl]",
+                batch * t * d_vl,
+                data.len(),
+            ));
+        }
+        Ok((data, t))
+    }
+
+    /// One NFE (see the module docs); `out` is `[B, H, A]`.
+    pub fn forward(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        input.validate()?;
+        let HeadDims {
+            horizon: h,
+            action_dim: a,
+            max_action_dim: a_max,
+            state_dim: sd,
+            max_state_dim: msd,
+            n_obs,
+            d_in,
+            d_vl: _,
+            d_hid,
+            d_vis_max,
+            vl_tokens: _,
+        } = self.dims;
+        let b = input.batch;
+        let chk = |what: &str, want: usize, got: usize| {
+            if want == got {
+                Ok(())
+            } else {
+                Err(Gr00tError::input(what, want, got))
+            }
+        };
+        chk("horizon H", h, input.horizon)?;
+        chk("action width A", a, input.action_dim)?;
+        chk("history n_obs", n_obs, input.n_obs)?;
+        chk("proprioception width", sd, input.fast_dim)?;
+        chk("out [B,H,A]", b * h * a, out.len())?;
+        for g in [
+            &self.state_encoder,
+            &self.action_encoder,
+            &self.dit,
+            &self.action_decoder,
+        ] {
+            if let Some(fb) = g.declared.batch {
+                if fb != b {
+                    return Err(Gr00tError::input(
+                        format!("batch (fixed in `{}`)", g.path().display()),
+                        fb,
+                        b,
+                    ));
+                }
+            }
+        }
+        let (vl, t) = self.tokens(&input.slow, b)?;
+
+        // 1. state tokens
+        self.state.clear();
+        self.state.resize(b * n_obs * msd, 0.0);
+        for bi in 0..b {
+            for k in 0..n_obs {
+                let src = &input.obs_fast[(bi * n_obs + k) * sd..(bi * n_obs + k + 1) * sd];
+                let dst = &mut self.state[(bi * n_obs + k) * msd..(bi * n_obs + k) * msd + sd];
+                self.norm.normalize_state(src, dst);
+            }
+        }
+        self.emb_id.clear();
+        self.emb_id.resize(b, self.embodiment_id);
+        let mut s_feat = std::mem::take(&mut self.s_feat);
+        self.state_encoder.run_into(
+            vec![
+                feed("state", &[b, 1, n_obs * msd], &self.state)?,
+                feed("embodiment_id", &[b], &self.emb_id)?,
+            ],
+            "output",
+            &mut s_feat,
+        )?;
+        self.s_feat = s_feat;
+        chk(
+            "state encoder output [B,1,D_in]",
+            b * d_in,
+            self.s_feat.len(),
+        )?;
+
+        // 2. action tokens with per-position timesteps
+        self.actions.clear();
+        self.actions.resize(b * h * a_max, 0.0);
+        self.t_act.clear();
+        for bi in 0..b {
+            for p in 0..h {
+                let src = &input.x[(bi * h + p) * a..(bi * h + p + 1) * a];
+                self.actions[(bi * h + p) * a_max..(bi * h + p) * a_max + a].copy_from_slice(src);
+                let tb = self.bucket(input.tau[bi * h + p]);
+                self.t_act.push(tb);
+            }
+        }
+        let mut a_feat = std::mem::take(&mut self.a_feat);
+        self.action_encoder.run_into(
+            vec![
+                feed("actions", &[b, h, a_max], &self.actions)?,
+                feed("timesteps", &[b, h], &self.t_act)?,
+                feed("embodiment_id", &[b], &self.emb_id)?,
+            ],
+            "output",
+            &mut a_feat,
+        )?;
+        self.a_feat = a_feat;
+        chk(
+            "action encoder output [B,H,D_in]",
+            b * h * d_in,
+            self.a_feat.len(),
+        )?;
+
+        // 3. position and delay embeddings, then [state; actions]
+        self.sa.clear();
+        self.sa.reserve(b * (1 + h) * d_in);
+        self.t_all.clear();
+        for bi in 0..b {
+            let dv = (input.d_vis[bi] as usize).min(d_vis_max);
+            self.d_vis_counts[dv] += 1;
+            let row = &self.delay[dv * d_in..(dv + 1) * d_in];
+            self.sa
+                .extend_from_slice(&self.s_feat[bi * d_in..(bi + 1) * d_in]);
+            self.t_all.push(self.state_timestep);
+            for p in 0..h {
+                let tok = &self.a_feat[(bi * h + p) * d_in..(bi * h + p + 1) * d_in];
+                for j in 0..d_in {
+                    let pos = self.position.as_ref().map_or(0.0, |pe| pe[p * d_in + j]);
+                    self.sa.push(tok[j] + pos + row[j]);
+                }
+                self.t_all.push(self.t_act[bi * h + p]);
+            }
+        }
+
+        // 4. DiT
+        let mut feeds = vec![
+            feed("sa_embs", &[b, 1 + h, d_in], &self.sa)?,
+            feed("vl_embs", &[b, t, self.dims.d_vl], vl)?,
+            feed("timestep", &[b, 1 + h], &self.t_all)?,
+        ];
+        let wants_img = self.dit.declared.has("image_mask");
+        let wants_att = self.dit.declared.has("backbone_attention_mask");
+        if wants_img || wants_att {
+            let layout = self.layout.as_ref().ok_or_else(|| {
+                Gr00tError::Config(format!(
+                    "`{}` declares the VL masks but no token layout was set (Gr00tActionHead::set_vl_layout)",
+                    self.dit.path().display()
+                ))
+            })?;
+            if layout.image_mask.len() != t || layout.attention_mask.len() != t {
+                return Err(Gr00tError::input(
+                    "VL layout masks (length T)",
+                    t,
+                    layout.image_mask.len(),
+                ));
+            }
+            self.img_mask.clear();
+            self.att_mask.clear();
+            for _ in 0..b {
+                self.img_mask.extend_from_slice(&layout.image_mask);
+                self.att_mask.extend_from_slice(&layout.attention_mask);
+            }
+            if wants_img {
+                feeds.push(feed("image_mask", &[b, t], &self.img_mask)?);
+            }
+            if wants_att {
+                feeds.push(feed("backbone_attention_mask", &[b, t], &self.att_mask)?);
+            }
+        }
+        let mut y = std::mem::take(&mut self.y);
+        let r = self.dit.run_into(feeds, "output", &mut y);
+        self.y = y;
+        r?;
+        chk(
+            "DiT output [B,1+H,D_hid]",
+            b * (1 + h) * d_hid,
+            self.y.len(),
+        )?;
+
+        // 5. decoder, drop the state token and the padding
+        let mut dec = std::mem::take(&mut self.dec);
+        self.action_decoder.run_into(
+            vec![
+                feed("model_output", &[b, 1 + h, d_hid], &self.y)?,
+                feed("embodiment_id", &[b], &self.emb_id)?,
+            ],
+            "output",
+            &mut dec,
+        )?;
+        self.dec = dec;
+        chk(
+            "action decoder output [B,1+H,A_max]",
+            b * (1 + h) * a_max,
+            self.dec.len(),
+        )?;
+        for bi in 0..b {
+            for p in 0..h {
+                let src = (bi * (1 + h) + 1 + p) * a_max;
+                out[(bi * h + p) * a..(bi * h + p + 1) * a]
+                    .copy_from_slice(&self.dec[src..src + a]);
+            }
+        }
+        if let Some(i) = out.iter().position(|x| !x.is_finite()) {
+            return Err(Gr00tError::Runtime(pir2_runtime::Error::NonFinite {
+                index: i,
+            }));
+        }
+        Ok(())
+    }
+}
+
+impl VelocityModel for Gr00tActionHead {
+    fn backend(&self) -> &'static str {
+        "onnxruntime (GR00T N1.7 action head)"
+    }
+
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> pir2_runtime::Result<()> {
+        self.forward(input, out).map_err(Into::into)
+    }
+}

@@ -1,0 +1,48 @@
+//! The GR00T-N1.7 xArm6 + XHand stack (feature `gr00t`).
+//!
+//! No weights ship with pir2: this module runs a user's export of a πR²-fine-tuned GR00T N1.7
+//! checkpoint through ONNX Runtime, following the split of GR00T's own exporter
+//! (`scripts/deployment/export_onnx_n1d7.py`, mode `action_head` / `full_pipeline`) with the
+//! πR² changes. The full contract is in `docs/gr00t-contract.md`; in short:
+//!
+//! | file | inputs | output |
+//! |------|--------|--------|
+//! | `onnx/state_encoder.onnx`  | `state f32 [B,1,S_in]`, `embodiment_id i64 [B]` | `output [B,1,D_in]` |
+//! | `onnx/action_encoder.onnx` | `actions f32 [B,H,A_max]`, **`timesteps i64 [B,H]`**, `embodiment_id` | `output [B,H,D_in]` |
+//! | `onnx/dit.onnx`            | `sa_embs [B,1+H,D_in]`, `vl_embs [B,T*,D_vl]`, **`timestep i64 [B,1+H]`**, opt. `image_mask`/`backbone_attention_mask bool [B,T*]` | `output [B,1+H,D_hid]` |
+//! | `onnx/action_decoder.onnx` | `model_output [B,1+H,D_hid]`, `embodiment_id` | `output [B,1+H,A_max]` |
+//! | `onnx/backbone.onnx`       | `pixel_values f32 [B,3,crop,crop]`, `input_ids i64 [B,T*]`, opt. `attention_mask` | `embeddings [B,T*,D_vl]` |
+//! | `onnx/vl_self_attention.onnx` (optional) | `hidden_states [B,T*,D_vl]` | `output [B,T*,D_vl]` |
+//!
+//! (`*`: may be dynamic.) Bold = the πR² change: timesteps per position instead of per sample
+//! (per-position AdaLN). The delay table `delay_embedding.weight [d_vis_max+1, D_in]` lives in
+//! `pir2_gr00t.safetensors` and is added to the action tokens in Rust before the DiT, with
+//! GR00T's position embedding (also outside ONNX in GR00T's pipeline).
+//!
+//! Every file is checked on load ([`contract`]): names, element types, ranks, static
+//! dimensions, and named sizes across files (`D_in` of the state encoder = `D_in` of the DiT…);
+//! errors name the file and the tensor.
+//!
+//! Pieces:
+//! - [`config`]: the embodiment ([`EmbodimentConfig::xarm6_xhand`]), GR00T statistics,
+//!   checkpoint layout;
+//! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
+//! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
+//!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
+//! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`.
+
+pub mod backbone;
+pub mod config;
+pub mod contract;
+pub mod error;
+pub mod head;
+pub mod run;
+pub mod weights;
+
+pub use backbone::{
+    build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
+};
+pub use config::{CheckpointFiles, EmbodimentConfig, Group, Norm, Normalizer, PAPER_TASKS};
+pub use error::{Gr00tError, Result};
+pub use head::{Gr00tActionHead, HeadDims, VlLayout};
+pub use run::{run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport};

@@ -1,0 +1,530 @@
+//! The GR00T-N1.7 xArm6 + XHand stack on tiny synthetic ONNX graphs with the export
+//! contract's names and shapes (made in set-up by `tests/gr00t/make_graphs.py` with
+//! `$PIR2_PYTHON`, i.e. after `source .native/env.sh`).
+//!
+//! Covers: the action head's delay embedding and per-position timesteps, contract violations
+//! (wrong name, rank, dim, type, missing statistic, delay-table shape), and the whole stack
+//! end to end through the real-time driver at 25 Hz on the xArm6 + XHand emulators.
+#![cfg(feature = "gr00t")]
+
+use std::net::{IpAddr, Ipv4Addr};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use pir2_backends::gr00t::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
+use pir2_backends::gr00t::{
+    run_gr00t_report, CheckpointFiles, EmbodimentConfig, Gr00tActionHead, Gr00tBackbone,
+    Gr00tRunOptions, Normalizer, VocabTokenizer,
+};
+use pir2_backends::ort::OrtOptions;
+use pir2_runtime::{
+    Clock, ModelInput, SlowFrame, SlowInput, SlowSource, SystemClock, VelocityModel,
+};
+
+const D_IN: usize = 32;
+const D_VL: usize = 24;
+
+fn python() -> String {
+    std::env::var("PIR2_PYTHON").expect(
+        "PIR2_PYTHON is not set: run `source .native/env.sh` (scripts/setup-native.sh) first",
+    )
+}
+
+/// A test embodiment: the paper's xArm6 + XHand with a tiny image and prompt.
+fn embodiment() -> EmbodimentConfig {
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    c.image.resize = 16;
+    c.image.crop = 16;
+    c.prompt.image_tokens = 4;
+    c.prompt.text_tokens = 4;
+    c
+}
+
+fn stats_json(cfg: &EmbodimentConfig, drop: Option<&str>) -> String {
+    let mut emb = serde_json::Map::new();
+    for (m, groups) in [("state", &cfg.state), ("action", &cfg.action)] {
+        let mut gm = serde_json::Map::new();
+        for g in groups.iter() {
+            let (lo, hi) = match (m, g.name.as_str()) {
+                ("action", "arm_joints") => (-0.1, 0.1),
+                ("action", _) => (0.2, 0.6),
+                (_, "hand_torques") => (-300.0, 300.0),
+                (_, "fingertip_forces") => (-20.0, 20.0),
+                _ => (-3.2, 3.2),
+            };
+            let mut s = serde_json::Map::new();
+            for (k, v) in [("min", lo), ("max", hi), ("mean", 0.0), ("std", 1.0)] {
+                if drop == Some(&format!("{m}.{}.{k}", g.name)) {
+                    continue;
+                }
+                s.insert(k.into(), serde_json::json!(vec![v; g.dim]));
+            }
+            gm.insert(g.name.clone(), s.into());
+        }
+        emb.insert(m.into(), gm.into());
+    }
+    serde_json::json!({ &cfg.embodiment_tag: emb }).to_string()
+}
+
+/// A checkpoint directory with graphs (`variant` breaks one of them) and side files.
+fn fixture(name: &str, variant: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("pir2-gr00t-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("onnx")).unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/gr00t/make_graphs.py");
+    let st = std::process::Command::new(python())
+        .arg(&script)
+        .arg(dir.join("onnx"))
+        .arg(variant)
+        .status()
+        .expect("run make_graphs.py");
+    assert!(st.success(), "make_graphs.py failed");
+    let cfg = embodiment();
+    std::fs::write(dir.join("embodiment.toml"), cfg.to_toml().unwrap()).unwrap();
+    std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
+    std::fs::write(dir.join("embodiment_id.json"), r#"{"new_embodiment": 3}"#).unwrap();
+    let pos: Vec<f32> = (0..64 * D_IN)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
+        .collect();
+    write_f32(
+        &dir.join("pir2_gr00t.safetensors"),
+        &[
+            (DELAY_EMBEDDING, vec![6, D_IN], vec![0.0; 6 * D_IN]),
+            (POSITION_EMBEDDING, vec![64, D_IN], pos),
+            ("vlln.weight", vec![D_VL], vec![1.0; D_VL]),
+            ("vlln.bias", vec![D_VL], vec![0.0; D_VL]),
+        ],
+    )
+    .unwrap();
+    let vocab = "<pad>\n<unk>\n<image>\ncatch\nthe\nbook\nput\nin\nbasket\nbox\nbooks\nball\nbowl\nand\non\ncutting\nboard\nthem\n";
+    std::fs::write(dir.join("vocab.txt"), vocab).unwrap();
+    dir
+}
+
+fn load_head(dir: &Path) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
+    let files = CheckpointFiles::in_dir(dir);
+    let cfg = embodiment();
+    let norm = Normalizer::load(&files.statistics, &cfg)?;
+    Gr00tActionHead::load(&files, &cfg, norm, 3, &OrtOptions::default())
+}
+
+fn call(head: &mut Gr00tActionHead, tau: &[f32], d_vis: u32, vl: &[f32]) -> Vec<f32> {
+    let (h, a) = (50, 18);
+    let x: Vec<f32> = (0..h * a)
+        .map(|i| ((i * 37 % 101) as f32 / 50.0) - 1.0)
+        .collect();
+    let obs: Vec<f32> = (0..45).map(|i| (i as f32 * 0.1).sin()).collect();
+    let dv = [d_vis];
+    let input = ModelInput {
+        batch: 1,
+        horizon: h,
+        action_dim: a,
+        x: &x,
+        tau,
+        obs_fast: &obs,
+        n_obs: 1,
+        fast_dim: 45,
+        slow: SlowInput::Tokens {
+            data: vl,
+            tokens: 8,
+            dim: D_VL,
+        },
+        d_vis: &dv,
+    };
+    let mut v = vec![0.0; h * a];
+    head.velocity(&input, &mut v).unwrap();
+    v
+}
+
+#[test]
+fn delay_embedding_row_and_per_position_timesteps_reach_the_output() {
+    let dir = fixture("head", "");
+    let mut head = load_head(&dir).unwrap();
+    assert_eq!(head.dims().d_in, D_IN);
+    assert_eq!(head.dims().max_state_dim, 48);
+    head.set_vl_layout(pir2_backends::gr00t::VlLayout {
+        image_mask: (0..8).map(|i| i < 4).collect(),
+        attention_mask: vec![true; 8],
+    });
+    let vl: Vec<f32> = (0..8 * D_VL).map(|i| (i as f32 * 0.37).cos()).collect();
+    let tau: Vec<f32> = (0..50).map(|p| 1.0 - p as f32 / 50.0).collect();
+
+    // Zero-initialised table: every d_vis gives the no-delay output, bit for bit.
+    let v0 = call(&mut head, &tau, 0, &vl);
+    assert_eq!(v0, call(&mut head, &tau, 3, &vl));
+    // A known row changes the output for that d_vis only.
+    let row: Vec<f32> = (0..D_IN).map(|j| 0.5 * ((j as f32) * 0.9).sin()).collect();
+    head.set_delay_row(3, &row).unwrap();
+    let v3 = call(&mut head, &tau, 3, &vl);
+    let diff: f32 = v0.iter().zip(&v3).map(|(a, b)| (a - b).abs()).sum();
+    assert!(diff > 1e-3, "row 3 did not change the output ({diff})");
+    assert_eq!(v0, call(&mut head, &tau, 2, &vl));
+    // d_vis beyond the table is clamped to d_vis_max (row 5 is zero).
+    assert_eq!(v0, call(&mut head, &tau, 9, &vl));
+    assert_eq!(head.d_vis_counts(), &[1, 0, 1, 2, 0, 1]);
+
+    // Per-position timesteps: changing τ at position 7 changes the velocity at 7 only.
+    let mut tau2 = tau.clone();
+    tau2[7] = 0.0;
+    let v7 = call(&mut head, &tau2, 0, &vl);
+    for p in 0..50 {
+        let same = v0[p * 18..(p + 1) * 18] == v7[p * 18..(p + 1) * 18];
+        assert_eq!(same, p != 7, "position {p}");
+    }
+    // The backbone tokens reach the output.
+    let vl2: Vec<f32> = vl.iter().map(|x| x + 0.5).collect();
+    assert_ne!(v0, call(&mut head, &tau, 0, &vl2));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn load_err(variant: &str) -> String {
+    let dir = fixture(variant, variant);
+    let e = load_head(&dir).unwrap_err().to_string();
+    std::fs::remove_dir_all(&dir).ok();
+    eprintln!("{variant}: {e}");
+    e
+}
+
+#[test]
+fn contract_violations_name_the_file_and_the_tensor() {
+    let e = load_err("wrong_name");
+    assert!(
+        e.contains("dit.onnx") && e.contains("`sa_emb`") && e.contains("unexpected input"),
+        "{e}"
+    );
+    let e = load_err("wrong_rank");
+    assert!(
+        e.contains("action_encoder.onnx") && e.contains("`timesteps`") && e.contains("rank 1"),
+        "{e}"
+    );
+    let e = load_err("wrong_dim");
+    assert!(
+        e.contains("dit.onnx")
+            && e.contains("`sa_embs`")
+            && e.contains("D_in")
+            && e.contains("state_encoder.onnx"),
+        "{e}"
+    );
+    let e = load_err("wrong_type");
+    assert!(
+        e.contains("action_decoder.onnx") && e.contains("`output`") && e.contains("float32"),
+        "{e}"
+    );
+
+    // A missing statistic, a missing file, and a delay table of the wrong shape.
+    let dir = fixture("files", "");
+    let cfg = embodiment();
+    std::fs::write(
+        dir.join("statistics.json"),
+        stats_json(&cfg, Some("state.fingertip_forces.min")),
+    )
+    .unwrap();
+    let e = load_head(&dir).unwrap_err().to_string();
+    assert!(
+        e.contains("statistics.json")
+            && e.contains("new_embodiment.state.fingertip_forces.min")
+            && e.contains("missing"),
+        "{e}"
+    );
+    std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
+    write_f32(
+        &dir.join("pir2_gr00t.safetensors"),
+        &[(DELAY_EMBEDDING, vec![5, D_IN], vec![0.0; 5 * D_IN])],
+    )
+    .unwrap();
+    let e = load_head(&dir).unwrap_err().to_string();
+    assert!(
+        e.contains("pir2_gr00t.safetensors")
+            && e.contains(DELAY_EMBEDDING)
+            && e.contains("[6, 32]"),
+        "{e}"
+    );
+    std::fs::remove_file(dir.join("onnx/dit.onnx")).unwrap();
+    let e = load_head(&dir).unwrap_err().to_string();
+    assert!(e.contains("dit.onnx") && e.contains("DiT"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A 640×480 RGB camera whose brightness changes every frame; `period` per capture.
+struct TestCamera {
+    clock: Arc<dyn Clock>,
+    period: Duration,
+    frames: Arc<AtomicU64>,
+}
+
+#[async_trait::async_trait]
+impl SlowSource for TestCamera {
+    async fn capture(&mut self) -> pir2_runtime::Result<SlowFrame> {
+        std::thread::sleep(self.period);
+        let k = self.frames.fetch_add(1, Ordering::Relaxed);
+        let (h, w) = (480, 640);
+        let mut image = vec![0u8; h * w * 3];
+        for (i, px) in image.iter_mut().enumerate() {
+            *px = ((i / 3 % w) as u64 * 255 / w as u64 + k * 40) as u8;
+        }
+        Ok(SlowFrame {
+            t_capture: self.clock.now(),
+            image,
+            image_hw: (h, w),
+            ..Default::default()
+        })
+    }
+}
+
+#[test]
+fn backbone_encodes_camera_frames_into_tokens() {
+    let dir = fixture("backbone", "");
+    let files = CheckpointFiles::in_dir(&dir);
+    let cfg = embodiment();
+    let tok = VocabTokenizer::load(&files.vocab).unwrap();
+    let mut bb = Gr00tBackbone::load(
+        &files,
+        &cfg.image,
+        &cfg.prompt,
+        &tok,
+        "catch the book",
+        Some((D_VL, PathBuf::from("dit.onnx"))),
+        &OrtOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(bb.output_shape(), (8, D_VL));
+    assert_eq!(bb.sequence().ids, vec![2, 2, 2, 2, 3, 4, 5, 0]);
+    let a = bb
+        .encode_image(&vec![10u8; 480 * 640 * 3], (480, 640))
+        .unwrap()
+        .to_vec();
+    let b = bb
+        .encode_image(&vec![200u8; 480 * 640 * 3], (480, 640))
+        .unwrap()
+        .to_vec();
+    assert_eq!(a.len(), 8 * D_VL);
+    assert_ne!(a, b, "the image reaches the features");
+    // A backbone width that disagrees with the DiT is a contract error naming both.
+    let e = Gr00tBackbone::load(
+        &files,
+        &cfg.image,
+        &cfg.prompt,
+        &tok,
+        "catch the book",
+        Some((D_VL + 1, PathBuf::from("dit.onnx"))),
+        &OrtOptions::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("backbone.onnx") && e.contains("D_vl") && e.contains("dit.onnx"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
+    use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
+    use pir2_robots::{
+        split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
+    };
+
+    let dir = fixture("e2e", "");
+    let local = IpAddr::V4(Ipv4Addr::LOCALHOST);
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let arm_emu = XArmEmulator::spawn(local, XArmPorts::ephemeral()).unwrap();
+    let (host, dev) = duplex(Duration::from_millis(5));
+    let hand_emu = XHandEmulator::spawn(dev, 0, Arc::new(AtomicBool::new(false))).unwrap();
+    let mut acfg = XArm6Config::new(local);
+    acfg.cmd_addr = arm_emu.cmd_addr();
+    acfg.report_addr = arm_emu.real_report_addr();
+    acfg.stream_hz = 100.0;
+    let arm = XArm6::connect(acfg, clock.clone()).unwrap();
+    let hand = XHand::new(
+        host,
+        XHandConfig {
+            timeout: Duration::from_millis(100),
+            ..Default::default()
+        },
+        clock.clone(),
+    );
+    let mut layer = SafetyLayer::new(
+        ArmHand::new(arm, hand).unwrap(),
+        SafetyConfig::xarm6_xhand(),
+        clock.clone(),
+    )
+    .unwrap();
+    layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
+    let (source, actuator) = split(layer);
+
+    let frames = Arc::new(AtomicU64::new(0));
+    let camera = TestCamera {
+        clock: clock.clone(),
+        period: Duration::from_millis(60),
+        frames: frames.clone(),
+    };
+    let ticks = 50; // 2 s at 25 Hz
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(ticks),
+        clock: clock.clone(),
+        warm_start_steps: 2,
+        ..Default::default()
+    };
+    let report = run_gr00t_report(&dir, "catch_book", source, actuator, camera, opts).unwrap();
+    let m = &report.metrics;
+    let lat = m.call_latency.summary();
+    eprintln!(
+        "ticks {} calls {} swaps {} overruns {} call p50 {} µs p99 {} µs; d {:?}; d_vis {:?}; model d_vis counts {:?}; frames {}",
+        m.ticks,
+        m.calls.len(),
+        m.swaps,
+        m.overruns,
+        lat.p50 / 1000,
+        lat.p99 / 1000,
+        m.calls.iter().map(|c| c.d).collect::<Vec<_>>(),
+        m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>(),
+        report.d_vis_counts,
+        frames.load(Ordering::Relaxed)
+    );
+    assert_eq!(report.prompt, "catch the book");
+    assert_eq!(m.ticks, ticks);
+    // The action head ran on the worker and its chunks reached the robot.
+    assert!(
+        !m.calls.is_empty() && m.swaps >= 1,
+        "calls {} swaps {}",
+        m.calls.len(),
+        m.swaps
+    );
+    assert!(hand_emu.handle().commands() >= ticks);
+    // The backbone refreshed the cache more than once while the robot ran.
+    assert!(frames.load(Ordering::Relaxed) >= 3);
+    // Every call's d_vis is within the table, and each reached the delay embedding.
+    assert!(m.calls.iter().all(|c| c.d_vis <= 5));
+    for k in 0..=5 {
+        let recorded = m.calls.iter().filter(|c| c.d_vis == k).count() as u64;
+        assert!(
+            report.d_vis_counts[k] >= recorded,
+            "d_vis {k}: model saw {} < recorded {recorded}",
+            report.d_vis_counts[k]
+        );
+    }
+    // Cached features age between frames (60 ms capture period > one 40 ms tick).
+    assert!(
+        m.calls.iter().any(|c| c.d_vis >= 1),
+        "{:?}",
+        m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>()
+    );
+    drop(arm_emu);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The FakeRobot's `[q, q − cmd]` (36-d) laid out as the 45-d xArm6 + XHand state: arm
+/// joints, hand joints, hand "torques" (tracking error), zero fingertip forces.
+struct State45(pir2_runtime::testing::FakeRobot, [f32; 36]);
+
+impl pir2_runtime::FastSource for State45 {
+    fn dim(&self) -> usize {
+        45
+    }
+    fn read(&mut self, out: &mut [f32]) -> pir2_runtime::Result<pir2_runtime::Nanos> {
+        let t = self.0.read(&mut self.1)?;
+        out[..18].copy_from_slice(&self.1[..18]);
+        out[18..30].copy_from_slice(&self.1[24..36]);
+        out[30..].fill(0.0);
+        Ok(t)
+    }
+}
+
+/// A stand-in for a remote backbone: tokens computed from the frame's values.
+struct TokenEncoder {
+    encoded: Arc<AtomicU64>,
+}
+
+#[async_trait::async_trait]
+impl pir2_runtime::SlowEncoder for TokenEncoder {
+    async fn encode(
+        &mut self,
+        frame: SlowFrame,
+    ) -> pir2_runtime::Result<pir2_runtime::SlowFeatures> {
+        self.encoded.fetch_add(1, Ordering::Relaxed);
+        let v = frame.values.first().copied().unwrap_or(0.0);
+        Ok(pir2_runtime::SlowFeatures {
+            t_capture: frame.t_capture,
+            data: (0..8 * D_VL)
+                .map(|i| (v * 0.1 + i as f32 * 0.01).sin())
+                .collect(),
+            tokens: 8,
+            dim: D_VL,
+        })
+    }
+}
+
+#[test]
+fn custom_backbone_seam_drives_the_head_on_a_fake_robot() {
+    use pir2_backends::gr00t::{run_gr00t, BackboneChoice, VlLayout};
+    use pir2_runtime::testing::{CameraStub, FakeRobot};
+
+    let dir = fixture("custom", "");
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let robot = FakeRobot::new(18, clock.clone());
+    let sent = robot.sent.clone();
+    let encoded = Arc::new(AtomicU64::new(0));
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(25),
+        clock: clock.clone(),
+        warm_start_steps: 2,
+        backbone: BackboneChoice::Custom {
+            encoder: Box::new(TokenEncoder {
+                encoded: encoded.clone(),
+            }),
+            layout: VlLayout {
+                image_mask: (0..8).map(|i| i < 4).collect(),
+                attention_mask: vec![true; 8],
+            },
+        },
+        ..Default::default()
+    };
+    let camera = CameraStub::new(clock.clone(), Duration::from_millis(50), 1);
+    let m = run_gr00t(
+        &dir,
+        "put the box in the basket",
+        State45(robot.clone(), [0.0; 36]),
+        robot,
+        camera,
+        opts,
+    )
+    .unwrap();
+    assert_eq!(m.ticks, 25);
+    assert_eq!(sent.load(Ordering::Relaxed), 25);
+    assert!(!m.calls.is_empty());
+    assert!(encoded.load(Ordering::Relaxed) >= 2);
+
+    // A layout whose length disagrees with the features is refused before the robot moves.
+    let robot = FakeRobot::new(18, clock.clone());
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(5),
+        clock: clock.clone(),
+        backbone: BackboneChoice::Custom {
+            encoder: Box::new(TokenEncoder {
+                encoded: Arc::new(AtomicU64::new(0)),
+            }),
+            layout: VlLayout {
+                image_mask: vec![true; 3],
+                attention_mask: vec![true; 2],
+            },
+        },
+        ..Default::default()
+    };
+    let camera = CameraStub::new(clock.clone(), Duration::from_millis(10), 1);
+    let e = run_gr00t(
+        &dir,
+        "catch_book",
+        State45(robot.clone(), [0.0; 36]),
+        robot.clone(),
+        camera,
+        opts,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("VL layout"), "{e}");
+    assert_eq!(robot.sent.load(Ordering::Relaxed), 0);
+    std::fs::remove_dir_all(&dir).ok();
+}
