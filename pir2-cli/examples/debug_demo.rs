@@ -4,18 +4,55 @@ use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 fn main() -> anyhow::Result<()> {
     let cfg: DemoConfig = toml::from_str(&std::fs::read_to_string("/tmp/smoke.toml")?)?;
     let demos = collect(50, 7, false)?;
-    println!("demo lens {:?}", demos.iter().take(5).map(|e| e.len()).collect::<Vec<_>>());
-    println!("action0 {:?} fast0 {:?} slow0 {:?}", demos[0].action(0), demos[0].fast(0), demos[0].slow(0));
+    println!(
+        "demo lens {:?}",
+        demos.iter().take(5).map(|e| e.len()).collect::<Vec<_>>()
+    );
+    println!(
+        "action0 {:?} fast0 {:?} slow0 {:?}",
+        demos[0].action(0),
+        demos[0].fast(0),
+        demos[0].slow(0)
+    );
     let pb = indicatif::ProgressBar::hidden();
     let (m, scores) = train_policy(&demos, Policy::Flow, 0, &cfg, None, &pb)?;
     println!("scores {scores:?} out {:?}", output_map(&m));
     let task = BallPlateConfig::default();
     let mut env = BallPlate::new(task.clone())?;
-    let mode = Mode::NaiveAsync { steps: 10, ensemble: None };
-    let spec = HeadSpec { horizon: 16, action_dim: 2, n_obs: 2, fast_dim: 6, slow_dim: 2, period: 20_000_000, d_max: 6, d_vis_max: 3 };
-    let mut head = ActionHead::new(clone_model(&m)?, spec, mode.head_mode(10), LatencyWindow::new(20, 0, spec.period, 6), 1)?;
+    let mode = Mode::NaiveAsync {
+        steps: 10,
+        ensemble: None,
+    };
+    let spec = HeadSpec {
+        horizon: 16,
+        action_dim: 2,
+        n_obs: 2,
+        fast_dim: 6,
+        slow_dim: 2,
+        period: 20_000_000,
+        d_max: 6,
+        d_vis_max: 3,
+    };
+    let mut head = ActionHead::new(
+        clone_model(&m)?,
+        spec,
+        mode.head_mode(10),
+        LatencyWindow::new(20, 0, spec.period, 6),
+        1,
+    )?;
     let mut drv = LockstepDriver::new(&head).with_output(output_map(&m));
-    let r = drv.run_episode(&mut env, &mut head, &mode, LockstepTiming::for_mode(&mode, 1), 5, |t, a| if t < 10 || t % 50 == 0 { println!("t {t} a {a:?}") })?;
+    let r = drv.run_episode(
+        &mut env,
+        &mut head,
+        &mode,
+        LockstepTiming::for_mode(&mode, 1),
+        5,
+        |t, a| {
+            if t < 10 || t % 50 == 0 {
+                println!("t {t} a {a:?}")
+            }
+        },
+    )?;
     println!("steps {} success {}", r.steps, r.success);
     Ok(())
 }
