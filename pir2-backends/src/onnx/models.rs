@@ -437,6 +437,7 @@ impl UnetSpec {
         self.d_vis_max + 1
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn conv<O: Ops, W: WeightSource>(
         &self,
         o: &mut O,
