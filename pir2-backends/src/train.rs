@@ -385,7 +385,7 @@ impl<'a> Trainer<'a> {
         self
     }
     /// Save checkpoints to `dir/step-NNNNNN/`, the loss log to `dir/loss.jsonl`, and the
-    /// best pick to `dir/best.json`. `dir` must not contain earlier checkpoints of the same steps.
+    /// best pick to `dir/best.json`. `run` fails at once if `dir` already holds `step-*` checkpoints.
     pub fn out_dir(mut self, dir: impl AsRef<Path>) -> Self {
         self.out_dir = Some(dir.as_ref().to_owned());
         self
@@ -409,6 +409,14 @@ impl<'a> Trainer<'a> {
         check_dataset(data, &spec)?;
         let mut file_log = match &self.out_dir {
             Some(d) => {
+                // Fail now, not after hours of training, if earlier checkpoints are in the way.
+                if let Ok(rd) = std::fs::read_dir(d) {
+                    for e in rd.flatten() {
+                        if e.file_name().to_string_lossy().starts_with("step-") {
+                            return Err(Error::CheckpointExists(e.path()));
+                        }
+                    }
+                }
                 std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
                 let p = d.join("loss.jsonl");
                 Some(std::io::BufWriter::new(

@@ -92,7 +92,7 @@ fn unet_learns_a_known_function() {
             film: FilmMode::PerPosition,
         }),
     };
-    learns_function(cfg, 300, 3e-3, 0.2);
+    learns_function(cfg, 300, 6e-3, 0.2);
 }
 
 fn train_weights(seed: u64, schedule: TrainSchedule) -> Vec<Vec<f32>> {
@@ -348,7 +348,7 @@ fn dit_trains_and_its_delay_embedding_starts_at_zero() {
         .unwrap()
         .iter()
         .all(|&v| v == 0.0));
-    let r = Trainer::new(quick(150, 3e-3, TrainSchedule::StandardFlow))
+    let r = Trainer::new(quick(100, 3e-3, TrainSchedule::StandardFlow))
         .run(&mut m, data.as_slice())
         .unwrap();
     let l = &r.losses;
@@ -366,4 +366,126 @@ fn dit_trains_and_its_delay_embedding_starts_at_zero() {
         .unwrap()
         .iter()
         .any(|&v| v != 0.0));
+}
+
+#[test]
+fn finetune_from_shared_film_starts_position_uniform() {
+    let dir = std::env::temp_dir().join(format!("pir2-ft-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let unet = |film| Config {
+        spec: spec(8),
+        model: ModelConfig::UNet(UNetConfig {
+            widths: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            dvis_dim: 2,
+            film,
+        }),
+    };
+    let shared = CandleModel::new(
+        unet(FilmMode::Shared),
+        pir2_backends::Stats::identity(&spec(8)),
+        2,
+    )
+    .unwrap();
+    shared.save(&dir).unwrap();
+    let mut shared = CandleModel::load(&dir).unwrap();
+    let mut pp = CandleModel::init_from(&dir, unet(FilmMode::PerPosition)).unwrap();
+    assert!(pp.vars().iter().any(|(n, _)| n.contains("film_pos")));
+    assert_eq!(one_call(&mut shared), one_call(&mut pp));
+    // A plain load with the wrong architecture still fails, naming a tensor.
+    assert!(matches!(
+        CandleModel::init_from(&dir, mlp_config(8)),
+        Err(Error::MissingTensor { .. } | Error::TensorShape { .. })
+    ));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn shipped_configs_parse_and_build() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let p = e.unwrap().path();
+        let cfg = Config::from_file(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        let m =
+            CandleModel::new(cfg.clone(), pir2_backends::Stats::identity(&cfg.spec), 0).unwrap();
+        assert!(m.num_params() > 0);
+        n += 1;
+    }
+    assert!(n >= 2, "expected the shipped configs in {}", dir.display());
+}
+
+#[test]
+fn trainer_refuses_a_dir_with_old_checkpoints_before_training() {
+    let dir = std::env::temp_dir().join(format!("pir2-old-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(dir.join("step-000005")).unwrap();
+    let cfg = mlp_config(8);
+    let data = dataset(4, 10, 7);
+    let mut m = CandleModel::new(
+        cfg.clone(),
+        compute_stats(data.as_slice(), &cfg.spec).unwrap(),
+        0,
+    )
+    .unwrap();
+    let mut steps = 0;
+    let r = Trainer::new(quick(5, 1e-3, TrainSchedule::StandardFlow))
+        .out_dir(&dir)
+        .on_progress(|_| steps += 1)
+        .run(&mut m, data.as_slice());
+    assert!(matches!(r, Err(Error::CheckpointExists(_))));
+    assert_eq!(steps, 0);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn hidden_front_draws_train_every_architecture() {
+    use pir2_backends::config::DitConfig;
+    use pir2_schedule::train::FrontVisibility;
+    let s = TrainSchedule::PiR2(PiR2Draws {
+        n: Some(2),
+        delay: DelayDist::Uniform { max: 2 },
+        front: FrontVisibility::Hidden,
+        ..PiR2Draws::default()
+    });
+    let data = dataset(8, 12, 8);
+    for model in [
+        mlp_config(8).model,
+        ModelConfig::UNet(UNetConfig {
+            widths: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            dvis_dim: 2,
+            film: FilmMode::PerPosition,
+        }),
+        ModelConfig::Dit(DitConfig {
+            width: 16,
+            depth: 2,
+            heads: 2,
+            mlp_ratio: 2,
+            tau_dim: 8,
+        }),
+    ] {
+        let cfg = Config {
+            spec: spec(8),
+            model,
+        };
+        let mut m = CandleModel::new(
+            cfg.clone(),
+            compute_stats(data.as_slice(), &cfg.spec).unwrap(),
+            0,
+        )
+        .unwrap();
+        let r = Trainer::new(TrainConfig {
+            batch_size: 8,
+            ..quick(5, 1e-3, s)
+        })
+        .run(&mut m, data.as_slice())
+        .unwrap();
+        assert!(r.losses.iter().all(|l| l.1.is_finite()), "{:?}", cfg.model);
+        assert!(one_call(&mut m).iter().all(|v| v.is_finite()));
+    }
 }

@@ -36,7 +36,7 @@ fn check(cfg: Config) {
     let slow = [0.4f32, -0.3];
     let w: Vec<f32> = (0..b * h * A).map(|i| (i as f32 * 1.3).cos()).collect();
     let wt = Tensor::from_vec(w, (b, h, A), &candle_core::Device::Cpu).unwrap();
-    let mut loss = |m: &mut CandleModel| -> Tensor {
+    let loss = |m: &mut CandleModel| -> Tensor {
         let input = ModelInput {
             batch: b,
             horizon: h,
@@ -125,7 +125,7 @@ fn dit_gradients_match_finite_differences() {
         spec: spec(4),
         model: ModelConfig::Dit(DitConfig {
             width: 16,
-            depth: 1,
+            depth: 2,
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 8,

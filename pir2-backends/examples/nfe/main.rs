@@ -123,12 +123,21 @@ fn main() -> anyhow::Result<()> {
     let dit = ModelConfig::Dit(DitConfig::default());
     latency("MLP 3x256", mlp.clone(), 2000)?;
     latency("U-Net [64,128,256] k5", unet.clone(), 300)?;
+    let unet_small = ModelConfig::UNet(UNetConfig {
+        widths: vec![32, 64, 128],
+        ..UNetConfig::default()
+    });
+    latency("U-Net [32,64,128] k5", unet_small.clone(), 300)?;
     latency("DiT 128x4, 4 heads", dit.clone(), 300)?;
     let steps = std::env::var("PIR2_TRAIN_STEPS")
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(5);
+    if steps == 0 {
+        return Ok(());
+    }
     train_rate("MLP 3x256", mlp, steps * 4)?;
+    train_rate("U-Net [32,64,128] k5", unet_small, steps)?;
     train_rate("U-Net [64,128,256] k5", unet, steps)?;
     Ok(())
 }

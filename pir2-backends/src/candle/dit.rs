@@ -1,5 +1,6 @@
-//! DiT action head: a state token and `H` action tokens; blocks of self-attention,
-//! cross-attention to the slow tokens and an MLP, each modulated by **per-position AdaLN**
+//! DiT action head: a state token and `H` action tokens; blocks alternate cross-attention to
+//! the slow tokens (even blocks) and self-attention (odd blocks), each followed by an MLP,
+//! all modulated by **per-position AdaLN**
 //! (shift/scale/gate per token from that position's `τ` embedding, adaLN-zero init).
 //!
 //! Tokens: state = `W_s·fast_enc`; action `p` = `W_a·x_p + pos_p + e(d_vis)`, where `e` is a
@@ -7,7 +8,7 @@
 //! finetuned from one without it starts unchanged). Conditioning per token: action `p` gets
 //! `MLP(sin/cos(1000 τ_p), hidden_p) + W_c·fast_enc`, the state token the mean over positions.
 //! Slow input: `T` tokens projected to the width, plus a learned token position; a slow vector
-//! is one token. Without a slow channel the cross-attention is skipped.
+//! is one token. Without a slow channel every block self-attends.
 
 use candle_core::{Device, Module, Tensor, D};
 
@@ -70,9 +71,11 @@ impl Attention {
 
 #[derive(Debug)]
 struct Block {
+    /// Per-token modulation: shift/scale/gate for the attention and for the MLP (6·D).
     ada: candle_nn::Linear,
-    self_attn: Attention,
-    cross: Option<Attention>,
+    attn: Attention,
+    /// Cross-attention to the slow tokens (else self-attention).
+    cross: bool,
     fc1: candle_nn::Linear,
     fc2: candle_nn::Linear,
     d: usize,
@@ -85,17 +88,17 @@ impl Block {
 
     fn forward(&self, x: &Tensor, c: &Tensor, mem: Option<&Tensor>) -> CResult<Tensor> {
         let d = self.d;
-        let m = self.ada.forward(&c.silu()?)?; // [B, N, 9D]
+        let m = self.ada.forward(&c.silu()?)?; // [B, N, 6D]
         let ch = |i: usize| m.narrow(2, i * d, d);
         let h = Self::modulate(x, &ch(0)?, &ch(1)?)?;
-        let mut x = (x + ch(2)?.mul(&self.self_attn.forward(&h, &h)?)?)?;
-        if let (Some(ca), Some(mem)) = (&self.cross, mem) {
-            let h = Self::modulate(&x, &ch(3)?, &ch(4)?)?;
-            x = (&x + ch(5)?.mul(&ca.forward(&h, mem)?)?)?;
-        }
-        let h = Self::modulate(&x, &ch(6)?, &ch(7)?)?;
+        let a = match (self.cross, mem) {
+            (true, Some(mem)) => self.attn.forward(&h, mem)?,
+            _ => self.attn.forward(&h, &h)?,
+        };
+        let x = (x + ch(2)?.mul(&a)?)?;
+        let h = Self::modulate(&x, &ch(3)?, &ch(4)?)?;
         let y = self.fc2.forward(&self.fc1.forward(&h)?.gelu()?)?;
-        &x + ch(8)?.mul(&y)?
+        &x + ch(5)?.mul(&y)?
     }
 }
 
@@ -138,20 +141,14 @@ impl Dit {
         let mut blocks = Vec::with_capacity(c.depth);
         for i in 0..c.depth {
             let nm = format!("blocks.{i}");
+            // Alternate: even blocks cross-attend to the slow tokens, odd blocks self-attend
+            // (all self-attention without a slow channel).
+            let cross = !spec.slow.is_empty() && i % 2 == 0;
+            let attn_name = format!("{nm}.{}", if cross { "cross_attn" } else { "self_attn" });
             blocks.push(Block {
-                ada: ps.linear_zero(&format!("{nm}.ada"), d, 9 * d)?,
-                self_attn: Attention::new(ps, &format!("{nm}.self_attn"), d, d, c.heads)?,
-                cross: if spec.slow.is_empty() {
-                    None
-                } else {
-                    Some(Attention::new(
-                        ps,
-                        &format!("{nm}.cross_attn"),
-                        d,
-                        d,
-                        c.heads,
-                    )?)
-                },
+                ada: ps.linear_zero(&format!("{nm}.ada"), d, 6 * d)?,
+                attn: Attention::new(ps, &attn_name, d, d, c.heads)?,
+                cross,
                 fc1: ps.linear(&format!("{nm}.mlp.0"), d, c.mlp_ratio * d)?,
                 fc2: ps.linear(&format!("{nm}.mlp.1"), c.mlp_ratio * d, d)?,
                 d,

@@ -120,9 +120,11 @@ impl ParamStore {
     }
 }
 
-/// 1-D convolution as im2col + matmul from differentiable primitives (pad, narrow, cat,
-/// matmul). candle 0.11's CPU `conv1d` backward gave wrong gradients in our finite-difference
-/// check (tests/gradcheck.rs), so the U-Net does not use it.
+/// 1-D convolution on **channels-last** `[B, L, C]` as im2col + one matmul, built from
+/// differentiable primitives (pad, narrow, cat, matmul). Weight `[out, in, k]` (PyTorch
+/// layout). candle 0.11's CPU `conv1d` backward failed our finite-difference check
+/// (tests/gradcheck.rs), and one `[B·L, C·K] × [C·K, O]` matmul is also far faster at
+/// batch 256 than candle's batched small convolutions.
 #[derive(Debug, Clone)]
 pub(crate) struct Conv1d {
     weight: Tensor,
@@ -133,34 +135,34 @@ pub(crate) struct Conv1d {
 
 impl Module for Conv1d {
     fn forward(&self, x: &Tensor) -> CResult<Tensor> {
-        let (b, c, l) = x.dims3()?;
+        let (b, l, c) = x.dims3()?;
         let o = self.weight.dim(0)?;
         let cols = if self.k == 1 {
-            x.clone()
+            x.reshape((b * l, c))?
         } else {
-            let xp = x.pad_with_zeros(2, self.k / 2, self.k / 2)?;
+            let xp = x.pad_with_zeros(1, self.k / 2, self.k / 2)?;
             let taps = (0..self.k)
-                .map(|j| xp.narrow(2, j, l))
+                .map(|j| xp.narrow(1, j, l)?.unsqueeze(3))
                 .collect::<CResult<Vec<_>>>()?;
-            Tensor::cat(&taps, 1)? // [B, K·C, L], index j·C + c
+            Tensor::cat(&taps, 3)?.reshape((b * l, c * self.k))? // index c·K + j
         };
-        let w = self.weight.transpose(1, 2)?.reshape((o, self.k * c))?; // [O, K·C]
-        let y = w
-            .broadcast_left(b)?
-            .matmul(&cols)?
-            .broadcast_add(&self.bias.reshape((1, o, 1))?)?;
+        let w = self.weight.reshape((o, c * self.k))?;
+        let y = cols
+            .matmul(&w.t()?)?
+            .broadcast_add(&self.bias)?
+            .reshape((b, l, o))?;
         if self.stride == 1 {
             Ok(y)
         } else {
             // Stride s on a same-padded conv = every s-th output position.
-            y.reshape((b, o, l / self.stride, self.stride))?
-                .narrow(3, 0, 1)?
-                .squeeze(3)
+            y.reshape((b, l / self.stride, self.stride, o))?
+                .narrow(2, 0, 1)?
+                .squeeze(2)
         }
     }
 }
 
-/// GroupNorm over `[B, C, L]` built from differentiable primitives.
+/// GroupNorm over channels-last `[B, L, C]` built from differentiable primitives.
 #[derive(Debug, Clone)]
 pub(crate) struct GroupNorm {
     weight: Tensor,
@@ -171,16 +173,15 @@ pub(crate) struct GroupNorm {
 
 impl Module for GroupNorm {
     fn forward(&self, x: &Tensor) -> CResult<Tensor> {
-        let (b, c, l) = x.dims3()?;
-        let xg = x.reshape((b, self.groups, (c / self.groups) * l))?;
-        let mean = xg.mean_keepdim(D::Minus1)?;
+        let (b, l, c) = x.dims3()?;
+        let xg = x.reshape((b, l, self.groups, c / self.groups))?;
+        let mean = xg.mean_keepdim((1, 3))?;
         let xc = xg.broadcast_sub(&mean)?;
-        let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
+        let var = xc.sqr()?.mean_keepdim((1, 3))?;
         let xn = xc
             .broadcast_div(&(var + self.eps)?.sqrt()?)?
-            .reshape((b, c, l))?;
-        xn.broadcast_mul(&self.weight.reshape((1, c, 1))?)?
-            .broadcast_add(&self.bias.reshape((1, c, 1))?)
+            .reshape((b, l, c))?;
+        xn.broadcast_mul(&self.weight)?.broadcast_add(&self.bias)
     }
 }
 

@@ -128,12 +128,18 @@ impl MlpFast {
             layers.push((host(l.weight())?, b));
         }
         let emb = m.dvis.embeddings();
+        // Both ping-pong buffers hold the widest layer, so no call after the first allocates.
+        let widest = layers
+            .iter()
+            .map(|(w, b)| b.len().max(w.len() / b.len().max(1)))
+            .max()
+            .unwrap_or(0);
         Ok(Self {
             layers,
             dvis: host(emb)?,
             dvis_dim: emb.dim(1)?,
-            z: Vec::new(),
-            y: Vec::new(),
+            z: Vec::with_capacity(widest),
+            y: Vec::with_capacity(widest),
             tf: Vec::new(),
         })
     }

@@ -192,6 +192,30 @@ impl CandleModel {
         Ok(model)
     }
 
+    /// Start a finetune: a new model with `config` (same spec as the checkpoint) whose weights
+    /// come from the checkpoint wherever it has them. Tensors the checkpoint lacks must be
+    /// zero-initialised extensions (per-position FiLM `film_pos`, the `d_vis` / delay
+    /// embeddings), so the new model computes exactly what the checkpoint did: e.g. a
+    /// shared-FiLM U-Net finetuned as per-position starts position-uniform. Any other missing
+    /// tensor, a shape mismatch or a leftover tensor is an error naming it.
+    pub fn init_from(dir: &Path, config: Config) -> Result<Self> {
+        let mut ck = Checkpoint::load(dir)?;
+        ck.config.spec.expect_eq(&config.spec)?;
+        let mut model = Self::new(config, ck.stats.clone(), 0)?;
+        let extension =
+            |n: &str| n.contains("film_pos.") || n == "dvis_embed" || n == "delay_embed";
+        for (name, var) in &model.vars {
+            if extension(name) && !ck.tensors.contains_key(name) {
+                continue;
+            }
+            let t = ck.take(name, var.dims())?;
+            var.set(&Tensor::from_vec(t.data, t.shape, &Device::Cpu)?)?;
+        }
+        ck.expect_consumed()?;
+        model.weights_changed();
+        Ok(model)
+    }
+
     /// Load a checkpoint and check it was built for `spec` (error names the differing field).
     pub fn load_expect(dir: &Path, spec: &Spec) -> Result<Self> {
         let m = Self::load(dir)?;

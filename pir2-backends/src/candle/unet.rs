@@ -1,6 +1,6 @@
 //! Conditional U-Net 1D (diffusion-policy design) with per-position FiLM.
 //!
-//! Layout (widths `[w0, w1, …]`, one halving per level): per level two residual blocks
+//! Activations are channels-last `[B, L, C]` throughout. Layout (widths `[w0, w1, …]`, one halving per level): per level two residual blocks
 //! (Conv1d → GroupNorm → Mish, FiLM, Conv1d → GroupNorm → Mish, + 1×1 residual), then a
 //! stride-2 conv; two middle blocks; on the way up the skip is concatenated, two blocks, then
 //! nearest ×2 + conv3 (candle has no backward for `conv_transpose1d`; this replaces
@@ -8,7 +8,7 @@
 //!
 //! Conditioning: global = `[encoded fast history, slow (token mean), e(d_vis)]`; per-position
 //! `τ` embedding `e_p = MLP(sin/cos(1000 τ_p), hidden_p)`. FiLM of a block at resolution `L`:
-//! `h ← (1 + γ)·h + β` with `(γ, β) = W_s·mish([mean_p e_p, global]) + W_p·mish(pool_L(e)_l)` — the second (per-position)
+//! `h ← (1 + γ)·h + β` with `(γ, β) = W_s·[mish(mean_p e_p), global] + W_p·mish(pool_L(e)_l)` — the second (per-position)
 //! term is zero-initialised and absent in [`FilmMode::Shared`], so a fresh model, or one
 //! finetuned from a shared-FiLM checkpoint, starts position-uniform.
 
@@ -54,7 +54,7 @@ struct ResBlock {
 }
 
 struct Cond<'a> {
-    /// `mish([mean τ-embedding, global])`: `[B, E + G]`.
+    /// `[mish(mean τ-embedding), global]`: `[B, E + G]`.
     shared: &'a Tensor,
     /// `mish(pooled τ-embedding)` at this block's resolution: `[B, L, E]`.
     pos: Option<&'a Tensor>,
@@ -97,28 +97,22 @@ impl ResBlock {
         })
     }
 
-    /// FiLM parameters `[B, 2, C, L]` (scale, bias) for a block at length `l`.
+    /// FiLM parameters `[B, L, 2C]` (scale, bias) for a block at length `l` (channels-last).
     fn film_params(&self, c: &Cond<'_>, l: usize) -> CResult<Tensor> {
         let b = c.shared.dim(0)?;
-        let shared = self.film.forward(c.shared)?.reshape((b, 2, self.cout, 1))?;
+        let shared = self.film.forward(c.shared)?.unsqueeze(1)?; // [B, 1, 2C]
         match (&self.film_pos, c.pos) {
-            (Some(fp), Some(pos)) => {
-                let p = fp
-                    .forward(pos)?
-                    .transpose(1, 2)?
-                    .reshape((b, 2, self.cout, l))?;
-                p.broadcast_add(&shared)
-            }
-            _ => shared.broadcast_as((b, 2, self.cout, l))?.contiguous(),
+            (Some(fp), Some(pos)) => fp.forward(pos)?.broadcast_add(&shared),
+            _ => shared.broadcast_as((b, l, 2 * self.cout))?.contiguous(),
         }
     }
 
     fn forward(&self, x: &Tensor, c: &Cond<'_>) -> CResult<Tensor> {
         let out = self.b0.forward(x)?;
-        let (b, _, l) = out.dims3()?;
+        let l = out.dim(1)?;
         let f = self.film_params(c, l)?;
-        let scale = f.narrow(1, 0, 1)?.reshape((b, self.cout, l))?;
-        let bias = f.narrow(1, 1, 1)?.reshape((b, self.cout, l))?;
+        let scale = f.narrow(2, 0, self.cout)?;
+        let bias = f.narrow(2, self.cout, self.cout)?;
         let out = self.b1.forward(&((out * (scale + 1.0)?)? + bias)?)?;
         match &self.res {
             Some(r) => out + r.forward(x)?,
@@ -233,12 +227,14 @@ impl UNet {
         )?;
         let emb = self.tau_l1.forward(&mish(&self.tau_l0.forward(&s)?)?)?; // [B, H, E]
         let mean = emb.mean(1)?; // [B, E]
-        let mut parts = vec![mean, inp.fast.clone()];
+                                 // Mish on the τ part only: on raw normalised observations it would fold negative
+                                 // values together (mish is not monotonic below −1.2).
+        let mut parts = vec![mish(&mean)?, inp.fast.clone()];
         if let Some(sl) = &inp.slow {
             parts.push(sl.mean(1)?);
         }
         parts.push(self.dvis.forward(&inp.dvis)?);
-        let shared = mish(&Tensor::cat(&parts, 1)?)?;
+        let shared = Tensor::cat(&parts, 1)?;
         Ok((shared, mish(&emb)?))
     }
 
@@ -268,7 +264,7 @@ impl UNet {
             shared: &shared,
             pos: pooled[lvl].as_ref(),
         };
-        let mut x = inp.x.transpose(1, 2)?.contiguous()?; // [B, A, H]
+        let mut x = inp.x.clone(); // channels-last [B, H, A]
         let mut skips = Vec::with_capacity(n);
         for (i, lv) in self.down.iter().enumerate() {
             x = lv.r0.forward(&x, &cond(i))?;
@@ -284,22 +280,20 @@ impl UNet {
         for (j, lv) in self.up.iter().enumerate() {
             let lvl = n - 1 - j;
             let skip = skips.pop().expect("one skip per level");
-            x = Tensor::cat(&[&x, &skip], 1)?;
+            x = Tensor::cat(&[&x, &skip], 2)?;
             x = lv.r0.forward(&x, &cond(lvl))?;
             x = lv.r1.forward(&x, &cond(lvl))?;
             if let Some(u) = &lv.resample {
-                let (b, c, l) = x.dims3()?;
+                let (b, l, c) = x.dims3()?;
                 let up = x
-                    .unsqueeze(3)?
-                    .broadcast_as((b, c, l, 2))?
-                    .reshape((b, c, 2 * l))?;
+                    .unsqueeze(2)?
+                    .broadcast_as((b, l, 2, c))?
+                    .reshape((b, 2 * l, c))?;
                 x = u.forward(&up)?;
             }
         }
-        let y = self.final_conv.forward(&self.final_block.forward(&x)?)?; // [B, A, H]
-        y.transpose(1, 2)?
-            .contiguous()?
-            .reshape((inp.b, self.h, self.a))
+        let y = self.final_conv.forward(&self.final_block.forward(&x)?)?; // [B, H, A]
+        y.reshape((inp.b, self.h, self.a))
     }
 
     /// FiLM parameters of every residual block (tests: position-uniform at init).
@@ -383,16 +377,18 @@ mod tests {
         let films = u.all_film_params(&inp).unwrap();
         assert_eq!(films.len(), 4);
         for f in films {
-            let (b, two, c, l) = f.dims4().unwrap();
+            let (b, l, c2) = f.dims3().unwrap();
             let v = f.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             let mut nonzero = false;
-            for i in 0..b * two * c {
-                let row = &v[i * l..(i + 1) * l];
-                nonzero |= row[0] != 0.0;
-                assert!(
-                    row.iter().all(|&r| r == row[0]),
-                    "modulation varies over positions at init: {row:?}"
-                );
+            for bi in 0..b {
+                for ch in 0..c2 {
+                    let first = v[bi * l * c2 + ch];
+                    nonzero |= first != 0.0;
+                    for p in 0..l {
+                        let here = v[(bi * l + p) * c2 + ch];
+                        assert_eq!(here, first, "modulation varies over positions at init (sample {bi}, channel {ch}, position {p})");
+                    }
+                }
             }
             assert!(nonzero, "the shared FiLM pair must not be trivially zero");
         }
@@ -407,7 +403,11 @@ mod tests {
             panic!("not a U-Net")
         };
         let f = &u.all_film_params(&inp).unwrap()[0];
+        let c2 = f.dim(2).unwrap();
         let v = f.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        assert_ne!(v[0], v[1]);
+        assert_ne!(
+            v[0], v[c2],
+            "positions 0 and 1 should differ once film_pos is non-zero"
+        );
     }
 }
