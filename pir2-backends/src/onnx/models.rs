@@ -315,7 +315,7 @@ pub enum Film {
 ///
 /// * `τ` embedding per position: `e_p = tau_mlp.1(mish(tau_mlp.0([sin(1000τ_c·ω_k)], [cos(…)], flag)))`,
 ///   `ω_k = exp(−k·ln(10⁴)/(E/2 − 1))`.
-/// * shared condition `mish([mean_p e_p, encoded fast, mean over tokens of normalised slow, e(d_vis)])`.
+/// * shared condition `[mish(mean_p e_p), encoded fast, mean over tokens of normalised slow, e(d_vis)]`.
 /// * residual block `N`: `N.block0` (conv k → GroupNorm `gn` → Mish), FiLM
 ///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·(1 + γ) + β`, `N.block1`, `+ N.res(x)`
 ///   (1×1 conv) or `+ x`.
@@ -581,10 +581,8 @@ impl UnetSpec {
         let t0 = o.mish(&t0);
         let emb = linear(o, w, UNET, "tau_mlp.1", &t0, 4 * e, e)?; // [B, H, E]
                                                                    // Shared condition.
-        let mut parts = vec![
-            o.mean(&emb, 1),
-            encode_fast(o, d, &self.norm, &inp.obs_fast),
-        ];
+        let mean = o.mean(&emb, 1);
+        let mut parts = vec![o.mish(&mean), encode_fast(o, d, &self.norm, &inp.obs_fast)];
         if let Some(sl) = &inp.obs_slow {
             let (t, dd) = match d.slow {
                 SlowSpec::Tokens { tokens, dim } => (tokens, dim),
@@ -612,8 +610,8 @@ impl UnetSpec {
                 self.dvis_dim,
             ));
         }
+        // Mish on the τ part only (follows backends 6c7db0e).
         let shared = o.concat(&parts, 1);
-        let shared = o.mish(&shared);
         // Per-position term, pooled per level: [B, H >> i, E].
         let pos = o.mish(&emb);
         let mut pooled = Vec::with_capacity(n);
