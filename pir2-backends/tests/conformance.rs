@@ -887,12 +887,14 @@ mod candle_models {
         out
     }
 
+    #[cfg(any(feature = "ort", feature = "tch"))]
     pub(super) fn dims_of(m: &CandleModel) -> ContractDims {
         *onnx::candle_bridge::spec_from_config(m.config(), m.stats())
             .unwrap()
             .dims()
     }
 
+    #[cfg(any(feature = "ort", feature = "tch"))]
     pub(super) fn check_against_candle(
         name: &str,
         m: &mut CandleModel,
