@@ -20,61 +20,12 @@ pub struct Inputs<T> {
     pub d_vis: Option<T>,
 }
 
-/// Activation functions.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Activation {
-    /// `x · tanh(softplus(x))`.
-    Mish,
-    /// `x · sigmoid(x)`.
-    Silu,
-    /// `max(x, 0)`.
-    Relu,
-}
-
-/// Apply an activation.
-pub fn act<O: Ops>(o: &mut O, a: Activation, x: &O::T) -> O::T {
-    match a {
-        Activation::Mish => o.mish(x),
-        Activation::Silu => o.silu(x),
-        Activation::Relu => o.unary(Unary::Relu, x),
-    }
-}
-
-/// Sinusoidal features of `t` (any shape `[..]`) → `[.., dim]`:
-/// `[sin(scale·t·ω_k), cos(scale·t·ω_k)]`, `ω_k = exp(−ln(10⁴)·k/(dim/2 − 1))`, `k < dim/2`.
-pub fn sinusoidal<O: Ops>(o: &mut O, t: &O::T, dim: usize, scale: f32) -> O::T {
-    let half = dim / 2;
-    let denom = (half.max(2) - 1) as f32;
-    let freqs: Vec<f32> = (0..half)
-        .map(|k| scale * (-(10_000f32).ln() * k as f32 / denom).exp())
-        .collect();
-    let f = o.constant("sinusoidal.freqs", &[half], &freqs);
-    let tu = o.unsqueeze(t, -1);
-    let arg = o.mul(&tu, &f);
-    let s = o.unary(Unary::Sin, &arg);
-    let c = o.unary(Unary::Cos, &arg);
-    o.concat(&[s, c], -1)
-}
-
 /// Width of the flattened slow input.
 pub fn slow_width(s: SlowSpec) -> usize {
     match s {
         SlowSpec::None => 0,
         SlowSpec::Vector { dim } => dim,
         SlowSpec::Tokens { tokens, dim } => tokens * dim,
-    }
-}
-
-/// Flattened observation `concat(flat(obs_fast), flat(obs_slow))` → `[B, n_obs·F + S]`.
-pub fn obs_vector<O: Ops>(o: &mut O, d: &ContractDims, inp: &Inputs<O::T>) -> O::T {
-    let mut parts = vec![o.reshape(&inp.obs_fast, &[-1, (d.n_obs * d.fast_dim) as i64])];
-    if let Some(s) = &inp.obs_slow {
-        parts.push(o.reshape(s, &[-1, slow_width(d.slow) as i64]));
-    }
-    if parts.len() == 1 {
-        parts.pop().expect("one part")
-    } else {
-        o.concat(&parts, 1)
     }
 }
 
