@@ -12,7 +12,7 @@
 use std::time::Instant;
 
 use pir2_backends::candle::CandleModel;
-use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig};
+use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 fn leap_spec() -> Spec {
@@ -27,6 +27,14 @@ fn leap_spec() -> Spec {
 }
 
 fn configs() -> Vec<(&'static str, Config)> {
+    // The shipped Leap-cube U-Net config (widths [32, 64, 128]), the paper-sized widths, and
+    // the default MLP on the Leap-cube spec.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/leap_cube_unet.toml");
+    let leap = Config::from_file(&path).expect("configs/leap_cube_unet.toml");
+    let mut paper = leap.clone();
+    if let ModelConfig::UNet(u) = &mut paper.model {
+        u.widths = vec![64, 128, 256];
+    }
     vec![
         (
             "mlp",
@@ -35,13 +43,8 @@ fn configs() -> Vec<(&'static str, Config)> {
                 model: ModelConfig::Mlp(MlpConfig::default()),
             },
         ),
-        (
-            "unet",
-            Config {
-                spec: leap_spec(),
-                model: ModelConfig::UNet(UNetConfig::default()),
-            },
-        ),
+        ("unet", leap),
+        ("unet-L", paper),
     ]
 }
 
@@ -108,7 +111,7 @@ fn main() {
         .unwrap_or(300);
     println!("one NFE, batch 1, single thread, {iters} timed calls per cell (µs; ratio = median / onnxruntime median)");
     println!(
-        "{:<6} {:<12} {:>10} {:>10} {:>8}",
+        "{:<7} {:<12} {:>10} {:>10} {:>8}",
         "model", "backend", "median", "p90", "ratio"
     );
     for (kind, cfg) in configs() {
@@ -156,10 +159,10 @@ fn main() {
         for (b, t) in &rows {
             let ratio = base.map_or("-".to_string(), |o| format!("{:.2}x", t.median_us / o));
             println!(
-                "{:<6} {:<12} {:>10.1} {:>10.1} {:>8}",
+                "{:<7} {:<12} {:>10.1} {:>10.1} {:>8}",
                 kind, b, t.median_us, t.p90_us, ratio
             );
         }
-        println!("{kind:<6} ({n_params} parameters)");
+        println!("{kind:<7} ({n_params} parameters)");
     }
 }

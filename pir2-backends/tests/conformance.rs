@@ -887,12 +887,14 @@ mod candle_models {
         out
     }
 
+    #[cfg(any(feature = "ort", feature = "tch"))]
     pub(super) fn dims_of(m: &CandleModel) -> ContractDims {
         *onnx::candle_bridge::spec_from_config(m.config(), m.stats())
             .unwrap()
             .dims()
     }
 
+    #[cfg(any(feature = "ort", feature = "tch"))]
     pub(super) fn check_against_candle(
         name: &str,
         m: &mut CandleModel,
@@ -952,6 +954,33 @@ mod candle_models {
             let mut t = TchModel::load(&path).unwrap();
             check_against_candle("libtorch", &mut m, &mut t);
         }
+    }
+
+    #[test]
+    fn a_saved_checkpoint_exports_the_same_graph_as_the_live_model() {
+        // The path `pir2 export --onnx <checkpoint>` takes: save, load, export.
+        let mut all = models();
+        let m = &mut all[1]; // a U-Net with per-position FiLM
+        let dir =
+            std::env::temp_dir().join(format!("pir2-conformance-ckpt-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        m.save(&dir).unwrap();
+        let ck = pir2_backends::checkpoint::Checkpoint::load(&dir).unwrap();
+        let from_ck = dir.join("exported.onnx");
+        onnx::candle_bridge::export_checkpoint(&ck, &from_ck).unwrap();
+        let live = dir.join("live.onnx");
+        onnx::candle_bridge::export_candle_model(m, &live).unwrap();
+        assert_eq!(
+            std::fs::read(&from_ck).unwrap(),
+            std::fs::read(&live).unwrap(),
+            "checkpoint and live export differ"
+        );
+        #[cfg(feature = "ort")]
+        {
+            let mut ort = pir2_backends::ort::OrtModel::load(&from_ck).unwrap();
+            check_against_candle("onnxruntime (from checkpoint file)", m, &mut ort);
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

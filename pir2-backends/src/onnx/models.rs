@@ -20,61 +20,12 @@ pub struct Inputs<T> {
     pub d_vis: Option<T>,
 }
 
-/// Activation functions.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Activation {
-    /// `x · tanh(softplus(x))`.
-    Mish,
-    /// `x · sigmoid(x)`.
-    Silu,
-    /// `max(x, 0)`.
-    Relu,
-}
-
-/// Apply an activation.
-pub fn act<O: Ops>(o: &mut O, a: Activation, x: &O::T) -> O::T {
-    match a {
-        Activation::Mish => o.mish(x),
-        Activation::Silu => o.silu(x),
-        Activation::Relu => o.unary(Unary::Relu, x),
-    }
-}
-
-/// Sinusoidal features of `t` (any shape `[..]`) → `[.., dim]`:
-/// `[sin(scale·t·ω_k), cos(scale·t·ω_k)]`, `ω_k = exp(−ln(10⁴)·k/(dim/2 − 1))`, `k < dim/2`.
-pub fn sinusoidal<O: Ops>(o: &mut O, t: &O::T, dim: usize, scale: f32) -> O::T {
-    let half = dim / 2;
-    let denom = (half.max(2) - 1) as f32;
-    let freqs: Vec<f32> = (0..half)
-        .map(|k| scale * (-(10_000f32).ln() * k as f32 / denom).exp())
-        .collect();
-    let f = o.constant("sinusoidal.freqs", &[half], &freqs);
-    let tu = o.unsqueeze(t, -1);
-    let arg = o.mul(&tu, &f);
-    let s = o.unary(Unary::Sin, &arg);
-    let c = o.unary(Unary::Cos, &arg);
-    o.concat(&[s, c], -1)
-}
-
 /// Width of the flattened slow input.
 pub fn slow_width(s: SlowSpec) -> usize {
     match s {
         SlowSpec::None => 0,
         SlowSpec::Vector { dim } => dim,
         SlowSpec::Tokens { tokens, dim } => tokens * dim,
-    }
-}
-
-/// Flattened observation `concat(flat(obs_fast), flat(obs_slow))` → `[B, n_obs·F + S]`.
-pub fn obs_vector<O: Ops>(o: &mut O, d: &ContractDims, inp: &Inputs<O::T>) -> O::T {
-    let mut parts = vec![o.reshape(&inp.obs_fast, &[-1, (d.n_obs * d.fast_dim) as i64])];
-    if let Some(s) = &inp.obs_slow {
-        parts.push(o.reshape(s, &[-1, slow_width(d.slow) as i64]));
-    }
-    if parts.len() == 1 {
-        parts.pop().expect("one part")
-    } else {
-        o.concat(&parts, 1)
     }
 }
 
@@ -315,7 +266,7 @@ pub enum Film {
 ///
 /// * `τ` embedding per position: `e_p = tau_mlp.1(mish(tau_mlp.0([sin(1000τ_c·ω_k)], [cos(…)], flag)))`,
 ///   `ω_k = exp(−k·ln(10⁴)/(E/2 − 1))`.
-/// * shared condition `mish([mean_p e_p, encoded fast, mean over tokens of normalised slow, e(d_vis)])`.
+/// * shared condition `[mish(mean_p e_p), encoded fast, mean over tokens of normalised slow, e(d_vis)]`.
 /// * residual block `N`: `N.block0` (conv k → GroupNorm `gn` → Mish), FiLM
 ///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·(1 + γ) + β`, `N.block1`, `+ N.res(x)`
 ///   (1×1 conv) or `+ x`.
@@ -437,6 +388,7 @@ impl UnetSpec {
         self.d_vis_max + 1
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn conv<O: Ops, W: WeightSource>(
         &self,
         o: &mut O,
@@ -580,10 +532,8 @@ impl UnetSpec {
         let t0 = o.mish(&t0);
         let emb = linear(o, w, UNET, "tau_mlp.1", &t0, 4 * e, e)?; // [B, H, E]
                                                                    // Shared condition.
-        let mut parts = vec![
-            o.mean(&emb, 1),
-            encode_fast(o, d, &self.norm, &inp.obs_fast),
-        ];
+        let mean = o.mean(&emb, 1);
+        let mut parts = vec![o.mish(&mean), encode_fast(o, d, &self.norm, &inp.obs_fast)];
         if let Some(sl) = &inp.obs_slow {
             let (t, dd) = match d.slow {
                 SlowSpec::Tokens { tokens, dim } => (tokens, dim),
@@ -611,8 +561,8 @@ impl UnetSpec {
                 self.dvis_dim,
             ));
         }
+        // Mish on the τ part only (follows backends 6c7db0e).
         let shared = o.concat(&parts, 1);
-        let shared = o.mish(&shared);
         // Per-position term, pooled per level: [B, H >> i, E].
         let pos = o.mish(&emb);
         let mut pooled = Vec::with_capacity(n);
