@@ -8,7 +8,6 @@
 
 #![allow(missing_docs)]
 
-use pir2_backends::onnx::proto::{DataType, Dim};
 use pir2_backends::onnx::{self, ContractDims, SlowSpec};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 use pir2_schedule::Rng;
@@ -268,7 +267,6 @@ fn onnx_export_encodes_the_contract_inputs_and_outputs() {
             "`{name}` missing from the encoded model"
         );
     }
-    let _ = (DataType::Float, Dim::Fixed(1));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -409,6 +407,7 @@ fn assert_close_rejects_a_difference_above_tolerance() {
 #[cfg(feature = "ort")]
 mod ort_backend {
     use super::*;
+    use pir2_backends::onnx::proto::{DataType, Dim};
     use pir2_backends::ort::{OrtModel, OrtOptions};
 
     fn make(p: &Probe) -> Box<dyn VelocityModel> {
