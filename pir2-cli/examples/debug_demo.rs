@@ -17,6 +17,42 @@ fn main() -> anyhow::Result<()> {
     let pb = indicatif::ProgressBar::hidden();
     let (m, scores) = train_policy(&demos, Policy::Flow, 0, &cfg, None, &pb)?;
     println!("scores {scores:?} out {:?}", output_map(&m));
+    // Open loop: the model's first sampled action vs the expert's label on demo frames.
+    let mut mm = clone_model(&m)?;
+    let mut rng = pir2_schedule::Rng::new(3);
+    let mut err = 0.0f64;
+    let mut base = 0.0f64;
+    let mut n = 0;
+    for e in demos.iter().take(5) {
+        for t in (5..e.len()).step_by(37) {
+            let mut hist = Vec::new();
+            hist.extend_from_slice(e.fast(t - 1));
+            hist.extend_from_slice(e.fast(t));
+            let chunk = mm.sample_euler(
+                &hist,
+                pir2_runtime::SlowInput::Vector {
+                    data: e.slow(t),
+                    dim: 2,
+                },
+                0,
+                10,
+                &mut rng,
+            )?;
+            for j in 0..2 {
+                err += ((chunk[j] - e.action(t)[j]) as f64).powi(2);
+                base += (e.action(t)[j] as f64).powi(2);
+            }
+            n += 2;
+            if n <= 8 {
+                println!("t {t}: model {:?} expert {:?}", &chunk[..2], e.action(t));
+            }
+        }
+    }
+    println!(
+        "open-loop rmse {:.4}  (rms of labels {:.4})",
+        (err / n as f64).sqrt(),
+        (base / n as f64).sqrt()
+    );
     let task = BallPlateConfig::default();
     let mut env = BallPlate::new(task.clone())?;
     let mode = Mode::NaiveAsync {

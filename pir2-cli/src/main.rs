@@ -127,6 +127,14 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Export a candle checkpoint (MLP or U-Net) to ONNX for ONNX Runtime deployment.
+    Export {
+        /// Checkpoint directory (config.json, stats.json, model.safetensors).
+        checkpoint: PathBuf,
+        /// Output ONNX file (must not exist).
+        #[arg(long)]
+        onnx: PathBuf,
+    },
     /// Benchmarks printed side by side (schedule, runtime).
     Bench {
         /// What to measure.
@@ -362,6 +370,19 @@ fn main() -> Result<()> {
                 );
             }
             println!("wrote {}", out.display());
+        }
+        Cmd::Export { checkpoint, onnx } => {
+            if onnx.exists() {
+                bail!(
+                    "{} already exists; choose another --onnx path",
+                    onnx.display()
+                );
+            }
+            let ck = pir2_backends::checkpoint::Checkpoint::load(&checkpoint)
+                .with_context(|| format!("loading checkpoint {}", checkpoint.display()))?;
+            pir2_backends::onnx::candle_bridge::export_checkpoint(&ck, &onnx)
+                .with_context(|| format!("exporting {} to ONNX", checkpoint.display()))?;
+            println!("wrote {}", onnx.display());
         }
         Cmd::Bench { what, seconds } => {
             if what == "schedule" || what == "all" {
