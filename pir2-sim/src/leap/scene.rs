@@ -268,14 +268,3 @@ mod tests {
     }
 }
 
-#[cfg(test)]
-mod scene_tests {
-    use super::*;
-
-    #[test]
-    fn playground_scene_loads_with_stripped_meshes() {
-        let (m, rep) = load_model(None).expect("scene (source .native/env.sh)");
-        let f = m.ffi();
-        eprintln!("{rep:?} nq {} nv {} nu {} ngeom {}", f.nq, f.nv, f.nu, f.ngeom);
-    }
-}
