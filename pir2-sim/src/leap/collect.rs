@@ -30,7 +30,11 @@ pub struct CollectConfig {
 
 impl Default for CollectConfig {
     fn default() -> Self {
-        Self { env: LeapConfig::paper(), mpc: MpcConfig::default(), seed: 0 }
+        Self {
+            env: LeapConfig::paper(),
+            mpc: MpcConfig::default(),
+            seed: 0,
+        }
     }
 }
 
@@ -69,7 +73,10 @@ pub struct Episode {
 /// Environment and expert seeds of episode `index` in a collection seeded with `seed`.
 pub fn episode_seeds(seed: u64, index: usize) -> (u64, u64) {
     let i = index as u64;
-    (Rng::derive(seed, 2 * i).next_u64(), Rng::derive(seed, 2 * i + 1).next_u64())
+    (
+        Rng::derive(seed, 2 * i).next_u64(),
+        Rng::derive(seed, 2 * i + 1).next_u64(),
+    )
 }
 
 /// Roll the MPC expert for the episodes with indices in `episodes` and return them;
@@ -110,7 +117,12 @@ pub fn collect(
                 break;
             }
         }
-        let ep = Episode { index, env_seed, frames, success };
+        let ep = Episode {
+            index,
+            env_seed,
+            frames,
+            success,
+        };
         progress(&ep);
         out.push(ep);
     }

@@ -61,9 +61,17 @@ pub struct NoiseConfig {
 
 impl NoiseConfig {
     /// The playground's (and the paper's) noise: 0.05 rad, 0.02 m, 0.1.
-    pub const DEFAULT: Self = Self { joint_pos: 0.05, cube_pos: 0.02, cube_ori: 0.1 };
+    pub const DEFAULT: Self = Self {
+        joint_pos: 0.05,
+        cube_pos: 0.02,
+        cube_ori: 0.1,
+    };
     /// No noise (for experts and tests).
-    pub const NONE: Self = Self { joint_pos: 0.0, cube_pos: 0.0, cube_ori: 0.0 };
+    pub const NONE: Self = Self {
+        joint_pos: 0.0,
+        cube_pos: 0.0,
+        cube_ori: 0.0,
+    };
 }
 
 /// Configuration of [`LeapCubeEnv`].
@@ -324,12 +332,19 @@ impl LeapCubeEnv {
     fn reward(&self, action: &[f32; NU], err: f64, terminated: bool, success: bool) -> f64 {
         let cube = self.sensed_cube_pos();
         let palm = self.palm_pos();
-        let dist = (0..3).map(|k| (palm[k] - cube[k]).powi(2)).sum::<f64>().sqrt();
+        let dist = (0..3)
+            .map(|k| (palm[k] - cube[k]).powi(2))
+            .sum::<f64>()
+            .sqrt();
         let q = self.hand_q();
         let hand_pose: f64 = (0..NU).map(|i| (q[i] - self.lm.home[i]).powi(2)).sum();
         let mut rate = 0.0;
         for i in 0..NU {
-            let (a, l, ll) = (action[i] as f64, self.last_act[i] as f64, self.last_last_act[i] as f64);
+            let (a, l, ll) = (
+                action[i] as f64,
+                self.last_act[i] as f64,
+                self.last_last_act[i] as f64,
+            );
             rate += (a - l).powi(2) + (a - 2.0 * l + ll).powi(2);
         }
         let qvel = self.data.qvel();
@@ -337,7 +352,9 @@ impl LeapCubeEnv {
         // SAFETY: `actuator_force` is an array of `nu` doubles owned by `self.data`, which
         // lives (and is not mutated) for the duration of this borrow.
         let force = unsafe { std::slice::from_raw_parts(self.data.ffi().actuator_force, nu) };
-        let energy: f64 = (0..nu).map(|i| qvel[self.lm.hand_dadr[i]].abs() * force[i].abs()).sum();
+        let energy: f64 = (0..nu)
+            .map(|i| qvel[self.lm.hand_dadr[i]].abs() * force[i].abs())
+            .sum();
         let shaped = reward::ORIENTATION * tolerance_linear(err, 0.2, std::f64::consts::PI)
             + reward::POSITION * tolerance_linear(dist, 0.02, 0.05)
             + reward::TERMINATION * f64::from(u8::from(terminated))
@@ -428,7 +445,11 @@ impl Environment for LeapCubeEnv {
         }
         let mut a = [0.0f32; NU];
         for i in 0..NU {
-            a[i] = if action[i].is_nan() { 0.0 } else { action[i].clamp(-1.0, 1.0) };
+            a[i] = if action[i].is_nan() {
+                0.0
+            } else {
+                action[i].clamp(-1.0, 1.0)
+            };
             self.targets[i] = (self.targets[i] + self.cfg.action_scale * a[i] as f64)
                 .clamp(self.lm.lo[i], self.lm.hi[i]);
         }
@@ -452,14 +473,23 @@ impl Environment for LeapCubeEnv {
                 } else {
                     self.goal_dquat.iter_mut().for_each(|d| *d *= 0.8);
                 }
-                self.goal = math::quat_integrate(&self.goal, &self.goal_dquat, 2.0 * self.cfg.ctrl_dt);
+                self.goal =
+                    math::quat_integrate(&self.goal, &self.goal_dquat, 2.0 * self.cfg.ctrl_dt);
                 self.goals[0] = self.goal;
                 self.data.mocap_quat_mut()[0] = self.goal;
-                EnvStep { done: terminated || timeout, success: self.successes > 0, reward }
+                EnvStep {
+                    done: terminated || timeout,
+                    success: self.successes > 0,
+                    reward,
+                }
             }
             Variant::BlueSideUp => {
                 let success = hit && !terminated;
-                EnvStep { done: success || terminated || timeout, success, reward }
+                EnvStep {
+                    done: success || terminated || timeout,
+                    success,
+                    reward,
+                }
             }
         };
         self.last_last_act = self.last_act;
@@ -468,5 +498,19 @@ impl Environment for LeapCubeEnv {
             self.ended = Some(out);
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::tolerance_linear;
+
+    #[test]
+    fn tolerance_is_dm_control_linear_with_value_0_1_at_margin() {
+        assert_eq!(tolerance_linear(0.0, 0.2, 1.0), 1.0);
+        assert_eq!(tolerance_linear(0.2, 0.2, 1.0), 1.0);
+        assert!((tolerance_linear(1.2, 0.2, 1.0) - 0.1).abs() < 1e-12);
+        assert!((tolerance_linear(0.7, 0.2, 1.0) - 0.55).abs() < 1e-12);
+        assert_eq!(tolerance_linear(5.0, 0.2, 1.0), 0.0);
     }
 }

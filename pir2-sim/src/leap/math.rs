@@ -37,7 +37,10 @@ pub fn orientation_error(q: &Quat, goal: &Quat) -> f64 {
 /// The smallest [`orientation_error`] over `goals`.
 #[inline]
 pub fn nearest_goal_error(q: &Quat, goals: &[Quat]) -> f64 {
-    goals.iter().map(|g| orientation_error(q, g)).fold(f64::INFINITY, f64::min)
+    goals
+        .iter()
+        .map(|g| orientation_error(q, g))
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// Rows 2 and 3 of the rotation matrix of `q` (`quat_to_mat(q).ravel()[3:]`), the 6-d
@@ -46,7 +49,14 @@ pub fn nearest_goal_error(q: &Quat, goals: &[Quat]) -> f64 {
 pub fn rot_rows_23(q: &Quat) -> [f64; 6] {
     let r = UnitQuaternion::from_quaternion(to_na(q)).to_rotation_matrix();
     let m = r.matrix();
-    [m[(1, 0)], m[(1, 1)], m[(1, 2)], m[(2, 0)], m[(2, 1)], m[(2, 2)]]
+    [
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+    ]
 }
 
 /// The paper's four goals: the cube's blue face (body `−z`) up, yaw `ψ ∈ {0, π/2, π, 3π/2}`:
@@ -63,7 +73,12 @@ pub fn blue_side_up_goals() -> [Quat; 4] {
 /// A uniformly distributed unit quaternion (normalised 4-d Gaussian), from `rng`.
 pub fn uniform_quat(rng: &mut Rng) -> Quat {
     loop {
-        let q = [rng.normal() as f64, rng.normal() as f64, rng.normal() as f64, rng.normal() as f64];
+        let q = [
+            rng.normal() as f64,
+            rng.normal() as f64,
+            rng.normal() as f64,
+            rng.normal() as f64,
+        ];
         let n = (q.iter().map(|v| v * v).sum::<f64>()).sqrt();
         if n > 1e-6 {
             return [q[0] / n, q[1] / n, q[2] / n, q[3] / n];
@@ -110,14 +125,20 @@ mod tests {
             let n = (g.iter().map(|v| v * v).sum::<f64>()).sqrt();
             assert!((n - 1.0).abs() < 1e-12);
             let up = rotate(g, [0.0, 0.0, -1.0]);
-            assert!((up[2] - 1.0).abs() < 1e-12, "goal {k}: body -z maps to {up:?}");
+            assert!(
+                (up[2] - 1.0).abs() < 1e-12,
+                "goal {k}: body -z maps to {up:?}"
+            );
             // Body +x ends up at yaw -ψ... any fixed convention: consecutive goals differ by
             // a quarter turn about world z.
             let next = goals[(k + 1) % 4];
             assert!((orientation_error(&next, g) - PI / 2.0).abs() < 1e-9);
             let rel = mul_inv(&next, g);
             let axis = [rel[1], rel[2], rel[3]];
-            assert!(axis[0].abs() < 1e-9 && axis[1].abs() < 1e-9, "not a yaw: {rel:?}");
+            assert!(
+                axis[0].abs() < 1e-9 && axis[1].abs() < 1e-9,
+                "not a yaw: {rel:?}"
+            );
         }
         assert_eq!(goals[0], [0.0, 1.0, 0.0, 0.0]);
     }

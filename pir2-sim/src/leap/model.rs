@@ -40,7 +40,10 @@ pub struct LeapModel {
 
 fn id(m: &MjModel, kind: MjtObjBase, label: &'static str, name: &str) -> Result<usize> {
     m.name_to_id(kind, name)
-        .ok_or_else(|| LeapError::MissingElement { kind: label, name: name.to_string() })
+        .ok_or_else(|| LeapError::MissingElement {
+            kind: label,
+            name: name.to_string(),
+        })
 }
 
 impl LeapModel {
@@ -54,7 +57,11 @@ impl LeapModel {
         let m: &MjModel = &model;
         let f = m.ffi();
         if f.nu as usize != NU {
-            return Err(LeapError::Shape { what: "actuators", expected: NU, got: f.nu as usize });
+            return Err(LeapError::Shape {
+                what: "actuators",
+                expected: NU,
+                got: f.nu as usize,
+            });
         }
         let mut hand_qadr = [0; NU];
         let mut hand_dadr = [0; NU];

@@ -85,7 +85,12 @@ impl Default for MpcConfig {
 impl MpcConfig {
     /// The cheaper recipe (16 samples, 0.3 s at 50 Hz, replan every 2 steps).
     pub fn fast() -> Self {
-        Self { samples: 16, horizon: 15, replan_every: 2, ..Self::default() }
+        Self {
+            samples: 16,
+            horizon: 15,
+            replan_every: 2,
+            ..Self::default()
+        }
     }
 
     fn validate(&self) -> Result<()> {
@@ -132,7 +137,10 @@ fn eval(plan: &[f64], knots: usize, span: f64, t: f64, out: &mut [f64; NU]) {
     let s = (t / h).max(0.0);
     let j = (s.floor() as usize).min(knots - 2);
     let f = (s - j as f64).clamp(0.0, 1.0);
-    let (a, b) = (&plan[j * NU..(j + 1) * NU], &plan[(j + 1) * NU..(j + 2) * NU]);
+    let (a, b) = (
+        &plan[j * NU..(j + 1) * NU],
+        &plan[(j + 1) * NU..(j + 2) * NU],
+    );
     for i in 0..NU {
         out[i] = a[i] + f * (b[i] - a[i]);
     }
@@ -242,7 +250,13 @@ impl MpcExpert {
             self.planned = true;
         }
         let mut u = [0.0; NU];
-        eval(&self.nominal, k, span, self.elapsed as f64 * ctrl_dt, &mut u);
+        eval(
+            &self.nominal,
+            k,
+            span,
+            self.elapsed as f64 * ctrl_dt,
+            &mut u,
+        );
         self.elapsed += 1;
         let t = env.motor_targets();
         let scale = env.config().action_scale;
@@ -296,6 +310,7 @@ impl MpcExpert {
         let best = (0..self.cfg.samples)
             .min_by(|&a, &b| self.costs[a].total_cmp(&self.costs[b]))
             .unwrap_or(0);
-        self.nominal.copy_from_slice(&self.plans[best * plan_len..(best + 1) * plan_len]);
+        self.nominal
+            .copy_from_slice(&self.plans[best * plan_len..(best + 1) * plan_len]);
     }
 }

@@ -59,7 +59,10 @@ pub fn load_model(dir: Option<&Path>) -> Result<(Arc<MjModel>, StripReport)> {
 }
 
 fn read_bytes(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|source| LeapError::SceneFile { path: path.to_path_buf(), source })
+    std::fs::read(path).map_err(|source| LeapError::SceneFile {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Read one XML file, strip it, add it and the files it references to `vfs`.
@@ -95,14 +98,18 @@ fn add_xml(
         } else {
             seen.insert(file_rel.clone());
             let data = read_bytes(&dir.join(&file_rel))?;
-            vfs.add_from_buffer(&file_rel, &data).map_err(|e| LeapError::Load {
-                path: dir.join(&file_rel),
-                message: e.to_string(),
-            })?;
+            vfs.add_from_buffer(&file_rel, &data)
+                .map_err(|e| LeapError::Load {
+                    path: dir.join(&file_rel),
+                    message: e.to_string(),
+                })?;
         }
     }
     vfs.add_from_buffer(rel, text.as_bytes())
-        .map_err(|e| LeapError::Load { path, message: e.to_string() })?;
+        .map_err(|e| LeapError::Load {
+            path,
+            message: e.to_string(),
+        })?;
     Ok(())
 }
 
@@ -113,7 +120,9 @@ fn file_attributes(text: &str) -> Vec<String> {
     while let Some(i) = rest.find("file") {
         let before_ok = i > 0 && rest.as_bytes()[i - 1].is_ascii_whitespace();
         let after = &rest[i + 4..];
-        let name_end = after.find(|c: char| !c.is_ascii_alphabetic()).unwrap_or(after.len());
+        let name_end = after
+            .find(|c: char| !c.is_ascii_alphabetic())
+            .unwrap_or(after.len());
         let tail = &after[name_end..];
         if before_ok && tail.starts_with("=\"") {
             if let Some(end) = tail[2..].find('"') {
@@ -153,12 +162,22 @@ fn elements(text: &str, tag: &str) -> Vec<(usize, usize)> {
             from = after;
             continue;
         }
-        let Some(close) = text[start..].find('>') else { break };
+        let Some(close) = text[start..].find('>') else {
+            break;
+        };
         let end = start + close + 1;
         if text[..end].ends_with("/>") {
             let line_start = text[..start].rfind('\n').map_or(0, |n| n + 1);
-            let s = if text[line_start..start].trim().is_empty() { line_start } else { start };
-            let e = if text[end..].starts_with('\n') && s == line_start { end + 1 } else { end };
+            let s = if text[line_start..start].trim().is_empty() {
+                line_start
+            } else {
+                start
+            };
+            let e = if text[end..].starts_with('\n') && s == line_start {
+                end + 1
+            } else {
+                end
+            };
             out.push((s, e));
         }
         from = end;
@@ -191,8 +210,12 @@ pub(crate) fn strip_missing_meshes(
     }
     for (s, e) in elements(text, "geom") {
         let el = &text[s..e];
-        let Some(mesh) = attribute(el, "mesh") else { continue };
-        let Some((name, file)) = missing.iter().find(|(n, _)| n == mesh) else { continue };
+        let Some(mesh) = attribute(el, "mesh") else {
+            continue;
+        };
+        let Some((name, file)) = missing.iter().find(|(n, _)| n == mesh) else {
+            continue;
+        };
         let visual_class = attribute(el, "class") == Some("visual");
         let no_contact = attribute(el, "contype") == Some("0")
             && attribute(el, "conaffinity") == Some("0")
@@ -248,7 +271,10 @@ mod tests {
 
     #[test]
     fn refuses_to_strip_a_colliding_mesh_geom() {
-        let xml = XML.replace(r#"<geom name="v" class="visual" mesh="gone"/>"#, r#"<geom name="v" mesh="gone"/>"#);
+        let xml = XML.replace(
+            r#"<geom name="v" class="visual" mesh="gone"/>"#,
+            r#"<geom name="v" mesh="gone"/>"#,
+        );
         let err = strip_missing_meshes(&xml, &|f| f == "meshes/here.obj").unwrap_err();
         assert_eq!(err, ("gone".to_string(), "../far/away.obj".to_string()));
     }
@@ -263,8 +289,10 @@ mod tests {
     fn missing_dir_error_names_path_and_setup_script() {
         let err = load_model(Some(Path::new("/nonexistent/leap_cube"))).unwrap_err();
         let msg = err.to_string();
-        assert!(msg.contains("/nonexistent/leap_cube/scene_mjx_cube.xml"), "{msg}");
+        assert!(
+            msg.contains("/nonexistent/leap_cube/scene_mjx_cube.xml"),
+            "{msg}"
+        );
         assert!(msg.contains("scripts/setup-native.sh"), "{msg}");
     }
 }
-
