@@ -1,1 +1,8 @@
-//! placeholder
+//! # pir2-cli
+//!
+//! The stock pipelines behind the `pir2` binary, callable from code: deployment studies
+//! through the lock-step runtime, plots, and benchmarks. `main.rs` is a thin argument parser.
+
+pub mod bench;
+pub mod plot;
+pub mod study;

@@ -30,7 +30,9 @@ impl Default for SystemClock {
 impl SystemClock {
     /// A clock whose epoch is now.
     pub fn new() -> Self {
-        Self { epoch: Instant::now() }
+        Self {
+            epoch: Instant::now(),
+        }
     }
 }
 

@@ -64,11 +64,22 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 impl Error {
     /// Convenience constructor for [`Error::Shape`].
-    pub fn shape(what: impl Into<String>, expected: impl std::fmt::Debug, got: impl std::fmt::Debug) -> Self {
-        Error::Shape { what: what.into(), expected: format!("{expected:?}"), got: format!("{got:?}") }
+    pub fn shape(
+        what: impl Into<String>,
+        expected: impl std::fmt::Debug,
+        got: impl std::fmt::Debug,
+    ) -> Self {
+        Error::Shape {
+            what: what.into(),
+            expected: format!("{expected:?}"),
+            got: format!("{got:?}"),
+        }
     }
     /// Convenience constructor for [`Error::Io`].
     pub fn io(device: impl Into<String>, message: impl std::fmt::Display) -> Self {
-        Error::Io { device: device.into(), message: message.to_string() }
+        Error::Io {
+            device: device.into(),
+            message: message.to_string(),
+        }
     }
 }

@@ -4,14 +4,42 @@
 //! It owns the traits every other crate meets (the model, the fast/slow sources, the
 //! actuator, the clock, the environment of the lock-step driver) and depends on no ML
 //! framework, robot driver or simulator.
+//!
+//! One state machine, two drivers (DESIGN.md §2):
+//! - [`head::ActionHead`] turns a [`head::Snapshot`] into a [`chunk::Chunk`] (one NFE for
+//!   πR²; `K` steps for the baselines) and owns the rolling latency window;
+//! - [`control::ControlState`] picks the action of each tick (swap at the elapsed index,
+//!   `x̂` on overrun, temporal ensembling, sync holds);
+//! - [`realtime`] runs them on threads against a [`Clock`]; [`lockstep`] steps them with an
+//!   [`Environment`] where a call takes an injected number of ticks.
 #![warn(missing_docs)]
 
+pub mod bench;
+pub mod chunk;
 pub mod clock;
+pub mod control;
 pub mod error;
+pub mod head;
 pub mod io;
+pub mod lockstep;
+pub mod metrics;
+pub mod mode;
 pub mod model;
+pub mod realtime;
+pub mod testing;
+pub mod window;
 
+pub use chunk::Chunk;
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
+pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap};
 pub use error::{Error, Result};
-pub use io::{Actuator, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowSource, SlowFrame};
+pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
+pub use io::{
+    Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,
+    SlowSource,
+};
+pub use lockstep::{EpisodeResult, LockstepDriver, LockstepTiming};
+pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};
+pub use mode::{EffectiveDelays, Mode};
 pub use model::{ModelInput, SlowInput, VelocityModel};
+pub use window::LatencyWindow;

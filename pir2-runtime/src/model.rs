@@ -62,14 +62,24 @@ impl ModelInput<'_> {
                 Ok(())
             }
         };
-        chk("x [B,H,A]", self.x.len(), b * self.horizon * self.action_dim)?;
+        chk(
+            "x [B,H,A]",
+            self.x.len(),
+            b * self.horizon * self.action_dim,
+        )?;
         chk("tau [B,H]", self.tau.len(), b * self.horizon)?;
-        chk("obs_fast [B,n_obs,F]", self.obs_fast.len(), b * self.n_obs * self.fast_dim)?;
+        chk(
+            "obs_fast [B,n_obs,F]",
+            self.obs_fast.len(),
+            b * self.n_obs * self.fast_dim,
+        )?;
         chk("d_vis [B]", self.d_vis.len(), b)?;
         match self.slow {
             SlowInput::None => Ok(()),
             SlowInput::Vector { data, dim } => chk("obs_slow [B,S]", data.len(), b * dim),
-            SlowInput::Tokens { data, tokens, dim } => chk("obs_slow [B,T,D]", data.len(), b * tokens * dim),
+            SlowInput::Tokens { data, tokens, dim } => {
+                chk("obs_slow [B,T,D]", data.len(), b * tokens * dim)
+            }
         }
     }
 }
@@ -86,7 +96,10 @@ pub trait VelocityModel: Send {
     fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()>;
     /// Export to an ONNX file (optional capability).
     fn export_onnx(&self, _path: &std::path::Path) -> Result<()> {
-        Err(Error::Unsupported { capability: "ONNX export", backend: self.backend() })
+        Err(Error::Unsupported {
+            capability: "ONNX export",
+            backend: self.backend(),
+        })
     }
 }
 

@@ -54,6 +54,10 @@ pub(crate) fn check_len(what: &'static str, got: usize, expected: usize) -> Resu
     if got == expected {
         Ok(())
     } else {
-        Err(Error::Length { what, expected, got })
+        Err(Error::Length {
+            what,
+            expected,
+            got,
+        })
     }
 }

@@ -6,10 +6,14 @@
 //! Pure Rust, no heavy dependencies. See `DESIGN.md` §1 for the binding definitions.
 #![warn(missing_docs)]
 
+pub mod baselines;
+pub mod buffer;
 pub mod error;
 pub mod rng;
 pub mod staircase;
+pub mod train;
 
+pub use buffer::{Emitted, FrontMode, StreamBuffer, StreamConfig};
 pub use error::{Error, Result};
 pub use rng::Rng;
 pub use staircase::{Alignment, Staircase};

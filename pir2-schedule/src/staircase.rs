@@ -65,14 +65,22 @@ impl Staircase {
     /// or its own implied value).
     pub fn new(h: usize, d: usize, n: Option<usize>, alignment: Alignment) -> Result<Self> {
         if h == 0 {
-            return Err(Error::Invalid { field: "H", message: "chunk length must be at least 1".into() });
+            return Err(Error::Invalid {
+                field: "H",
+                message: "chunk length must be at least 1".into(),
+            });
         }
         match alignment {
             Alignment::Fresh => {
                 let n_max = Self::n_max(h, d);
                 if n_max == 0 {
                     let min_h = if d == 0 { 1 } else { 3 * d - 1 };
-                    return Err(Error::HorizonTooShort { h, d, alignment: "fresh", min_h });
+                    return Err(Error::HorizonTooShort {
+                        h,
+                        d,
+                        alignment: "fresh",
+                        min_h,
+                    });
                 }
                 let n = n.unwrap_or(n_max);
                 if n == 0 || n > n_max {
@@ -82,7 +90,12 @@ impl Staircase {
             }
             Alignment::Paper => {
                 if d > 0 && h < 2 * d + 1 {
-                    return Err(Error::HorizonTooShort { h, d, alignment: "paper", min_h: 2 * d + 1 });
+                    return Err(Error::HorizonTooShort {
+                        h,
+                        d,
+                        alignment: "paper",
+                        min_h: 2 * d + 1,
+                    });
                 }
                 let implied = Self::paper_nfe(h, d);
                 if let Some(n) = n {
@@ -96,7 +109,12 @@ impl Staircase {
                         });
                     }
                 }
-                Ok(Self { h, d, n: implied, alignment })
+                Ok(Self {
+                    h,
+                    d,
+                    n: implied,
+                    alignment,
+                })
             }
         }
     }
@@ -224,8 +242,14 @@ mod tests {
         assert_eq!(Staircase::n_max(16, 3), 3);
         assert_eq!(Staircase::n_max(16, 0), 16);
         assert_eq!(Staircase::n_max(4, 2), 0);
-        assert!(matches!(Staircase::fresh(16, 3, Some(4)), Err(Error::NfeOutOfRange { n_max: 3, .. })));
-        assert!(matches!(Staircase::fresh(7, 3, None), Err(Error::HorizonTooShort { min_h: 8, .. })));
+        assert!(matches!(
+            Staircase::fresh(16, 3, Some(4)),
+            Err(Error::NfeOutOfRange { n_max: 3, .. })
+        ));
+        assert!(matches!(
+            Staircase::fresh(7, 3, None),
+            Err(Error::HorizonTooShort { min_h: 8, .. })
+        ));
     }
 
     #[test]

@@ -1,0 +1,203 @@
+//! PNG plots (plotters with an embedded DejaVu font: no system fonts needed).
+
+use std::path::Path;
+use std::sync::Once;
+
+use anyhow::{anyhow, Result};
+use plotters::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use pir2_runtime::RunTrace;
+
+static FONT: Once = Once::new();
+
+fn register_font() {
+    FONT.call_once(|| {
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            dejavu::sans::regular(),
+        );
+    });
+}
+
+/// One curve of a study plot: mean ± std of success per x value.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Series {
+    /// Legend label.
+    pub label: String,
+    /// Points `(x, mean, std)`.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+const COLORS: [RGBColor; 10] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(214, 39, 40),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
+];
+
+/// Success (mean ± std) against an x axis, one line per series, error bars, legend.
+pub fn plot_series(
+    path: &Path,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<()> {
+    register_font();
+    let root = BitMapBackend::new(path, (960, 600)).into_drawing_area();
+    root.fill(&WHITE)
+        .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
+    let (mut xmin, mut xmax) = (f64::MAX, f64::MIN);
+    for s in series {
+        for p in &s.points {
+            xmin = xmin.min(p.0);
+            xmax = xmax.max(p.0);
+        }
+    }
+    if xmin > xmax {
+        return Err(anyhow!("nothing to plot for {}", path.display()));
+    }
+    let pad = ((xmax - xmin) * 0.08).max(0.3);
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 24))
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d((xmin - pad)..(xmax + pad), 0f64..1.05f64)
+        .map_err(|e| anyhow!("{e}"))?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .axis_desc_style(("sans-serif", 18))
+        .label_style(("sans-serif", 15))
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    let n = series.len().max(1) as f64;
+    for (i, s) in series.iter().enumerate() {
+        let c = COLORS[i % COLORS.len()];
+        // Small horizontal offsets so error bars of different series do not overlap.
+        let off = (i as f64 - (n - 1.0) / 2.0) * 0.04;
+        let pts: Vec<(f64, f64)> = s.points.iter().map(|p| (p.0 + off, p.1)).collect();
+        chart
+            .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
+            .map_err(|e| anyhow!("{e}"))?
+            .label(s.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], c.stroke_width(3)));
+        chart
+            .draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled())))
+            .map_err(|e| anyhow!("{e}"))?;
+        chart
+            .draw_series(s.points.iter().map(|p| {
+                ErrorBar::new_vertical(
+                    p.0 + off,
+                    (p.1 - p.2).max(0.0),
+                    p.1,
+                    (p.1 + p.2).min(1.05),
+                    c.stroke_width(1),
+                    8,
+                )
+            }))
+            .map_err(|e| anyhow!("{e}"))?;
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 15))
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    root.present()
+        .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
+    Ok(())
+}
+
+/// A run trace: call latency (ms) and `d`, `d_vis` per call.
+pub fn plot_trace(path: &Path, trace: &RunTrace) -> Result<()> {
+    register_font();
+    let root = BitMapBackend::new(path, (960, 640)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+    let (top, bottom) = root.split_vertically(320);
+    let n = trace.calls.len().max(1) as f64;
+    let lat: Vec<(f64, f64)> = trace
+        .calls
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (i as f64, c.latency as f64 / 1e6))
+        .collect();
+    let lmax = lat.iter().map(|p| p.1).fold(1e-3, f64::max) * 1.1;
+    let mut c1 = ChartBuilder::on(&top)
+        .caption("call latency", ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(36)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0f64..n, 0f64..lmax)
+        .map_err(|e| anyhow!("{e}"))?;
+    c1.configure_mesh()
+        .x_desc("call")
+        .y_desc("ms")
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    c1.draw_series(LineSeries::new(lat, COLORS[0]))
+        .map_err(|e| anyhow!("{e}"))?;
+    let dmax = trace
+        .calls
+        .iter()
+        .map(|c| c.d.max(c.d_vis).max(c.elapsed))
+        .max()
+        .unwrap_or(1) as f64
+        + 1.0;
+    let mut c2 = ChartBuilder::on(&bottom)
+        .caption("d, d_vis, elapsed ticks", ("sans-serif", 20))
+        .margin(10)
+        .x_label_area_size(36)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0f64..n, 0f64..dmax)
+        .map_err(|e| anyhow!("{e}"))?;
+    c2.configure_mesh()
+        .x_desc("call")
+        .y_desc("ticks")
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    for (k, (label, f)) in [
+        (
+            "d",
+            (|c: &pir2_runtime::CallRecord| c.d as f64) as fn(&pir2_runtime::CallRecord) -> f64,
+        ),
+        ("d_vis", |c| c.d_vis as f64),
+        ("elapsed", |c| c.elapsed as f64),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let col = COLORS[k + 1];
+        c2.draw_series(LineSeries::new(
+            trace
+                .calls
+                .iter()
+                .enumerate()
+                .map(|(i, c)| (i as f64, f(c))),
+            col,
+        ))
+        .map_err(|e| anyhow!("{e}"))?
+        .label(label)
+        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col));
+    }
+    c2.configure_series_labels()
+        .border_style(BLACK)
+        .background_style(WHITE)
+        .draw()
+        .map_err(|e| anyhow!("{e}"))?;
+    root.present()
+        .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
+    Ok(())
+}

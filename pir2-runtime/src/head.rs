@@ -1,0 +1,423 @@
+//! The action-head side of the state machine: one call = snapshot in, chunk out.
+//!
+//! The same [`ActionHead`] runs inside the real-time worker thread and inside the
+//! lock-step driver. It owns the model, the latency window and the mode's inference state
+//! (the πR² streaming buffer, or the baselines' from-scratch flow).
+
+use serde::{Deserialize, Serialize};
+
+use pir2_schedule::baselines::StandardFlow;
+use pir2_schedule::{Alignment, FrontMode, Rng, StreamBuffer, StreamConfig};
+
+use crate::chunk::Chunk;
+use crate::clock::Nanos;
+use crate::error::{Error, Result};
+use crate::metrics::CallRecord;
+use crate::model::{ModelInput, SlowInput, VelocityModel};
+use crate::window::LatencyWindow;
+
+/// Sizes and limits shared by the head and the drivers.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeadSpec {
+    /// Chunk length `H`.
+    pub horizon: usize,
+    /// Action dimension `A`.
+    pub action_dim: usize,
+    /// Fast observation history length.
+    pub n_obs: usize,
+    /// Fast observation width.
+    pub fast_dim: usize,
+    /// Slow feature width (0 = no slow channel).
+    pub slow_dim: usize,
+    /// Control period, ns.
+    pub period: Nanos,
+    /// Largest delay the model was trained for.
+    pub d_max: usize,
+    /// Largest slow-feature age the model was trained for.
+    pub d_vis_max: usize,
+}
+
+/// How the head infers a chunk.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum HeadMode {
+    /// πR²: one denoising step per call on the streaming staircase buffer.
+    PiR2 {
+        /// NFEs per action (`None` = full ramp).
+        nfe: Option<usize>,
+        /// Staircase alignment.
+        alignment: Alignment,
+        /// Front visibility.
+        front: FrontMode,
+        /// Euler steps of the warm start.
+        warm_start_steps: usize,
+    },
+    /// Standard flow from scratch every call (`K` Euler steps, shared `τ`).
+    Flow {
+        /// Euler steps `K`.
+        steps: usize,
+    },
+    /// Train-time RTC: the committed front is given clean (`τ = 1`), the back is
+    /// integrated from noise with one shared `τ` in `K` steps.
+    TrainTimeRtc {
+        /// Euler steps `K`.
+        steps: usize,
+    },
+}
+
+/// Everything a call reads, copied at the snapshot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Snapshot {
+    /// Tick of the snapshot.
+    pub tick: u64,
+    /// Time the newest fast observation was measured.
+    pub t_state: Nanos,
+    /// Fast history `[n_obs, F]`, oldest first.
+    pub fast: Vec<f32>,
+    /// Slow features `[S]`.
+    pub slow: Vec<f32>,
+    /// Capture time of the slow features.
+    pub t_slow: Nanos,
+}
+
+impl Snapshot {
+    /// An empty snapshot with preallocated storage.
+    pub fn new(spec: &HeadSpec) -> Self {
+        Self {
+            tick: 0,
+            t_state: 0,
+            fast: vec![0.0; spec.n_obs * spec.fast_dim],
+            slow: vec![0.0; spec.slow_dim],
+            t_slow: 0,
+        }
+    }
+}
+
+#[derive(Debug)]
+enum State {
+    PiR2 {
+        buf: StreamBuffer,
+        offset: u64,
+        warm_k: usize,
+    },
+    Flow {
+        flow: StandardFlow,
+    },
+    Rtc {
+        steps: usize,
+        prev: Chunk,
+        has_prev: bool,
+    },
+}
+
+/// The action head (see the module docs).
+#[derive(Debug)]
+pub struct ActionHead<M> {
+    model: M,
+    spec: HeadSpec,
+    state: State,
+    window: LatencyWindow,
+    rng: Rng,
+    x: Vec<f32>,
+    tau: Vec<f32>,
+    v: Vec<f32>,
+    eps: Vec<f32>,
+    forced_delay: Option<usize>,
+}
+
+impl<M: VelocityModel> ActionHead<M> {
+    /// Build a head. `window` measures `d`; `seed` drives all noise.
+    pub fn new(
+        model: M,
+        spec: HeadSpec,
+        mode: HeadMode,
+        window: LatencyWindow,
+        seed: u64,
+    ) -> Result<Self> {
+        let (h, a) = (spec.horizon, spec.action_dim);
+        if h == 0 || a == 0 || spec.n_obs == 0 || spec.period == 0 {
+            return Err(Error::Config(format!(
+                "head spec needs positive horizon, action_dim, n_obs and period: {spec:?}"
+            )));
+        }
+        let state = match mode {
+            HeadMode::PiR2 {
+                nfe,
+                alignment,
+                front,
+                warm_start_steps,
+            } => {
+                let cfg = StreamConfig {
+                    horizon: h,
+                    action_dim: a,
+                    nfe,
+                    alignment,
+                    front,
+                    max_delay: spec.d_max,
+                };
+                State::PiR2 {
+                    buf: StreamBuffer::new(cfg, seed)?,
+                    offset: 0,
+                    warm_k: warm_start_steps.max(1),
+                }
+            }
+            HeadMode::Flow { steps } => State::Flow {
+                flow: StandardFlow {
+                    steps: steps.max(1),
+                },
+            },
+            HeadMode::TrainTimeRtc { steps } => {
+                if spec.d_max >= h {
+                    return Err(Error::Config(format!(
+                        "train-time RTC needs d_max < H, got {} >= {h}",
+                        spec.d_max
+                    )));
+                }
+                State::Rtc {
+                    steps: steps.max(1),
+                    prev: Chunk::new(h, a),
+                    has_prev: false,
+                }
+            }
+        };
+        Ok(Self {
+            model,
+            spec,
+            state,
+            window,
+            rng: Rng::derive(seed, 0x4EAD),
+            x: vec![0.0; h * a],
+            tau: vec![0.0; h],
+            v: vec![0.0; h * a],
+            eps: vec![0.0; h * a],
+            forced_delay: None,
+        })
+    }
+
+    /// The spec.
+    pub fn spec(&self) -> &HeadSpec {
+        &self.spec
+    }
+
+    /// The model.
+    pub fn model(&self) -> &M {
+        &self.model
+    }
+
+    /// Record a call latency into the rolling window.
+    pub fn record_latency(&mut self, latency: Nanos) {
+        self.window.push(latency);
+    }
+
+    /// Use a fixed `d` instead of the measured one (lock-step studies pin `d` to the
+    /// paper's effective delay); `None` returns to the window.
+    pub fn force_delay(&mut self, d: Option<usize>) {
+        self.forced_delay = d;
+    }
+
+    /// The delay the next call uses.
+    pub fn delay(&self) -> usize {
+        self.forced_delay
+            .unwrap_or_else(|| self.window.delay())
+            .clamp(1, self.spec.d_max.max(1))
+    }
+
+    fn d_vis(&self, snap: &Snapshot) -> usize {
+        if self.spec.slow_dim == 0 {
+            return 0;
+        }
+        let age = snap.t_state.saturating_sub(snap.t_slow) as f64 / self.spec.period as f64;
+        (age.round() as usize).min(self.spec.d_vis_max)
+    }
+
+    fn eval(
+        model: &mut M,
+        spec: &HeadSpec,
+        snap: &Snapshot,
+        d_vis: u32,
+        x: &[f32],
+        tau: &[f32],
+        v: &mut [f32],
+    ) -> Result<()> {
+        let dv = [d_vis];
+        let input = ModelInput {
+            batch: 1,
+            horizon: spec.horizon,
+            action_dim: spec.action_dim,
+            x,
+            tau,
+            obs_fast: &snap.fast,
+            n_obs: spec.n_obs,
+            fast_dim: spec.fast_dim,
+            slow: if spec.slow_dim == 0 {
+                SlowInput::None
+            } else {
+                SlowInput::Vector {
+                    data: &snap.slow,
+                    dim: spec.slow_dim,
+                }
+            },
+            d_vis: &dv,
+        };
+        model.velocity(&input, v)?;
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(Error::NonFinite { index: i });
+        }
+        Ok(())
+    }
+
+    /// Warm start before the robot moves: a full from-noise inference on `snap`, giving the
+    /// first chunk (slot 0 = `snap.tick`, every slot clean).
+    pub fn warm_start(&mut self, snap: &Snapshot, d0: usize, out: &mut Chunk) -> Result<()> {
+        let d_vis = self.d_vis(snap) as u32;
+        let spec = self.spec;
+        let (model, x, tau, v) = (&mut self.model, &mut self.x, &mut self.tau, &mut self.v);
+        match &mut self.state {
+            State::PiR2 {
+                buf,
+                offset,
+                warm_k,
+            } => {
+                buf.warm_start_with(
+                    d0.clamp(1, spec.d_max.max(1)),
+                    *warm_k,
+                    |xs: &[f32], ts: &[f32], vs: &mut [f32]| {
+                        Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
+                    },
+                )?;
+                *offset = snap.tick - buf.index();
+                out.x.copy_from_slice(buf.xhat());
+                out.xhat.copy_from_slice(buf.xhat());
+                out.clean.fill(true);
+            }
+            State::Flow { .. } | State::Rtc { .. } => {
+                self.rng.fill_normal(x);
+                StandardFlow { steps: 10 }.sample(x, tau, v, |xs, ts, vs| {
+                    Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
+                })?;
+                out.x.copy_from_slice(x);
+                out.xhat.copy_from_slice(x);
+                out.clean.fill(true);
+                if let State::Rtc { prev, has_prev, .. } = &mut self.state {
+                    prev.copy_from(out);
+                    prev.base = snap.tick;
+                    *has_prev = true;
+                }
+            }
+        }
+        out.base = snap.tick;
+        out.snapshot_tick = snap.tick;
+        out.call = CallRecord {
+            tick: snap.tick,
+            latency: 0,
+            d: d0,
+            d_vis: d_vis as usize,
+            elapsed: 0,
+        };
+        Ok(())
+    }
+
+    /// One call on `snap`: writes the new chunk into `out`. The latency is recorded by the
+    /// driver (it owns the clock) through [`record_latency`](Self::record_latency).
+    pub fn call(&mut self, snap: &Snapshot, out: &mut Chunk) -> Result<()> {
+        let d = self.delay();
+        let d_vis = self.d_vis(snap);
+        let spec = self.spec;
+        let (h, a) = (spec.horizon, spec.action_dim);
+        let (model, x, tau, v, eps) = (
+            &mut self.model,
+            &mut self.x,
+            &mut self.tau,
+            &mut self.v,
+            &mut self.eps,
+        );
+        match &mut self.state {
+            State::PiR2 { buf, offset, .. } => {
+                // Slide to the snapshot: everything before `snap.tick` has been executed.
+                let slot0 = *offset + buf.index();
+                let k = (snap.tick.saturating_sub(slot0) as usize).min(h);
+                buf.slide(k)?;
+                *offset = snap.tick - buf.index();
+                buf.plan(d)?;
+                Self::eval(
+                    model,
+                    &spec,
+                    snap,
+                    d_vis as u32,
+                    buf.model_x(),
+                    buf.model_tau(),
+                    v,
+                )?;
+                buf.step(v)?;
+                out.x.copy_from_slice(buf.x());
+                out.xhat.copy_from_slice(buf.xhat());
+                for (c, t) in out.clean.iter_mut().zip(buf.tau()) {
+                    *c = *t >= 1.0;
+                }
+            }
+            State::Flow { flow } => {
+                self.rng.fill_normal(x);
+                flow.sample(x, tau, v, |xs, ts, vs| {
+                    Self::eval(model, &spec, snap, d_vis as u32, xs, ts, vs)
+                })?;
+                out.x.copy_from_slice(x);
+                out.xhat.copy_from_slice(x);
+                out.clean.fill(true);
+            }
+            State::Rtc {
+                steps,
+                prev,
+                has_prev,
+            } => {
+                self.rng.fill_normal(eps);
+                x.copy_from_slice(eps);
+                // The committed front: what the robot executes during this call.
+                let front = d.min(h - 1);
+                for p in 0..front {
+                    let t = snap.tick + p as u64;
+                    let src = if *has_prev { prev.action_at(t) } else { None };
+                    match src {
+                        Some((vals, _)) => x[p * a..(p + 1) * a].copy_from_slice(vals),
+                        None => {
+                            // Past the previous chunk: hold its last slot.
+                            let last = (h - 1) * a;
+                            for j in 0..a {
+                                x[p * a + j] = prev.x[last + j];
+                            }
+                        }
+                    }
+                }
+                let dt = 1.0 / *steps as f32;
+                for i in 0..*steps {
+                    let ti = i as f32 * dt;
+                    for (p, t) in tau.iter_mut().enumerate() {
+                        *t = if p < front { 1.0 } else { ti };
+                    }
+                    Self::eval(model, &spec, snap, d_vis as u32, x, tau, v)?;
+                    for j in front * a..h * a {
+                        x[j] += dt * v[j];
+                    }
+                }
+                out.x.copy_from_slice(x);
+                out.xhat.copy_from_slice(x);
+                out.clean.fill(true);
+                prev.copy_from(out);
+                prev.base = snap.tick;
+                *has_prev = true;
+            }
+        }
+        out.base = snap.tick;
+        out.snapshot_tick = snap.tick;
+        out.call = CallRecord {
+            tick: snap.tick,
+            latency: 0,
+            d,
+            d_vis,
+            elapsed: 0,
+        };
+        if let State::Rtc { prev, .. } = &mut self.state {
+            prev.snapshot_tick = snap.tick;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,218 @@
+//! The lock-step driver: the same state machine as the real-time driver, stepped with a
+//! simulated environment. A call "takes" an injected number of ticks (`d` for the action
+//! head) and the slow channel arrives `d_vis` ticks late, so deployment studies are
+//! deterministic and fast.
+//!
+//! Tick order (identical to the real-time control thread): observe → publish → swap in a
+//! chunk if one is due → start a call if the policy wants one → send one action → step.
+
+use serde::{Deserialize, Serialize};
+
+use crate::chunk::Chunk;
+use crate::control::{ControlConfig, ControlState};
+use crate::error::{Error, Result};
+use crate::head::{ActionHead, Snapshot};
+use crate::io::Environment;
+use crate::metrics::RunMetrics;
+use crate::mode::Mode;
+use crate::model::VelocityModel;
+
+/// Timing injected into a lock-step episode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LockstepTiming {
+    /// Ticks one action-head call takes.
+    pub call_ticks: usize,
+    /// Age of the slow features (pipelined camera latency) in ticks.
+    pub slow_delay: usize,
+    /// Extra ticks added to every `overrun_every`-th call (0 = never), to exercise overruns.
+    pub overrun_ticks: usize,
+    /// Which calls overrun (every n-th; 0 = none).
+    pub overrun_every: usize,
+    /// Pin the head's `d` to `call_ticks` (studies) instead of measuring it with the window.
+    pub pin_delay: bool,
+}
+
+impl LockstepTiming {
+    /// The paper's timing for `mode` at unit delay `d0`.
+    pub fn for_mode(mode: &Mode, d0: usize) -> Self {
+        let e = mode.effective_delays(d0);
+        Self {
+            call_ticks: e.d,
+            slow_delay: e.d_vis,
+            overrun_ticks: 0,
+            overrun_every: 0,
+            pin_delay: true,
+        }
+    }
+}
+
+/// Result of one episode.
+#[derive(Debug, Clone)]
+pub struct EpisodeResult {
+    /// The task succeeded.
+    pub success: bool,
+    /// Control steps run.
+    pub steps: usize,
+    /// Sum of rewards.
+    pub reward: f64,
+    /// The run's metrics.
+    pub metrics: RunMetrics,
+}
+
+/// Reusable buffers of the lock-step driver.
+#[derive(Debug)]
+pub struct LockstepDriver {
+    fast_hist: Vec<f32>,
+    slow_hist: Vec<f32>,
+    obs_fast: Vec<f32>,
+    obs_slow: Vec<f32>,
+    snap: Snapshot,
+    pending: Chunk,
+    spare: Chunk,
+}
+
+impl LockstepDriver {
+    /// Buffers for a head of this spec.
+    pub fn new<M: VelocityModel>(head: &ActionHead<M>) -> Self {
+        let s = head.spec();
+        Self {
+            fast_hist: Vec::new(),
+            slow_hist: Vec::new(),
+            obs_fast: vec![0.0; s.fast_dim],
+            obs_slow: vec![0.0; s.slow_dim],
+            snap: Snapshot::new(s),
+            pending: Chunk::new(s.horizon, s.action_dim),
+            spare: Chunk::new(s.horizon, s.action_dim),
+        }
+    }
+
+    /// Run one episode of `env` (reset with `seed`) under `mode`'s control policy with the
+    /// injected `timing`. With `timing.pin_delay` the head's `d` is pinned to
+    /// `timing.call_ticks` (the measured window gives the same value at steady state;
+    /// pinning makes a study independent of warm-up); otherwise the window measures it.
+    pub fn run_episode<M: VelocityModel, E: Environment + ?Sized>(
+        &mut self,
+        env: &mut E,
+        head: &mut ActionHead<M>,
+        mode: &Mode,
+        timing: LockstepTiming,
+        seed: u64,
+        mut on_tick: impl FnMut(u64, &[f32]),
+    ) -> Result<EpisodeResult> {
+        let spec = *head.spec();
+        let es = env.spec();
+        if es.fast_dim != spec.fast_dim
+            || es.slow_dim != spec.slow_dim
+            || es.action_dim != spec.action_dim
+        {
+            return Err(Error::shape(
+                "environment (fast, slow, action) dims vs model",
+                (spec.fast_dim, spec.slow_dim, spec.action_dim),
+                (es.fast_dim, es.slow_dim, es.action_dim),
+            ));
+        }
+        if es.control_period != spec.period {
+            return Err(Error::Config(format!(
+                "environment control period {} ns differs from the head's {} ns",
+                es.control_period, spec.period
+            )));
+        }
+        let period = spec.period;
+        // `call_ticks = 0` simulates zero inference latency: the chunk is swapped in within
+        // the tick of its snapshot (the horizon study); `d` is still at least 1.
+        let call_ticks = timing.call_ticks;
+        if timing.pin_delay {
+            head.force_delay(Some(call_ticks.clamp(1, spec.d_max.max(1))));
+        }
+        let mut control = ControlState::new(ControlConfig {
+            horizon: spec.horizon,
+            action_dim: spec.action_dim,
+            policy: mode.call_policy(),
+            ensemble: mode.ensemble(),
+            output: Default::default(),
+        })?;
+        env.reset(seed);
+        let (f, s, n_obs) = (spec.fast_dim, spec.slow_dim, spec.n_obs);
+        // Histories: fast keeps n_obs frames; slow keeps slow_delay + 1 frames.
+        let slow_keep = timing.slow_delay + 1;
+        self.fast_hist.clear();
+        self.fast_hist.resize(n_obs * f, 0.0);
+        self.slow_hist.clear();
+        self.slow_hist.resize(slow_keep * s, 0.0);
+        let mut due: Option<u64> = None;
+        let mut calls = 0usize;
+        let mut reward = 0.0f64;
+        let mut result = EpisodeResult {
+            success: false,
+            steps: 0,
+            reward: 0.0,
+            metrics: RunMetrics::default(),
+        };
+        for t in 0..es.max_steps as u64 {
+            env.observe(&mut self.obs_fast, &mut self.obs_slow);
+            if t == 0 {
+                for k in 0..n_obs {
+                    self.fast_hist[k * f..(k + 1) * f].copy_from_slice(&self.obs_fast);
+                }
+                for k in 0..slow_keep {
+                    self.slow_hist[k * s..(k + 1) * s].copy_from_slice(&self.obs_slow);
+                }
+            } else {
+                self.fast_hist.copy_within(f.., 0);
+                self.fast_hist[(n_obs - 1) * f..].copy_from_slice(&self.obs_fast);
+                self.slow_hist.copy_within(s.., 0);
+                self.slow_hist[(slow_keep - 1) * s..].copy_from_slice(&self.obs_slow);
+            }
+            // Snapshot content for a call at this tick.
+            let fill_snapshot = |snap: &mut Snapshot, fast_hist: &[f32], slow_hist: &[f32]| {
+                snap.tick = t;
+                snap.t_state = t * period;
+                snap.fast.copy_from_slice(fast_hist);
+                // Oldest kept frame = captured slow_delay ticks ago (clamped at episode start).
+                snap.slow.copy_from_slice(&slow_hist[..s]);
+                snap.t_slow = t.saturating_sub(timing.slow_delay as u64) * period;
+            };
+            if t == 0 {
+                fill_snapshot(&mut self.snap, &self.fast_hist, &self.slow_hist);
+                head.warm_start(&self.snap, call_ticks.max(1), &mut self.spare)?;
+                control.deliver(&mut self.spare);
+            }
+            if due == Some(t) {
+                control.deliver(&mut self.pending);
+                due = None;
+            }
+            if due.is_none() && control.wants_call() {
+                fill_snapshot(&mut self.snap, &self.fast_hist, &self.slow_hist);
+                control.call_started();
+                head.call(&self.snap, &mut self.pending)?;
+                calls += 1;
+                let extra = if timing.overrun_every > 0 && calls % timing.overrun_every == 0 {
+                    timing.overrun_ticks
+                } else {
+                    0
+                };
+                let ticks = call_ticks + extra;
+                self.pending.call.latency = ticks as u64 * period;
+                head.record_latency(ticks as u64 * period);
+                due = Some(t + ticks as u64);
+                if ticks == 0 {
+                    control.deliver(&mut self.pending);
+                    due = None;
+                }
+            }
+            let action = control.action();
+            on_tick(t, action);
+            let st = env.step(action);
+            reward += st.reward as f64;
+            result.steps = t as usize + 1;
+            if st.done {
+                result.success = st.success;
+                break;
+            }
+        }
+        head.force_delay(None);
+        result.reward = reward;
+        result.metrics = std::mem::take(&mut control.metrics);
+        Ok(result)
+    }
+}

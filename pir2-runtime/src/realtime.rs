@@ -1,0 +1,499 @@
+//! The real-time driver: a control thread at `T_ctrl` (deadline-based sleep, no drift), an
+//! action worker, and an optional slow worker — the same state machine as the lock-step
+//! driver.
+//!
+//! ```text
+//!  control thread (every T_ctrl)          action worker                 slow worker
+//!  read fast obs ─ publish ─────────────► snapshot (fast + slow cache)  capture → encode
+//!  swap in delivered chunk ◄───────────── one call (1 NFE for πR²)      replace cache
+//!  send one action                        push latency → d              (features, t_capture)
+//! ```
+//!
+//! The control step neither allocates nor blocks: the observation is published with
+//! `try_lock` (if the worker is copying, this tick's frame is skipped; the worker reads the
+//! next one), and chunks are handed over by swapping preallocated storage.
+
+use std::future::Future;
+use std::pin::pin;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::task::{Context, Poll, Wake, Waker};
+use std::time::Duration;
+
+use crate::chunk::Chunk;
+use crate::clock::{Clock, Nanos};
+use crate::control::{ControlConfig, ControlState};
+use crate::error::{Error, Result};
+use crate::head::{ActionHead, Snapshot};
+use crate::io::{Actuator, FastSource, SlowEncoder, SlowFeatures, SlowSource};
+use crate::metrics::RunMetrics;
+use crate::model::VelocityModel;
+
+/// Run a future to completion on the current thread (the slow channel's async traits need
+/// no runtime beyond this: a source or encoder may block or await its own I/O).
+pub fn block_on<F: Future>(fut: F) -> F::Output {
+    struct ThreadWaker(std::thread::Thread);
+    impl Wake for ThreadWaker {
+        fn wake(self: Arc<Self>) {
+            self.0.unpark();
+        }
+    }
+    let waker = Waker::from(Arc::new(ThreadWaker(std::thread::current())));
+    let mut cx = Context::from_waker(&waker);
+    let mut fut = pin!(fut);
+    loop {
+        match fut.as_mut().poll(&mut cx) {
+            Poll::Ready(v) => return v,
+            Poll::Pending => std::thread::park(),
+        }
+    }
+}
+
+/// Where the slow features come from.
+pub enum SlowChannel {
+    /// The model takes no slow input.
+    None,
+    /// A slow worker thread captures and encodes continuously; calls read its cache.
+    Async {
+        /// Camera/prompt source.
+        source: Box<dyn SlowSource>,
+        /// Backbone.
+        encoder: Box<dyn SlowEncoder>,
+    },
+    /// Each call captures and encodes first (πR² without async); its time counts in `d`.
+    Inline {
+        /// Camera/prompt source.
+        source: Box<dyn SlowSource>,
+        /// Backbone.
+        encoder: Box<dyn SlowEncoder>,
+    },
+}
+
+impl std::fmt::Debug for SlowChannel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            SlowChannel::None => "SlowChannel::None",
+            SlowChannel::Async { .. } => "SlowChannel::Async",
+            SlowChannel::Inline { .. } => "SlowChannel::Inline",
+        })
+    }
+}
+
+/// Real-time run settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RealtimeConfig {
+    /// Control period `T_ctrl`, ns.
+    pub period: Nanos,
+    /// Stop after this many ticks (`None` = until the stop flag is set).
+    pub max_ticks: Option<u64>,
+    /// Delay assumed by the warm start.
+    pub initial_delay: usize,
+    /// How long to wait for the first slow features before giving up.
+    pub slow_timeout: Duration,
+}
+
+impl Default for RealtimeConfig {
+    fn default() -> Self {
+        Self {
+            period: 20_000_000,
+            max_ticks: None,
+            initial_delay: 1,
+            slow_timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+struct FastMail {
+    seq: u64,
+    tick: u64,
+    t_state: Nanos,
+    hist: Vec<f32>,
+}
+
+struct ChunkMail {
+    full: bool,
+    chunk: Chunk,
+}
+
+/// State shared between the control thread and the workers.
+pub struct Shared {
+    fast: Mutex<FastMail>,
+    fast_cv: Condvar,
+    chunk: Mutex<ChunkMail>,
+    slow: Mutex<SlowFeatures>,
+    slow_seen: AtomicBool,
+    wants_call: AtomicBool,
+    call_started: AtomicU64,
+    stop: AtomicBool,
+    error: Mutex<Option<Error>>,
+}
+
+impl std::fmt::Debug for Shared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Shared")
+            .field("stop", &self.stop.load(Ordering::Relaxed))
+            .finish_non_exhaustive()
+    }
+}
+
+impl Shared {
+    /// Shared state for a control loop with these sizes.
+    pub fn new(n_obs: usize, fast_dim: usize, horizon: usize, action_dim: usize) -> Arc<Self> {
+        Arc::new(Self {
+            fast: Mutex::new(FastMail {
+                seq: 0,
+                tick: 0,
+                t_state: 0,
+                hist: vec![0.0; n_obs * fast_dim],
+            }),
+            fast_cv: Condvar::new(),
+            chunk: Mutex::new(ChunkMail {
+                full: false,
+                chunk: Chunk::new(horizon, action_dim),
+            }),
+            slow: Mutex::new(SlowFeatures::default()),
+            slow_seen: AtomicBool::new(false),
+            wants_call: AtomicBool::new(true),
+            call_started: AtomicU64::new(0),
+            stop: AtomicBool::new(false),
+            error: Mutex::new(None),
+        })
+    }
+
+    fn fail(&self, e: Error) {
+        let mut g = self.error.lock().unwrap_or_else(|p| p.into_inner());
+        if g.is_none() {
+            *g = Some(e);
+        }
+        self.stop.store(true, Ordering::SeqCst);
+        self.fast_cv.notify_all();
+    }
+}
+
+/// The control thread's side: history, the control state, and the per-tick step.
+#[derive(Debug)]
+pub struct ControlLoop {
+    /// The control state (metrics live in `control.metrics`).
+    pub control: ControlState,
+    hist: Vec<f32>,
+    obs: Vec<f32>,
+    n_obs: usize,
+    started_seen: u64,
+}
+
+impl ControlLoop {
+    /// A control loop with `n_obs × fast_dim` history.
+    pub fn new(control: ControlState, n_obs: usize, fast_dim: usize) -> Self {
+        Self {
+            control,
+            hist: vec![0.0; n_obs * fast_dim],
+            obs: vec![0.0; fast_dim],
+            n_obs,
+            started_seen: 0,
+        }
+    }
+
+    /// Fill the whole history with one observation (before the first tick).
+    pub fn prime(&mut self, obs: &[f32]) {
+        let f = self.obs.len();
+        for k in 0..self.n_obs {
+            self.hist[k * f..(k + 1) * f].copy_from_slice(obs);
+        }
+    }
+
+    /// The fast history, oldest first.
+    pub fn history(&self) -> &[f32] {
+        &self.hist
+    }
+
+    /// One control tick at time `now`: read, publish, swap, send. No allocation, no
+    /// blocking lock.
+    pub fn tick<F: FastSource + ?Sized, A: Actuator + ?Sized>(
+        &mut self,
+        shared: &Shared,
+        fast: &mut F,
+        act: &mut A,
+    ) -> Result<()> {
+        let t_state = fast.read(&mut self.obs)?;
+        let f = self.obs.len();
+        self.hist.copy_within(f.., 0);
+        self.hist[(self.n_obs - 1) * f..].copy_from_slice(&self.obs);
+        let tick = self.control.tick();
+        if let Ok(mut m) = shared.fast.try_lock() {
+            m.hist.copy_from_slice(&self.hist);
+            m.tick = tick;
+            m.t_state = t_state;
+            m.seq += 1;
+            drop(m);
+            shared.fast_cv.notify_one();
+        }
+        let started = shared.call_started.load(Ordering::Acquire);
+        if started != self.started_seen {
+            self.started_seen = started;
+            self.control.call_started();
+        }
+        if let Ok(mut m) = shared.chunk.try_lock() {
+            if m.full {
+                self.control.deliver(&mut m.chunk);
+                m.full = false;
+            }
+        }
+        let action = self.control.action();
+        act.send(action)?;
+        shared
+            .wants_call
+            .store(self.control.wants_call(), Ordering::Release);
+        Ok(())
+    }
+}
+
+fn slow_worker(
+    shared: &Shared,
+    mut source: Box<dyn SlowSource>,
+    mut encoder: Box<dyn SlowEncoder>,
+) {
+    while !shared.stop.load(Ordering::Acquire) {
+        let r = block_on(async {
+            let frame = source.capture().await?;
+            encoder.encode(frame).await
+        });
+        match r {
+            Ok(mut feats) => {
+                let mut g = shared.slow.lock().unwrap_or_else(|p| p.into_inner());
+                std::mem::swap(&mut *g, &mut feats);
+                shared.slow_seen.store(true, Ordering::Release);
+            }
+            Err(e) => {
+                shared.fail(e);
+                return;
+            }
+        }
+    }
+}
+
+fn copy_slow(dst: &mut Snapshot, feats: &SlowFeatures, slow_dim: usize) -> Result<()> {
+    if feats.data.len() != slow_dim {
+        return Err(Error::shape("slow features", slow_dim, feats.data.len()));
+    }
+    dst.slow.copy_from_slice(&feats.data);
+    dst.t_slow = feats.t_capture;
+    Ok(())
+}
+
+fn action_worker<M: VelocityModel>(
+    shared: &Shared,
+    head: &mut ActionHead<M>,
+    clock: &dyn Clock,
+    mut inline: Option<(Box<dyn SlowSource>, Box<dyn SlowEncoder>)>,
+) -> Result<()> {
+    let spec = *head.spec();
+    let mut snap = Snapshot::new(&spec);
+    let mut out = Chunk::new(spec.horizon, spec.action_dim);
+    let mut last_seq = 0;
+    let mut n_calls = 0u64;
+    loop {
+        {
+            let mut m = shared.fast.lock().unwrap_or_else(|p| p.into_inner());
+            loop {
+                if shared.stop.load(Ordering::Acquire) {
+                    return Ok(());
+                }
+                if m.seq != last_seq && shared.wants_call.load(Ordering::Acquire) {
+                    break;
+                }
+                m = shared
+                    .fast_cv
+                    .wait_timeout(m, Duration::from_millis(5))
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0;
+            }
+            last_seq = m.seq;
+            snap.tick = m.tick;
+            snap.t_state = m.t_state;
+            snap.fast.copy_from_slice(&m.hist);
+        }
+        n_calls += 1;
+        shared.call_started.store(n_calls, Ordering::Release);
+        let t0 = clock.now();
+        if spec.slow_dim > 0 {
+            if let Some((source, encoder)) = inline.as_mut() {
+                let feats = block_on(async {
+                    let frame = source.capture().await?;
+                    encoder.encode(frame).await
+                })?;
+                copy_slow(&mut snap, &feats, spec.slow_dim)?;
+            } else {
+                let g = shared.slow.lock().unwrap_or_else(|p| p.into_inner());
+                copy_slow(&mut snap, &g, spec.slow_dim)?;
+            }
+        }
+        head.call(&snap, &mut out)?;
+        let latency = clock.now().saturating_sub(t0);
+        head.record_latency(latency);
+        out.call.latency = latency;
+        let mut m = shared.chunk.lock().unwrap_or_else(|p| p.into_inner());
+        std::mem::swap(&mut m.chunk, &mut out);
+        m.full = true;
+    }
+}
+
+/// Run the real-time driver until `max_ticks` or until `stop` is set. The robot is stopped
+/// (actuator `stop`) on every exit path. Returns the run's metrics; the first error of any
+/// thread is returned instead (after the safe stop).
+#[allow(clippy::too_many_arguments)]
+pub fn run<M, F, A>(
+    mut head: ActionHead<M>,
+    control: ControlConfig,
+    mut fast: F,
+    mut actuator: A,
+    slow: SlowChannel,
+    clock: Arc<dyn Clock>,
+    cfg: RealtimeConfig,
+    stop: Arc<AtomicBool>,
+) -> Result<(RunMetrics, ActionHead<M>)>
+where
+    M: VelocityModel,
+    F: FastSource,
+    A: Actuator,
+{
+    let spec = *head.spec();
+    if fast.dim() != spec.fast_dim {
+        return Err(Error::shape("fast source dim", spec.fast_dim, fast.dim()));
+    }
+    if actuator.dim() != spec.action_dim {
+        return Err(Error::shape(
+            "actuator dim",
+            spec.action_dim,
+            actuator.dim(),
+        ));
+    }
+    if cfg.period != spec.period {
+        return Err(Error::Config(format!(
+            "realtime period {} ns != head period {} ns",
+            cfg.period, spec.period
+        )));
+    }
+    let shared = Shared::new(spec.n_obs, spec.fast_dim, spec.horizon, spec.action_dim);
+    let mut lp = ControlLoop::new(ControlState::new(control)?, spec.n_obs, spec.fast_dim);
+    let (slow_async, mut slow_inline) = match slow {
+        SlowChannel::None => (None, None),
+        SlowChannel::Async { source, encoder } => (Some((source, encoder)), None),
+        SlowChannel::Inline { source, encoder } => (None, Some((source, encoder))),
+    };
+    if spec.slow_dim > 0 && slow_async.is_none() && slow_inline.is_none() {
+        return Err(Error::Config(format!(
+            "the model takes {} slow features but no slow channel is given",
+            spec.slow_dim
+        )));
+    }
+
+    let result = std::thread::scope(|s| -> Result<RunMetrics> {
+        let slow_handle = slow_async.map(|(src, enc)| {
+            let sh = &shared;
+            s.spawn(move || slow_worker(sh, src, enc))
+        });
+        // Warm start (before the robot moves): the first observation and slow features.
+        let warm = (|| -> Result<Chunk> {
+            let mut obs = vec![0.0; spec.fast_dim];
+            let t_state = fast.read(&mut obs)?;
+            lp.prime(&obs);
+            let mut snap = Snapshot::new(&spec);
+            snap.fast.copy_from_slice(lp.history());
+            snap.t_state = t_state;
+            if spec.slow_dim > 0 {
+                if let Some((source, encoder)) = slow_inline.as_mut() {
+                    let feats = block_on(async {
+                        let frame = source.capture().await?;
+                        encoder.encode(frame).await
+                    })?;
+                    copy_slow(&mut snap, &feats, spec.slow_dim)?;
+                } else {
+                    let t_wait = clock.now();
+                    while !shared.slow_seen.load(Ordering::Acquire) {
+                        if shared.stop.load(Ordering::Acquire) {
+                            return Err(shared
+                                .error
+                                .lock()
+                                .unwrap()
+                                .take()
+                                .unwrap_or(Error::WorkerStopped("slow")));
+                        }
+                        if clock.now() - t_wait > cfg.slow_timeout.as_nanos() as Nanos {
+                            return Err(Error::io(
+                                "slow channel",
+                                "no features before the timeout",
+                            ));
+                        }
+                        std::thread::sleep(Duration::from_millis(1));
+                    }
+                    copy_slow(&mut snap, &shared.slow.lock().unwrap(), spec.slow_dim)?;
+                }
+            }
+            let mut first = Chunk::new(spec.horizon, spec.action_dim);
+            head.warm_start(&snap, cfg.initial_delay, &mut first)?;
+            Ok(first)
+        })();
+        let mut first = match warm {
+            Ok(c) => c,
+            Err(e) => {
+                shared.stop.store(true, Ordering::SeqCst);
+                return Err(e);
+            }
+        };
+        lp.control.deliver(&mut first);
+        let head_ref = &mut head;
+        let clock_ref: &dyn Clock = &*clock;
+        let sh = &shared;
+        let worker = s.spawn(move || {
+            if let Err(e) = action_worker(sh, head_ref, clock_ref, slow_inline) {
+                sh.fail(e);
+            }
+        });
+
+        let start = clock.now();
+        let mut tick = 0u64;
+        loop {
+            if stop.load(Ordering::Acquire) || shared.stop.load(Ordering::Acquire) {
+                break;
+            }
+            if cfg.max_ticks.is_some_and(|m| tick >= m) {
+                break;
+            }
+            let deadline = start + tick * cfg.period;
+            clock.sleep_until(deadline);
+            let now = clock.now();
+            lp.control
+                .metrics
+                .tick_jitter
+                .record(now.saturating_sub(deadline));
+            if let Err(e) = lp.tick(&shared, &mut fast, &mut actuator) {
+                shared.fail(e);
+                break;
+            }
+            lp.control
+                .metrics
+                .tick_overhead
+                .record(clock.now().saturating_sub(now));
+            tick += 1;
+        }
+        shared.stop.store(true, Ordering::SeqCst);
+        shared.fast_cv.notify_all();
+        let _ = worker.join();
+        if let Some(h) = slow_handle {
+            let _ = h.join();
+        }
+        Ok(std::mem::take(&mut lp.control.metrics))
+    });
+    let stop_result = actuator.stop();
+    let metrics = result?;
+    if let Some(e) = shared
+        .error
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .take()
+    {
+        return Err(e);
+    }
+    stop_result?;
+    Ok((metrics, head))
+}
