@@ -9,10 +9,15 @@
 //! in `[−1, 1]` allows), and keeps the cheapest. The action sent is
 //! `a = clamp((u − target)/action_scale, −1, 1)` for the plan's target `u` now.
 //!
-//! Cost per control step: `w_orientation ·` orientation error to the nearest goal
-//! + `w_position · ‖cube − grasp site‖` + a steep penalty once the cube's horizontal
-//! distance from the grasp site exceeds `disc_radius` + `w_drop` once the cube is 5 cm below
-//! the grasp site + `w_control · Σ Δtarget²`; plus `w_terminal ·` orientation error at the end.
+//! Cost per control step, summed over the horizon:
+//! * `w_orientation ·` orientation error to the nearest goal,
+//! * `w_position · ‖cube − grasp site‖`,
+//! * `w_disc · (e + 100·e²)` where `e` is how far the cube's horizontal distance from the
+//!   grasp site exceeds `disc_radius` (keeps it from rolling off the palm),
+//! * `w_drop` once the cube is 5 cm below the grasp site,
+//! * `w_control · Σ Δtarget²`;
+//!
+//! plus `w_terminal ·` the orientation error at the end of the horizon.
 //!
 //! Rollouts run on `threads` scoped threads, one `MjData` each. Perturbations are drawn on
 //! the calling thread from a seeded [`Rng`] and every rollout starts from a full copy of the
