@@ -41,6 +41,7 @@ fn main() -> anyhow::Result<()> {
     let model = LeapModel::load(None)?;
     println!("config: {:?}", cfg);
     let t0 = Instant::now();
+    let cpu0 = process_cpu_seconds().unwrap_or(0.0);
     let (mut done, mut wins, mut steps) = (0usize, 0usize, 0usize);
     let mut win_steps = Vec::new();
     let eps = collect(&model, &cfg, start..start + episodes, |ep| {
@@ -63,17 +64,31 @@ fn main() -> anyhow::Result<()> {
         );
     })?;
     let dt = t0.elapsed().as_secs_f64();
+    let cpu = process_cpu_seconds().map_or(f64::NAN, |c| c - cpu0);
     win_steps.sort_unstable();
     let median = win_steps.get(win_steps.len() / 2).copied().unwrap_or(0);
     println!(
-        "RESULT success {}/{} = {:.3}; median steps to success {}; {} control steps in {:.1} s = {:.1} steps/s",
+        "RESULT success {}/{} = {:.3}; median steps to success {}; {} control steps in {:.1} s wall = {:.1} steps/s; {:.1} CPU-s = {:.1} steps per CPU-second",
         wins,
         eps.len(),
         wins as f64 / eps.len().max(1) as f64,
         median,
         steps,
         dt,
-        steps as f64 / dt
+        steps as f64 / dt,
+        cpu,
+        steps as f64 / cpu
     );
     Ok(())
+}
+
+/// CPU seconds used by this process so far (user + system, all threads), from
+/// `/proc/self/stat` (Linux; assumes the usual 100 clock ticks per second). On a shared
+/// machine this measures the work done, not the share of the CPU we happened to get.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }

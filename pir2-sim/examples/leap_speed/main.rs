@@ -33,6 +33,7 @@ fn main() -> anyhow::Result<()> {
             let mut episodes = 0u64;
             env.reset(0);
             let t0 = Instant::now();
+            let cpu0 = process_cpu_seconds().unwrap_or(0.0);
             for _ in 0..steps {
                 env.observe(&mut fast, &mut slow);
                 if random {
@@ -46,13 +47,26 @@ fn main() -> anyhow::Result<()> {
                 }
             }
             let dt = t0.elapsed().as_secs_f64();
+            let cpu = process_cpu_seconds().map_or(f64::NAN, |c| c - cpu0);
             println!(
-                "{name:17} {:6} actions: {steps} control steps in {dt:.2} s = {:8.0} control steps/s ({:8.0} mj_step/s), {episodes} episodes ended",
+                "{name:17} {:6} actions: {steps} control steps, {dt:.2} s wall = {:6.0} steps/s; {cpu:.2} CPU-s = {:6.0} control steps per CPU-s ({:6.0} mj_step per CPU-s); {episodes} episodes ended",
                 if random { "random" } else { "zero" },
                 steps as f64 / dt,
-                (steps * env.substeps()) as f64 / dt,
+                steps as f64 / cpu,
+                (steps * env.substeps()) as f64 / cpu,
             );
         }
     }
     Ok(())
+}
+
+/// CPU seconds used by this process so far (user + system, all threads), from
+/// `/proc/self/stat` (Linux; assumes the usual 100 clock ticks per second). On a shared
+/// machine this measures the work done, not the share of the CPU we happened to get.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }
