@@ -416,3 +416,16 @@ fn collect_records_frames_and_resumes_by_episode_index() {
         }
     }
 }
+
+#[test]
+fn env_and_expert_can_move_to_a_worker_thread() {
+    fn assert_send<T: Send>() {}
+    assert_send::<LeapCubeEnv>();
+    assert_send::<MpcExpert>();
+    let mut e = env(LeapConfig::paper());
+    let h = std::thread::spawn(move || {
+        e.reset(1);
+        e.step(&[0.0; NU])
+    });
+    assert!(!h.join().unwrap().done);
+}

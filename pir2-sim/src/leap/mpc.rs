@@ -117,6 +117,7 @@ pub struct MpcExpert {
     rng: Rng,
     state: Vec<f64>,
     nominal: Vec<f64>,
+    shifted: Vec<f64>,
     plans: Vec<f64>,
     costs: Vec<f64>,
     elapsed: usize,
@@ -205,6 +206,7 @@ impl MpcExpert {
             rng: Rng::new(seed),
             state: vec![0.0; model.model.state_size(STATE_SPEC)],
             nominal: vec![0.0; plan_len],
+            shifted: vec![0.0; plan_len],
             plans: vec![0.0; cfg.samples * plan_len],
             costs: vec![0.0; cfg.samples],
             elapsed: 0,
@@ -243,7 +245,7 @@ impl MpcExpert {
         let k = self.cfg.knots;
         if !self.planned || self.elapsed >= self.cfg.replan_every {
             // Warm start: the nominal plan shifted by the steps executed since it was made.
-            let mut shifted = vec![0.0; k * NU];
+            let mut shifted = std::mem::take(&mut self.shifted);
             let mut v = [0.0; NU];
             for j in 0..k {
                 let t = j as f64 * span / (k - 1) as f64 + self.elapsed as f64 * ctrl_dt;
@@ -251,6 +253,7 @@ impl MpcExpert {
                 shifted[j * NU..(j + 1) * NU].copy_from_slice(&v);
             }
             self.plan(env, &shifted);
+            self.shifted = shifted;
             self.elapsed = 0;
             self.planned = true;
         }
