@@ -288,7 +288,7 @@ impl LeapCubeEnv {
             || self.data.qvel().iter().any(|v| v.is_nan())
     }
 
-    /// Write the observation and return nothing; see the module docs for the layout.
+    /// Write one noisy observation into `fast`/`slow`; see the module docs for the layout.
     fn write_obs(&mut self, fast: &mut [f32], slow: &mut [f32]) {
         let n = self.cfg.noise;
         let q = self.hand_q();
