@@ -53,19 +53,30 @@ pub fn schedule() -> Result<String> {
 /// Runtime overhead and jitter at 50 Hz and 500 Hz with a fake model.
 pub fn runtime(seconds: f64) -> Result<String> {
     let mut out = String::from(
-        "runtime: real-time driver, fake 18-DoF robot, fake model (1 ms/call), H = 16\n",
+        "runtime: real-time driver, fake 18-DoF robot, fake model (1 ms/call at 50 Hz, 0.3 ms at 500 Hz), H = 16\n",
     );
-    out += "  rate    ticks  overhead p50/p99 (µs)  jitter p50/p99 (µs)  overruns\n";
-    for rate in [50.0, 500.0] {
+    out += "  rate    priority      ticks  overhead p50/p99 (µs)  jitter p50/p99 (µs)  overruns\n";
+    for (rate, prio) in [
+        (50.0, None),
+        (50.0, Some(80)),
+        (500.0, None),
+        (500.0, Some(80)),
+    ] {
         let lat = if rate > 100.0 {
             Duration::from_micros(300)
         } else {
             Duration::from_millis(1)
         };
-        let b = pir2_runtime::bench::run_bench(rate, seconds, lat)?;
+        let b = pir2_runtime::bench::run_bench(rate, seconds, lat, prio)?;
+        let p = match (prio, b.events.is_empty()) {
+            (None, _) => "normal".to_string(),
+            (Some(p), true) => format!("SCHED_FIFO {p}"),
+            (Some(_), false) => "FIFO refused".to_string(),
+        };
         out += &format!(
-            "  {:>4} Hz {:>6}  {:>8.1} / {:<8.1}        {:>7.1} / {:<8.1}    {}\n",
+            "  {:>4} Hz {:<13} {:>6}  {:>8.1} / {:<8.1}        {:>7.1} / {:<8.1}    {}\n",
             rate,
+            p,
             b.ticks,
             b.overhead.p50 as f64 / 1e3,
             b.overhead.p99 as f64 / 1e3,

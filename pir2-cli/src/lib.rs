@@ -4,5 +4,6 @@
 //! through the lock-step runtime, plots, and benchmarks. `main.rs` is a thin argument parser.
 
 pub mod bench;
+pub mod demo;
 pub mod plot;
 pub mod study;

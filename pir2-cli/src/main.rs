@@ -1,21 +1,128 @@
 //! The `pir2` binary: a thin argument parser over `pir2_cli`.
 
-use anyhow::Result;
-use clap::{Parser, Subcommand};
+use std::net::{IpAddr, SocketAddr};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand, ValueEnum};
+
+use pir2_cli::demo::{self, DemoConfig, Policy};
 
 #[derive(Parser, Debug)]
-#[command(
-    name = "pir2",
-    version,
-    about = "Reactive real-time flow policies (πR²)"
-)]
+#[command(name = "pir2", version, about = "Reactive real-time flow policies (πR²)")]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
 }
 
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum PolicyArg {
+    Pir2,
+    Pir2Hidden,
+    Pir2Full,
+    Rtc,
+    Flow,
+}
+
+impl From<PolicyArg> for Policy {
+    fn from(p: PolicyArg) -> Self {
+        match p {
+            PolicyArg::Pir2 => Policy::PiR2,
+            PolicyArg::Pir2Hidden => Policy::PiR2Hidden,
+            PolicyArg::Pir2Full => Policy::PiR2Full,
+            PolicyArg::Rtc => Policy::Rtc,
+            PolicyArg::Flow => Policy::Flow,
+        }
+    }
+}
+
 #[derive(Subcommand, Debug)]
 enum Cmd {
+    /// The embedded default end to end: collect → train → evaluate every deployment mode.
+    Demo {
+        /// A smaller, faster run.
+        #[arg(long)]
+        quick: bool,
+        /// TOML config (fields of `DemoConfig`); flags override it.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Output directory (must not exist or be empty; default: runs/demo-<time>).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Test episodes per cell.
+        #[arg(long)]
+        episodes: Option<usize>,
+    },
+    /// Collect expert demonstrations into a LeRobotDataset v3.0 directory.
+    Collect {
+        /// The task.
+        #[arg(value_parser = ["ballplate"], default_value = "ballplate")]
+        task: String,
+        /// Dataset directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Episodes to keep.
+        #[arg(long, default_value_t = 200)]
+        episodes: usize,
+        /// Seed.
+        #[arg(long, default_value_t = 7)]
+        seed: u64,
+        /// Append the missing episodes to an existing dataset.
+        #[arg(long, conflicts_with = "overwrite")]
+        resume: bool,
+        /// Replace an existing dataset.
+        #[arg(long)]
+        overwrite: bool,
+    },
+    /// Train one policy (candle MLP) on a dataset; the checkpoint is picked in closed loop.
+    Train {
+        /// Dataset directory (LeRobotDataset v3.0).
+        #[arg(long)]
+        data: PathBuf,
+        /// Which policy.
+        #[arg(long, value_enum)]
+        policy: PolicyArg,
+        /// Checkpoint directory (must not exist).
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML config (fields of `DemoConfig`: steps, lr, nfe, ...).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Evaluate a checkpoint in every mode that fits it, at each unit delay.
+    Eval {
+        /// Checkpoint directory.
+        #[arg(long)]
+        checkpoint: PathBuf,
+        /// Which policy the checkpoint is.
+        #[arg(long, value_enum)]
+        policy: PolicyArg,
+        /// Unit delays.
+        #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
+        d0: Vec<usize>,
+        /// Episodes per cell.
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+        /// Seed of the evaluation episodes.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Write the cells as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Plot a demo result (`result.json`) or a run trace (`trace.json`) to PNG.
+    Plot {
+        /// Input JSON.
+        input: PathBuf,
+        /// Output PNG (default: next to the input).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Benchmarks printed side by side (schedule, runtime).
     Bench {
         /// What to measure.
@@ -25,11 +132,148 @@ enum Cmd {
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
     },
+    /// Robot tools: check a connection, run the emulators.
+    Robot {
+        #[command(subcommand)]
+        cmd: RobotCmd,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum RobotCmd {
+    /// Connect, read state, report.
+    Check {
+        /// xArm controller address (command port 502 unless given as host:port).
+        #[arg(long)]
+        xarm: Option<String>,
+        /// XHand serial device.
+        #[arg(long)]
+        xhand: Option<PathBuf>,
+    },
+    /// Run an emulator until Ctrl-C.
+    Emulate {
+        /// Which robot.
+        #[arg(value_parser = ["xarm", "xhand"])]
+        robot: String,
+        /// Host to listen on (xarm).
+        #[arg(long, default_value = "127.0.0.1")]
+        host: IpAddr,
+        /// Use a pseudo-terminal (xhand).
+        #[arg(long)]
+        pty: bool,
+    },
+}
+
+fn load_demo_config(path: Option<&PathBuf>, quick: bool) -> Result<DemoConfig> {
+    match path {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading config {}", p.display()))?;
+            toml::from_str(&text).with_context(|| format!("parsing config {}", p.display()))
+        }
+        None => Ok(if quick { DemoConfig::quick() } else { DemoConfig::default() }),
+    }
+}
+
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_sigint(_: libc::c_int) {
+    INTERRUPTED.store(true, Ordering::SeqCst);
+}
+
+/// A stop flag set by Ctrl-C (SIGINT), so emulators shut down and release their ports.
+fn ctrl_c_flag() -> Arc<AtomicBool> {
+    let stop = Arc::new(AtomicBool::new(false));
+    // SAFETY: installs an async-signal-safe handler that only stores to an atomic.
+    unsafe {
+        libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
+    }
+    let s = stop.clone();
+    std::thread::spawn(move || loop {
+        if INTERRUPTED.load(Ordering::SeqCst) {
+            s.store(true, Ordering::SeqCst);
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    });
+    stop
 }
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.cmd {
+        Cmd::Demo { quick, config, out, episodes } => {
+            let mut cfg = load_demo_config(config.as_ref(), quick)?;
+            if let Some(e) = episodes {
+                cfg.episodes = e;
+            }
+            let out = out.unwrap_or_else(demo::default_out_dir);
+            println!("pir2 demo → {}  ({} demos, {} steps/policy, {} episodes/cell, seeds {:?})", out.display(), cfg.demos, cfg.train_steps, cfg.episodes, cfg.seeds);
+            let r = demo::run(&cfg, &out)?;
+            println!("\n{}", pir2_cli::study::table(&r.cells, &r.labels, &r.config.d0s));
+            for (stage, s) in &r.timings {
+                println!("{stage:>9}: {s:6.1} s");
+            }
+            println!("wrote {}/result.json, table.md, success.png, dataset/, checkpoints/", out.display());
+        }
+        Cmd::Collect { task: _, out, episodes, seed, resume, overwrite } => {
+            let mode = if resume {
+                pir2_sim::dataset::WriteMode::Resume
+            } else if overwrite {
+                pir2_sim::dataset::WriteMode::Overwrite
+            } else {
+                pir2_sim::dataset::WriteMode::New
+            };
+            let eps = demo::collect(episodes, seed, true)?;
+            demo::write_dataset(&out, &eps, mode)?;
+            println!("wrote {} episodes to {}", eps.len(), out.display());
+        }
+        Cmd::Train { data, policy, out, config, seed } => {
+            if out.exists() {
+                bail!("checkpoint directory {} already exists; choose another --out", out.display());
+            }
+            let cfg = load_demo_config(config.as_ref(), false)?;
+            let ds = pir2_sim::dataset::read_dataset(&data).with_context(|| format!("reading dataset {}", data.display()))?;
+            let pb = indicatif::ProgressBar::new(cfg.train_steps as u64);
+            let (model, scores) = demo::train_policy(&ds.episodes, policy.into(), seed, &cfg, Some(&out.join("steps")), &pb)?;
+            pb.finish();
+            model.save(&out.join("best"))?;
+            println!("closed-loop validation (step, success): {scores:?}");
+            println!("best checkpoint: {}", out.join("best").display());
+        }
+        Cmd::Eval { checkpoint, policy, d0, episodes, seed, json } => {
+            let policy: Policy = policy.into();
+            let model = pir2_backends::candle::CandleModel::load(&checkpoint).with_context(|| format!("loading {}", checkpoint.display()))?;
+            let cfg = DemoConfig::default();
+            let mut cells = Vec::new();
+            let rows: Vec<_> = demo::rows(&cfg).into_iter().filter(|r| r.policy == policy).collect();
+            for row in &rows {
+                for &d in &d0 {
+                    let (ok, overruns) = demo::closed_loop(&model, policy, &row.mode, d, episodes, seed, cfg.threads, &|| {})?;
+                    cells.push(pir2_cli::study::Cell { label: row.label.clone(), d0: d, seed, successes: ok, episodes, overruns });
+                }
+            }
+            let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
+            println!("{}", pir2_cli::study::table(&cells, &labels, &d0));
+            if let Some(p) = json {
+                std::fs::write(&p, serde_json::to_string_pretty(&cells)?)?;
+            }
+        }
+        Cmd::Plot { input, out } => {
+            let text = std::fs::read_to_string(&input).with_context(|| format!("reading {}", input.display()))?;
+            let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", input.display()))?;
+            let out = out.unwrap_or_else(|| input.with_extension("png"));
+            if v.get("cells").is_some() {
+                let r: demo::DemoResult = serde_json::from_value(v)?;
+                let series = pir2_cli::study::to_series(&r.cells, &r.labels, &r.config.d0s);
+                pir2_cli::plot::plot_series(&out, "success vs unit delay", "unit delay d0 (ticks)", "success rate", &series)?;
+            } else if v.get("calls").is_some() {
+                let t: pir2_runtime::RunTrace = serde_json::from_value(v)?;
+                pir2_cli::plot::plot_trace(&out, &t)?;
+            } else {
+                bail!("{} is neither a demo result (cells) nor a run trace (calls)", input.display());
+            }
+            println!("wrote {}", out.display());
+        }
         Cmd::Bench { what, seconds } => {
             if what == "schedule" || what == "all" {
                 print!("{}", pir2_cli::bench::schedule()?);
@@ -38,6 +282,35 @@ fn main() -> Result<()> {
                 print!("{}", pir2_cli::bench::runtime(seconds)?);
             }
         }
+        Cmd::Robot { cmd } => match cmd {
+            RobotCmd::Check { xarm, xhand } => {
+                let addr = match xarm {
+                    None => None,
+                    Some(s) => Some(match s.parse::<SocketAddr>() {
+                        Ok(a) => a,
+                        Err(_) => SocketAddr::new(s.parse::<IpAddr>().with_context(|| format!("bad --xarm address {s}"))?, 502),
+                    }),
+                };
+                let report = pir2_robots::check(addr, xhand.as_deref())?;
+                println!("{report}");
+            }
+            RobotCmd::Emulate { robot, host, pty } => {
+                let stop = ctrl_c_flag();
+                if robot == "xarm" {
+                    println!("xArm emulator on {host}: ports 502, 30001-30003 (Ctrl-C to stop)");
+                    pir2_robots::run_xarm_emulator(host, pir2_robots::XArmPorts::standard(), stop)?;
+                } else {
+                    if !pty {
+                        bail!("the XHand emulator needs --pty (a pseudo-terminal other programs can open)");
+                    }
+                    let path = pir2_robots::run_xhand_emulator_pty(stop.clone())?;
+                    println!("XHand emulator on {} (Ctrl-C to stop)", path.display());
+                    while !stop.load(Ordering::SeqCst) {
+                        std::thread::sleep(std::time::Duration::from_millis(200));
+                    }
+                }
+            }
+        },
     }
     Ok(())
 }

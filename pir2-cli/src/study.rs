@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use pir2_runtime::{
-    ActionHead, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
+    ActionHead, OutputMap, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
     VelocityModel,
 };
 use pir2_schedule::Rng;
@@ -44,6 +44,7 @@ pub fn eval_cell<E, M, FE, FM>(
     spec: HeadSpec,
     mode: &Mode,
     timing: LockstepTiming,
+    output: &OutputMap,
     episodes: usize,
     seed: u64,
     threads: usize,
@@ -73,7 +74,7 @@ where
                             window,
                             ep_seed ^ 0xA5A5,
                         )?;
-                        let mut drv = LockstepDriver::new(&head);
+                        let mut drv = LockstepDriver::new(&head).with_output(output.clone());
                         let r =
                             drv.run_episode(&mut env, &mut head, mode, timing, ep_seed, |_, _| {})?;
                         ok += r.success as usize;

@@ -17,7 +17,7 @@ use crate::testing::{FakeRobot, SleepyModel};
 use crate::window::LatencyWindow;
 
 /// What one benchmark run measured.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct RuntimeBench {
     /// Control rate.
     pub rate_hz: f64,
@@ -29,11 +29,18 @@ pub struct RuntimeBench {
     pub overruns: u64,
     /// Ticks run.
     pub ticks: u64,
+    /// Events (e.g. a refused real-time priority).
+    pub events: Vec<String>,
 }
 
 /// Run the real-time driver at `rate_hz` for `seconds` with a fake 18-DoF robot and a
 /// fake model taking `model_latency` per call (H = 16).
-pub fn run_bench(rate_hz: f64, seconds: f64, model_latency: Duration) -> Result<RuntimeBench> {
+pub fn run_bench(
+    rate_hz: f64,
+    seconds: f64,
+    model_latency: Duration,
+    rt_priority: Option<i32>,
+) -> Result<RuntimeBench> {
     let period = (1e9 / rate_hz) as Nanos;
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
     let a = 18;
@@ -74,6 +81,7 @@ pub fn run_bench(rate_hz: f64, seconds: f64, model_latency: Duration) -> Result<
     let cfg = RealtimeConfig {
         period,
         max_ticks: Some(ticks),
+        rt_priority,
         ..Default::default()
     };
     let (m, _) = run(
@@ -92,5 +100,6 @@ pub fn run_bench(rate_hz: f64, seconds: f64, model_latency: Duration) -> Result<
         jitter: m.tick_jitter.summary(),
         overruns: m.overruns,
         ticks: m.ticks,
+        events: m.events,
     })
 }

@@ -9,7 +9,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::chunk::Chunk;
-use crate::control::{ControlConfig, ControlState};
+use crate::control::{ControlConfig, ControlState, OutputMap};
 use crate::error::{Error, Result};
 use crate::head::{ActionHead, Snapshot};
 use crate::io::Environment;
@@ -69,6 +69,7 @@ pub struct LockstepDriver {
     snap: Snapshot,
     pending: Chunk,
     spare: Chunk,
+    output: OutputMap,
 }
 
 impl LockstepDriver {
@@ -83,7 +84,14 @@ impl LockstepDriver {
             snap: Snapshot::new(s),
             pending: Chunk::new(s.horizon, s.action_dim),
             spare: Chunk::new(s.horizon, s.action_dim),
+            output: OutputMap::default(),
         }
+    }
+
+    /// Map model actions to environment commands (e.g. denormalise: `u = x·scale + offset`).
+    pub fn with_output(mut self, output: OutputMap) -> Self {
+        self.output = output;
+        self
     }
 
     /// Run one episode of `env` (reset with `seed`) under `mode`'s control policy with the
@@ -129,7 +137,7 @@ impl LockstepDriver {
             action_dim: spec.action_dim,
             policy: mode.call_policy(),
             ensemble: mode.ensemble(),
-            output: Default::default(),
+            output: self.output.clone(),
         })?;
         env.reset(seed);
         let (f, s, n_obs) = (spec.fast_dim, spec.slow_dim, spec.n_obs);

@@ -90,6 +90,10 @@ pub struct RealtimeConfig {
     pub initial_delay: usize,
     /// How long to wait for the first slow features before giving up.
     pub slow_timeout: Duration,
+    /// Run the control thread under `SCHED_FIFO` with this priority (1–99; Linux, needs
+    /// `CAP_SYS_NICE`). If the request is refused the run continues at normal priority and
+    /// records the refusal in the metrics' events.
+    pub rt_priority: Option<i32>,
 }
 
 impl Default for RealtimeConfig {
@@ -99,6 +103,7 @@ impl Default for RealtimeConfig {
             max_ticks: None,
             initial_delay: 1,
             slow_timeout: Duration::from_secs(10),
+            rt_priority: None,
         }
     }
 }
@@ -337,6 +342,32 @@ fn action_worker<M: VelocityModel>(
     }
 }
 
+/// Put the calling thread under `SCHED_FIFO` at `prio`.
+pub fn set_fifo_priority(prio: i32) -> std::io::Result<()> {
+    #[cfg(target_os = "linux")]
+    {
+        let param = libc::sched_param {
+            sched_priority: prio,
+        };
+        // SAFETY: plain syscall on the current thread with a valid parameter struct.
+        let r =
+            unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &param) };
+        if r == 0 {
+            Ok(())
+        } else {
+            Err(std::io::Error::from_raw_os_error(r))
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = prio;
+        Err(std::io::Error::new(
+            std::io::ErrorKind::Unsupported,
+            "SCHED_FIFO is Linux-only here",
+        ))
+    }
+}
+
 /// Run the real-time driver until `max_ticks` or until `stop` is set. The robot is stopped
 /// (actuator `stop`) on every exit path. Returns the run's metrics; the first error of any
 /// thread is returned instead (after the safe stop).
@@ -450,6 +481,14 @@ where
             }
         });
 
+        if let Some(prio) = cfg.rt_priority {
+            if let Err(e) = set_fifo_priority(prio) {
+                lp.control
+                    .metrics
+                    .events
+                    .push(format!("SCHED_FIFO priority {prio} refused: {e}"));
+            }
+        }
         let start = clock.now();
         let mut tick = 0u64;
         loop {

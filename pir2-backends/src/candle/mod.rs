@@ -1,0 +1,453 @@
+//! The candle backend: pure-Rust models that train and run on the CPU.
+//!
+//! [`CandleModel`] wraps one architecture ([`crate::config::ModelConfig`]) together with its
+//! normalisation [`Stats`]. It implements [`VelocityModel`] in **normalised action space**
+//! (see [`crate::config`]); observations are passed raw and normalised inside.
+//!
+//! ```
+//! use pir2_backends::candle::CandleModel;
+//! use pir2_backends::config::{Config, ModelConfig, MlpConfig, Spec, SlowSpec, Stats};
+//! use pir2_runtime::model::{ModelInput, SlowInput, VelocityModel};
+//! let spec = Spec { horizon: 4, action_dim: 2, n_obs: 2, fast_dim: 3, slow: SlowSpec::None, d_vis_max: 0 };
+//! let cfg = Config { spec, model: ModelConfig::Mlp(MlpConfig { width: 32, depth: 2, ..Default::default() }) };
+//! let mut m = CandleModel::new(cfg, Stats::identity(&spec), 0).unwrap();
+//! let (x, tau, obs) = (vec![0.0; 8], vec![0.5; 4], vec![0.0; 6]);
+//! let input = ModelInput { batch: 1, horizon: 4, action_dim: 2, x: &x, tau: &tau, obs_fast: &obs,
+//!     n_obs: 2, fast_dim: 3, slow: SlowInput::None, d_vis: &[0] };
+//! let mut v = vec![0.0; 8];
+//! m.velocity(&input, &mut v).unwrap();
+//! ```
+
+pub(crate) mod dit;
+pub(crate) mod layers;
+pub(crate) mod mlp;
+pub(crate) mod unet;
+
+use std::path::Path;
+
+use candle_core::{Device, Tensor, Var};
+use pir2_runtime::model::{ModelInput, SlowInput, VelocityModel};
+
+use crate::checkpoint::{self, Checkpoint};
+use crate::config::{Config, ModelConfig, SlowSpec, Spec, Stats};
+use crate::error::{Error, Result};
+use layers::{CResult, ParamStore};
+
+/// Encoded, normalised inputs of one batch (shared by inference and training).
+#[derive(Debug)]
+pub(crate) struct Inputs {
+    pub(crate) b: usize,
+    /// `[B, H, A]` (normalised action space).
+    pub(crate) x: Tensor,
+    /// Raw per-position `τ`, `[B·H]` (may hold `HIDDEN_FRONT_TAU`).
+    pub(crate) tau: Vec<f32>,
+    /// Encoded fast history `[B, n_obs·F]`.
+    pub(crate) fast: Tensor,
+    /// Normalised slow features `[B, T, D]` (a vector is one token).
+    pub(crate) slow: Option<Tensor>,
+    /// Clamped slow ages `[B]` (u32).
+    pub(crate) dvis: Tensor,
+}
+
+#[derive(Debug)]
+enum Arch {
+    Mlp(mlp::Mlp),
+    UNet(Box<unet::UNet>),
+    Dit(dit::Dit),
+}
+
+impl Arch {
+    fn forward(&self, inp: &Inputs) -> CResult<Tensor> {
+        match self {
+            Arch::Mlp(m) => m.forward(inp),
+            Arch::UNet(m) => m.forward(inp),
+            Arch::Dit(m) => m.forward(inp),
+        }
+    }
+}
+
+/// Reusable host buffers for encoding.
+#[derive(Debug, Default)]
+struct Scratch {
+    fast: Vec<f32>,
+    slow: Vec<f32>,
+    dvis: Vec<u32>,
+    /// Host copy of the MLP weights for batch-1 calls; `None` = stale, rebuilt on demand.
+    mlp_fast: Option<mlp::MlpFast>,
+}
+
+/// A candle velocity model (MLP, U-Net or DiT) with its normalisation statistics.
+#[derive(Debug)]
+pub struct CandleModel {
+    config: Config,
+    stats: Stats,
+    vars: Vec<(String, Var)>,
+    net: Arch,
+    scratch: Scratch,
+}
+
+impl CandleModel {
+    /// Build a freshly initialised model (deterministic in `seed`).
+    pub fn new(config: Config, stats: Stats, seed: u64) -> Result<Self> {
+        config.validate()?;
+        stats.validate(&config.spec)?;
+        let mut ps = ParamStore::new(seed);
+        let spec = config.spec;
+        let net = match &config.model {
+            ModelConfig::Mlp(c) => Arch::Mlp(mlp::Mlp::new(&mut ps, &spec, c)?),
+            ModelConfig::UNet(c) => Arch::UNet(Box::new(unet::UNet::new(&mut ps, &spec, c)?)),
+            ModelConfig::Dit(c) => Arch::Dit(dit::Dit::new(&mut ps, &spec, c)?),
+        };
+        Ok(Self {
+            config,
+            stats,
+            vars: ps.vars,
+            net,
+            scratch: Scratch::default(),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+    /// The input/output spec.
+    pub fn spec(&self) -> &Spec {
+        &self.config.spec
+    }
+    /// The normalisation statistics (use [`Stats::normalize_action`] /
+    /// [`Stats::denormalize_action`] around the runtime's action buffer).
+    pub fn stats(&self) -> &Stats {
+        &self.stats
+    }
+    /// Trainable variables in creation order, with their checkpoint names.
+    pub fn vars(&self) -> &[(String, Var)] {
+        &self.vars
+    }
+    /// Tell the model its weights were changed through [`CandleModel::vars`] (drops the
+    /// host copy the batch-1 MLP path keeps). The trainer and [`CandleModel::restore`] call it.
+    pub fn weights_changed(&mut self) {
+        self.scratch.mlp_fast = None;
+    }
+
+    /// Number of scalar parameters.
+    pub fn num_params(&self) -> usize {
+        self.vars.iter().map(|(_, v)| v.elem_count()).sum()
+    }
+
+    /// A copy of every weight (same order as [`CandleModel::vars`]).
+    pub fn snapshot(&self) -> Result<Vec<Tensor>> {
+        Ok(self
+            .vars
+            .iter()
+            .map(|(_, v)| v.as_tensor().detach().copy())
+            .collect::<CResult<Vec<_>>>()?)
+    }
+
+    /// Overwrite every weight from a [`CandleModel::snapshot`].
+    pub fn restore(&mut self, weights: &[Tensor]) -> Result<()> {
+        if weights.len() != self.vars.len() {
+            return Err(Error::shape("weights", self.vars.len(), weights.len()));
+        }
+        for ((_, v), w) in self.vars.iter().zip(weights) {
+            v.set(w)?;
+        }
+        self.weights_changed();
+        Ok(())
+    }
+
+    /// Save into a new directory (`config.json`, `stats.json`, `model.safetensors`).
+    /// Fails if `dir` exists.
+    pub fn save(&self, dir: &Path) -> Result<()> {
+        let mut owned = Vec::with_capacity(self.vars.len());
+        for (n, v) in &self.vars {
+            owned.push((
+                n.clone(),
+                v.dims().to_vec(),
+                v.flatten_all()?.to_vec1::<f32>()?,
+            ));
+        }
+        checkpoint::save(
+            dir,
+            &self.config,
+            &self.stats,
+            owned
+                .iter()
+                .map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
+        )
+    }
+
+    /// Load a checkpoint directory; every tensor must be present with the right shape, and
+    /// no extra tensors may be present (errors name the tensor).
+    pub fn load(dir: &Path) -> Result<Self> {
+        let mut ck = Checkpoint::load(dir)?;
+        let model = Self::new(ck.config.clone(), ck.stats.clone(), 0)?;
+        for (name, var) in &model.vars {
+            let t = ck.take(name, var.dims())?;
+            var.set(&Tensor::from_vec(t.data, t.shape, &Device::Cpu)?)?;
+        }
+        ck.expect_consumed()?;
+        let mut model = model;
+        model.weights_changed();
+        Ok(model)
+    }
+
+    /// Load a checkpoint and check it was built for `spec` (error names the differing field).
+    pub fn load_expect(dir: &Path, spec: &Spec) -> Result<Self> {
+        let m = Self::load(dir)?;
+        spec.expect_eq(m.spec())?;
+        Ok(m)
+    }
+
+    /// Check the runtime input against the spec and encode it (normalise, build tensors).
+    pub(crate) fn encode(&mut self, input: &ModelInput<'_>) -> Result<Inputs> {
+        let slow_shape = self.encode_host(input)?;
+        let spec = self.config.spec;
+        let b = input.batch;
+        let sc = &self.scratch;
+        let slow = match slow_shape {
+            None => None,
+            Some((t, d)) => Some(Tensor::from_slice(&sc.slow, (b, t, d), &Device::Cpu)?),
+        };
+        Ok(Inputs {
+            b,
+            x: Tensor::from_slice(input.x, (b, spec.horizon, spec.action_dim), &Device::Cpu)?,
+            tau: input.tau.to_vec(),
+            fast: Tensor::from_slice(&sc.fast, (b, spec.fast_encoded_dim()), &Device::Cpu)?,
+            slow,
+            dvis: Tensor::from_slice(&sc.dvis, b, &Device::Cpu)?,
+        })
+    }
+
+    /// Validate and normalise into the host scratch buffers; returns the slow `(T, D)`.
+    fn encode_host(&mut self, input: &ModelInput<'_>) -> Result<Option<(usize, usize)>> {
+        input
+            .validate()
+            .map_err(|e| Error::shape("model input", "consistent lengths", e.to_string()))?;
+        let spec = self.config.spec;
+        let eq = |what: &'static str, want: usize, got: usize| -> Result<()> {
+            if want != got {
+                Err(Error::shape(what, want, got))
+            } else {
+                Ok(())
+            }
+        };
+        eq("horizon", spec.horizon, input.horizon)?;
+        eq("action_dim", spec.action_dim, input.action_dim)?;
+        eq("n_obs", spec.n_obs, input.n_obs)?;
+        eq("fast_dim", spec.fast_dim, input.fast_dim)?;
+        let b = input.batch;
+        if b == 0 {
+            return Err(Error::shape("batch", ">= 1", 0));
+        }
+        let sc = &mut self.scratch;
+        let fe = spec.fast_encoded_dim();
+        sc.fast.resize(b * fe, 0.0);
+        let raw = spec.n_obs * spec.fast_dim;
+        for i in 0..b {
+            self.stats.encode_fast(
+                &input.obs_fast[i * raw..(i + 1) * raw],
+                spec.n_obs,
+                &mut sc.fast[i * fe..(i + 1) * fe],
+            );
+        }
+        let slow_data = match (spec.slow, input.slow) {
+            (SlowSpec::None, SlowInput::None) => None,
+            (SlowSpec::Vector { dim }, SlowInput::Vector { data, dim: d2 }) if dim == d2 => {
+                Some((data, 1, dim))
+            }
+            (
+                SlowSpec::Tokens { tokens, dim },
+                SlowInput::Tokens {
+                    data,
+                    tokens: t2,
+                    dim: d2,
+                },
+            ) if tokens == t2 && dim == d2 => Some((data, tokens, dim)),
+            (want, got) => {
+                return Err(Error::shape(
+                    "obs_slow",
+                    want,
+                    format!("{got:?}").chars().take(80).collect::<String>(),
+                ))
+            }
+        };
+        let shape = match slow_data {
+            None => {
+                sc.slow.clear();
+                None
+            }
+            Some((data, t, d)) => {
+                sc.slow.resize(data.len(), 0.0);
+                self.stats.encode_slow(data, &mut sc.slow);
+                Some((t, d))
+            }
+        };
+        sc.dvis.clear();
+        sc.dvis
+            .extend(input.d_vis.iter().map(|&d| d.min(spec.d_vis_max as u32)));
+        Ok(shape)
+    }
+
+    /// Differentiable forward pass on encoded inputs: `[B, H, A]`.
+    pub(crate) fn forward(&self, inp: &Inputs) -> Result<Tensor> {
+        Ok(self.net.forward(inp)?)
+    }
+
+    /// Standard `K`-step Euler sampling from pure noise (shared `τ`), batch 1. Returns the
+    /// chunk `[H, A]` in **raw** action units (denormalised).
+    pub fn sample_euler(
+        &mut self,
+        obs_fast: &[f32],
+        slow: SlowInput<'_>,
+        d_vis: u32,
+        steps: usize,
+        rng: &mut pir2_schedule::Rng,
+    ) -> Result<Vec<f32>> {
+        let spec = self.config.spec;
+        let (h, a) = (spec.horizon, spec.action_dim);
+        let mut x = vec![0.0f32; h * a];
+        rng.fill_normal(&mut x);
+        let mut v = vec![0.0f32; h * a];
+        let steps = steps.max(1);
+        for k in 0..steps {
+            let tau = vec![k as f32 / steps as f32; h];
+            let input = ModelInput {
+                batch: 1,
+                horizon: h,
+                action_dim: a,
+                x: &x,
+                tau: &tau,
+                obs_fast,
+                n_obs: spec.n_obs,
+                fast_dim: spec.fast_dim,
+                slow,
+                d_vis: &[d_vis],
+            };
+            self.velocity_into(&input, &mut v)?;
+            for (xi, vi) in x.iter_mut().zip(&v) {
+                *xi += vi / steps as f32;
+            }
+        }
+        self.stats.denormalize_action(&mut x);
+        Ok(x)
+    }
+
+    /// One NFE into `out` (`[B, H, A]`), with this crate's error type.
+    pub fn velocity_into(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        let want = input.batch * input.horizon * input.action_dim;
+        if out.len() != want {
+            return Err(Error::shape("out [B,H,A]", want, out.len()));
+        }
+        if input.batch == 1 && matches!(self.net, Arch::Mlp(_)) {
+            // Batch-1 fast path: plain loops over a host copy of the weights.
+            self.encode_host(input)?;
+            if let Arch::Mlp(m) = &self.net {
+                let sc = &mut self.scratch;
+                if sc.mlp_fast.is_none() {
+                    sc.mlp_fast = Some(mlp::MlpFast::from(m)?);
+                }
+                if let Some(fast) = sc.mlp_fast.as_mut() {
+                    fast.forward(
+                        m.freqs,
+                        input.x,
+                        input.tau,
+                        (&sc.fast, &sc.slow, sc.dvis[0] as usize),
+                        out,
+                    );
+                    return Ok(());
+                }
+            }
+        }
+        let v = self.forward_input(input)?;
+        let v = v.flatten_all()?.to_vec1::<f32>()?;
+        out.copy_from_slice(&v);
+        Ok(())
+    }
+
+    /// Forward on a runtime input, returning the candle tensor (training, tests).
+    pub fn forward_input(&mut self, input: &ModelInput<'_>) -> Result<Tensor> {
+        let inp = self.encode(input)?;
+        self.forward(&inp)
+    }
+}
+
+impl VelocityModel for CandleModel {
+    fn backend(&self) -> &'static str {
+        "candle"
+    }
+
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> pir2_runtime::Result<()> {
+        Ok(self.velocity_into(input, out)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::MlpConfig;
+
+    #[test]
+    fn mlp_batch1_fast_path_matches_the_tensor_path() {
+        let spec = Spec {
+            horizon: 6,
+            action_dim: 3,
+            n_obs: 2,
+            fast_dim: 4,
+            slow: SlowSpec::Vector { dim: 2 },
+            d_vis_max: 3,
+        };
+        let cfg = Config {
+            spec,
+            model: ModelConfig::Mlp(MlpConfig {
+                width: 40,
+                depth: 3,
+                tau_freqs: 2,
+                dvis_dim: 4,
+            }),
+        };
+        let mut st = Stats::identity(&spec);
+        st.fast.mean = vec![0.5; 4];
+        st.slow.std = vec![2.0; 2];
+        let mut m = CandleModel::new(cfg, st, 4).unwrap();
+        // Non-zero delay embedding so the lookup is exercised.
+        for (n, v) in m.vars() {
+            if n == "dvis_embed" {
+                v.set(&(v.as_tensor().ones_like().unwrap() * 0.3).unwrap())
+                    .unwrap();
+            }
+        }
+        m.weights_changed();
+        let x: Vec<f32> = (0..18).map(|i| (i as f32 * 0.7).sin()).collect();
+        let tau = [-1.0, 1.0, 0.8, 0.5, 0.2, 0.0];
+        let obs: Vec<f32> = (0..8).map(|i| i as f32 * 0.1).collect();
+        let slow = [0.3, -0.2];
+        let input = ModelInput {
+            batch: 1,
+            horizon: 6,
+            action_dim: 3,
+            x: &x,
+            tau: &tau,
+            obs_fast: &obs,
+            n_obs: 2,
+            fast_dim: 4,
+            slow: SlowInput::Vector {
+                data: &slow,
+                dim: 2,
+            },
+            d_vis: &[7],
+        };
+        let mut fast = vec![0.0; 18];
+        m.velocity_into(&input, &mut fast).unwrap();
+        let slow_path = m
+            .forward_input(&input)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        for (a, b) in fast.iter().zip(&slow_path) {
+            assert!((a - b).abs() < 1e-4 * (1.0 + b.abs()), "{a} vs {b}");
+        }
+    }
+}

@@ -1,0 +1,201 @@
+//! The xArm6 + XHand composite driven through both emulators at 25 Hz with the safety layer
+//! on, with actions fed through the runtime's `FastSource` / `Actuator` traits.
+
+use std::net::{IpAddr, Ipv4Addr};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
+use pir2_robots::robot::{ARM_HAND_ACTION_DIM, ARM_HAND_STATE_DIM};
+use pir2_robots::xarm::proto::state;
+use pir2_robots::{
+    split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
+};
+use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
+
+const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
+const PERIOD_NS: u64 = 40_000_000; // 25 Hz
+
+struct Rig {
+    arm_emu: XArmEmulator,
+    hand_emu: XHandEmulator,
+    clock: Arc<dyn Clock>,
+    layer: SafetyLayer<ArmHand<XArm6, XHand<pir2_robots::emu::DuplexPort>>>,
+}
+
+fn rig(safety: SafetyConfig) -> Rig {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let arm_emu = XArmEmulator::spawn(LOCAL, XArmPorts::ephemeral()).unwrap();
+    let (host, dev) = duplex(Duration::from_millis(10));
+    let hand_emu = XHandEmulator::spawn(dev, 0, Arc::new(AtomicBool::new(false))).unwrap();
+    let mut cfg = XArm6Config::new(LOCAL);
+    cfg.cmd_addr = arm_emu.cmd_addr();
+    cfg.report_addr = arm_emu.real_report_addr();
+    cfg.stream_hz = 100.0;
+    let arm = XArm6::connect(cfg, clock.clone()).unwrap();
+    let hand = XHand::new(
+        host,
+        XHandConfig {
+            timeout: Duration::from_millis(100),
+            ..Default::default()
+        },
+        clock.clone(),
+    );
+    let composite = ArmHand::new(arm, hand).unwrap();
+    let mut layer = SafetyLayer::new(composite, safety, clock.clone()).unwrap();
+    layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
+    Rig {
+        arm_emu,
+        hand_emu,
+        clock,
+        layer,
+    }
+}
+
+/// A smooth 18-d reference around the arm's home pose.
+fn reference(k: usize, home: &[f32]) -> Vec<f32> {
+    let t = k as f32 * 0.04;
+    let mut a = vec![0f32; ARM_HAND_ACTION_DIM];
+    for j in 0..6 {
+        a[j] = home[j] + 0.15 * (0.8 * t + j as f32).sin() * (t / 1.0).min(1.0);
+    }
+    for j in 0..12 {
+        a[6 + j] = 0.6 + 0.4 * (1.2 * t + 0.3 * j as f32).sin();
+    }
+    a
+}
+
+#[test]
+fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
+    let Rig {
+        arm_emu,
+        hand_emu,
+        clock,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
+    let (mut source, mut actuator) = split(layer);
+    assert_eq!(source.dim(), ARM_HAND_STATE_DIM);
+    assert_eq!(actuator.dim(), ARM_HAND_ACTION_DIM);
+
+    let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
+    source.read(&mut obs).unwrap();
+    let home = obs[..6].to_vec();
+    let ticks = 100; // 4 s at 25 Hz
+    let mut last_t = 0;
+    let mut next = clock.now();
+    let mut last_action = Vec::new();
+    for k in 0..ticks {
+        let t = source.read(&mut obs).unwrap();
+        assert!(t >= last_t, "state timestamps never go back");
+        last_t = t;
+        assert!(obs.iter().all(|x| x.is_finite()));
+        last_action = reference(k, &home);
+        actuator.send(&last_action).unwrap();
+        next += PERIOD_NS;
+        clock.sleep_until(next);
+    }
+    // Hold the last action briefly so both sides settle, then compare.
+    for _ in 0..10 {
+        source.read(&mut obs).unwrap();
+        actuator.send(&last_action).unwrap();
+        next += PERIOD_NS;
+        clock.sleep_until(next);
+    }
+    source.read(&mut obs).unwrap();
+    for j in 0..6 {
+        assert!(
+            (obs[j] - last_action[j]).abs() < 0.02,
+            "arm joint {j}: {} vs {}",
+            obs[j],
+            last_action[j]
+        );
+    }
+    for j in 0..12 {
+        assert!(
+            (obs[6 + j] - last_action[6 + j]).abs() < 0.05,
+            "hand joint {j}: {} vs {}",
+            obs[6 + j],
+            last_action[6 + j]
+        );
+    }
+    let stats = source.robot().lock().unwrap().stats();
+    assert_eq!(stats.targets, ticks as u64 + 10);
+    assert_eq!(stats.stops, 0, "{stats}");
+    assert_eq!(
+        stats.command_timeouts + stats.stale_states + stats.non_finite_targets,
+        0,
+        "{stats}"
+    );
+    // The arm was streamed at ~100 Hz: clearly more servo-j frames than policy targets.
+    assert!(arm_emu.handle().sim().servoj > 2 * ticks as u64);
+    assert!(hand_emu.handle().commands() >= ticks as u64);
+
+    actuator.stop().unwrap();
+    assert_eq!(arm_emu.handle().sim().state, state::STOP);
+    assert!(actuator.send(&last_action).is_err());
+}
+
+#[test]
+fn silent_policy_is_stopped_by_the_watchdog() {
+    let Rig {
+        arm_emu,
+        hand_emu: _h,
+        clock: _c,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
+    let (mut source, mut actuator) = split(layer);
+    let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
+    source.read(&mut obs).unwrap();
+    let mut a = obs[..ARM_HAND_ACTION_DIM].to_vec();
+    a[6..].fill(0.2);
+    actuator.send(&a).unwrap();
+    // The policy goes quiet; the watchdog (200 ms command timeout) stops arm and hand.
+    let t0 = std::time::Instant::now();
+    while arm_emu.handle().sim().state != state::STOP && t0.elapsed() < Duration::from_secs(3) {
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(arm_emu.handle().sim().state, state::STOP);
+    let err = actuator.send(&a).unwrap_err();
+    assert!(
+        matches!(err, pir2_runtime::Error::SafetyStop(ref m) if m.contains("no target")),
+        "{err}"
+    );
+    assert_eq!(source.robot().lock().unwrap().stats().command_timeouts, 1);
+}
+
+#[test]
+fn wild_policy_is_clamped_not_executed() {
+    let Rig {
+        arm_emu,
+        hand_emu,
+        clock: _c,
+        layer,
+    } = rig(SafetyConfig::xarm6_xhand());
+    let (mut source, mut actuator) = split(layer);
+    let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
+    source.read(&mut obs).unwrap();
+    let home = obs[..6].to_vec();
+    let mut wild = vec![10.0f32; ARM_HAND_ACTION_DIM];
+    wild[0] = f32::NAN;
+    actuator.send(&wild).unwrap();
+    let mut jump = vec![3.0f32; ARM_HAND_ACTION_DIM];
+    jump[..6].copy_from_slice(&home);
+    jump[0] += 1.0;
+    actuator.send(&jump).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    let sim = arm_emu.handle().sim();
+    assert!(
+        (sim.target[0] - home[0]).abs() <= 0.05 + 1e-5,
+        "arm moved at most one step: {}",
+        sim.target[0]
+    );
+    assert!(
+        hand_emu.handle().targets().iter().all(|&q| q <= 0.2 + 1e-5),
+        "hand moved at most one step from 0"
+    );
+    let stats = source.robot().lock().unwrap().stats();
+    assert_eq!(stats.non_finite_targets, 1);
+    assert_eq!(stats.limit_clamps, 1);
+    assert!(stats.rate_clamps >= 1);
+}

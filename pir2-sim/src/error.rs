@@ -1,0 +1,141 @@
+//! The one error type of `pir2-sim`, sectioned by origin.
+
+use std::path::PathBuf;
+
+/// Result alias of `pir2-sim`.
+pub type Result<T> = std::result::Result<T, Error>;
+
+/// Everything that can go wrong in `pir2-sim`.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    // ---- configuration -------------------------------------------------------------
+    /// A configuration file or string could not be parsed.
+    #[error("invalid configuration: {0}")]
+    Config(#[from] toml::de::Error),
+    /// A configuration value is out of its valid range.
+    #[error("invalid configuration value `{field}`: {reason}")]
+    ConfigValue {
+        /// The offending field.
+        field: &'static str,
+        /// Why it is invalid.
+        reason: String,
+    },
+
+    // ---- experts -----------------------------------------------------------------------
+    /// The discrete Riccati iteration did not converge.
+    #[error("discrete Riccati equation did not converge after {iterations} iterations (last change {change:e})")]
+    Riccati {
+        /// Iterations performed.
+        iterations: usize,
+        /// Relative change of `P` in the last iteration.
+        change: f64,
+    },
+
+    // ---- datasets: file system -----------------------------------------------------
+    /// A file or directory could not be read or written.
+    #[error("I/O error on {path}: {source}")]
+    Io {
+        /// The file or directory concerned.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// A dataset exists where a new one was to be written.
+    #[error("a dataset already exists at {path} ({what}); pass WriteMode::Resume to add episodes to it or WriteMode::Overwrite to replace it")]
+    AlreadyExists {
+        /// Root of the existing dataset.
+        path: PathBuf,
+        /// What was found there.
+        what: String,
+    },
+    /// A file the dataset layout requires is missing.
+    #[error("dataset file missing: {path}")]
+    MissingFile {
+        /// The missing file.
+        path: PathBuf,
+    },
+
+    // ---- datasets: content ---------------------------------------------------------
+    /// A parquet file could not be read or written.
+    #[error("parquet error in {path}: {source}")]
+    Parquet {
+        /// The parquet file.
+        path: PathBuf,
+        /// The underlying error.
+        source: parquet::errors::ParquetError,
+    },
+    /// Arrow data could not be assembled.
+    #[error("arrow error for {path}: {source}")]
+    Arrow {
+        /// The file being written or read.
+        path: PathBuf,
+        /// The underlying error.
+        source: arrow_schema::ArrowError,
+    },
+    /// A JSON metadata file is malformed.
+    #[error("JSON error in {path}: {source}")]
+    Json {
+        /// The JSON file.
+        path: PathBuf,
+        /// The underlying error.
+        source: serde_json::Error,
+    },
+    /// A required column is absent from a parquet file.
+    #[error("{path}: missing column `{column}`")]
+    MissingColumn {
+        /// The parquet file.
+        path: PathBuf,
+        /// The missing column.
+        column: String,
+    },
+    /// A column has an unexpected type or width.
+    #[error("{path}: column `{column}` has type {found}, expected {expected}")]
+    ColumnType {
+        /// The parquet file.
+        path: PathBuf,
+        /// The column.
+        column: String,
+        /// What the reader accepts.
+        expected: String,
+        /// What the file holds.
+        found: String,
+    },
+    /// The dataset contradicts itself (e.g. episode lengths vs. frames).
+    #[error("inconsistent dataset at {path}: {reason}")]
+    Inconsistent {
+        /// The file where the contradiction was found.
+        path: PathBuf,
+        /// What does not match.
+        reason: String,
+    },
+    /// Episodes handed to the writer do not fit the dataset's features.
+    #[error("episode {episode} does not fit the dataset: {reason}")]
+    EpisodeShape {
+        /// Index of the episode in the dataset.
+        episode: usize,
+        /// What does not match.
+        reason: String,
+    },
+}
+
+impl Error {
+    pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.into(),
+            source,
+        }
+    }
+    pub(crate) fn parquet(path: impl Into<PathBuf>, source: parquet::errors::ParquetError) -> Self {
+        Self::Parquet {
+            path: path.into(),
+            source,
+        }
+    }
+    pub(crate) fn json(path: impl Into<PathBuf>, source: serde_json::Error) -> Self {
+        Self::Json {
+            path: path.into(),
+            source,
+        }
+    }
+}
