@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 use pir2_runtime::{
-    ActionHead, OutputMap, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
-    VelocityModel,
+    ActionHead, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
+    OutputMap, VelocityModel,
 };
 use pir2_schedule::Rng;
 
