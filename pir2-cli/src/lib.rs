@@ -5,5 +5,7 @@
 
 pub mod bench;
 pub mod demo;
+#[cfg(feature = "mujoco")]
+pub mod leap;
 pub mod plot;
 pub mod study;
