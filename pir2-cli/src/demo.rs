@@ -452,6 +452,10 @@ pub fn train_policy(
     Ok((model, scores))
 }
 
+/// Closed-loop validation scores `(step, success)` of one training run.
+pub type Scores = Vec<(usize, f64)>;
+type Trained = (usize, CandleModel, Scores);
+
 /// The demo's result file.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct DemoResult {
@@ -462,7 +466,7 @@ pub struct DemoResult {
     /// All cells.
     pub cells: Vec<Cell>,
     /// Checkpoint validation scores per (policy, seed).
-    pub validation: Vec<(Policy, u64, Vec<(usize, f64)>)>,
+    pub validation: Vec<(Policy, u64, Scores)>,
     /// Wall time of each stage, seconds.
     pub timings: Vec<(String, f64)>,
 }
@@ -496,43 +500,41 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
     let pb = bar((jobs.len() * cfg.train_steps) as u64, "training policies");
     let next = AtomicUsize::new(0);
     let done_steps: Vec<AtomicUsize> = jobs.iter().map(|_| AtomicUsize::new(0)).collect();
-    let results: Vec<Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>>> =
-        std::thread::scope(|s| {
-            let hs: Vec<_> = (0..cfg.threads.max(1))
-                .map(|_| {
-                    s.spawn(|| -> Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>> {
-                        let mut mine = Vec::new();
-                        loop {
-                            let j = next.fetch_add(1, Ordering::SeqCst);
-                            if j >= jobs.len() {
-                                return Ok(mine);
-                            }
-                            let (policy, seed) = jobs[j];
-                            let local = ProgressBar::hidden();
-                            let ckpt = out
-                                .join("checkpoints")
-                                .join(format!("{policy:?}-seed{seed}").to_lowercase());
-                            let (m, scores) =
-                                train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
-                            done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
-                            pb.set_position(
-                                done_steps
-                                    .iter()
-                                    .map(|d| d.load(Ordering::SeqCst) as u64)
-                                    .sum(),
-                            );
-                            mine.push((j, m, scores));
+    let results: Vec<Result<Vec<Trained>>> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..cfg.threads.max(1))
+            .map(|_| {
+                s.spawn(|| -> Result<Vec<Trained>> {
+                    let mut mine = Vec::new();
+                    loop {
+                        let j = next.fetch_add(1, Ordering::SeqCst);
+                        if j >= jobs.len() {
+                            return Ok(mine);
                         }
-                    })
+                        let (policy, seed) = jobs[j];
+                        let local = ProgressBar::hidden();
+                        let ckpt = out
+                            .join("checkpoints")
+                            .join(format!("{policy:?}-seed{seed}").to_lowercase());
+                        let (m, scores) =
+                            train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
+                        done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
+                        pb.set_position(
+                            done_steps
+                                .iter()
+                                .map(|d| d.load(Ordering::SeqCst) as u64)
+                                .sum(),
+                        );
+                        mine.push((j, m, scores));
+                    }
                 })
-                .collect();
-            hs.into_iter()
-                .map(|h| h.join().expect("training thread panicked"))
-                .collect()
-        });
+            })
+            .collect();
+        hs.into_iter()
+            .map(|h| h.join().expect("training thread panicked"))
+            .collect()
+    });
     pb.finish();
-    let mut models: Vec<Option<(CandleModel, Vec<(usize, f64)>)>> =
-        (0..jobs.len()).map(|_| None).collect();
+    let mut models: Vec<Option<(CandleModel, Scores)>> = (0..jobs.len()).map(|_| None).collect();
     for r in results {
         for (j, m, s) in r? {
             models[j] = Some((m, s));

@@ -15,12 +15,12 @@
 //!   sampling-based MPC expert.
 #![warn(missing_docs)]
 
-#[cfg(feature = "mujoco")]
-pub mod leap;
 pub mod ballplate;
 pub mod dataset;
 pub mod error;
 pub mod expert;
+#[cfg(feature = "mujoco")]
+pub mod leap;
 
 pub use ballplate::{BallPlate, BallPlateConfig, BallPlateState};
 pub use error::{Error, Result};
