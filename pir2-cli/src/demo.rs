@@ -84,14 +84,7 @@ impl Default for DemoConfig {
 impl DemoConfig {
     /// The `--quick` variant: fewer demos, steps and episodes.
     pub fn quick() -> Self {
-        Self {
-            demos: 100,
-            train_steps: 1500,
-            episodes: 30,
-            val_episodes: 20,
-            checkpoints: 2,
-            ..Self::default()
-        }
+        Self { demos: 100, train_steps: 1500, episodes: 30, val_episodes: 20, checkpoints: 2, ..Self::default() }
     }
 }
 
@@ -113,13 +106,7 @@ pub enum Policy {
 
 impl Policy {
     /// All policies.
-    pub const ALL: [Policy; 5] = [
-        Policy::PiR2,
-        Policy::PiR2Hidden,
-        Policy::PiR2Full,
-        Policy::Rtc,
-        Policy::Flow,
-    ];
+    pub const ALL: [Policy; 5] = [Policy::PiR2, Policy::PiR2Hidden, Policy::PiR2Full, Policy::Rtc, Policy::Flow];
 
     /// Largest delay the policy must handle (trained `d_max`).
     pub fn d_max(self) -> usize {
@@ -131,37 +118,19 @@ impl Policy {
 
     /// The training schedule (same family and `n` as deployment).
     pub fn schedule(self, nfe: usize) -> TrainSchedule {
-        let base = PiR2Draws {
-            alpha: 0.2,
-            delay: DelayDist::Uniform { max: 5 },
-            n: Some(nfe),
-            ..Default::default()
-        };
+        let base = PiR2Draws { alpha: 0.2, delay: DelayDist::Uniform { max: 5 }, n: Some(nfe), ..Default::default() };
         match self {
             Policy::PiR2 => TrainSchedule::PiR2(base),
-            Policy::PiR2Hidden => TrainSchedule::PiR2(PiR2Draws {
-                front: FrontVisibility::Hidden,
-                ..base
-            }),
-            Policy::PiR2Full => TrainSchedule::PiR2(PiR2Draws {
-                n: None,
-                alignment: Alignment::Paper,
-                ..base
-            }),
-            Policy::Rtc => TrainSchedule::TrainTimeRtc {
-                delay: DelayDist::Uniform { max: 6 },
-            },
+            Policy::PiR2Hidden => TrainSchedule::PiR2(PiR2Draws { front: FrontVisibility::Hidden, ..base }),
+            Policy::PiR2Full => TrainSchedule::PiR2(PiR2Draws { n: None, alignment: Alignment::Paper, ..base }),
+            Policy::Rtc => TrainSchedule::TrainTimeRtc { delay: DelayDist::Uniform { max: 6 } },
             Policy::Flow => TrainSchedule::StandardFlow,
         }
     }
 
     /// The mode used for closed-loop checkpoint validation.
     pub fn validation_mode(self, cfg: &DemoConfig) -> Mode {
-        rows(cfg)
-            .into_iter()
-            .find(|r| r.policy == self)
-            .map(|r| r.mode)
-            .expect("every policy has a row")
+        rows(cfg).into_iter().find(|r| r.policy == self).map(|r| r.mode).expect("every policy has a row")
     }
 }
 
@@ -182,73 +151,35 @@ pub fn rows(cfg: &DemoConfig) -> Vec<Row> {
     let n = Some(cfg.nfe);
     let (fresh, vis, hid) = (Alignment::Fresh, FrontMode::Visible, FrontMode::Hidden);
     vec![
-        Row {
-            label: "sync flow".into(),
-            policy: Policy::Flow,
-            mode: Mode::SyncFlow { steps: k, h: 8 },
-        },
-        Row {
-            label: "naive async + TE".into(),
-            policy: Policy::Flow,
-            mode: Mode::NaiveAsync {
-                steps: k,
-                ensemble: Some(0.1),
-            },
-        },
-        Row {
-            label: "train-time RTC".into(),
-            policy: Policy::Rtc,
-            mode: Mode::TrainTimeRtc { steps: k },
-        },
+        Row { label: "sync flow".into(), policy: Policy::Flow, mode: Mode::SyncFlow { steps: k, h: 8 } },
+        Row { label: "naive async + TE".into(), policy: Policy::Flow, mode: Mode::NaiveAsync { steps: k, ensemble: Some(0.1) } },
+        Row { label: "train-time RTC".into(), policy: Policy::Rtc, mode: Mode::TrainTimeRtc { steps: k } },
         Row {
             label: format!("πR² w/o async (n={})", cfg.nfe),
             policy: Policy::PiR2,
-            mode: Mode::PiR2Sync {
-                nfe: n,
-                alignment: fresh,
-                front: vis,
-            },
+            mode: Mode::PiR2Sync { nfe: n, alignment: fresh, front: vis },
         },
         Row {
             label: format!("πR² async (n={})", cfg.nfe),
             policy: Policy::PiR2,
-            mode: Mode::PiR2Async {
-                nfe: n,
-                alignment: fresh,
-                front: vis,
-            },
+            mode: Mode::PiR2Async { nfe: n, alignment: fresh, front: vis },
         },
         Row {
             label: format!("πR² async, front hidden (n={})", cfg.nfe),
             policy: Policy::PiR2Hidden,
-            mode: Mode::PiR2Async {
-                nfe: n,
-                alignment: fresh,
-                front: hid,
-            },
+            mode: Mode::PiR2Async { nfe: n, alignment: fresh, front: hid },
         },
         Row {
             label: "πR² async, paper full ramp".into(),
             policy: Policy::PiR2Full,
-            mode: Mode::PiR2Async {
-                nfe: None,
-                alignment: Alignment::Paper,
-                front: vis,
-            },
+            mode: Mode::PiR2Async { nfe: None, alignment: Alignment::Paper, front: vis },
         },
     ]
 }
 
 /// The ball-on-plate spec (H = 16, 2 fast frames, 2-d delayed camera).
 pub fn spec() -> Spec {
-    Spec {
-        horizon: 16,
-        action_dim: 2,
-        n_obs: 2,
-        fast_dim: 6,
-        slow: SlowSpec::Vector { dim: 2 },
-        d_vis_max: 3,
-    }
+    Spec { horizon: 16, action_dim: 2, n_obs: 2, fast_dim: 6, slow: SlowSpec::Vector { dim: 2 }, d_vis_max: 3 }
 }
 
 fn head_spec(policy: Policy, period: u64) -> HeadSpec {
@@ -303,19 +234,9 @@ pub fn collect(n: usize, seed: u64, show: bool) -> Result<Vec<Episode>> {
     let task = BallPlateConfig::default();
     let mut env = BallPlate::new(task.clone())?;
     let mut expert = LqrExpert::new(&task, LqrConfig::default())?;
-    let pb = if show {
-        bar(n as u64, "collecting demonstrations")
-    } else {
-        ProgressBar::hidden()
-    };
-    let cfg = CollectConfig {
-        episodes: n,
-        seed,
-        ..CollectConfig::default()
-    };
-    let eps = pir2_sim::dataset::collect_episodes(&mut env, &mut expert, &cfg, &mut |p| {
-        pb.set_position(p.kept as u64)
-    })?;
+    let pb = if show { bar(n as u64, "collecting demonstrations") } else { ProgressBar::hidden() };
+    let cfg = CollectConfig { episodes: n, seed, ..CollectConfig::default() };
+    let eps = pir2_sim::dataset::collect_episodes(&mut env, &mut expert, &cfg, &mut |p| pb.set_position(p.kept as u64))?;
     pb.finish();
     Ok(eps)
 }
@@ -342,24 +263,12 @@ pub fn clone_model(m: &CandleModel) -> Result<CandleModel> {
 /// The output map that denormalises the model's actions.
 pub fn output_map(m: &CandleModel) -> OutputMap {
     let n = &m.stats().action;
-    OutputMap {
-        scale: n.std.clone(),
-        offset: n.mean.clone(),
-    }
+    OutputMap { scale: n.std.clone(), offset: n.mean.clone() }
 }
 
 /// Closed-loop success of `model` under `mode` at unit delay `d0` over `episodes` episodes
 /// starting at episode seed `seed`.
-pub fn closed_loop(
-    model: &CandleModel,
-    policy: Policy,
-    mode: &Mode,
-    d0: usize,
-    episodes: usize,
-    seed: u64,
-    threads: usize,
-    progress: &(dyn Fn() + Sync),
-) -> Result<(usize, u64)> {
+pub fn closed_loop(model: &CandleModel, policy: Policy, mode: &Mode, d0: usize, episodes: usize, seed: u64, threads: usize, progress: &(dyn Fn() + Sync)) -> Result<(usize, u64)> {
     let task = BallPlateConfig::default();
     let period = (1e9 / task.control_hz).round() as u64;
     let spec = head_spec(policy, period);
@@ -373,38 +282,16 @@ pub fn closed_loop(
     };
     let make_env = || BallPlate::new(task.clone()).expect("default task is valid");
     let timing = LockstepTiming::for_mode(mode, d0);
-    Ok(eval_cell(
-        &make_env,
-        &make_model,
-        spec,
-        mode,
-        timing,
-        &out,
-        episodes,
-        seed,
-        threads,
-        progress,
-    )?)
+    Ok(eval_cell(&make_env, &make_model, spec, mode, timing, &out, episodes, seed, threads, progress)?)
 }
 
 /// Train one policy; the checkpoint is chosen by closed-loop validation.
-pub fn train_policy(
-    data: &[Episode],
-    policy: Policy,
-    seed: u64,
-    cfg: &DemoConfig,
-    out_dir: Option<&Path>,
-    pb: &ProgressBar,
-) -> Result<(CandleModel, Vec<(usize, f64)>)> {
+pub fn train_policy(data: &[Episode], policy: Policy, seed: u64, cfg: &DemoConfig, out_dir: Option<&Path>, pb: &ProgressBar) -> Result<(CandleModel, Vec<(usize, f64)>)> {
     let spec = spec();
     let stats = compute_stats(&Episodes(data), &spec)?;
     let config = Config {
         spec,
-        model: ModelConfig::Mlp(MlpConfig {
-            width: cfg.width,
-            depth: cfg.depth,
-            ..MlpConfig::default()
-        }),
+        model: ModelConfig::Mlp(MlpConfig { width: cfg.width, depth: cfg.depth, ..MlpConfig::default() }),
     };
     let mut model = CandleModel::new(config, stats, seed)?;
     let every = (cfg.train_steps / cfg.checkpoints.max(1)).max(1);
@@ -427,24 +314,12 @@ pub fn train_policy(
     let val_mode = policy.validation_mode(cfg);
     let mut scores = Vec::new();
     let val_seed = 1_000_000 + seed;
-    let mut trainer = Trainer::new(tc)
-        .on_progress(|p| pb.set_position(p.step as u64))
-        .validate(|m, step| {
-            let (ok, _) = closed_loop(
-                m,
-                policy,
-                &val_mode,
-                2,
-                cfg.val_episodes,
-                val_seed,
-                1,
-                &|| {},
-            )
-            .unwrap_or((0, 0));
-            let s = ok as f64 / cfg.val_episodes.max(1) as f64;
-            scores.push((step, s));
-            s
-        });
+    let mut trainer = Trainer::new(tc).on_progress(|p| pb.set_position(p.step as u64)).validate(|m, step| {
+        let (ok, _) = closed_loop(m, policy, &val_mode, 2, cfg.val_episodes, val_seed, 1, &|| {}).unwrap_or((0, 0));
+        let s = ok as f64 / cfg.val_episodes.max(1) as f64;
+        scores.push((step, s));
+        s
+    });
     if let Some(d) = out_dir {
         trainer = trainer.out_dir(d);
     }
@@ -469,15 +344,8 @@ pub struct DemoResult {
 
 /// Run the whole demo into `out` (a new directory).
 pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
-    if out.exists()
-        && std::fs::read_dir(out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
-        bail!(
-            "output directory {} exists and is not empty; choose another with --out",
-            out.display()
-        );
+    if out.exists() && std::fs::read_dir(out).map(|mut d| d.next().is_some()).unwrap_or(true) {
+        bail!("output directory {} exists and is not empty; choose another with --out", out.display());
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let t0 = Instant::now();
@@ -488,51 +356,35 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
 
     // Train every (policy, seed) on the worker threads.
     let t1 = Instant::now();
-    let jobs: Vec<(Policy, u64)> = cfg
-        .seeds
-        .iter()
-        .flat_map(|&s| Policy::ALL.iter().map(move |&p| (p, s)))
-        .collect();
+    let jobs: Vec<(Policy, u64)> = cfg.seeds.iter().flat_map(|&s| Policy::ALL.iter().map(move |&p| (p, s))).collect();
     let pb = bar((jobs.len() * cfg.train_steps) as u64, "training policies");
     let next = AtomicUsize::new(0);
     let done_steps: Vec<AtomicUsize> = jobs.iter().map(|_| AtomicUsize::new(0)).collect();
-    let results: Vec<Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>>> =
-        std::thread::scope(|s| {
-            let hs: Vec<_> = (0..cfg.threads.max(1))
-                .map(|_| {
-                    s.spawn(|| -> Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>> {
-                        let mut mine = Vec::new();
-                        loop {
-                            let j = next.fetch_add(1, Ordering::SeqCst);
-                            if j >= jobs.len() {
-                                return Ok(mine);
-                            }
-                            let (policy, seed) = jobs[j];
-                            let local = ProgressBar::hidden();
-                            let ckpt = out
-                                .join("checkpoints")
-                                .join(format!("{policy:?}-seed{seed}").to_lowercase());
-                            let (m, scores) =
-                                train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
-                            done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
-                            pb.set_position(
-                                done_steps
-                                    .iter()
-                                    .map(|d| d.load(Ordering::SeqCst) as u64)
-                                    .sum(),
-                            );
-                            mine.push((j, m, scores));
+    let results: Vec<Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>>> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..cfg.threads.max(1))
+            .map(|_| {
+                s.spawn(|| -> Result<Vec<(usize, CandleModel, Vec<(usize, f64)>)>> {
+                    let mut mine = Vec::new();
+                    loop {
+                        let j = next.fetch_add(1, Ordering::SeqCst);
+                        if j >= jobs.len() {
+                            return Ok(mine);
                         }
-                    })
+                        let (policy, seed) = jobs[j];
+                        let local = ProgressBar::hidden();
+                        let ckpt = out.join("checkpoints").join(format!("{policy:?}-seed{seed}").to_lowercase());
+                        let (m, scores) = train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
+                        done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
+                        pb.set_position(done_steps.iter().map(|d| d.load(Ordering::SeqCst) as u64).sum());
+                        mine.push((j, m, scores));
+                    }
                 })
-                .collect();
-            hs.into_iter()
-                .map(|h| h.join().expect("training thread panicked"))
-                .collect()
-        });
+            })
+            .collect();
+        hs.into_iter().map(|h| h.join().expect("training thread panicked")).collect()
+    });
     pb.finish();
-    let mut models: Vec<Option<(CandleModel, Vec<(usize, f64)>)>> =
-        (0..jobs.len()).map(|_| None).collect();
+    let mut models: Vec<Option<(CandleModel, Vec<(usize, f64)>)>> = (0..jobs.len()).map(|_| None).collect();
     for r in results {
         for (j, m, s) in r? {
             models[j] = Some((m, s));
@@ -548,50 +400,21 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
     let mut cells = Vec::new();
     for row in &rows {
         for &seed in &cfg.seeds {
-            let j = jobs
-                .iter()
-                .position(|&(p, s)| p == row.policy && s == seed)
-                .expect("trained");
+            let j = jobs.iter().position(|&(p, s)| p == row.policy && s == seed).expect("trained");
             let model = &models[j].as_ref().expect("trained").0;
             for &d0 in &cfg.d0s {
                 let tick = || pb.inc(1);
-                let (ok, overruns) = closed_loop(
-                    model,
-                    row.policy,
-                    &row.mode,
-                    d0,
-                    cfg.episodes,
-                    2_000_000 + seed,
-                    cfg.threads,
-                    &tick,
-                )?;
-                cells.push(Cell {
-                    label: row.label.clone(),
-                    d0,
-                    seed,
-                    successes: ok,
-                    episodes: cfg.episodes,
-                    overruns,
-                });
+                let (ok, overruns) = closed_loop(model, row.policy, &row.mode, d0, cfg.episodes, 2_000_000 + seed, cfg.threads, &tick)?;
+                cells.push(Cell { label: row.label.clone(), d0, seed, successes: ok, episodes: cfg.episodes, overruns });
             }
         }
     }
     pb.finish();
     timings.push(("evaluate".to_string(), t2.elapsed().as_secs_f64()));
     let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
-    let validation = jobs
-        .iter()
-        .zip(&models)
-        .map(|(&(p, s), m)| (p, s, m.as_ref().map(|m| m.1.clone()).unwrap_or_default()))
-        .collect();
+    let validation = jobs.iter().zip(&models).map(|(&(p, s), m)| (p, s, m.as_ref().map(|m| m.1.clone()).unwrap_or_default())).collect();
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
-    let result = DemoResult {
-        config: cfg.clone(),
-        labels,
-        cells,
-        validation,
-        timings,
-    };
+    let result = DemoResult { config: cfg.clone(), labels, cells, validation, timings };
     write_outputs(&result, out)?;
     Ok(result)
 }
@@ -599,17 +422,13 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
 /// Write `result.json`, `table.md` and `success.png`.
 pub fn write_outputs(result: &DemoResult, out: &Path) -> Result<()> {
     let json = serde_json::to_string_pretty(result)?;
-    std::fs::write(out.join("result.json"), json)
-        .with_context(|| format!("writing {}", out.join("result.json").display()))?;
+    std::fs::write(out.join("result.json"), json).with_context(|| format!("writing {}", out.join("result.json").display()))?;
     let t = table(&result.cells, &result.labels, &result.config.d0s);
     std::fs::write(out.join("table.md"), &t)?;
     let series = to_series(&result.cells, &result.labels, &result.config.d0s);
     plot_series(
         &out.join("success.png"),
-        &format!(
-            "ball-on-plate: success vs unit delay (mean ± std over {} seeds)",
-            result.config.seeds.len()
-        ),
+        &format!("ball-on-plate: success vs unit delay (mean ± std over {} seeds)", result.config.seeds.len()),
         "unit delay d0 (ticks)",
         "success rate",
         &series,
@@ -619,9 +438,6 @@ pub fn write_outputs(result: &DemoResult, out: &Path) -> Result<()> {
 
 /// A fresh output directory under `runs/`.
 pub fn default_out_dir() -> PathBuf {
-    let t = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
+    let t = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
     PathBuf::from("runs").join(format!("demo-{t}"))
 }

@@ -11,11 +11,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use pir2_cli::demo::{self, DemoConfig, Policy};
 
 #[derive(Parser, Debug)]
-#[command(
-    name = "pir2",
-    version,
-    about = "Reactive real-time flow policies (πR²)"
-)]
+#[command(name = "pir2", version, about = "Reactive real-time flow policies (πR²)")]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -171,15 +167,10 @@ enum RobotCmd {
 fn load_demo_config(path: Option<&PathBuf>, quick: bool) -> Result<DemoConfig> {
     match path {
         Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("reading config {}", p.display()))?;
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading config {}", p.display()))?;
             toml::from_str(&text).with_context(|| format!("parsing config {}", p.display()))
         }
-        None => Ok(if quick {
-            DemoConfig::quick()
-        } else {
-            DemoConfig::default()
-        }),
+        None => Ok(if quick { DemoConfig::quick() } else { DemoConfig::default() }),
     }
 }
 
@@ -210,46 +201,21 @@ fn ctrl_c_flag() -> Arc<AtomicBool> {
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.cmd {
-        Cmd::Demo {
-            quick,
-            config,
-            out,
-            episodes,
-        } => {
+        Cmd::Demo { quick, config, out, episodes } => {
             let mut cfg = load_demo_config(config.as_ref(), quick)?;
             if let Some(e) = episodes {
                 cfg.episodes = e;
             }
             let out = out.unwrap_or_else(demo::default_out_dir);
-            println!(
-                "pir2 demo → {}  ({} demos, {} steps/policy, {} episodes/cell, seeds {:?})",
-                out.display(),
-                cfg.demos,
-                cfg.train_steps,
-                cfg.episodes,
-                cfg.seeds
-            );
+            println!("pir2 demo → {}  ({} demos, {} steps/policy, {} episodes/cell, seeds {:?})", out.display(), cfg.demos, cfg.train_steps, cfg.episodes, cfg.seeds);
             let r = demo::run(&cfg, &out)?;
-            println!(
-                "\n{}",
-                pir2_cli::study::table(&r.cells, &r.labels, &r.config.d0s)
-            );
+            println!("\n{}", pir2_cli::study::table(&r.cells, &r.labels, &r.config.d0s));
             for (stage, s) in &r.timings {
                 println!("{stage:>9}: {s:6.1} s");
             }
-            println!(
-                "wrote {}/result.json, table.md, success.png, dataset/, checkpoints/",
-                out.display()
-            );
+            println!("wrote {}/result.json, table.md, success.png, dataset/, checkpoints/", out.display());
         }
-        Cmd::Collect {
-            task: _,
-            out,
-            episodes,
-            seed,
-            resume,
-            overwrite,
-        } => {
+        Cmd::Collect { task: _, out, episodes, seed, resume, overwrite } => {
             let mode = if resume {
                 pir2_sim::dataset::WriteMode::Resume
             } else if overwrite {
@@ -261,73 +227,29 @@ fn main() -> Result<()> {
             demo::write_dataset(&out, &eps, mode)?;
             println!("wrote {} episodes to {}", eps.len(), out.display());
         }
-        Cmd::Train {
-            data,
-            policy,
-            out,
-            config,
-            seed,
-        } => {
+        Cmd::Train { data, policy, out, config, seed } => {
             if out.exists() {
-                bail!(
-                    "checkpoint directory {} already exists; choose another --out",
-                    out.display()
-                );
+                bail!("checkpoint directory {} already exists; choose another --out", out.display());
             }
             let cfg = load_demo_config(config.as_ref(), false)?;
-            let ds = pir2_sim::dataset::read_dataset(&data)
-                .with_context(|| format!("reading dataset {}", data.display()))?;
+            let ds = pir2_sim::dataset::read_dataset(&data).with_context(|| format!("reading dataset {}", data.display()))?;
             let pb = indicatif::ProgressBar::new(cfg.train_steps as u64);
-            let (model, scores) = demo::train_policy(
-                &ds.episodes,
-                policy.into(),
-                seed,
-                &cfg,
-                Some(&out.join("steps")),
-                &pb,
-            )?;
+            let (model, scores) = demo::train_policy(&ds.episodes, policy.into(), seed, &cfg, Some(&out.join("steps")), &pb)?;
             pb.finish();
             model.save(&out.join("best"))?;
             println!("closed-loop validation (step, success): {scores:?}");
             println!("best checkpoint: {}", out.join("best").display());
         }
-        Cmd::Eval {
-            checkpoint,
-            policy,
-            d0,
-            episodes,
-            seed,
-            json,
-        } => {
+        Cmd::Eval { checkpoint, policy, d0, episodes, seed, json } => {
             let policy: Policy = policy.into();
-            let model = pir2_backends::candle::CandleModel::load(&checkpoint)
-                .with_context(|| format!("loading {}", checkpoint.display()))?;
+            let model = pir2_backends::candle::CandleModel::load(&checkpoint).with_context(|| format!("loading {}", checkpoint.display()))?;
             let cfg = DemoConfig::default();
             let mut cells = Vec::new();
-            let rows: Vec<_> = demo::rows(&cfg)
-                .into_iter()
-                .filter(|r| r.policy == policy)
-                .collect();
+            let rows: Vec<_> = demo::rows(&cfg).into_iter().filter(|r| r.policy == policy).collect();
             for row in &rows {
                 for &d in &d0 {
-                    let (ok, overruns) = demo::closed_loop(
-                        &model,
-                        policy,
-                        &row.mode,
-                        d,
-                        episodes,
-                        seed,
-                        cfg.threads,
-                        &|| {},
-                    )?;
-                    cells.push(pir2_cli::study::Cell {
-                        label: row.label.clone(),
-                        d0: d,
-                        seed,
-                        successes: ok,
-                        episodes,
-                        overruns,
-                    });
+                    let (ok, overruns) = demo::closed_loop(&model, policy, &row.mode, d, episodes, seed, cfg.threads, &|| {})?;
+                    cells.push(pir2_cli::study::Cell { label: row.label.clone(), d0: d, seed, successes: ok, episodes, overruns });
                 }
             }
             let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
@@ -337,29 +259,18 @@ fn main() -> Result<()> {
             }
         }
         Cmd::Plot { input, out } => {
-            let text = std::fs::read_to_string(&input)
-                .with_context(|| format!("reading {}", input.display()))?;
-            let v: serde_json::Value = serde_json::from_str(&text)
-                .with_context(|| format!("parsing {}", input.display()))?;
+            let text = std::fs::read_to_string(&input).with_context(|| format!("reading {}", input.display()))?;
+            let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", input.display()))?;
             let out = out.unwrap_or_else(|| input.with_extension("png"));
             if v.get("cells").is_some() {
                 let r: demo::DemoResult = serde_json::from_value(v)?;
                 let series = pir2_cli::study::to_series(&r.cells, &r.labels, &r.config.d0s);
-                pir2_cli::plot::plot_series(
-                    &out,
-                    "success vs unit delay",
-                    "unit delay d0 (ticks)",
-                    "success rate",
-                    &series,
-                )?;
+                pir2_cli::plot::plot_series(&out, "success vs unit delay", "unit delay d0 (ticks)", "success rate", &series)?;
             } else if v.get("calls").is_some() {
                 let t: pir2_runtime::RunTrace = serde_json::from_value(v)?;
                 pir2_cli::plot::plot_trace(&out, &t)?;
             } else {
-                bail!(
-                    "{} is neither a demo result (cells) nor a run trace (calls)",
-                    input.display()
-                );
+                bail!("{} is neither a demo result (cells) nor a run trace (calls)", input.display());
             }
             println!("wrote {}", out.display());
         }
@@ -377,11 +288,7 @@ fn main() -> Result<()> {
                     None => None,
                     Some(s) => Some(match s.parse::<SocketAddr>() {
                         Ok(a) => a,
-                        Err(_) => SocketAddr::new(
-                            s.parse::<IpAddr>()
-                                .with_context(|| format!("bad --xarm address {s}"))?,
-                            502,
-                        ),
+                        Err(_) => SocketAddr::new(s.parse::<IpAddr>().with_context(|| format!("bad --xarm address {s}"))?, 502),
                     }),
                 };
                 let report = pir2_robots::check(addr, xhand.as_deref())?;

@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 
 use pir2_runtime::{
-    ActionHead, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
-    OutputMap, VelocityModel,
+    ActionHead, OutputMap, Environment, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode,
+    VelocityModel,
 };
 use pir2_schedule::Rng;
 
