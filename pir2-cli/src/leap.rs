@@ -444,7 +444,7 @@ pub fn train_leap(
     cfg: &LeapStudyConfig,
     out_dir: Option<&Path>,
     pb: &ProgressBar,
-) -> Result<(CandleModel, Vec<(usize, f64)>)> {
+) -> Result<(CandleModel, Scores)> {
     let spec = spec();
     let stats = compute_stats(&Episodes(data), &spec)?;
     let unet = UNetConfig {
@@ -508,6 +508,9 @@ pub fn train_leap(
     Ok((model, scores))
 }
 
+/// Closed-loop validation scores of one training run: `(step, success rate)`.
+pub type Scores = Vec<(usize, f64)>;
+
 /// Result of a Leap study.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct LeapStudyResult {
@@ -524,12 +527,12 @@ pub struct LeapStudyResult {
     /// All cells (`d0` holds the column key).
     pub cells: Vec<Cell>,
     /// Validation scores per (policy, seed).
-    pub validation: Vec<(LeapPolicy, u64, Vec<(usize, f64)>)>,
+    pub validation: Vec<(LeapPolicy, u64, Scores)>,
     /// Wall time per stage, seconds.
     pub timings: Vec<(String, f64)>,
 }
 
-type Trained = Vec<(LeapPolicy, u64, CandleModel, Vec<(usize, f64)>)>;
+type Trained = Vec<(LeapPolicy, u64, CandleModel, Scores)>;
 
 fn train_all(
     leap: &LeapModel,
