@@ -10,7 +10,7 @@
 //!   the [`expert::Expert`] trait.
 //! - [`dataset`]: demonstration collection into in-memory [`dataset::Episode`]s and
 //!   LeRobotDataset v3.0 (state-only) writing and reading.
-//! - [`leap`] (feature `mujoco`): the 16-DoF LEAP hand cube-reorientation task (MuJoCo
+//! - `leap` (feature `mujoco`): the 16-DoF LEAP hand cube-reorientation task (MuJoCo
 //!   Playground's LeapCubeReorient, the paper's 50 Hz blue-side-up variant) and its
 //!   sampling-based MPC expert.
 #![warn(missing_docs)]
