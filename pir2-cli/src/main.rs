@@ -52,7 +52,7 @@ enum Cmd {
         /// TOML config (fields of `DemoConfig`); flags override it.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Output directory (must not exist or be empty; default: runs/demo-<time>).
+        /// Output directory (must not exist or be empty; default: `runs/demo-<time>`).
         #[arg(long)]
         out: Option<PathBuf>,
         /// Test episodes per cell.
