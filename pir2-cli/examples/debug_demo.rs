@@ -1,8 +1,15 @@
+//! Diagnose the demo pipeline on one policy: train a standard-flow MLP, print the open-loop
+//! error of sampled vs expert actions on demonstration frames, then run one closed-loop
+//! episode printing the actions.
+//! Run: `cargo run --release -p pir2-cli --example debug_demo -- [demo.toml]`
 use pir2_cli::demo::*;
 use pir2_runtime::*;
 use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 fn main() -> anyhow::Result<()> {
-    let cfg: DemoConfig = toml::from_str(&std::fs::read_to_string("/tmp/smoke.toml")?)?;
+    let cfg: DemoConfig = match std::env::args().nth(1) {
+        Some(p) => toml::from_str(&std::fs::read_to_string(p)?)?,
+        None => DemoConfig::quick(),
+    };
     let demos = collect(50, 7, false)?;
     println!(
         "demo lens {:?}",
