@@ -264,6 +264,7 @@ where
         max_ticks: opts.max_ticks,
         initial_delay: 1,
         slow_timeout: opts.slow_timeout,
+        rt_priority: None,
     };
     let slow = SlowChannel::Async {
         source: Box::new(camera),
