@@ -39,7 +39,7 @@ fn main() -> anyhow::Result<()> {
                 &hist,
                 pir2_runtime::SlowInput::Vector {
                     data: e.slow(t),
-                    dim: 2,
+                    dim: pir2_sim::ballplate::SLOW_DIM,
                 },
                 0,
                 10,
@@ -71,7 +71,7 @@ fn main() -> anyhow::Result<()> {
         action_dim: 2,
         n_obs: 2,
         fast_dim: 6,
-        slow_dim: 2,
+        slow_dim: pir2_sim::ballplate::SLOW_DIM,
         period: 20_000_000,
         d_max: 6,
         d_vis_max: 3,

@@ -64,18 +64,18 @@ impl Default for DemoConfig {
     fn default() -> Self {
         Self {
             demos: 200,
-            train_steps: 3000,
-            batch_size: 256,
+            train_steps: 2000,
+            batch_size: 128,
             lr: 1e-3,
-            checkpoints: 3,
-            val_episodes: 30,
+            checkpoints: 4,
+            val_episodes: 20,
             episodes: 100,
             seeds: vec![0, 1, 2],
             d0s: vec![1, 2, 3],
             nfe: 2,
             flow_steps: 10,
             threads: 2,
-            width: 256,
+            width: 128,
             depth: 3,
         }
     }
@@ -86,9 +86,9 @@ impl DemoConfig {
     pub fn quick() -> Self {
         Self {
             demos: 100,
-            train_steps: 1500,
+            train_steps: 1000,
             episodes: 30,
-            val_episodes: 20,
+            val_episodes: 10,
             checkpoints: 2,
             ..Self::default()
         }
@@ -155,12 +155,21 @@ impl Policy {
         }
     }
 
-    /// The mode used for closed-loop checkpoint validation.
+    /// The mode used for closed-loop checkpoint validation: the flow policy in naive async
+    /// (no ensembling), every other policy in its own row's mode (πR² with async).
     pub fn validation_mode(self, cfg: &DemoConfig) -> Mode {
-        rows(cfg)
-            .into_iter()
-            .find(|r| r.policy == self)
-            .map(|r| r.mode)
+        let rows = rows(cfg);
+        let mine = rows.iter().filter(|r| r.policy == self);
+        let pick = match self {
+            Policy::Flow => mine
+                .clone()
+                .find(|r| matches!(r.mode, Mode::NaiveAsync { ensemble: None, .. })),
+            _ => mine
+                .clone()
+                .find(|r| matches!(r.mode, Mode::PiR2Async { .. }) || self == Policy::Rtc),
+        };
+        pick.or_else(|| mine.clone().next())
+            .map(|r| r.mode.clone())
             .expect("every policy has a row")
     }
 }
@@ -186,6 +195,14 @@ pub fn rows(cfg: &DemoConfig) -> Vec<Row> {
             label: "sync flow".into(),
             policy: Policy::Flow,
             mode: Mode::SyncFlow { steps: k, h: 8 },
+        },
+        Row {
+            label: "naive async".into(),
+            policy: Policy::Flow,
+            mode: Mode::NaiveAsync {
+                steps: k,
+                ensemble: None,
+            },
         },
         Row {
             label: "naive async + TE".into(),
@@ -239,14 +256,16 @@ pub fn rows(cfg: &DemoConfig) -> Vec<Row> {
     ]
 }
 
-/// The ball-on-plate spec (H = 16, 2 fast frames, 2-d delayed camera).
+/// The ball-on-plate spec (H = 16, 2 fast frames, 4-d delayed camera tracker).
 pub fn spec() -> Spec {
     Spec {
         horizon: 16,
         action_dim: 2,
         n_obs: 2,
-        fast_dim: 6,
-        slow: SlowSpec::Vector { dim: 2 },
+        fast_dim: pir2_sim::ballplate::FAST_DIM,
+        slow: SlowSpec::Vector {
+            dim: pir2_sim::ballplate::SLOW_DIM,
+        },
         d_vis_max: 3,
     }
 }

@@ -52,9 +52,11 @@ pub fn plot_series(
     series: &[Series],
 ) -> Result<()> {
     register_font();
-    let root = BitMapBackend::new(path, (960, 600)).into_drawing_area();
+    let root = BitMapBackend::new(path, (1240, 620)).into_drawing_area();
     root.fill(&WHITE)
         .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
+    // The legend gets its own panel on the right so it never hides a data point.
+    let (plot_area, legend_area) = root.split_horizontally(900);
     let (mut xmin, mut xmax) = (f64::MAX, f64::MIN);
     for s in series {
         for p in &s.points {
@@ -66,16 +68,24 @@ pub fn plot_series(
         return Err(anyhow!("nothing to plot for {}", path.display()));
     }
     let pad = ((xmax - xmin) * 0.08).max(0.3);
-    let mut chart = ChartBuilder::on(&root)
+    // Integer x values (delays, horizons) get integer ticks.
+    let integer_x = series
+        .iter()
+        .flat_map(|s| &s.points)
+        .all(|p| p.0.fract() == 0.0);
+    let mut chart = ChartBuilder::on(&plot_area)
         .caption(title, ("sans-serif", 24))
         .margin(16)
         .x_label_area_size(44)
         .y_label_area_size(56)
         .build_cartesian_2d((xmin - pad)..(xmax + pad), 0f64..1.05f64)
         .map_err(|e| anyhow!("{e}"))?;
-    chart
-        .configure_mesh()
-        .x_desc(x_desc)
+    let mut mesh = chart.configure_mesh();
+    if integer_x && xmax - xmin <= 20.0 {
+        mesh.x_labels((xmax - xmin) as usize + 1)
+            .x_label_formatter(&|x| format!("{x:.0}"));
+    }
+    mesh.x_desc(x_desc)
         .y_desc(y_desc)
         .axis_desc_style(("sans-serif", 18))
         .label_style(("sans-serif", 15))
@@ -89,9 +99,7 @@ pub fn plot_series(
         let pts: Vec<(f64, f64)> = s.points.iter().map(|p| (p.0 + off, p.1)).collect();
         chart
             .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
-            .map_err(|e| anyhow!("{e}"))?
-            .label(s.label.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], c.stroke_width(3)));
+            .map_err(|e| anyhow!("{e}"))?;
         chart
             .draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled())))
             .map_err(|e| anyhow!("{e}"))?;
@@ -108,14 +116,23 @@ pub fn plot_series(
             }))
             .map_err(|e| anyhow!("{e}"))?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 15))
-        .draw()
-        .map_err(|e| anyhow!("{e}"))?;
+    let font = ("sans-serif", 15).into_font();
+    for (i, s) in series.iter().enumerate() {
+        let c = COLORS[i % COLORS.len()];
+        let y = 70 + 28 * i as i32;
+        legend_area
+            .draw(&PathElement::new(
+                vec![(8, y), (36, y)],
+                c.stroke_width(3),
+            ))
+            .map_err(|e| anyhow!("{e}"))?;
+        legend_area
+            .draw(&Circle::new((22, y), 4, c.filled()))
+            .map_err(|e| anyhow!("{e}"))?;
+        legend_area
+            .draw(&Text::new(s.label.clone(), (44, y - 8), font.clone()))
+            .map_err(|e| anyhow!("{e}"))?;
+    }
     root.present()
         .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
     Ok(())

@@ -1831,7 +1831,7 @@ mod tests {
         for e in &eps {
             assert!(e.success && e.done);
             assert_eq!(e.len(), 500);
-            assert_eq!((e.fast_dim, e.slow_dim, e.action_dim), (6, 2, 2));
+            assert_eq!((e.fast_dim, e.slow_dim, e.action_dim), (6, 4, 2));
             // Labels are the expert's clamped actions.
             assert!(e.action.iter().all(|a| a.abs() <= 0.15 + 1e-6));
         }
@@ -1890,7 +1890,7 @@ mod tests {
         assert_eq!(info["features"]["observation.state"]["shape"], json!([6]));
         assert_eq!(
             info["features"]["observation.environment_state"]["names"],
-            json!(["ball_x", "ball_y"])
+            json!(["ball_x", "ball_y", "ball_vx", "ball_vy"])
         );
         assert_eq!(info["splits"]["train"], "0:3");
         let eb = read_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
