@@ -169,7 +169,7 @@ impl Policy {
                 .find(|r| matches!(r.mode, Mode::PiR2Async { .. }) || self == Policy::Rtc),
         };
         pick.or_else(|| mine.clone().next())
-            .map(|r| r.mode.clone())
+            .map(|r| r.mode)
             .expect("every policy has a row")
     }
 }

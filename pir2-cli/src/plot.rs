@@ -121,10 +121,7 @@ pub fn plot_series(
         let c = COLORS[i % COLORS.len()];
         let y = 70 + 28 * i as i32;
         legend_area
-            .draw(&PathElement::new(
-                vec![(8, y), (36, y)],
-                c.stroke_width(3),
-            ))
+            .draw(&PathElement::new(vec![(8, y), (36, y)], c.stroke_width(3)))
             .map_err(|e| anyhow!("{e}"))?;
         legend_area
             .draw(&Circle::new((22, y), 4, c.filled()))

@@ -589,7 +589,10 @@ mod tests {
             let st = *env.state();
             for i in 0..2 {
                 assert!((s[i] as f64 - st.pos[i]).abs() < 1e-7);
-                assert!((s[2 + i] as f64 - st.vel[i]).abs() < 1e-5, "{s:?} vs {st:?}");
+                assert!(
+                    (s[2 + i] as f64 - st.vel[i]).abs() < 1e-5,
+                    "{s:?} vs {st:?}"
+                );
             }
             env.step(&[0.0, 0.0]);
         }

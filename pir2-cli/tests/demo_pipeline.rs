@@ -1,0 +1,174 @@
+//! The ball-on-plate demo end to end at a tiny scale: the library pipeline (`demo::run`) and
+//! the same stages through the `pir2` binary (`collect` → `train` → `eval` → `plot`).
+
+use std::path::Path;
+use std::process::Command;
+
+use pir2_cli::demo::{self, DemoConfig, Policy};
+
+/// A fresh scratch directory, removed when dropped.
+struct Scratch(std::path::PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("pir2-cli-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+    fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn tiny() -> DemoConfig {
+    DemoConfig {
+        demos: 12,
+        train_steps: 200,
+        batch_size: 32,
+        checkpoints: 2,
+        val_episodes: 2,
+        episodes: 4,
+        seeds: vec![0],
+        d0s: vec![1, 3],
+        width: 32,
+        depth: 2,
+        ..DemoConfig::default()
+    }
+}
+
+#[test]
+fn demo_writes_every_row_and_refuses_a_used_directory() {
+    let dir = Scratch::new("demo");
+    let out = dir.path().join("demo");
+    let cfg = tiny();
+    let r = demo::run(&cfg, &out).unwrap();
+    let rows = demo::rows(&cfg);
+    assert_eq!(r.labels.len(), rows.len());
+    assert_eq!(r.cells.len(), rows.len() * cfg.d0s.len() * cfg.seeds.len());
+    for c in &r.cells {
+        assert_eq!(c.episodes, cfg.episodes);
+        assert!(c.successes <= c.episodes);
+    }
+    // Every policy was validated at each checkpoint (closed loop, not loss).
+    assert_eq!(r.validation.len(), Policy::ALL.len());
+    for (_, _, scores) in &r.validation {
+        assert_eq!(scores.len(), cfg.checkpoints);
+    }
+    for f in ["result.json", "table.md", "success.png"] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    for row in &rows {
+        assert!(table.contains(&row.label), "table lacks {}", row.label);
+    }
+    let ds = pir2_sim::dataset::read_dataset(&out.join("dataset")).unwrap();
+    assert_eq!(ds.episodes.len(), cfg.demos);
+    // The output directory is not reused: nothing a user has is overwritten.
+    let err = demo::run(&cfg, &out).unwrap_err().to_string();
+    assert!(err.contains("not empty"), "{err}");
+}
+
+fn pir2(args: &[&str], cwd: &Path) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "pir2 {args:?} failed:\n{text}");
+    text
+}
+
+#[test]
+fn every_stage_runs_as_its_own_subcommand() {
+    let dir = Scratch::new("stages");
+    let d = dir.path();
+    let cfg = tiny();
+    std::fs::write(d.join("tiny.toml"), toml::to_string(&cfg).unwrap()).unwrap();
+    pir2(&["collect", "--out", "data", "--episodes", "6"], d);
+    // A second collect into the same directory is refused; --resume adds the missing ones.
+    let again = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(["collect", "--out", "data", "--episodes", "6"])
+        .current_dir(d)
+        .output()
+        .unwrap();
+    assert!(!again.status.success());
+    let msg = String::from_utf8_lossy(&again.stderr);
+    assert!(msg.contains("data"), "{msg}");
+    pir2(
+        &[
+            "train",
+            "--data",
+            "data",
+            "--policy",
+            "pir2",
+            "--out",
+            "ckpt",
+            "--config",
+            "tiny.toml",
+        ],
+        d,
+    );
+    assert!(d.join("ckpt/best").is_dir());
+    let table = pir2(
+        &[
+            "eval",
+            "--checkpoint",
+            "ckpt/best",
+            "--policy",
+            "pir2",
+            "--d0",
+            "1,2",
+            "--episodes",
+            "3",
+            "--json",
+            "cells.json",
+        ],
+        d,
+    );
+    assert!(table.contains("πR² async (n=2)"), "{table}");
+    let cells: Vec<pir2_cli::study::Cell> =
+        serde_json::from_str(&std::fs::read_to_string(d.join("cells.json")).unwrap()).unwrap();
+    assert_eq!(cells.len(), 2 * 2, "two πR² rows × two delays");
+    // Plot a demo result.
+    pir2(&["demo", "--config", "tiny.toml", "--out", "run"], d);
+    pir2(&["plot", "run/result.json", "--out", "again.png"], d);
+    assert!(d.join("again.png").is_file());
+}
+
+/// A short training run learns a policy that balances the ball (guards the whole chain:
+/// observation content, encoding, normalisation, training, runtime, denormalisation).
+#[test]
+fn a_short_training_run_balances_the_ball() {
+    let cfg = DemoConfig {
+        train_steps: 600,
+        batch_size: 64,
+        width: 64,
+        depth: 3,
+        checkpoints: 1,
+        val_episodes: 1,
+        ..DemoConfig::default()
+    };
+    let demos = demo::collect(40, 11, false).unwrap();
+    let pb = indicatif::ProgressBar::hidden();
+    let (m, _) = demo::train_policy(&demos, Policy::PiR2, 0, &cfg, None, &pb).unwrap();
+    let mode = pir2_runtime::Mode::PiR2Async {
+        nfe: Some(2),
+        alignment: pir2_schedule::Alignment::Fresh,
+        front: pir2_schedule::FrontMode::Visible,
+    };
+    let (ok, _) = demo::closed_loop(&m, Policy::PiR2, &mode, 1, 12, 77, 2, &|| {}).unwrap();
+    eprintln!("πR² async, d0 = 1: {ok}/12");
+    assert!(ok >= 6, "πR² async after 600 steps: {ok}/12");
+}
