@@ -308,6 +308,9 @@ fn main() -> Result<()> {
             json,
         } => {
             let policy: Policy = policy.into();
+            if let Some(p) = json.as_ref().filter(|p| p.exists()) {
+                bail!("{} already exists; choose another --json path", p.display());
+            }
             let model = pir2_backends::candle::CandleModel::load(&checkpoint)
                 .with_context(|| format!("loading {}", checkpoint.display()))?;
             let cfg = DemoConfig::default();
@@ -350,6 +353,12 @@ fn main() -> Result<()> {
             let v: serde_json::Value = serde_json::from_str(&text)
                 .with_context(|| format!("parsing {}", input.display()))?;
             let out = out.unwrap_or_else(|| input.with_extension("png"));
+            if out.exists() {
+                bail!(
+                    "{} already exists; choose another path with --out",
+                    out.display()
+                );
+            }
             if v.get("cells").is_some() {
                 let r: demo::DemoResult = serde_json::from_value(v)?;
                 let series = pir2_cli::study::to_series(&r.cells, &r.labels, &r.config.d0s);

@@ -145,6 +145,32 @@ fn every_stage_runs_as_its_own_subcommand() {
     pir2(&["demo", "--config", "tiny.toml", "--out", "run"], d);
     pir2(&["plot", "run/result.json", "--out", "again.png"], d);
     assert!(d.join("again.png").is_file());
+    // Outputs a user already has are not replaced.
+    for args in [
+        vec!["plot", "run/result.json", "--out", "again.png"],
+        vec![
+            "eval",
+            "--checkpoint",
+            "ckpt/best",
+            "--policy",
+            "pir2",
+            "--episodes",
+            "1",
+            "--json",
+            "cells.json",
+        ],
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_pir2"))
+            .args(&args)
+            .current_dir(d)
+            .output()
+            .unwrap();
+        let msg = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && msg.contains("already exists"),
+            "{args:?}: {msg}"
+        );
+    }
 }
 
 /// A short training run learns a policy that balances the ball (guards the whole chain:
