@@ -1,6 +1,6 @@
 //! The GR00T-N1.7 xArm6 + XHand stack on tiny synthetic ONNX graphs with the export
-//! contract's names and shapes (made in set-up by `tests/gr00t/make_graphs.py` with
-//! `$PIR2_PYTHON`, i.e. after `source .native/env.sh`).
+//! contract's names and shapes (made in set-up by `pir2_backends::gr00t::testing`, i.e.
+//! `make_graphs.py` run with `$PIR2_PYTHON` after `source .native/env.sh`).
 //!
 //! Covers: the action head's delay embedding and per-position timesteps, contract violations
 //! (wrong name, rank, dim, type, missing statistic, delay-table shape), and the whole stack
@@ -13,93 +13,25 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use pir2_backends::gr00t::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
+use pir2_backends::gr00t::weights::{write_f32, DELAY_EMBEDDING};
 use pir2_backends::gr00t::{
-    run_gr00t_report, CheckpointFiles, EmbodimentConfig, Gr00tActionHead, Gr00tBackbone,
-    Gr00tRunOptions, Normalizer, VocabTokenizer,
+    run_gr00t_report, CheckpointFiles, Gr00tActionHead, Gr00tBackbone, Gr00tRunOptions, Normalizer,
+    VocabTokenizer,
 };
 use pir2_backends::ort::OrtOptions;
-use pir2_runtime::{
-    Clock, ModelInput, SlowFrame, SlowInput, SlowSource, SystemClock, VelocityModel,
+use pir2_runtime::{Clock, ModelInput, SlowFrame, SlowInput, SystemClock, VelocityModel};
+
+use pir2_backends::gr00t::testing::{
+    python_from_env, statistics_json, tiny_embodiment as embodiment, write_tiny_checkpoint,
+    SyntheticCamera, D_IN, D_VL,
 };
-
-const D_IN: usize = 32;
-const D_VL: usize = 24;
-
-fn python() -> String {
-    std::env::var("PIR2_PYTHON").expect(
-        "PIR2_PYTHON is not set: run `source .native/env.sh` (scripts/setup-native.sh) first",
-    )
-}
-
-/// A test embodiment: the paper's xArm6 + XHand with a tiny image and prompt.
-fn embodiment() -> EmbodimentConfig {
-    let mut c = EmbodimentConfig::xarm6_xhand();
-    c.image.resize = 16;
-    c.image.crop = 16;
-    c.prompt.image_tokens = 4;
-    c.prompt.text_tokens = 4;
-    c
-}
-
-fn stats_json(cfg: &EmbodimentConfig, drop: Option<&str>) -> String {
-    let mut emb = serde_json::Map::new();
-    for (m, groups) in [("state", &cfg.state), ("action", &cfg.action)] {
-        let mut gm = serde_json::Map::new();
-        for g in groups.iter() {
-            let (lo, hi) = match (m, g.name.as_str()) {
-                ("action", "arm_joints") => (-0.1, 0.1),
-                ("action", _) => (0.2, 0.6),
-                (_, "hand_torques") => (-300.0, 300.0),
-                (_, "fingertip_forces") => (-20.0, 20.0),
-                _ => (-3.2, 3.2),
-            };
-            let mut s = serde_json::Map::new();
-            for (k, v) in [("min", lo), ("max", hi), ("mean", 0.0), ("std", 1.0)] {
-                if drop == Some(&format!("{m}.{}.{k}", g.name)) {
-                    continue;
-                }
-                s.insert(k.into(), serde_json::json!(vec![v; g.dim]));
-            }
-            gm.insert(g.name.clone(), s.into());
-        }
-        emb.insert(m.into(), gm.into());
-    }
-    serde_json::json!({ &cfg.embodiment_tag: emb }).to_string()
-}
 
 /// A checkpoint directory with graphs (`variant` breaks one of them) and side files.
 fn fixture(name: &str, variant: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("pir2-gr00t-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(dir.join("onnx")).unwrap();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/gr00t/make_graphs.py");
-    let st = std::process::Command::new(python())
-        .arg(&script)
-        .arg(dir.join("onnx"))
-        .arg(variant)
-        .status()
-        .expect("run make_graphs.py");
-    assert!(st.success(), "make_graphs.py failed");
-    let cfg = embodiment();
-    std::fs::write(dir.join("embodiment.toml"), cfg.to_toml().unwrap()).unwrap();
-    std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
-    std::fs::write(dir.join("embodiment_id.json"), r#"{"new_embodiment": 3}"#).unwrap();
-    let pos: Vec<f32> = (0..64 * D_IN)
-        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
-        .collect();
-    write_f32(
-        &dir.join("pir2_gr00t.safetensors"),
-        &[
-            (DELAY_EMBEDDING, vec![6, D_IN], vec![0.0; 6 * D_IN]),
-            (POSITION_EMBEDDING, vec![64, D_IN], pos),
-            ("vlln.weight", vec![D_VL], vec![1.0; D_VL]),
-            ("vlln.bias", vec![D_VL], vec![0.0; D_VL]),
-        ],
-    )
-    .unwrap();
-    let vocab = "<pad>\n<unk>\n<image>\ncatch\nthe\nbook\nput\nin\nbasket\nbox\nbooks\nball\nbowl\nand\non\ncutting\nboard\nthem\n";
-    std::fs::write(dir.join("vocab.txt"), vocab).unwrap();
+    let python = python_from_env().unwrap();
+    write_tiny_checkpoint(&dir, variant, &python).unwrap();
     dir
 }
 
@@ -218,7 +150,7 @@ fn contract_violations_name_the_file_and_the_tensor() {
     let cfg = embodiment();
     std::fs::write(
         dir.join("statistics.json"),
-        stats_json(&cfg, Some("state.fingertip_forces.min")),
+        statistics_json(&cfg, Some("state.fingertip_forces.min")),
     )
     .unwrap();
     let e = load_head(&dir).unwrap_err().to_string();
@@ -228,7 +160,7 @@ fn contract_violations_name_the_file_and_the_tensor() {
             && e.contains("missing"),
         "{e}"
     );
-    std::fs::write(dir.join("statistics.json"), stats_json(&cfg, None)).unwrap();
+    std::fs::write(dir.join("statistics.json"), statistics_json(&cfg, None)).unwrap();
     write_f32(
         &dir.join("pir2_gr00t.safetensors"),
         &[(DELAY_EMBEDDING, vec![5, D_IN], vec![0.0; 5 * D_IN])],
@@ -245,32 +177,6 @@ fn contract_violations_name_the_file_and_the_tensor() {
     let e = load_head(&dir).unwrap_err().to_string();
     assert!(e.contains("dit.onnx") && e.contains("DiT"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
-}
-
-/// A 640×480 RGB camera whose brightness changes every frame; `period` per capture.
-struct TestCamera {
-    clock: Arc<dyn Clock>,
-    period: Duration,
-    frames: Arc<AtomicU64>,
-}
-
-#[async_trait::async_trait]
-impl SlowSource for TestCamera {
-    async fn capture(&mut self) -> pir2_runtime::Result<SlowFrame> {
-        std::thread::sleep(self.period);
-        let k = self.frames.fetch_add(1, Ordering::Relaxed);
-        let (h, w) = (480, 640);
-        let mut image = vec![0u8; h * w * 3];
-        for (i, px) in image.iter_mut().enumerate() {
-            *px = ((i / 3 % w) as u64 * 255 / w as u64 + k * 40) as u8;
-        }
-        Ok(SlowFrame {
-            t_capture: self.clock.now(),
-            image,
-            image_hw: (h, w),
-            ..Default::default()
-        })
-    }
 }
 
 #[test]
@@ -355,12 +261,8 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
     layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
     let (source, actuator) = split(layer);
 
-    let frames = Arc::new(AtomicU64::new(0));
-    let camera = TestCamera {
-        clock: clock.clone(),
-        period: Duration::from_millis(60),
-        frames: frames.clone(),
-    };
+    let camera = SyntheticCamera::new(clock.clone(), Duration::from_millis(60));
+    let frames = camera.frames();
     let ticks = 50; // 2 s at 25 Hz
     let opts = Gr00tRunOptions {
         max_ticks: Some(ticks),

@@ -8,4 +8,6 @@ pub mod demo;
 #[cfg(feature = "mujoco")]
 pub mod leap;
 pub mod plot;
+pub mod run;
+pub mod serve;
 pub mod study;

@@ -118,6 +118,27 @@ enum Cmd {
         /// Write the cells as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
+        /// Send the action-head calls to `pir2 serve policy` at this Zenoh endpoint
+        /// (e.g. `tcp/10.0.0.2:7447`; feature `remote`). The server must run the same
+        /// checkpoint; locally only its normalisation is used.
+        #[arg(long)]
+        remote: Option<String>,
+        /// With --remote: ms a request may take before it is sent again.
+        #[arg(long, default_value_t = 200)]
+        remote_timeout_ms: u64,
+        /// With --remote: consecutive timeouts before the evaluation stops.
+        #[arg(long, default_value_t = 25)]
+        remote_max_failed: u32,
+        /// With --remote: seconds to wait for the server at start.
+        #[arg(long, default_value_t = 5.0)]
+        connect_timeout: f64,
+    },
+    /// Run a policy stack on a robot (or its emulators).
+    Run(pir2_cli::run::RunArgs),
+    /// Servers for the remote slow channel and the remote action head (feature `remote`).
+    Serve {
+        #[command(subcommand)]
+        cmd: pir2_cli::serve::ServeCmd,
     },
     /// Plot a demo result (`result.json`) or a run trace (`trace.json`) to PNG.
     Plot {
@@ -306,6 +327,10 @@ fn main() -> Result<()> {
             episodes,
             seed,
             json,
+            remote,
+            remote_timeout_ms,
+            remote_max_failed,
+            connect_timeout,
         } => {
             let policy: Policy = policy.into();
             if let Some(p) = json.as_ref().filter(|p| p.exists()) {
@@ -313,6 +338,19 @@ fn main() -> Result<()> {
             }
             let model = pir2_backends::candle::CandleModel::load(&checkpoint)
                 .with_context(|| format!("loading {}", checkpoint.display()))?;
+            let remote = match remote {
+                Some(ep) => {
+                    let r = pir2_cli::serve::RemotePolicy::connect(
+                        &ep,
+                        std::time::Duration::from_millis(remote_timeout_ms.max(1)),
+                        std::time::Duration::from_secs_f64(connect_timeout.max(0.0)),
+                        remote_max_failed.max(1),
+                    )?;
+                    eprintln!("connected to the policy server at {ep}");
+                    Some(r)
+                }
+                None => None,
+            };
             let cfg = DemoConfig::default();
             let mut cells = Vec::new();
             let rows: Vec<_> = demo::rows(&cfg)
@@ -321,16 +359,27 @@ fn main() -> Result<()> {
                 .collect();
             for row in &rows {
                 for &d in &d0 {
-                    let (ok, overruns) = demo::closed_loop(
-                        &model,
-                        policy,
-                        &row.mode,
-                        d,
-                        episodes,
-                        seed,
-                        cfg.threads,
-                        &|| {},
-                    )?;
+                    let (ok, overruns) = match &remote {
+                        Some(r) => r.closed_loop(
+                            &model,
+                            policy,
+                            &row.mode,
+                            d,
+                            episodes,
+                            seed,
+                            cfg.threads,
+                        )?,
+                        None => demo::closed_loop(
+                            &model,
+                            policy,
+                            &row.mode,
+                            d,
+                            episodes,
+                            seed,
+                            cfg.threads,
+                            &|| {},
+                        )?,
+                    };
                     cells.push(pir2_cli::study::Cell {
                         label: row.label.clone(),
                         d0: d,
@@ -343,10 +392,22 @@ fn main() -> Result<()> {
             }
             let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
             println!("{}", pir2_cli::study::table(&cells, &labels, &d0));
+            if let Some(r) = &remote {
+                eprintln!("{}", r.report());
+            }
             if let Some(p) = json {
                 std::fs::write(&p, serde_json::to_string_pretty(&cells)?)?;
             }
         }
+        Cmd::Run(args) => {
+            let summary = pir2_cli::run::run(&args, ctrl_c_flag())?;
+            print!("{summary}");
+            if let Some(p) = &args.json {
+                std::fs::write(p, serde_json::to_string_pretty(&summary)?)
+                    .with_context(|| format!("writing {}", p.display()))?;
+            }
+        }
+        Cmd::Serve { cmd } => pir2_cli::serve::serve(&cmd, ctrl_c_flag())?,
         Cmd::Plot { input, out } => {
             let text = std::fs::read_to_string(&input)
                 .with_context(|| format!("reading {}", input.display()))?;

@@ -86,6 +86,11 @@ pub enum Gr00tError {
         got: String,
     },
 
+    // ---- test support ----
+    /// Writing a synthetic test checkpoint failed ([`super::testing`]).
+    #[error("synthetic GR00T checkpoint: {0}")]
+    Fixture(String),
+
     // ---- runtime ----
     /// An error of the runtime (driver, robot, camera).
     #[error(transparent)]

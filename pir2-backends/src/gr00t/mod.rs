@@ -29,7 +29,8 @@
 //! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
 //! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
 //!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
-//! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`.
+//! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`;
+//! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 pub mod backbone;
 pub mod config;
@@ -37,6 +38,7 @@ pub mod contract;
 pub mod error;
 pub mod head;
 pub mod run;
+pub mod testing;
 pub mod weights;
 
 pub use backbone::{

@@ -1,6 +1,7 @@
 """Tiny synthetic GR00T N1.7 ONNX graphs with the export contract's names and shapes.
 
-Used by pir2-backends/tests/gr00t.rs (run with $PIR2_PYTHON, which has `onnx`). The
+Embedded in `pir2_backends::gr00t::testing` (used by pir2-backends/tests/gr00t.rs and the
+pir2-cli tests; run with $PIR2_PYTHON, which has `onnx`). The
 functions are small random MLP-like maps, chosen so that every input influences the
 output; they are not GR00T. Usage:
 

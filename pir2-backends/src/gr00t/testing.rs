@@ -1,0 +1,191 @@
+//! Test support: a tiny synthetic GR00T checkpoint and a synthetic camera.
+//!
+//! [`write_tiny_checkpoint`] writes a checkpoint directory whose ONNX graphs have the export
+//! contract's exact input/output names and shapes but tiny sizes (`D_in` = [`D_IN`], `D_vl` =
+//! [`D_VL`], `T` = [`TOKENS`], crop 16, `H` = 50); the graphs are small random maps made by
+//! the embedded `make_graphs.py` ([`MAKE_GRAPHS_PY`]) with a Python that has `onnx`
+//! (`$PIR2_PYTHON` after `source .native/env.sh`). They are not GR00T: they exist so the
+//! stack (contract checks, action head, backbone, the real-time driver, the CLI) can be run end
+//! to end without weights. Used by `pir2-backends/tests/gr00t.rs` and the `pir2-cli` tests.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use pir2_runtime::{Clock, SlowFrame, SlowSource};
+
+use super::config::EmbodimentConfig;
+use super::error::{Gr00tError, Result};
+use super::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
+
+/// `D_in` of the synthetic graphs (action-token width).
+pub const D_IN: usize = 32;
+/// `D_vl` of the synthetic backbone (feature width).
+pub const D_VL: usize = 24;
+/// Backbone tokens `T` of the tiny embodiment (4 image + 4 text).
+pub const TOKENS: usize = 8;
+/// The graph generator (`make_graphs.py OUTDIR [VARIANT]`).
+pub const MAKE_GRAPHS_PY: &str = include_str!("make_graphs.py");
+/// Vocabulary of the synthetic checkpoint (covers the paper's four prompts).
+pub const VOCAB: &str = "<pad>\n<unk>\n<image>\ncatch\nthe\nbook\nput\nin\nbasket\nbox\nbooks\n\
+                         ball\nbowl\nand\non\ncutting\nboard\nthem\n";
+
+/// The Python interpreter with `onnx` (`$PIR2_PYTHON`, set by `.native/env.sh`).
+pub fn python_from_env() -> Result<PathBuf> {
+    std::env::var_os("PIR2_PYTHON")
+        .map(PathBuf::from)
+        .ok_or_else(|| {
+            Gr00tError::Fixture(
+                "PIR2_PYTHON is not set: run `source .native/env.sh` (scripts/setup-native.sh) \
+                 first"
+                    .into(),
+            )
+        })
+}
+
+/// The paper's xArm6 + XHand embodiment with a tiny image (16 px) and prompt (4 + 4 tokens).
+pub fn tiny_embodiment() -> EmbodimentConfig {
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    c.image.resize = 16;
+    c.image.crop = 16;
+    c.prompt.image_tokens = 4;
+    c.prompt.text_tokens = 4;
+    c
+}
+
+/// A GR00T `statistics.json` for `cfg` with plausible ranges; `drop` (e.g.
+/// `"state.fingertip_forces.min"`) leaves one statistic out.
+pub fn statistics_json(cfg: &EmbodimentConfig, drop: Option<&str>) -> String {
+    let mut emb = serde_json::Map::new();
+    for (m, groups) in [("state", &cfg.state), ("action", &cfg.action)] {
+        let mut gm = serde_json::Map::new();
+        for g in groups.iter() {
+            let (lo, hi) = match (m, g.name.as_str()) {
+                ("action", "arm_joints") => (-0.1, 0.1),
+                ("action", _) => (0.2, 0.6),
+                (_, "hand_torques") => (-300.0, 300.0),
+                (_, "fingertip_forces") => (-20.0, 20.0),
+                _ => (-3.2, 3.2),
+            };
+            let mut s = serde_json::Map::new();
+            for (k, v) in [("min", lo), ("max", hi), ("mean", 0.0), ("std", 1.0)] {
+                if drop == Some(&format!("{m}.{}.{k}", g.name)) {
+                    continue;
+                }
+                s.insert(k.into(), serde_json::json!(vec![v; g.dim]));
+            }
+            gm.insert(g.name.clone(), s.into());
+        }
+        emb.insert(m.into(), gm.into());
+    }
+    serde_json::json!({ &cfg.embodiment_tag: emb }).to_string()
+}
+
+fn io<'a>(what: &'a str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Gr00tError + 'a {
+    move |e| Gr00tError::Fixture(format!("{what} `{}`: {e}", path.display()))
+}
+
+/// Write a tiny synthetic checkpoint into `dir` (created if missing): `onnx/*.onnx` made by
+/// [`MAKE_GRAPHS_PY`] with `python` (`variant` = `""`, or one of `wrong_name`, `wrong_rank`,
+/// `wrong_dim`, `wrong_type` to break one graph), `embodiment.toml` ([`tiny_embodiment`]),
+/// `statistics.json`, `embodiment_id.json` (slot 3), `pir2_gr00t.safetensors` (zero delay
+/// table, a small position embedding, identity `vlln`) and `vocab.txt`.
+pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result<()> {
+    let onnx = dir.join("onnx");
+    std::fs::create_dir_all(&onnx).map_err(io("creating", &onnx))?;
+    let script = dir.join("make_graphs.py");
+    std::fs::write(&script, MAKE_GRAPHS_PY).map_err(io("writing", &script))?;
+    let out = std::process::Command::new(python)
+        .arg(&script)
+        .arg(&onnx)
+        .arg(variant)
+        .output()
+        .map_err(|e| Gr00tError::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
+    let _ = std::fs::remove_file(&script);
+    if !out.status.success() {
+        return Err(Gr00tError::Fixture(format!(
+            "make_graphs.py failed ({}): {}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        )));
+    }
+    let cfg = tiny_embodiment();
+    let write = |name: &str, text: String| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).map_err(io("writing", &p))
+    };
+    write("embodiment.toml", cfg.to_toml()?)?;
+    write("statistics.json", statistics_json(&cfg, None))?;
+    write("embodiment_id.json", r#"{"new_embodiment": 3}"#.into())?;
+    write("vocab.txt", VOCAB.into())?;
+    let pos: Vec<f32> = (0..64 * D_IN)
+        .map(|i| ((i % 7) as f32 - 3.0) * 0.01)
+        .collect();
+    write_f32(
+        &dir.join("pir2_gr00t.safetensors"),
+        &[
+            (
+                DELAY_EMBEDDING,
+                vec![cfg.d_vis_max + 1, D_IN],
+                vec![0.0; (cfg.d_vis_max + 1) * D_IN],
+            ),
+            (POSITION_EMBEDDING, vec![64, D_IN], pos),
+            ("vlln.weight", vec![D_VL], vec![1.0; D_VL]),
+            ("vlln.bias", vec![D_VL], vec![0.0; D_VL]),
+        ],
+    )
+}
+
+/// A synthetic 640×480 RGB camera: a horizontal gradient whose brightness changes every
+/// frame, one frame per `period`, stamped on `clock`. Stands in for a camera driver (none
+/// exists in pir2 yet) in tests and in `pir2 run … --emulate`.
+pub struct SyntheticCamera {
+    clock: Arc<dyn Clock>,
+    period: Duration,
+    frames: Arc<AtomicU64>,
+}
+
+impl std::fmt::Debug for SyntheticCamera {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SyntheticCamera")
+            .field("period", &self.period)
+            .field("frames", &self.frames.load(Ordering::Relaxed))
+            .finish()
+    }
+}
+
+impl SyntheticCamera {
+    /// A camera producing one frame per `period`.
+    pub fn new(clock: Arc<dyn Clock>, period: Duration) -> Self {
+        Self {
+            clock,
+            period,
+            frames: Arc::new(AtomicU64::new(0)),
+        }
+    }
+
+    /// The frame counter (shared; keep it before handing the camera to a run).
+    pub fn frames(&self) -> Arc<AtomicU64> {
+        self.frames.clone()
+    }
+}
+
+#[async_trait::async_trait]
+impl SlowSource for SyntheticCamera {
+    async fn capture(&mut self) -> pir2_runtime::Result<SlowFrame> {
+        std::thread::sleep(self.period);
+        let k = self.frames.fetch_add(1, Ordering::Relaxed);
+        let (h, w) = (480, 640);
+        let mut image = vec![0u8; h * w * 3];
+        for (i, px) in image.iter_mut().enumerate() {
+            *px = ((i / 3 % w) as u64 * 255 / w as u64 + k * 40) as u8;
+        }
+        Ok(SlowFrame {
+            t_capture: self.clock.now(),
+            image,
+            image_hw: (h, w),
+            ..Default::default()
+        })
+    }
+}

@@ -1,0 +1,448 @@
+//! `pir2 run gr00t-xarm-xhand`: the GR00T-N1.7 xArm6 + XHand stack on a robot (feature
+//! `gr00t`; with feature `remote` the backbone features may come from `pir2 serve slow`).
+//!
+//! Wiring: `pir2_backends::gr00t::run_gr00t_report` (action head one NFE per 25 Hz tick on
+//! the action worker, backbone on the slow worker) on the safety-wrapped xArm6 + XHand
+//! composite of `pir2-robots`, either the real devices (`--xarm ADDR --xhand DEVICE`) or
+//! the emulators started in-process (`--emulate`). A run is bounded by `--ticks` /
+//! `--seconds` or Ctrl-C; the robot is stopped on every exit path of the driver.
+//!
+//! Cameras: pir2 has no camera driver yet. `--emulate` and `--synthetic-camera` use a
+//! synthetic 640×480 camera (`gr00t::testing::SyntheticCamera`); `--remote-slow ENDPOINT`
+//! takes the backbone features (camera + backbone on another machine) from `pir2 serve slow`.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use anyhow::Result;
+use clap::Args;
+use serde::{Deserialize, Serialize};
+
+/// Arguments of `pir2 run`.
+#[derive(Args, Debug, Clone)]
+pub struct RunArgs {
+    /// The stack to run.
+    #[arg(value_parser = ["gr00t-xarm-xhand"])]
+    pub stack: String,
+    /// Checkpoint directory (export layout in docs/gr00t-contract.md).
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// Task: a key of the embodiment's tasks (`catch_book`, …) or one of their prompts
+    /// verbatim ("catch the book").
+    #[arg(long)]
+    pub task: String,
+    /// Accept a `--task` that is not a configured task and send it as the prompt verbatim.
+    #[arg(long)]
+    pub free_prompt: bool,
+    /// xArm controller address (command port 502 unless given as host:port).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
+    pub xarm: Option<String>,
+    /// XHand serial device (RS-485 adapter).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
+    pub xhand: Option<PathBuf>,
+    /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
+    /// camera unless --remote-slow).
+    #[arg(long)]
+    pub emulate: bool,
+    /// Use the synthetic camera with real robots (no camera driver exists yet).
+    #[arg(long)]
+    pub synthetic_camera: bool,
+    /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
+    /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
+    #[arg(long)]
+    pub remote_slow: Option<String>,
+    /// Stop after this many control ticks.
+    #[arg(long, conflicts_with = "seconds")]
+    pub ticks: Option<u64>,
+    /// Stop after this many seconds (rounded to ticks of the embodiment's rate).
+    #[arg(long)]
+    pub seconds: Option<f64>,
+    /// Seconds to wait for the first backbone features.
+    #[arg(long, default_value_t = 60.0)]
+    pub slow_timeout: f64,
+    /// Write the run summary (and the per-call trace) as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// What a run reports (printed, and written by `--json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunSummary {
+    /// The prompt sent to the backbone.
+    pub prompt: String,
+    /// Where the robot was (`emulated` or the devices).
+    pub robot: String,
+    /// Where the backbone features came from.
+    pub slow: String,
+    /// Calls per `d_vis` value fed through the delay embedding.
+    pub d_vis_counts: Vec<u64>,
+    /// Commands the emulated hand received (emulated runs).
+    pub hand_commands: Option<u64>,
+    /// Frames the synthetic camera produced (local camera runs).
+    pub camera_frames: Option<u64>,
+    /// Remote slow-channel counters (`--remote-slow` runs).
+    #[cfg(feature = "remote")]
+    pub remote_slow: Option<pir2_runtime::remote::RemoteCounters>,
+    /// The run's trace (ticks, swaps, overruns, latencies, per-call `d` and `d_vis`).
+    pub trace: pir2_runtime::RunTrace,
+}
+
+impl std::fmt::Display for RunSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let t = &self.trace;
+        let us = |n: u64| n as f64 / 1e3;
+        writeln!(f, "prompt: {:?}", self.prompt)?;
+        writeln!(f, "robot: {}; slow features: {}", self.robot, self.slow)?;
+        writeln!(
+            f,
+            "ticks {} calls {} swaps {} overruns {} holds {}",
+            t.ticks,
+            t.calls.len(),
+            t.swaps,
+            t.overruns,
+            t.holds
+        )?;
+        writeln!(
+            f,
+            "call latency p50 {:.0} µs p99 {:.0} µs; tick jitter p99 {:.0} µs",
+            us(t.call_latency.p50),
+            us(t.call_latency.p99),
+            us(t.tick_jitter.p99)
+        )?;
+        let mut d = [0u64; 8];
+        for c in &t.calls {
+            d[c.d.min(7)] += 1;
+        }
+        writeln!(f, "calls per d: {d:?}; per d_vis: {:?}", self.d_vis_counts)?;
+        if let Some(n) = self.camera_frames {
+            writeln!(f, "camera frames: {n}")?;
+        }
+        if let Some(n) = self.hand_commands {
+            writeln!(f, "hand commands (emulator): {n}")?;
+        }
+        #[cfg(feature = "remote")]
+        if let Some(c) = &self.remote_slow {
+            writeln!(
+                f,
+                "remote slow: frames {} stale polls {} reconnects {} clock syncs {} offset {} ns (±{} ns)",
+                c.frames,
+                c.stale_polls,
+                c.reconnects,
+                c.clock_syncs,
+                c.offset_ns,
+                c.offset_rtt_ns / 2
+            )?;
+        }
+        for e in &t.events {
+            writeln!(f, "event: {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Run the stack (see the module docs); `stop` ends the run early (Ctrl-C).
+#[cfg(feature = "gr00t")]
+pub fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
+    imp::run(args, stop)
+}
+
+/// Without feature `gr00t` there is no stack to run.
+#[cfg(not(feature = "gr00t"))]
+pub fn run(_args: &RunArgs, _stop: Arc<AtomicBool>) -> Result<RunSummary> {
+    anyhow::bail!(
+        "this pir2 was built without the GR00T stack: rebuild with \
+         `cargo build --release -p pir2-cli --features gr00t` (add `remote` for --remote-slow), \
+         then `source .native/env.sh` for ONNX Runtime"
+    )
+}
+
+#[cfg(feature = "gr00t")]
+mod imp {
+    use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    use anyhow::{bail, Context, Result};
+
+    use pir2_backends::gr00t::testing::SyntheticCamera;
+    use pir2_backends::gr00t::{
+        run_gr00t_report, BackboneChoice, CheckpointFiles, EmbodimentConfig, Gr00tRunOptions,
+    };
+    use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
+    use pir2_robots::{
+        split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
+    };
+    use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
+
+    use super::{RunArgs, RunSummary};
+
+    /// Frame period of the synthetic camera (a 30 fps camera with a slow backbone is
+    /// slower than one 40 ms tick; this keeps `d_vis` moving).
+    const CAMERA_PERIOD: Duration = Duration::from_millis(60);
+
+    /// The embodiment the run will use (the checkpoint's `embodiment.toml` or the paper's).
+    fn embodiment(args: &RunArgs) -> Result<EmbodimentConfig> {
+        let dir = &args.checkpoint;
+        if !dir.is_dir() {
+            bail!(
+                "checkpoint directory {} does not exist (expected the layout of \
+                 docs/gr00t-contract.md: onnx/*.onnx, statistics.json, pir2_gr00t.safetensors, …)",
+                dir.display()
+            );
+        }
+        let files = CheckpointFiles::in_dir(dir);
+        let cfg = if files.embodiment.exists() {
+            EmbodimentConfig::load(&files.embodiment)
+                .with_context(|| format!("checkpoint {}", dir.display()))?
+        } else {
+            EmbodimentConfig::xarm6_xhand()
+        };
+        Ok(cfg)
+    }
+
+    /// Check `--task` against the configured tasks (keys or prompts).
+    fn check_task(cfg: &EmbodimentConfig, task: &str, free: bool) -> Result<()> {
+        let known = cfg.tasks.contains_key(task) || cfg.tasks.values().any(|p| p == task);
+        if known || free {
+            return Ok(());
+        }
+        let list: Vec<String> = cfg
+            .tasks
+            .iter()
+            .map(|(k, p)| format!("{k} ({p:?})"))
+            .collect();
+        bail!(
+            "unknown task {task:?}: known tasks are {}; pass --free-prompt to send it verbatim",
+            list.join(", ")
+        )
+    }
+
+    fn xarm_config(addr: &str, clock_hz: f64) -> Result<XArm6Config> {
+        let mut c = match addr.parse::<SocketAddr>() {
+            Ok(a) => {
+                let mut c = XArm6Config::new(a.ip());
+                c.cmd_addr = a;
+                c
+            }
+            Err(_) => XArm6Config::new(
+                addr.parse::<IpAddr>()
+                    .with_context(|| format!("bad --xarm address {addr:?}"))?,
+            ),
+        };
+        c.action_period = Duration::from_secs_f64(1.0 / clock_hz);
+        Ok(c)
+    }
+
+    pub(super) fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
+        let cfg = embodiment(args)?;
+        check_task(&cfg, &args.task, args.free_prompt)?;
+        let max_ticks = match (args.ticks, args.seconds) {
+            (Some(t), _) => Some(t),
+            (None, Some(s)) if s > 0.0 => Some((s * cfg.control_hz).round().max(1.0) as u64),
+            (None, Some(s)) => bail!("--seconds must be > 0, got {s}"),
+            (None, None) => None,
+        };
+        if args.remote_slow.is_none() && !args.emulate && !args.synthetic_camera {
+            bail!(
+                "no camera: pir2 has no camera driver yet. Use --remote-slow ENDPOINT (camera and \
+                 backbone behind `pir2 serve slow`), or --synthetic-camera to run the real robot \
+                 on a synthetic image"
+            );
+        }
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
+
+        if args.emulate {
+            let local = IpAddr::V4(Ipv4Addr::LOCALHOST);
+            let emu_stop = Arc::new(AtomicBool::new(false));
+            let arm_emu =
+                XArmEmulator::spawn_with_stop(local, XArmPorts::ephemeral(), emu_stop.clone())
+                    .context("starting the xArm emulator")?;
+            let (host, dev) = duplex(Duration::from_millis(5));
+            let hand_emu = XHandEmulator::spawn(dev, 0, emu_stop.clone())
+                .context("starting the XHand emulator")?;
+            let mut acfg = xarm_config(&arm_emu.cmd_addr().to_string(), cfg.control_hz)?;
+            acfg.report_addr = arm_emu.real_report_addr();
+            acfg.stream_hz = 100.0;
+            let arm =
+                XArm6::connect(acfg, clock.clone()).context("connecting to the xArm emulator")?;
+            let hand = XHand::new(
+                host,
+                XHandConfig {
+                    timeout: Duration::from_millis(100),
+                    ..Default::default()
+                },
+                clock.clone(),
+            );
+            let mut layer = SafetyLayer::new(
+                ArmHand::new(arm, hand)?,
+                SafetyConfig::xarm6_xhand(),
+                clock.clone(),
+            )?;
+            layer.spawn_watchdog(Duration::from_millis(10))?;
+            let (source, actuator) = split(layer);
+            let r = drive(
+                args,
+                max_ticks,
+                slow_timeout,
+                source,
+                actuator,
+                clock,
+                stop,
+                "emulated xArm6 + XHand (in-process)",
+            );
+            let commands = hand_emu.handle().commands();
+            emu_stop.store(true, Ordering::SeqCst);
+            drop(arm_emu);
+            let mut s = r?;
+            s.hand_commands = Some(commands);
+            return Ok(s);
+        }
+
+        let (Some(xarm), Some(xhand)) = (&args.xarm, &args.xhand) else {
+            bail!("--xarm and --xhand are required unless --emulate");
+        };
+        let acfg = xarm_config(xarm, cfg.control_hz)?;
+        let cmd = acfg.cmd_addr;
+        let layer = pir2_robots::connect_arm_hand(
+            acfg,
+            xhand,
+            XHandConfig::default(),
+            SafetyConfig::xarm6_xhand(),
+            clock.clone(),
+        )
+        .with_context(|| {
+            format!(
+                "connecting to the xArm at {cmd} and the XHand on {} (check cables, power and \
+                 `pir2 robot check --xarm {xarm} --xhand {}`)",
+                xhand.display(),
+                xhand.display()
+            )
+        })?;
+        let (source, actuator) = split(layer);
+        let robot = format!("xArm6 at {cmd} + XHand on {}", xhand.display());
+        drive(
+            args,
+            max_ticks,
+            slow_timeout,
+            source,
+            actuator,
+            clock,
+            stop,
+            &robot,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn drive<F: FastSource, A: Actuator>(
+        args: &RunArgs,
+        max_ticks: Option<u64>,
+        slow_timeout: Duration,
+        source: F,
+        actuator: A,
+        clock: Arc<dyn Clock>,
+        stop: Arc<AtomicBool>,
+        robot: &str,
+    ) -> Result<RunSummary> {
+        let opts = Gr00tRunOptions {
+            max_ticks,
+            clock: clock.clone(),
+            stop,
+            slow_timeout,
+            ..Default::default()
+        };
+        let ctx = || {
+            format!(
+                "running gr00t-xarm-xhand from {}",
+                args.checkpoint.display()
+            )
+        };
+        if let Some(endpoint) = &args.remote_slow {
+            return remote_slow(args, endpoint, source, actuator, clock, opts, robot);
+        }
+        let camera = SyntheticCamera::new(clock, CAMERA_PERIOD);
+        let frames = camera.frames();
+        let report = run_gr00t_report(&args.checkpoint, &args.task, source, actuator, camera, opts)
+            .with_context(ctx)?;
+        let period = (1e9 / report.embodiment.control_hz).round() as u64;
+        Ok(RunSummary {
+            prompt: report.prompt,
+            robot: robot.to_string(),
+            slow: "backbone.onnx on a synthetic camera (local slow worker)".into(),
+            d_vis_counts: report.d_vis_counts,
+            hand_commands: None,
+            camera_frames: Some(frames.load(Ordering::Relaxed)),
+            #[cfg(feature = "remote")]
+            remote_slow: None,
+            trace: report.metrics.trace(period),
+        })
+    }
+
+    #[cfg(not(feature = "remote"))]
+    fn remote_slow<F: FastSource, A: Actuator>(
+        _: &RunArgs,
+        _: &str,
+        _: F,
+        _: A,
+        _: Arc<dyn Clock>,
+        _: Gr00tRunOptions,
+        _: &str,
+    ) -> Result<RunSummary> {
+        bail!("--remote-slow needs a pir2 built with feature `remote` (--features gr00t,remote)")
+    }
+
+    /// The backbone on another machine: features from `pir2 serve slow`, the VL token layout
+    /// from the local checkpoint (its tokenizer and prompt layout), the action head here.
+    #[cfg(feature = "remote")]
+    fn remote_slow<F: FastSource, A: Actuator>(
+        args: &RunArgs,
+        endpoint: &str,
+        source: F,
+        actuator: A,
+        clock: Arc<dyn Clock>,
+        mut opts: Gr00tRunOptions,
+        robot: &str,
+    ) -> Result<RunSummary> {
+        use pir2_backends::gr00t::{build_sequence, VocabTokenizer};
+        use pir2_runtime::remote::{Link, RemoteSlowConfig, RemoteSlowSource};
+
+        let cfg = embodiment(args)?;
+        let files = CheckpointFiles::in_dir(&args.checkpoint);
+        let tok = VocabTokenizer::load(&files.vocab)
+            .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
+        let seq = build_sequence(&tok, cfg.prompt_for(&args.task), &cfg.prompt)?;
+        let rcfg = RemoteSlowConfig {
+            link: Link::connect(endpoint),
+            first_timeout: opts.slow_timeout,
+            ..Default::default()
+        };
+        let src = RemoteSlowSource::connect(rcfg, clock)
+            .with_context(|| format!("connecting to the slow server at {endpoint}"))?;
+        let stats = src.stats();
+        opts.backbone = BackboneChoice::Custom {
+            encoder: Box::new(src.encoder()),
+            layout: seq.layout.clone(),
+        };
+        let r = run_gr00t_report(&args.checkpoint, &args.task, source, actuator, src, opts);
+        let counters = stats.counters();
+        let report = r.with_context(|| {
+            format!(
+                "running gr00t-xarm-xhand with backbone features from {endpoint} (is `pir2 serve \
+                 slow` running there? remote counters: {counters:?})"
+            )
+        })?;
+        let period = (1e9 / report.embodiment.control_hz).round() as u64;
+        Ok(RunSummary {
+            prompt: report.prompt,
+            robot: robot.to_string(),
+            slow: format!("pir2 serve slow at {endpoint}"),
+            d_vis_counts: report.d_vis_counts,
+            hand_commands: None,
+            camera_frames: None,
+            remote_slow: Some(counters),
+            trace: report.metrics.trace(period),
+        })
+    }
+}

@@ -1,0 +1,394 @@
+//! `pir2 serve policy|slow` and the robot side of `pir2 eval --remote` (feature `remote`).
+//!
+//! Transport, wire format, clock sync and fault handling are `pir2_runtime::remote`'s (Zenoh
+//! peers with multicast and gossip scouting off: they meet only through the given
+//! endpoints). This module chooses the models:
+//!
+//! - `serve policy --checkpoint DIR`: a candle checkpoint (e.g. `pir2 train`'s `best/`)
+//!   answers one-NFE requests; `pir2 eval --remote ENDPOINT` sends the ball-plate
+//!   evaluation's action-head calls there (the lock-step eval is deterministic, so the result
+//!   equals the local eval's, outages included: a call is retried until the server answers or
+//!   `max_failed_calls` timeouts in a row stop the run);
+//! - `serve slow`: a camera + backbone publishing features with capture times, either the
+//!   GR00T ONNX backbone (`--gr00t-checkpoint DIR --task …`, needs feature `gr00t`, synthetic
+//!   camera) or a stub (`--stub DIM`: a counter camera and a pass-through encoder), for
+//!   `pir2 run gr00t-xarm-xhand --remote-slow ENDPOINT`.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use anyhow::Result;
+use clap::Subcommand;
+
+use pir2_backends::candle::CandleModel;
+use pir2_runtime::Mode;
+
+use crate::demo::Policy;
+
+/// `pir2 serve …`.
+#[derive(Subcommand, Debug, Clone)]
+pub enum ServeCmd {
+    /// Answer action-head (one-NFE) requests with a candle checkpoint until Ctrl-C.
+    Policy {
+        /// Checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
+        /// `best/` directory `pir2 train` writes.
+        #[arg(long)]
+        checkpoint: PathBuf,
+        /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+        listen: String,
+        /// Key the requests arrive on.
+        #[arg(long, default_value = "pir2/policy")]
+        key: String,
+    },
+    /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
+    Slow {
+        /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7448")]
+        listen: String,
+        /// Key the features are published on (clock pings on `<key>/clock`).
+        #[arg(long, default_value = "pir2/slow")]
+        key: String,
+        /// The GR00T ONNX backbone of this checkpoint (feature `gr00t`) on a synthetic camera.
+        #[arg(long, required_unless_present = "stub", conflicts_with = "stub")]
+        gr00t_checkpoint: Option<PathBuf>,
+        /// Task (key or prompt) whose prompt the GR00T backbone encodes.
+        #[arg(long, requires = "gr00t_checkpoint")]
+        task: Option<String>,
+        /// A stub: a counter camera of this many values and a pass-through encoder.
+        #[arg(long)]
+        stub: Option<usize>,
+        /// Camera frame period, ms.
+        #[arg(long, default_value_t = 60)]
+        frame_ms: u64,
+    },
+}
+
+/// Run a server until `stop` (Ctrl-C).
+#[cfg(feature = "remote")]
+pub fn serve(cmd: &ServeCmd, stop: Arc<AtomicBool>) -> Result<()> {
+    imp::serve(cmd, stop)
+}
+
+/// Without feature `remote` there is no transport.
+#[cfg(not(feature = "remote"))]
+pub fn serve(_cmd: &ServeCmd, _stop: Arc<AtomicBool>) -> Result<()> {
+    anyhow::bail!("{NO_REMOTE}")
+}
+
+#[cfg(not(feature = "remote"))]
+const NO_REMOTE: &str = "this pir2 was built without the Zenoh transport: rebuild with \
+                         `cargo build --release -p pir2-cli --features remote`";
+
+/// The robot side of `pir2 eval --remote`: a connection to `pir2 serve policy`.
+pub struct RemotePolicy {
+    #[cfg(feature = "remote")]
+    inner: imp::RemotePolicy,
+}
+
+impl std::fmt::Debug for RemotePolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RemotePolicy").finish_non_exhaustive()
+    }
+}
+
+impl RemotePolicy {
+    /// Connect to `endpoint` (a Zenoh locator such as `tcp/10.0.0.2:7447`), waiting up to
+    /// `connect_timeout` for the server; each request may take `timeout` before it is sent
+    /// again, and `max_failed` timeouts in a row stop the evaluation.
+    #[allow(unused_variables)]
+    pub fn connect(
+        endpoint: &str,
+        timeout: std::time::Duration,
+        connect_timeout: std::time::Duration,
+        max_failed: u32,
+    ) -> Result<Self> {
+        #[cfg(feature = "remote")]
+        return Ok(Self {
+            inner: imp::RemotePolicy::connect(endpoint, timeout, connect_timeout, max_failed)?,
+        });
+        #[cfg(not(feature = "remote"))]
+        anyhow::bail!("--remote: {NO_REMOTE}")
+    }
+
+    /// [`crate::demo::closed_loop`] with the action head on the server; `local` supplies only
+    /// the output (denormalisation) map and must be the checkpoint the server runs.
+    #[allow(clippy::too_many_arguments, unused_variables)]
+    pub fn closed_loop(
+        &self,
+        local: &CandleModel,
+        policy: Policy,
+        mode: &Mode,
+        d0: usize,
+        episodes: usize,
+        seed: u64,
+        threads: usize,
+    ) -> Result<(usize, u64)> {
+        #[cfg(feature = "remote")]
+        return self
+            .inner
+            .closed_loop(local, policy, mode, d0, episodes, seed, threads);
+        #[cfg(not(feature = "remote"))]
+        anyhow::bail!("--remote: {NO_REMOTE}")
+    }
+
+    /// One line of counters (calls, attempts, timeouts, reconnects, last round trip).
+    pub fn report(&self) -> String {
+        #[cfg(feature = "remote")]
+        return self.inner.report();
+        #[cfg(not(feature = "remote"))]
+        String::new()
+    }
+}
+
+#[cfg(feature = "remote")]
+mod imp {
+    use std::sync::atomic::AtomicBool;
+    use std::sync::{Arc, Mutex};
+    use std::time::Duration;
+
+    use anyhow::{Context, Result};
+
+    use pir2_backends::candle::CandleModel;
+    use pir2_runtime::remote::{
+        serve_policy, serve_slow, Link, PolicyServerConfig, RemoteModel, RemoteModelConfig,
+        RemoteStats, SlowServerConfig,
+    };
+    use pir2_runtime::testing::{CameraStub, PassThroughEncoder};
+    use pir2_runtime::{
+        Clock, HeadSpec, LockstepTiming, Mode, ModelInput, SlowEncoder, SlowSource, SystemClock,
+        VelocityModel,
+    };
+    use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
+
+    use super::ServeCmd;
+    use crate::demo::{output_map, spec, Policy};
+    use crate::study::eval_cell;
+
+    pub(super) fn serve(cmd: &ServeCmd, stop: Arc<AtomicBool>) -> Result<()> {
+        match cmd {
+            ServeCmd::Policy {
+                checkpoint,
+                listen,
+                key,
+            } => {
+                let model = CandleModel::load(checkpoint)
+                    .with_context(|| format!("loading checkpoint {}", checkpoint.display()))?;
+                let cfg = PolicyServerConfig {
+                    link: Link::listen(listen.clone()),
+                    key: key.clone(),
+                    reply_delay: Duration::ZERO,
+                };
+                eprintln!(
+                    "serving {} ({}) on {listen}, key {key} (Ctrl-C to stop)",
+                    checkpoint.display(),
+                    model.backend()
+                );
+                serve_policy(model, &cfg, stop)
+                    .with_context(|| format!("serving the policy on {listen}"))
+            }
+            ServeCmd::Slow {
+                listen,
+                key,
+                gr00t_checkpoint,
+                task,
+                stub,
+                frame_ms,
+            } => {
+                let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+                let period = Duration::from_millis(*frame_ms);
+                let (source, encoder, what): (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String) =
+                    match (gr00t_checkpoint, stub) {
+                        (Some(dir), _) => gr00t_backbone(dir, task.as_deref(), &clock, period)?,
+                        (None, Some(dim)) => (
+                            Box::new(CameraStub::new(clock.clone(), period, *dim)),
+                            Box::new(PassThroughEncoder {
+                                latency: Duration::ZERO,
+                            }),
+                            format!("stub camera ({dim} values) + pass-through encoder"),
+                        ),
+                        (None, None) => anyhow::bail!("give --gr00t-checkpoint DIR or --stub DIM"),
+                    };
+                let cfg = SlowServerConfig {
+                    link: Link::listen(listen.clone()),
+                    key: key.clone(),
+                };
+                eprintln!(
+                    "serving slow features ({what}, one frame per {frame_ms} ms) on {listen}, \
+                     key {key} (Ctrl-C to stop)"
+                );
+                serve_slow(source, encoder, clock, &cfg, stop)
+                    .with_context(|| format!("serving slow features on {listen}"))
+            }
+        }
+    }
+
+    type SlowPair = (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String);
+
+    #[cfg(feature = "gr00t")]
+    fn gr00t_backbone(
+        dir: &std::path::Path,
+        task: Option<&str>,
+        clock: &Arc<dyn Clock>,
+        period: Duration,
+    ) -> Result<SlowPair> {
+        use pir2_backends::gr00t::testing::SyntheticCamera;
+        use pir2_backends::gr00t::{
+            CheckpointFiles, EmbodimentConfig, Gr00tBackbone, VocabTokenizer,
+        };
+        use pir2_backends::ort::OrtOptions;
+
+        let task = task.context("--task is required with --gr00t-checkpoint")?;
+        let files = CheckpointFiles::in_dir(dir);
+        let cfg = if files.embodiment.exists() {
+            EmbodimentConfig::load(&files.embodiment)?
+        } else {
+            EmbodimentConfig::xarm6_xhand()
+        };
+        let prompt = cfg.prompt_for(task).to_string();
+        let tok = VocabTokenizer::load(&files.vocab)
+            .with_context(|| format!("checkpoint {}", dir.display()))?;
+        let bb = Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &tok,
+            &prompt,
+            None,
+            &OrtOptions::default(),
+        )
+        .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
+        let (t, d) = bb.output_shape();
+        Ok((
+            Box::new(SyntheticCamera::new(clock.clone(), period)),
+            Box::new(bb),
+            format!(
+                "GR00T backbone.onnx [{t}×{d}] of {} on a synthetic camera, prompt {prompt:?}",
+                dir.display()
+            ),
+        ))
+    }
+
+    #[cfg(not(feature = "gr00t"))]
+    fn gr00t_backbone(
+        _: &std::path::Path,
+        _: Option<&str>,
+        _: &Arc<dyn Clock>,
+        _: Duration,
+    ) -> Result<SlowPair> {
+        anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
+    }
+
+    /// One connection shared by every evaluation thread (the server answers one request at a
+    /// time anyway).
+    #[derive(Clone)]
+    struct Shared(Arc<Mutex<RemoteModel>>);
+
+    impl VelocityModel for Shared {
+        fn backend(&self) -> &'static str {
+            "remote"
+        }
+        fn velocity(
+            &mut self,
+            input: &ModelInput<'_>,
+            out: &mut [f32],
+        ) -> pir2_runtime::Result<()> {
+            self.0
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .velocity(input, out)
+        }
+    }
+
+    pub(super) struct RemotePolicy {
+        model: Shared,
+        stats: Arc<RemoteStats>,
+        endpoint: String,
+    }
+
+    impl RemotePolicy {
+        pub(super) fn connect(
+            endpoint: &str,
+            timeout: Duration,
+            connect_timeout: Duration,
+            max_failed: u32,
+        ) -> Result<Self> {
+            let cfg = RemoteModelConfig {
+                link: Link::connect(endpoint),
+                timeout,
+                max_failed_calls: max_failed,
+                connect_timeout,
+                ..Default::default()
+            };
+            let m = RemoteModel::connect(cfg).with_context(|| {
+                format!("connecting to the policy server at {endpoint} (is `pir2 serve policy` running there?)")
+            })?;
+            Ok(Self {
+                stats: m.stats(),
+                model: Shared(Arc::new(Mutex::new(m))),
+                endpoint: endpoint.to_string(),
+            })
+        }
+
+        #[allow(clippy::too_many_arguments)]
+        pub(super) fn closed_loop(
+            &self,
+            local: &CandleModel,
+            policy: Policy,
+            mode: &Mode,
+            d0: usize,
+            episodes: usize,
+            seed: u64,
+            threads: usize,
+        ) -> Result<(usize, u64)> {
+            let task = BallPlateConfig::default();
+            let s = spec();
+            let head = HeadSpec {
+                horizon: s.horizon,
+                action_dim: s.action_dim,
+                n_obs: s.n_obs,
+                fast_dim: s.fast_dim,
+                slow_dim: s.slow.len(),
+                period: (1e9 / task.control_hz).round() as u64,
+                d_max: policy.d_max(),
+                d_vis_max: s.d_vis_max,
+            };
+            let make_model = || self.model.clone();
+            let make_env = || BallPlate::new(task.clone()).expect("default task is valid");
+            eval_cell(
+                &make_env,
+                &make_model,
+                head,
+                mode,
+                LockstepTiming::for_mode(mode, d0),
+                &output_map(local),
+                episodes,
+                seed,
+                threads,
+                &|| {},
+            )
+            .with_context(|| {
+                format!(
+                    "evaluating with the policy server at {} (counters: {:?})",
+                    self.endpoint,
+                    self.stats.counters()
+                )
+            })
+        }
+
+        pub(super) fn report(&self) -> String {
+            let c = self.stats.counters();
+            format!(
+                "remote policy {}: calls {} attempts {} timeouts {} reconnects {} failed calls {} last rtt {} µs",
+                self.endpoint,
+                c.calls,
+                c.attempts,
+                c.timeouts,
+                c.reconnects,
+                c.failed_calls,
+                c.last_rtt_ns / 1000
+            )
+        }
+    }
+}

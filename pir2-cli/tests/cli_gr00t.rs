@@ -1,0 +1,118 @@
+//! `pir2 run gr00t-xarm-xhand` through the binary on tiny synthetic ONNX graphs
+//! (`pir2_backends::gr00t::testing`, `$PIR2_PYTHON` after `source .native/env.sh`): a bounded
+//! run against the in-process xArm6 + XHand emulators, and clear errors for a bad checkpoint,
+//! an unknown task and an unreachable robot.
+#![cfg(feature = "gr00t")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+
+fn checkpoint(name: &str, variant: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("pir2-cli-gr00t-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    write_tiny_checkpoint(&dir, variant, &python_from_env().unwrap()).unwrap();
+    dir
+}
+
+fn run(ck: &Path, extra: &[&str]) -> (Output, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(["run", "gr00t-xarm-xhand", "--checkpoint"])
+        .arg(ck)
+        .args(extra)
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    (out, text)
+}
+
+#[test]
+fn run_gr00t_on_the_emulators_end_to_end() {
+    let ck = checkpoint("e2e", "");
+    let json = ck.join("run.json");
+    let (out, text) = run(
+        &ck,
+        &[
+            "--task",
+            "catch the book",
+            "--emulate",
+            "--ticks",
+            "50",
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    eprintln!("{text}");
+    assert!(out.status.success(), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["prompt"], "catch the book");
+    assert_eq!(v["trace"]["ticks"], 50);
+    assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1);
+    // Every tick's command reached the emulated hand; the backbone refreshed the cache.
+    assert!(v["hand_commands"].as_u64().unwrap() >= 50);
+    assert!(v["camera_frames"].as_u64().unwrap() >= 3);
+    let calls = v["trace"]["calls"].as_array().unwrap();
+    assert!(!calls.is_empty());
+    assert!(calls.iter().all(|c| c["d_vis"].as_u64().unwrap() <= 5));
+    assert!(text.contains("ticks 50"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}
+
+#[test]
+fn run_gr00t_errors_name_the_problem() {
+    let bad = checkpoint("bad", "wrong_name");
+    // A graph that breaks the export contract: the file and the tensor are named.
+    let (out, text) = run(&bad, &["--task", "catch_book", "--emulate", "--ticks", "5"]);
+    assert!(!out.status.success());
+    assert!(
+        text.contains("dit.onnx") && text.contains("sa_emb"),
+        "{text}"
+    );
+    // An unknown task lists the known ones.
+    let (out, text) = run(&bad, &["--task", "juggle", "--emulate", "--ticks", "5"]);
+    assert!(!out.status.success());
+    assert!(
+        text.contains("unknown task") && text.contains("catch_book"),
+        "{text}"
+    );
+    // A missing checkpoint directory.
+    let (out, text) = run(&bad.join("nope"), &["--task", "catch_book", "--emulate"]);
+    assert!(!out.status.success());
+    assert!(text.contains("does not exist"), "{text}");
+    // An unreachable robot.
+    let (out, text) = run(
+        &bad,
+        &[
+            "--task",
+            "catch_book",
+            "--xarm",
+            "127.0.0.1:1",
+            "--xhand",
+            "/nonexistent/ttyUSB9",
+        ],
+    );
+    assert!(!out.status.success());
+    assert!(text.contains("--synthetic-camera"), "{text}");
+    let (out, text) = run(
+        &bad,
+        &[
+            "--task",
+            "catch_book",
+            "--xarm",
+            "127.0.0.1:1",
+            "--xhand",
+            "/nonexistent/ttyUSB9",
+            "--synthetic-camera",
+        ],
+    );
+    assert!(!out.status.success());
+    assert!(
+        text.contains("connecting to the xArm at 127.0.0.1:1"),
+        "{text}"
+    );
+    assert!(!text.contains("panicked"), "{text}");
+    std::fs::remove_dir_all(&bad).ok();
+}

@@ -1,0 +1,250 @@
+//! `pir2 serve policy` + `pir2 eval --remote` as two processes on 127.0.0.1: the remote eval
+//! gives the local eval's result (the lock-step eval is deterministic), also when the
+//! server is killed and restarted mid-run; without a server the eval fails with a clear
+//! error. With feature `gr00t` too: `pir2 serve slow` (GR00T ONNX backbone) feeding
+//! `pir2 run gr00t-xarm-xhand --emulate --remote-slow`.
+#![cfg(feature = "remote")]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use pir2_backends::candle::CandleModel;
+use pir2_backends::config::{Config, MlpConfig, ModelConfig};
+use pir2_backends::train::compute_stats;
+use pir2_cli::demo::{self, Episodes};
+
+/// A fresh scratch directory, removed when dropped.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(name: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("pir2-cli-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+    fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A server process, killed when dropped.
+struct Server(Child);
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn pir2() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_pir2"))
+}
+
+fn serve(args: &[&str]) -> Server {
+    Server(
+        pir2()
+            .arg("serve")
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn pir2 serve"),
+    )
+}
+
+/// An untrained (seeded) ball-plate MLP checkpoint: enough to compare remote and local.
+fn checkpoint(dir: &Path) -> PathBuf {
+    let eps = demo::collect(3, 0, false).unwrap();
+    let spec = demo::spec();
+    let stats = compute_stats(&Episodes(&eps), &spec).unwrap();
+    let cfg = Config {
+        spec,
+        model: ModelConfig::Mlp(MlpConfig {
+            width: 32,
+            depth: 2,
+            ..MlpConfig::default()
+        }),
+    };
+    let ck = dir.join("ck");
+    CandleModel::new(cfg, stats, 3).unwrap().save(&ck).unwrap();
+    ck
+}
+
+const EVAL: [&str; 8] = [
+    "eval",
+    "--policy",
+    "pir2",
+    "--d0",
+    "1,2",
+    "--episodes",
+    "6",
+    "--seed",
+];
+
+#[test]
+fn eval_remote_matches_local_and_survives_a_server_restart() {
+    let s = Scratch::new("eval-remote");
+    let ck = checkpoint(s.path());
+    let ck_s = ck.to_str().unwrap();
+    let local_json = s.path().join("local.json");
+    let out = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--json"])
+        .arg(&local_json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let server_args = ["policy", "--checkpoint", ck_s, "--listen", &endpoint];
+    let server = serve(&server_args);
+    let remote_json = s.path().join("remote.json");
+    let t0 = Instant::now();
+    let mut eval = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint, "--json"])
+        .arg(&remote_json)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until the eval is connected, then kill the server for ~0.5 s mid-run.
+    let mut err = BufReader::new(eval.stderr.take().unwrap());
+    let mut lines = Vec::new();
+    loop {
+        let mut l = String::new();
+        assert!(err.read_line(&mut l).unwrap() > 0, "eval exited: {lines:?}");
+        let connected = l.contains("connected to the policy server");
+        lines.push(l);
+        if connected {
+            break;
+        }
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    drop(server);
+    std::thread::sleep(Duration::from_millis(500));
+    let still_running = eval.try_wait().unwrap().is_none();
+    let _server = serve(&server_args);
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+    let status = eval.wait().unwrap();
+    eprintln!("remote eval {:?}: {lines:?} {rest}", t0.elapsed());
+    assert!(status.success(), "{rest}");
+    assert!(
+        still_running,
+        "the eval finished before the server was killed"
+    );
+
+    let read = |p: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    };
+    assert_eq!(read(&local_json), read(&remote_json));
+    // The outage was seen, retried and counted: `... timeouts N reconnects M ...`.
+    let count = |name: &str| -> u64 {
+        let i = rest
+            .find(&format!("{name} "))
+            .unwrap_or_else(|| panic!("{rest}"));
+        rest[i + name.len() + 1..]
+            .split_whitespace()
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    assert!(count("timeouts") >= 1, "{rest}");
+    assert!(count("reconnects") >= 1, "{rest}");
+}
+
+#[test]
+fn eval_remote_without_a_server_fails_cleanly() {
+    let s = Scratch::new("eval-noserver");
+    let ck = checkpoint(s.path());
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let t0 = Instant::now();
+    let out = pir2()
+        .args(EVAL)
+        .args([
+            "5",
+            "--checkpoint",
+            ck.to_str().unwrap(),
+            "--remote",
+            &endpoint,
+        ])
+        .args(["--connect-timeout", "1"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains(&endpoint) && err.contains("pir2 serve policy") && err.contains("no answer"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(t0.elapsed() < Duration::from_secs(20));
+}
+
+#[cfg(feature = "gr00t")]
+#[test]
+fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
+    use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+
+    let s = Scratch::new("gr00t-remote-slow");
+    let ck = s.path().join("ck");
+    write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
+    let ck_s = ck.to_str().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _server = serve(&[
+        "slow",
+        "--gr00t-checkpoint",
+        ck_s,
+        "--task",
+        "catch_book",
+        "--listen",
+        &endpoint,
+    ]);
+    let json = s.path().join("run.json");
+    let out = pir2()
+        .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck_s])
+        .args(["--task", "catch the book", "--emulate", "--ticks", "50"])
+        .args(["--remote-slow", &endpoint, "--slow-timeout", "20", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    eprintln!("{text}");
+    assert!(out.status.success(), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["trace"]["ticks"], 50);
+    assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1);
+    assert!(v["hand_commands"].as_u64().unwrap() >= 50);
+    let r = &v["remote_slow"];
+    assert!(r["frames"].as_u64().unwrap() >= 2, "{r}");
+    assert!(r["clock_syncs"].as_u64().unwrap() >= 1, "{r}");
+    let calls = v["trace"]["calls"].as_array().unwrap();
+    assert!(!calls.is_empty());
+    assert!(calls.iter().all(|c| c["d_vis"].as_u64().unwrap() <= 5));
+}
