@@ -16,8 +16,10 @@ fn main() -> anyhow::Result<()> {
     match args.first().map(String::as_str) {
         Some("collect") if args.len() >= 4 => {
             let per_seed: usize = args[2].parse()?;
+            let fast = args.iter().any(|a| a == "--fast");
             let seeds: Vec<u64> = args[3..]
                 .iter()
+                .filter(|a| *a != "--fast")
                 .map(|s| s.parse())
                 .collect::<Result<_, _>>()?;
             let t = std::time::Instant::now();
@@ -26,7 +28,7 @@ fn main() -> anyhow::Result<()> {
                 &seeds,
                 per_seed,
                 pir2_sim::dataset::WriteMode::Resume,
-                true,
+                fast,
             )?;
             println!("{s:?} in {:.1} s", t.elapsed().as_secs_f64());
         }

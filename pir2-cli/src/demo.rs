@@ -9,13 +9,13 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
+use anyhow::{Context, Result};
+use indicatif::ProgressBar;
 use serde::{Deserialize, Serialize};
 
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec};
-use pir2_backends::train::{compute_stats, Dataset, TrainConfig, Trainer};
+use pir2_backends::train::{compute_stats, Dataset, TrainConfig};
 use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap};
 use pir2_schedule::train::{DelayDist, FrontVisibility, PiR2Draws, TrainSchedule};
 use pir2_schedule::{Alignment, FrontMode};
@@ -23,6 +23,7 @@ use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 use pir2_sim::dataset::{CollectConfig, DatasetSpec, DatasetWriter, Episode, WriteMode};
 use pir2_sim::expert::{LqrConfig, LqrExpert};
 
+use crate::pipeline::{bar, evaluate_rows, prepare_out, train_jobs, train_validated};
 use crate::plot::plot_series;
 use crate::study::{eval_cell, table, to_series, Cell};
 
@@ -306,17 +307,6 @@ impl Dataset for Episodes<'_> {
     }
 }
 
-fn bar(len: u64, msg: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:<34} [{bar:30}] {pos}/{len} {elapsed_precise}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    pb.set_message(msg.to_string());
-    pb
-}
-
 /// Collect `n` expert demonstrations (seeded).
 pub fn collect(n: usize, seed: u64, show: bool) -> Result<Vec<Episode>> {
     let task = BallPlateConfig::default();
@@ -444,11 +434,15 @@ pub fn train_policy(
         ..TrainConfig::default()
     };
     let val_mode = policy.validation_mode(cfg);
-    let mut scores = Vec::new();
     let val_seed = 1_000_000 + seed;
-    let mut trainer = Trainer::new(tc)
-        .on_progress(|p| pb.set_position(p.step as u64))
-        .validate(|m, step| {
+    let scores = train_validated(
+        &mut model,
+        &Episodes(data),
+        tc,
+        out_dir,
+        |p| pb.set_position(p.step as u64),
+        cfg.val_episodes,
+        |m| {
             let (ok, _) = closed_loop(
                 m,
                 policy,
@@ -458,22 +452,15 @@ pub fn train_policy(
                 val_seed,
                 1,
                 &|| {},
-            )
-            .unwrap_or((0, 0));
-            let s = ok as f64 / cfg.val_episodes.max(1) as f64;
-            scores.push((step, s));
-            s
-        });
-    if let Some(d) = out_dir {
-        trainer = trainer.out_dir(d);
-    }
-    trainer.run(&mut model, &Episodes(data))?;
+            )?;
+            Ok(ok)
+        },
+    )?;
     Ok((model, scores))
 }
 
 /// Closed-loop validation scores `(step, success)` of one training run.
-pub type Scores = Vec<(usize, f64)>;
-type Trained = (usize, CandleModel, Scores);
+pub use crate::pipeline::Scores;
 
 /// The demo's result file.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -492,17 +479,7 @@ pub struct DemoResult {
 
 /// Run the whole demo into `out` (a new directory).
 pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
-    if out.exists()
-        && std::fs::read_dir(out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
-        bail!(
-            "output directory {} exists and is not empty; choose another with --out",
-            out.display()
-        );
-    }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    prepare_out(out)?;
     let t0 = Instant::now();
     let mut timings = Vec::new();
     let demos = collect(cfg.demos, 7, true)?;
@@ -517,48 +494,23 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
         .flat_map(|&s| Policy::ALL.iter().map(move |&p| (p, s)))
         .collect();
     let pb = bar((jobs.len() * cfg.train_steps) as u64, "training policies");
-    let next = AtomicUsize::new(0);
     let done_steps: Vec<AtomicUsize> = jobs.iter().map(|_| AtomicUsize::new(0)).collect();
-    let results: Vec<Result<Vec<Trained>>> = std::thread::scope(|s| {
-        let hs: Vec<_> = (0..cfg.threads.max(1))
-            .map(|_| {
-                s.spawn(|| -> Result<Vec<Trained>> {
-                    let mut mine = Vec::new();
-                    loop {
-                        let j = next.fetch_add(1, Ordering::SeqCst);
-                        if j >= jobs.len() {
-                            return Ok(mine);
-                        }
-                        let (policy, seed) = jobs[j];
-                        let local = ProgressBar::hidden();
-                        let ckpt = out
-                            .join("checkpoints")
-                            .join(format!("{policy:?}-seed{seed}").to_lowercase());
-                        let (m, scores) =
-                            train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
-                        done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
-                        pb.set_position(
-                            done_steps
-                                .iter()
-                                .map(|d| d.load(Ordering::SeqCst) as u64)
-                                .sum(),
-                        );
-                        mine.push((j, m, scores));
-                    }
-                })
-            })
-            .collect();
-        hs.into_iter()
-            .map(|h| h.join().expect("training thread panicked"))
-            .collect()
-    });
+    let models = train_jobs(&jobs, cfg.threads, |j, policy, seed| {
+        let local = ProgressBar::hidden();
+        let ckpt = out
+            .join("checkpoints")
+            .join(format!("{policy:?}-seed{seed}").to_lowercase());
+        let trained = train_policy(&demos, policy, seed, cfg, Some(&ckpt), &local)?;
+        done_steps[j].store(cfg.train_steps, Ordering::SeqCst);
+        pb.set_position(
+            done_steps
+                .iter()
+                .map(|d| d.load(Ordering::SeqCst) as u64)
+                .sum(),
+        );
+        Ok(trained)
+    })?;
     pb.finish();
-    let mut models: Vec<Option<(CandleModel, Scores)>> = (0..jobs.len()).map(|_| None).collect();
-    for r in results {
-        for (j, m, s) in r? {
-            models[j] = Some((m, s));
-        }
-    }
     timings.push(("train".to_string(), t1.elapsed().as_secs_f64()));
 
     // Evaluate every row × d0 × seed.
@@ -566,44 +518,36 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
     let rows = rows(cfg);
     let total = rows.len() * cfg.d0s.len() * cfg.seeds.len() * cfg.episodes;
     let pb = bar(total as u64, "evaluating deployment modes");
-    let mut cells = Vec::new();
-    for row in &rows {
-        for &seed in &cfg.seeds {
+    let cells = evaluate_rows(
+        rows.iter().map(|r| (r.label.as_str(), r.policy, &r.mode)),
+        &cfg.seeds,
+        &cfg.d0s,
+        cfg.episodes,
+        |policy, mode, seed, d0| {
             let j = jobs
                 .iter()
-                .position(|&(p, s)| p == row.policy && s == seed)
+                .position(|&(p, s)| p == policy && s == seed)
                 .expect("trained");
-            let model = &models[j].as_ref().expect("trained").0;
-            for &d0 in &cfg.d0s {
-                let tick = || pb.inc(1);
-                let (ok, overruns) = closed_loop(
-                    model,
-                    row.policy,
-                    &row.mode,
-                    d0,
-                    cfg.episodes,
-                    2_000_000 + seed,
-                    cfg.threads,
-                    &tick,
-                )?;
-                cells.push(Cell {
-                    label: row.label.clone(),
-                    d0,
-                    seed,
-                    successes: ok,
-                    episodes: cfg.episodes,
-                    overruns,
-                });
-            }
-        }
-    }
+            let tick = || pb.inc(1);
+            closed_loop(
+                &models[j].0,
+                policy,
+                mode,
+                d0,
+                cfg.episodes,
+                2_000_000 + seed,
+                cfg.threads,
+                &tick,
+            )
+        },
+    )?;
     pb.finish();
     timings.push(("evaluate".to_string(), t2.elapsed().as_secs_f64()));
     let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
     let validation = jobs
         .iter()
         .zip(&models)
-        .map(|(&(p, s), m)| (p, s, m.as_ref().map(|m| m.1.clone()).unwrap_or_default()))
+        .map(|(&(p, s), m)| (p, s, m.1.clone()))
         .collect();
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
     let result = DemoResult {

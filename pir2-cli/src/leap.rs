@@ -9,13 +9,15 @@
 use std::path::Path;
 use std::time::Instant;
 
+use std::sync::atomic::AtomicUsize;
+
 use anyhow::{bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 use serde::{Deserialize, Serialize};
 
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, FilmMode, ModelConfig, SlowSpec, Spec, UNetConfig};
-use pir2_backends::train::{compute_stats, TrainConfig, Trainer};
+use pir2_backends::train::{compute_stats, Progress, TrainConfig};
 use pir2_runtime::{HeadSpec, LockstepTiming, Mode};
 use pir2_schedule::train::{DelayDist, PiR2Draws, TrainSchedule};
 use pir2_schedule::{Alignment, FrontMode};
@@ -25,6 +27,7 @@ use pir2_sim::dataset::{
 use pir2_sim::leap::{CollectConfig, LeapConfig, LeapCubeEnv, LeapModel, MpcConfig, NU};
 
 use crate::demo::{output_map, Episodes};
+use crate::pipeline::{bar, evaluate_rows, prepare_out, train_jobs, train_validated};
 use crate::plot::{plot_series, Series};
 use crate::study::{eval_cell, table, to_series, Cell};
 
@@ -66,15 +69,12 @@ pub fn dataset_spec() -> DatasetSpec {
     }
 }
 
-fn bar(len: u64, msg: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:<34} [{bar:30}] {pos}/{len} {elapsed_precise}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    pb.set_message(msg.to_string());
-    pb
+/// A progress line for logs (progress bars are invisible when stderr is not a terminal).
+fn log_line(msg: &str) {
+    use std::io::IsTerminal;
+    if !std::io::stderr().is_terminal() {
+        eprintln!("{msg}");
+    }
 }
 
 fn load_model() -> Result<LeapModel> {
@@ -98,7 +98,8 @@ fn to_dataset_episode(ep: &pir2_sim::leap::Episode) -> Episode {
 /// `seeds[k]`); with [`WriteMode::Resume`] the episodes already in the dataset are skipped,
 /// so an interrupted collection continues where it stopped (the writer is finished every
 /// 5 episodes). All episodes are written, failures included (`next.success` says which);
-/// training uses the successful ones. `fast_expert` selects [`MpcConfig::fast`].
+/// training uses the successful ones. `fast_expert` selects [`MpcConfig::fast`]; either
+/// recipe runs with [`MpcConfig::pin_first_knot`] so the demonstrated actions are smooth.
 pub fn collect_leap(
     out: &Path,
     seeds: &[u64],
@@ -119,13 +120,21 @@ pub fn collect_leap(
     }
     let pb = bar(total as u64, "collecting Leap-cube demonstrations");
     pb.set_position(done as u64);
-    let mpc = if fast_expert {
+    let base = if fast_expert {
         MpcConfig::fast()
     } else {
         MpcConfig::default()
     };
+    // Smooth executed targets: without this the actions are mostly the winning sample's
+    // fresh perturbation (std ≈ 0.5 in [−1, 1], no temporal structure) and a cloned policy
+    // learns noise (flow loss stuck at its zero-prediction value).
+    let mpc = MpcConfig {
+        pin_first_knot: true,
+        ..base
+    };
     let mut successes = 0usize;
     let mut summary = None;
+    let t0 = Instant::now();
     while done < total {
         let (k, i) = (done / per_seed, done % per_seed);
         let end = (i + 5).min(per_seed);
@@ -143,6 +152,10 @@ pub fn collect_leap(
         summary = Some(w.finish()?);
         w = DatasetWriter::open(out, dataset_spec(), WriteMode::Resume)?;
         pb.set_message(format!("collecting ({successes} successes)"));
+        log_line(&format!(
+            "collected {done}/{total} episodes ({successes} successes this session), {:.0} s",
+            t0.elapsed().as_secs_f64()
+        ));
     }
     pb.finish();
     match summary {
@@ -190,6 +203,12 @@ pub struct LeapStudyConfig {
     pub max_steps: usize,
     /// Worker threads.
     pub threads: usize,
+    /// Directory of trained policies (`<policy>-seed<s>/best`, as written by
+    /// [`train_policies`] / `pir2 train leap-cube` or an earlier study's `checkpoints/`):
+    /// policies found there are loaded instead of trained.
+    pub pretrained: Option<String>,
+    /// Policies whose rows are run (all four by default; rows of the others are skipped).
+    pub policies: Vec<LeapPolicy>,
 }
 
 impl Default for LeapStudyConfig {
@@ -212,6 +231,8 @@ impl Default for LeapStudyConfig {
             flow_steps: 10,
             max_steps: 300,
             threads: 2,
+            pretrained: None,
+            policies: LeapPolicy::ALL.to_vec(),
         }
     }
 }
@@ -479,11 +500,31 @@ pub fn train_leap(
     };
     let val_mode = policy.validation_mode(cfg);
     let val_timing = LockstepTiming::for_mode(&val_mode, 2);
-    let mut scores = Vec::new();
     let val_seed = 1_000_000 + seed;
-    let mut trainer = Trainer::new(tc)
-        .on_progress(|p| pb.set_position(p.step as u64))
-        .validate(|m, step| {
+    let t0 = Instant::now();
+    let mut loss_sum = 0.0f64;
+    let on_progress = |p: &Progress| {
+        pb.set_position(p.step as u64);
+        loss_sum += p.loss as f64;
+        if p.step % 100 == 0 || p.step == p.steps {
+            log_line(&format!(
+                "  {policy:?} seed {seed}: step {}/{}, mean loss {:.4}, {:.1} steps/s",
+                p.step,
+                p.steps,
+                loss_sum / 100.0,
+                p.step as f64 / t0.elapsed().as_secs_f64()
+            ));
+            loss_sum = 0.0;
+        }
+    };
+    let scores = train_validated(
+        &mut model,
+        &Episodes(data),
+        tc,
+        out_dir,
+        on_progress,
+        cfg.val_episodes,
+        |m| {
             let (ok, _) = closed_loop(
                 leap,
                 cfg,
@@ -495,21 +536,19 @@ pub fn train_leap(
                 val_seed,
                 1,
                 &|| {},
-            )
-            .unwrap_or((0, 0));
-            let s = ok as f64 / cfg.val_episodes.max(1) as f64;
-            scores.push((step, s));
-            s
-        });
-    if let Some(d) = out_dir {
-        trainer = trainer.out_dir(d);
-    }
-    trainer.run(&mut model, &Episodes(data))?;
+            )?;
+            log_line(&format!(
+                "  {policy:?} seed {seed}: checkpoint validation {ok}/{} at d0 = 2",
+                cfg.val_episodes
+            ));
+            Ok(ok)
+        },
+    )?;
     Ok((model, scores))
 }
 
 /// Closed-loop validation scores of one training run: `(step, success rate)`.
-pub type Scores = Vec<(usize, f64)>;
+pub use crate::pipeline::Scores;
 
 /// Result of a Leap study.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -534,43 +573,86 @@ pub struct LeapStudyResult {
 
 type Trained = Vec<(LeapPolicy, u64, CandleModel, Scores)>;
 
+/// Directory name of a trained policy under a checkpoints directory.
+pub fn policy_dir(p: LeapPolicy, seed: u64) -> String {
+    format!("{p:?}-seed{seed}").to_lowercase()
+}
+
+/// Train (or load from `cfg.pretrained`) every policy × seed; each trained policy's best
+/// checkpoint is saved to `ckpt_root/<policy>-seed<s>/best`.
 fn train_all(
     leap: &LeapModel,
     demos: &[Episode],
     policies: &[LeapPolicy],
     cfg: &LeapStudyConfig,
-    out: &Path,
+    ckpt_root: &Path,
 ) -> Result<Trained> {
-    let mut trained = Vec::new();
     let jobs: Vec<(LeapPolicy, u64)> = cfg
         .seeds
         .iter()
         .flat_map(|&s| policies.iter().map(move |&p| (p, s)))
         .collect();
-    for (i, &(p, s)) in jobs.iter().enumerate() {
-        let pb = bar(
-            cfg.train_steps as u64,
-            &format!("training {p:?} seed {s} ({}/{})", i + 1, jobs.len()),
+    let pb = bar(
+        (jobs.len() * cfg.train_steps) as u64,
+        &format!("training {} policies", jobs.len()),
+    );
+    let done = AtomicUsize::new(0);
+    // Policies train in parallel on `threads` workers (each seeded on its own).
+    let models = train_jobs(&jobs, cfg.threads, |i, p, s| {
+        if let Some(dir) = &cfg.pretrained {
+            let best = Path::new(dir).join(policy_dir(p, s)).join("best");
+            if best.exists() {
+                let m = CandleModel::load_expect(&best, &spec())
+                    .with_context(|| format!("loading {}", best.display()))?;
+                log_line(&format!("loaded {p:?} seed {s} from {}", best.display()));
+                return Ok((m, Vec::new()));
+            }
+        }
+        let t = Instant::now();
+        let ckpt = ckpt_root.join(policy_dir(p, s));
+        let (m, scores) = train_leap(leap, demos, p, s, cfg, Some(&ckpt), &ProgressBar::hidden())?;
+        m.save(&ckpt.join("best"))?;
+        pb.set_position(
+            (done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1) as u64
+                * cfg.train_steps as u64,
         );
-        let ckpt = out
-            .join("checkpoints")
-            .join(format!("{p:?}-seed{s}").to_lowercase());
-        let (m, scores) = train_leap(leap, demos, p, s, cfg, Some(&ckpt), &pb)?;
-        pb.finish();
-        trained.push((p, s, m, scores));
-    }
-    Ok(trained)
+        log_line(&format!(
+            "trained {p:?} seed {s} ({}/{}) in {:.0} s; closed-loop validation (step, success): {scores:?}",
+            i + 1,
+            jobs.len(),
+            t.elapsed().as_secs_f64()
+        ));
+        Ok((m, scores))
+    })?;
+    pb.finish();
+    Ok(jobs
+        .into_iter()
+        .zip(models)
+        .map(|((p, s), (m, sc))| (p, s, m, sc))
+        .collect())
 }
 
-fn prepare_out(out: &Path) -> Result<()> {
-    if out.exists()
-        && std::fs::read_dir(out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
-        bail!("output directory {} exists and is not empty", out.display());
-    }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
+/// Train `policies` × `cfg.seeds` on the dataset `cfg.dataset` into `out` (a new directory):
+/// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the chosen
+/// checkpoint `best/`. Point [`LeapStudyConfig::pretrained`] at `out` to evaluate them.
+pub fn train_policies(
+    cfg: &LeapStudyConfig,
+    policies: &[LeapPolicy],
+    out: &Path,
+) -> Result<Vec<(LeapPolicy, u64, Scores)>> {
+    prepare_out(out)?;
+    let leap = load_model()?;
+    let demos = load_demos(Path::new(&cfg.dataset))?;
+    let cfg = LeapStudyConfig {
+        pretrained: None,
+        ..cfg.clone()
+    };
+    let trained = train_all(&leap, &demos, policies, &cfg, out)?;
+    std::fs::write(
+        out.join("config.toml"),
+        toml::to_string(&cfg).context("serialising the config")?,
+    )?;
+    Ok(trained.into_iter().map(|t| (t.0, t.1, t.3)).collect())
 }
 
 fn model_of(trained: &Trained, p: LeapPolicy, s: u64) -> &CandleModel {
@@ -589,43 +671,46 @@ pub fn study_deployment(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyRe
     let t0 = Instant::now();
     let leap = load_model()?;
     let demos = load_demos(Path::new(&cfg.dataset))?;
-    let trained = train_all(&leap, &demos, &LeapPolicy::ALL, cfg, out)?;
+    let rows: Vec<LeapRow> = deployment_rows(cfg)
+        .into_iter()
+        .filter(|r| cfg.policies.contains(&r.policy))
+        .collect();
+    let policies: Vec<LeapPolicy> = LeapPolicy::ALL
+        .into_iter()
+        .filter(|p| rows.iter().any(|r| r.policy == *p))
+        .collect();
+    let trained = train_all(&leap, &demos, &policies, cfg, &out.join("checkpoints"))?;
     let mut timings = vec![("train".to_string(), t0.elapsed().as_secs_f64())];
     let t1 = Instant::now();
-    let rows = deployment_rows(cfg);
     let pb = bar(
         (rows.len() * cfg.d0s.len() * cfg.seeds.len() * cfg.episodes) as u64,
         "evaluating deployment modes",
     );
-    let mut cells = Vec::new();
-    for row in &rows {
-        for &seed in &cfg.seeds {
-            let model = model_of(&trained, row.policy, seed);
-            for &d0 in &cfg.d0s {
-                let timing = LockstepTiming::for_mode(&row.mode, d0);
-                let (ok, overruns) = closed_loop(
-                    &leap,
-                    cfg,
-                    model,
-                    row.policy,
-                    &row.mode,
-                    timing,
-                    cfg.episodes,
-                    2_000_000 + seed,
-                    cfg.threads,
-                    &|| pb.inc(1),
-                )?;
-                cells.push(Cell {
-                    label: row.label.clone(),
-                    d0,
-                    seed,
-                    successes: ok,
-                    episodes: cfg.episodes,
-                    overruns,
-                });
-            }
-        }
-    }
+    let cells = evaluate_rows(
+        rows.iter().map(|r| (r.label.as_str(), r.policy, &r.mode)),
+        &cfg.seeds,
+        &cfg.d0s,
+        cfg.episodes,
+        |policy, mode, seed, d0| {
+            let r = closed_loop(
+                &leap,
+                cfg,
+                model_of(&trained, policy, seed),
+                policy,
+                mode,
+                LockstepTiming::for_mode(mode, d0),
+                cfg.episodes,
+                2_000_000 + seed,
+                cfg.threads,
+                &|| pb.inc(1),
+            )?;
+            log_line(&format!(
+                "{policy:?} {mode:?} d0={d0} seed {seed}: {}/{}",
+                r.0, cfg.episodes
+            ));
+            Ok(r)
+        },
+    )?;
     pb.finish();
     timings.push(("evaluate".to_string(), t1.elapsed().as_secs_f64()));
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
@@ -651,8 +736,11 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
     let t0 = Instant::now();
     let leap = load_model()?;
     let demos = load_demos(Path::new(&cfg.dataset))?;
-    let policies = [LeapPolicy::Flow, LeapPolicy::PiR2, LeapPolicy::PiR2Full];
-    let trained = train_all(&leap, &demos, &policies, cfg, out)?;
+    let policies: Vec<LeapPolicy> = [LeapPolicy::Flow, LeapPolicy::PiR2, LeapPolicy::PiR2Full]
+        .into_iter()
+        .filter(|p| cfg.policies.contains(p))
+        .collect();
+    let trained = train_all(&leap, &demos, &policies, cfg, &out.join("checkpoints"))?;
     let mut timings = vec![("train".to_string(), t0.elapsed().as_secs_f64())];
     let t1 = Instant::now();
     let zero = LockstepTiming {
@@ -662,7 +750,7 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
         overrun_every: 0,
         pin_delay: true,
     };
-    let pir2_rows = [
+    let pir2_rows: Vec<(String, LeapPolicy, Mode)> = [
         (
             format!("πR² (n={})", cfg.nfe),
             LeapPolicy::PiR2,
@@ -681,16 +769,24 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
                 front: FrontMode::Visible,
             },
         ),
-    ];
+    ]
+    .into_iter()
+    .filter(|r| policies.contains(&r.1))
+    .collect();
+    let flow_hs: &[usize] = if policies.contains(&LeapPolicy::Flow) {
+        &cfg.hs
+    } else {
+        &[]
+    };
     let pb = bar(
-        ((cfg.hs.len() + pir2_rows.len()) * cfg.seeds.len() * cfg.episodes) as u64,
+        ((flow_hs.len() + pir2_rows.len()) * cfg.seeds.len() * cfg.episodes) as u64,
         "evaluating horizon sweep",
     );
     let mut cells = Vec::new();
     let flow_label = "sync flow".to_string();
     for &seed in &cfg.seeds {
-        let model = model_of(&trained, LeapPolicy::Flow, seed);
-        for &h in &cfg.hs {
+        for &h in flow_hs {
+            let model = model_of(&trained, LeapPolicy::Flow, seed);
             let mode = Mode::SyncFlow {
                 steps: cfg.flow_steps,
                 h,
@@ -707,6 +803,10 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
                 cfg.threads,
                 &|| pb.inc(1),
             )?;
+            log_line(&format!(
+                "sync flow h={h} seed {seed}: {ok}/{}",
+                cfg.episodes
+            ));
             cells.push(Cell {
                 label: flow_label.clone(),
                 d0: h,
@@ -730,6 +830,7 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
                 cfg.threads,
                 &|| pb.inc(1),
             )?;
+            log_line(&format!("{label} seed {seed}: {ok}/{}", cfg.episodes));
             for &h in &cfg.hs {
                 cells.push(Cell {
                     label: label.clone(),
@@ -745,7 +846,11 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResul
     pb.finish();
     timings.push(("evaluate".to_string(), t1.elapsed().as_secs_f64()));
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
-    let mut labels = vec![flow_label];
+    let mut labels = if flow_hs.is_empty() {
+        vec![]
+    } else {
+        vec![flow_label]
+    };
     labels.extend(pir2_rows.iter().map(|r| r.0.clone()));
     let result = LeapStudyResult {
         study: "horizon".into(),

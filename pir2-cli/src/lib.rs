@@ -7,6 +7,8 @@ pub mod bench;
 pub mod demo;
 #[cfg(feature = "mujoco")]
 pub mod leap;
+pub mod leap_cmd;
+pub mod pipeline;
 pub mod plot;
 pub mod run;
 pub mod serve;

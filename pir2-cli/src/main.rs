@@ -9,6 +9,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand, ValueEnum};
 
 use pir2_cli::demo::{self, DemoConfig, Policy};
+use pir2_cli::leap_cmd;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -61,12 +62,21 @@ enum Cmd {
     },
     /// Collect expert demonstrations into a LeRobotDataset v3.0 directory.
     Collect {
-        /// The task.
-        #[arg(value_parser = ["ballplate"], default_value = "ballplate")]
+        /// The task (leap-cube needs a build with `--features mujoco`).
+        #[arg(value_parser = ["ballplate", "leap-cube"], default_value = "ballplate")]
         task: String,
         /// Dataset directory.
         #[arg(long)]
         out: PathBuf,
+        /// leap-cube: expert seeds (episodes are stored seed-major).
+        #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
+        seeds: Vec<u64>,
+        /// leap-cube: episodes per expert seed.
+        #[arg(long, default_value_t = 50)]
+        per_seed: usize,
+        /// leap-cube: the faster, weaker MPC expert.
+        #[arg(long)]
+        fast: bool,
         /// Episodes to keep.
         #[arg(long, default_value_t = 200)]
         episodes: usize,
@@ -80,38 +90,60 @@ enum Cmd {
         #[arg(long)]
         overwrite: bool,
     },
-    /// Train one policy (candle MLP) on a dataset; the checkpoint is picked in closed loop.
+    /// Train one policy (candle MLP; leap-cube: U-Nets, all four study policies unless
+    /// --policy) on a dataset; the checkpoint is picked in closed loop.
     Train {
+        /// The task (leap-cube needs a build with `--features mujoco`).
+        #[arg(value_parser = ["ballplate", "leap-cube"], default_value = "ballplate")]
+        task: String,
         /// Dataset directory (LeRobotDataset v3.0).
         #[arg(long)]
         data: PathBuf,
-        /// Which policy.
+        /// Which policy (required for ballplate).
         #[arg(long, value_enum)]
-        policy: PolicyArg,
+        policy: Option<PolicyArg>,
         /// Checkpoint directory (must not exist).
         #[arg(long)]
         out: PathBuf,
-        /// TOML config (fields of `DemoConfig`: steps, lr, nfe, ...).
+        /// TOML config (fields of `DemoConfig`: steps, lr, nfe, ...; leap-cube:
+        /// `LeapStudyConfig`).
         #[arg(long)]
         config: Option<PathBuf>,
         /// Seed.
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
-    /// Evaluate a checkpoint in every mode that fits it, at each unit delay.
+    /// Evaluate a checkpoint in every mode that fits it, at each unit delay; leap-cube: run
+    /// the deployment or horizon study (table, PNG, JSON).
     Eval {
-        /// Checkpoint directory.
+        /// The task (leap-cube needs a build with `--features mujoco`).
+        #[arg(value_parser = ["ballplate", "leap-cube"], default_value = "ballplate")]
+        task: String,
+        /// Checkpoint directory (leap-cube: the output of `pir2 train leap-cube`; policies
+        /// missing there are trained).
         #[arg(long)]
-        checkpoint: PathBuf,
-        /// Which policy the checkpoint is.
+        checkpoint: Option<PathBuf>,
+        /// Which policy the checkpoint is (ballplate).
         #[arg(long, value_enum)]
-        policy: PolicyArg,
+        policy: Option<PolicyArg>,
+        /// leap-cube: which study.
+        #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
+        study: String,
+        /// leap-cube: TOML config (fields of `LeapStudyConfig`).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// leap-cube: dataset directory (overrides the config's).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// leap-cube: output directory (must not exist or be empty).
+        #[arg(long)]
+        out: Option<PathBuf>,
         /// Unit delays.
         #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
         d0: Vec<usize>,
-        /// Episodes per cell.
-        #[arg(long, default_value_t = 100)]
-        episodes: usize,
+        /// Episodes per cell (default 100; leap-cube: the config's).
+        #[arg(long)]
+        episodes: Option<usize>,
         /// Seed of the evaluation episodes.
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -272,12 +304,15 @@ fn main() -> Result<()> {
             );
         }
         Cmd::Collect {
-            task: _,
+            task,
             out,
             episodes,
             seed,
             resume,
             overwrite,
+            seeds,
+            per_seed,
+            fast,
         } => {
             let mode = if resume {
                 pir2_sim::dataset::WriteMode::Resume
@@ -286,17 +321,32 @@ fn main() -> Result<()> {
             } else {
                 pir2_sim::dataset::WriteMode::New
             };
+            if task == "leap-cube" {
+                return leap_cmd::collect(&out, &seeds, per_seed, mode, fast);
+            }
             let eps = demo::collect(episodes, seed, true)?;
             demo::write_dataset(&out, &eps, mode)?;
             println!("wrote {} episodes to {}", eps.len(), out.display());
         }
         Cmd::Train {
+            task,
             data,
             policy,
             out,
             config,
             seed,
         } => {
+            if task == "leap-cube" {
+                let args = leap_cmd::LeapArgs {
+                    config: config.as_deref(),
+                    data: Some(&data),
+                    ..Default::default()
+                };
+                let p = policy.and_then(|p| p.to_possible_value());
+                let ps: Vec<&str> = p.iter().map(|p| p.get_name()).collect();
+                return leap_cmd::train(&args, &ps, &out);
+            }
+            let policy = policy.context("--policy is required for ballplate")?;
             if out.exists() {
                 bail!(
                     "checkpoint directory {} already exists; choose another --out",
@@ -321,8 +371,13 @@ fn main() -> Result<()> {
             println!("best checkpoint: {}", out.join("best").display());
         }
         Cmd::Eval {
+            task,
             checkpoint,
             policy,
+            study,
+            config,
+            data,
+            out,
             d0,
             episodes,
             seed,
@@ -332,7 +387,19 @@ fn main() -> Result<()> {
             remote_max_failed,
             connect_timeout,
         } => {
-            let policy: Policy = policy.into();
+            if task == "leap-cube" {
+                let args = leap_cmd::LeapArgs {
+                    config: config.as_deref(),
+                    data: data.as_deref(),
+                    pretrained: checkpoint.as_deref(),
+                    episodes,
+                };
+                let out = out.context("--out is required for leap-cube")?;
+                return leap_cmd::eval(&study, &args, &out);
+            }
+            let checkpoint = checkpoint.context("--checkpoint is required for ballplate")?;
+            let policy: Policy = policy.context("--policy is required for ballplate")?.into();
+            let episodes = episodes.unwrap_or(100);
             if let Some(p) = json.as_ref().filter(|p| p.exists()) {
                 bail!("{} already exists; choose another --json path", p.display());
             }

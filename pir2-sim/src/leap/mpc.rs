@@ -65,6 +65,12 @@ pub struct MpcConfig {
     pub w_drop: f64,
     /// Weight of the squared motor-target change.
     pub w_control: f64,
+    /// Keep the first knot (the target now) of every sampled plan at the nominal: only later
+    /// knots are perturbed, so the executed targets move smoothly. With `false` the action
+    /// sent carries the winning sample's fresh σ-perturbation of the target every replanning
+    /// step, i.e. it is mostly sampling noise — fine for control, but a behaviour-cloning
+    /// policy trained on such actions learns noise. Demonstrations are collected with `true`.
+    pub pin_first_knot: bool,
 }
 
 impl Default for MpcConfig {
@@ -83,6 +89,7 @@ impl Default for MpcConfig {
             w_disc: 100.0,
             w_drop: 20.0,
             w_control: 0.01,
+            pin_first_knot: false,
         }
     }
 }
@@ -277,7 +284,8 @@ impl MpcExpert {
         for (s, plan) in self.plans.chunks_mut(plan_len).enumerate() {
             plan.copy_from_slice(nominal);
             if s > 0 {
-                for (idx, v) in plan.iter_mut().enumerate() {
+                let first = if self.cfg.pin_first_knot { NU } else { 0 };
+                for (idx, v) in plan.iter_mut().enumerate().skip(first) {
                     let i = idx % NU;
                     *v = (*v + self.cfg.sigma * self.rng.normal() as f64).clamp(lo[i], hi[i]);
                 }

@@ -1,0 +1,153 @@
+//! Entry points of `pir2 collect|train|eval leap-cube`, compiled with or without the `mujoco`
+//! feature: without it each returns one error saying to rebuild with `--features mujoco`, so
+//! `main.rs` needs no feature gates. The work itself lives in [`crate::leap`].
+
+use std::path::Path;
+
+use anyhow::Result;
+
+use pir2_sim::dataset::WriteMode;
+
+/// The error every `leap-cube` command gives in a build without the `mujoco` feature.
+pub const NEEDS_MUJOCO: &str = "the leap-cube task needs MuJoCo: build with `--features mujoco` \
+     (cargo run --release -p pir2-cli --features mujoco -- ...; run `bash scripts/setup-native.sh` \
+     and `source .native/env.sh` first)";
+
+/// Options of `pir2 train leap-cube` / `pir2 eval leap-cube`.
+#[derive(Debug, Clone, Default)]
+pub struct LeapArgs<'a> {
+    /// TOML config (fields of `LeapStudyConfig`); defaults when absent.
+    pub config: Option<&'a Path>,
+    /// Dataset directory (overrides the config's `dataset`).
+    pub data: Option<&'a Path>,
+    /// Trained policies (overrides the config's `pretrained`).
+    pub pretrained: Option<&'a Path>,
+    /// Episodes per cell (overrides the config's `episodes`).
+    pub episodes: Option<usize>,
+}
+
+/// `pir2 collect leap-cube`: `per_seed` MPC-expert episodes for each of `seeds` into the
+/// LeRobotDataset v3.0 at `out` (resumable with [`WriteMode::Resume`]).
+pub fn collect(
+    out: &Path,
+    seeds: &[u64],
+    per_seed: usize,
+    mode: WriteMode,
+    fast_expert: bool,
+) -> Result<()> {
+    #[cfg(feature = "mujoco")]
+    {
+        let t = std::time::Instant::now();
+        let s = crate::leap::collect_leap(out, seeds, per_seed, mode, fast_expert)?;
+        println!(
+            "{}: {} episodes, {} frames ({} written now, {:.1} s)",
+            out.display(),
+            s.total_episodes,
+            s.total_frames,
+            s.written_episodes,
+            t.elapsed().as_secs_f64()
+        );
+        Ok(())
+    }
+    #[cfg(not(feature = "mujoco"))]
+    {
+        let _ = (out, seeds, per_seed, mode, fast_expert);
+        anyhow::bail!(NEEDS_MUJOCO)
+    }
+}
+
+#[cfg(feature = "mujoco")]
+fn load_config(args: &LeapArgs) -> Result<crate::leap::LeapStudyConfig> {
+    use anyhow::Context;
+    let mut cfg: crate::leap::LeapStudyConfig = match args.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p)
+                .with_context(|| format!("reading config {}", p.display()))?;
+            toml::from_str(&text).with_context(|| format!("parsing config {}", p.display()))?
+        }
+        None => Default::default(),
+    };
+    if let Some(d) = args.data {
+        cfg.dataset = d.to_string_lossy().into_owned();
+    }
+    if let Some(d) = args.pretrained {
+        cfg.pretrained = Some(d.to_string_lossy().into_owned());
+    }
+    if let Some(e) = args.episodes {
+        cfg.episodes = e;
+    }
+    Ok(cfg)
+}
+
+/// `pir2 train leap-cube`: train `policies` (names as `pir2 train --policy`: `pir2`,
+/// `pir2-full`, `rtc`, `flow`; all four when empty) × the config's seeds into `out`.
+pub fn train(args: &LeapArgs, policies: &[&str], out: &Path) -> Result<()> {
+    #[cfg(feature = "mujoco")]
+    {
+        use crate::leap::LeapPolicy;
+        let cfg = load_config(args)?;
+        let ps: Vec<LeapPolicy> = if policies.is_empty() {
+            LeapPolicy::ALL.to_vec()
+        } else {
+            policies
+                .iter()
+                .map(|p| match *p {
+                    "pir2" => Ok(LeapPolicy::PiR2),
+                    "pir2-full" => Ok(LeapPolicy::PiR2Full),
+                    "rtc" => Ok(LeapPolicy::Rtc),
+                    "flow" => Ok(LeapPolicy::Flow),
+                    other => Err(anyhow::anyhow!(
+                        "policy {other} is not part of the leap-cube study (pir2, pir2-full, rtc, flow)"
+                    )),
+                })
+                .collect::<Result<_>>()?
+        };
+        let r = crate::leap::train_policies(&cfg, &ps, out)?;
+        for (p, s, scores) in r {
+            println!("{p:?} seed {s}: closed-loop validation (step, success) {scores:?}");
+        }
+        println!(
+            "wrote {} (evaluate with `pir2 eval leap-cube --checkpoint {}`)",
+            out.display(),
+            out.display()
+        );
+        Ok(())
+    }
+    #[cfg(not(feature = "mujoco"))]
+    {
+        let _ = (args, policies, out);
+        anyhow::bail!(NEEDS_MUJOCO)
+    }
+}
+
+/// `pir2 eval leap-cube --study deployment|horizon`: run the study into `out` (a new
+/// directory: `result.json`, `table.md`, `success.png`) and print its table.
+pub fn eval(study: &str, args: &LeapArgs, out: &Path) -> Result<()> {
+    #[cfg(feature = "mujoco")]
+    {
+        let cfg = load_config(args)?;
+        let r = match study {
+            "deployment" => crate::leap::study_deployment(&cfg, out)?,
+            "horizon" => crate::leap::study_horizon(&cfg, out)?,
+            other => anyhow::bail!("unknown study {other} (deployment or horizon)"),
+        };
+        println!(
+            "\nLeap cube, {} study ({} demos, {} episodes per cell, seeds {:?}):\n\n{}",
+            r.study,
+            r.demos,
+            r.config.episodes,
+            r.config.seeds,
+            crate::leap::result_table(&r)
+        );
+        for (stage, s) in &r.timings {
+            println!("{stage:>9}: {s:7.1} s");
+        }
+        println!("wrote {}/result.json, table.md, success.png", out.display());
+        Ok(())
+    }
+    #[cfg(not(feature = "mujoco"))]
+    {
+        let _ = (study, args, out);
+        anyhow::bail!(NEEDS_MUJOCO)
+    }
+}

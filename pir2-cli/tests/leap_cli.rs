@@ -1,0 +1,125 @@
+//! `pir2 collect|train|eval leap-cube` through the binary: with the `mujoco` feature the whole
+//! chain on a tiny config (1 demo, 3 training steps, 1 episode of 10 steps per cell); without
+//! it, one clear error.
+
+use std::path::Path;
+use std::process::Command;
+
+fn pir2(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(args)
+        .output()
+        .expect("running pir2")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+#[cfg(not(feature = "mujoco"))]
+#[test]
+fn leap_cube_without_the_feature_says_how_to_build() {
+    let dir = std::env::temp_dir().join(format!("pir2-leap-nofeat-{}", std::process::id()));
+    for args in [
+        vec!["collect", "leap-cube", "--out", s(&dir)],
+        vec!["train", "leap-cube", "--data", s(&dir), "--out", s(&dir)],
+        vec!["eval", "leap-cube", "--study", "horizon", "--out", s(&dir)],
+    ] {
+        let o = pir2(&args);
+        assert!(!o.status.success(), "{args:?} should fail");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("--features mujoco"), "{args:?}: {err}");
+    }
+    assert!(!dir.exists(), "nothing is written");
+}
+
+#[cfg(feature = "mujoco")]
+#[test]
+fn leap_cube_collect_train_eval_through_the_binary() {
+    let dir = std::env::temp_dir().join(format!("pir2-leap-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("tmp dir");
+    let data = dir.join("data");
+    let ok = |args: &[&str]| {
+        let o = pir2(args);
+        assert!(
+            o.status.success(),
+            "{args:?}: {}\n{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let collect = [
+        "collect",
+        "leap-cube",
+        "--out",
+        s(&data),
+        "--seeds",
+        "0",
+        "--per-seed",
+        "1",
+        "--fast",
+    ];
+    let out = ok(&collect);
+    assert!(out.contains("1 episodes"), "{out}");
+    // A second run without --resume refuses; with --resume it adds nothing.
+    assert!(!pir2(&collect).status.success());
+    let mut resume = collect.to_vec();
+    resume.push("--resume");
+    let out = ok(&resume);
+    assert!(
+        out.contains("1 episodes") && out.contains("0 written"),
+        "{out}"
+    );
+
+    let cfg = dir.join("tiny.toml");
+    std::fs::write(
+        &cfg,
+        "train_steps = 3\nbatch_size = 8\nwarmup = 1\nwidths = [8, 16]\ngroups = 4\n\
+         checkpoints = 1\nval_episodes = 1\nepisodes = 1\nseeds = [0]\nd0s = [2]\nhs = [1, 8]\n\
+         flow_steps = 2\nmax_steps = 10\nthreads = 1\n",
+    )
+    .expect("config");
+    let trained = dir.join("trained");
+    ok(&[
+        "train",
+        "leap-cube",
+        "--data",
+        s(&data),
+        "--config",
+        s(&cfg),
+        "--out",
+        s(&trained),
+    ]);
+    for p in ["pir2", "pir2full", "rtc", "flow"] {
+        assert!(trained.join(format!("{p}-seed0/best")).exists(), "{p}");
+    }
+    for (study, row, col) in [
+        ("deployment", "| πR² async (n=2) |", "d0=2"),
+        ("horizon", "| sync flow |", "h=8"),
+    ] {
+        let out_dir = dir.join(study);
+        let out = ok(&[
+            "eval",
+            "leap-cube",
+            "--study",
+            study,
+            "--config",
+            s(&cfg),
+            "--data",
+            s(&data),
+            "--checkpoint",
+            s(&trained),
+            "--out",
+            s(&out_dir),
+        ]);
+        assert!(out.contains(row) && out.contains(col), "{out}");
+        for f in ["result.json", "table.md", "success.png"] {
+            assert!(out_dir.join(f).exists(), "{study}/{f}");
+        }
+        // The trained policies were loaded, not trained again.
+        assert!(!out_dir.join("checkpoints").exists(), "{study}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
