@@ -95,7 +95,7 @@ const EVAL: [&str; 8] = [
     "--d0",
     "1,2",
     "--episodes",
-    "6",
+    "10",
     "--seed",
 ];
 
