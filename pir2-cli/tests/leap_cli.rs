@@ -1,5 +1,5 @@
 //! `pir2 collect|train|eval leap-cube` through the binary: with the `mujoco` feature the whole
-//! chain on a tiny config (1 demo, 3 training steps, 1 episode of 10 steps per cell); without
+//! chain on a tiny config (2 expert episodes, 3 training steps, 1 episode of 10 steps per cell); without
 //! it, one clear error.
 
 use std::path::Path;
@@ -58,18 +58,18 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         "--seeds",
         "0",
         "--per-seed",
-        "1",
+        "2",
         "--fast",
     ];
     let out = ok(&collect);
-    assert!(out.contains("1 episodes"), "{out}");
+    assert!(out.contains("2 episodes"), "{out}");
     // A second run without --resume refuses; with --resume it adds nothing.
     assert!(!pir2(&collect).status.success());
     let mut resume = collect.to_vec();
     resume.push("--resume");
     let out = ok(&resume);
     assert!(
-        out.contains("1 episodes") && out.contains("0 written"),
+        out.contains("2 episodes") && out.contains("0 written"),
         "{out}"
     );
 

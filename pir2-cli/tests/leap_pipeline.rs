@@ -1,4 +1,4 @@
-//! End to end on the Leap cube (feature `mujoco`): 1 demo, a few training steps, 1 episode
+//! End to end on the Leap cube (feature `mujoco`): 2 expert episodes, a few training steps, 1 episode
 //! per cell; checks the dataset, the tables and the output files.
 #![cfg(feature = "mujoco")]
 
@@ -10,13 +10,14 @@ fn leap_pipeline_runs_end_to_end() {
     let dir = std::env::temp_dir().join(format!("pir2-leap-e2e-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("dataset");
-    let s = collect_leap(&data, &[0], 1, WriteMode::New, true).expect("collect");
-    assert_eq!(s.total_episodes, 1);
+    // Episode 0 of seed 0 fails with the smooth fast expert; episode 1 succeeds.
+    let s = collect_leap(&data, &[0], 2, WriteMode::New, true).expect("collect");
+    assert_eq!(s.total_episodes, 2);
     // Resuming a complete collection adds nothing.
-    let s2 = collect_leap(&data, &[0], 1, WriteMode::Resume, true).expect("resume");
-    assert_eq!(s2.total_episodes, 1);
+    let s2 = collect_leap(&data, &[0], 2, WriteMode::Resume, true).expect("resume");
+    assert_eq!(s2.total_episodes, 2);
     let ds = read_dataset(&data).expect("read");
-    assert_eq!(ds.episodes.len(), 1);
+    assert_eq!(ds.episodes.len(), 2);
     assert_eq!(
         (
             ds.episodes[0].fast_dim,
@@ -26,8 +27,8 @@ fn leap_pipeline_runs_end_to_end() {
         (32, 9, 16)
     );
     assert!(
-        ds.episodes[0].success,
-        "the 1-episode test needs the expert's first episode to succeed"
+        ds.episodes.iter().any(|e| e.success),
+        "the test needs one successful expert episode"
     );
 
     let cfg = LeapStudyConfig {
