@@ -1,0 +1,27 @@
+//! Shared helpers of the `pir2-cli` integration tests.
+
+use std::path::{Path, PathBuf};
+
+/// A fresh scratch directory under the system temp dir, removed when dropped.
+pub struct Scratch(PathBuf);
+
+impl Scratch {
+    /// `pir2-cli-<name>-<pid>`, emptied first.
+    pub fn new(name: &str) -> Self {
+        let p = std::env::temp_dir().join(format!("pir2-cli-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+
+    /// The directory.
+    pub fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
