@@ -235,9 +235,35 @@ mod imp {
         Ok(c)
     }
 
+    /// Validate the checkpoint's action head (every graph against the contract, the side
+    /// weights, the statistics) before any robot is connected: a bad export must fail while
+    /// nothing is powered.
+    fn preflight(args: &RunArgs, cfg: &EmbodimentConfig) -> Result<()> {
+        let files = CheckpointFiles::in_dir(&args.checkpoint);
+        let ctx = || format!("checking checkpoint {}", args.checkpoint.display());
+        let norm =
+            pir2_backends::gr00t::Normalizer::load(&files.statistics, cfg).with_context(ctx)?;
+        let id = pir2_backends::gr00t::config::read_embodiment_id(
+            &files.embodiment_id,
+            &cfg.embodiment_tag,
+        )
+        .with_context(ctx)?
+        .unwrap_or(cfg.embodiment_id);
+        pir2_backends::gr00t::Gr00tActionHead::load(
+            &files,
+            cfg,
+            norm,
+            id,
+            &pir2_backends::ort::OrtOptions::default(),
+        )
+        .with_context(ctx)?;
+        Ok(())
+    }
+
     pub(super) fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
         let cfg = embodiment(args)?;
         check_task(&cfg, &args.task, args.free_prompt)?;
+        preflight(args, &cfg)?;
         let max_ticks = match (args.ticks, args.seconds) {
             (Some(t), _) => Some(t),
             (None, Some(s)) if s > 0.0 => Some((s * cfg.control_hz).round().max(1.0) as u64),

@@ -82,9 +82,29 @@ fn run_gr00t_errors_name_the_problem() {
     let (out, text) = run(&bad.join("nope"), &["--task", "catch_book", "--emulate"]);
     assert!(!out.status.success());
     assert!(text.contains("does not exist"), "{text}");
-    // An unreachable robot.
+    // A bad checkpoint fails before any robot is connected (the xArm address is unreachable,
+    // yet the error is the contract's).
     let (out, text) = run(
         &bad,
+        &[
+            "--task",
+            "catch_book",
+            "--xarm",
+            "127.0.0.1:1",
+            "--xhand",
+            "/nonexistent/ttyUSB9",
+            "--synthetic-camera",
+        ],
+    );
+    assert!(!out.status.success());
+    assert!(
+        text.contains("dit.onnx") && !text.contains("connecting to the xArm"),
+        "{text}"
+    );
+    // An unreachable robot (valid checkpoint).
+    let good = checkpoint("good-unreachable", "");
+    let (out, text) = run(
+        &good,
         &[
             "--task",
             "catch_book",
@@ -97,7 +117,7 @@ fn run_gr00t_errors_name_the_problem() {
     assert!(!out.status.success());
     assert!(text.contains("--synthetic-camera"), "{text}");
     let (out, text) = run(
-        &bad,
+        &good,
         &[
             "--task",
             "catch_book",
@@ -115,4 +135,5 @@ fn run_gr00t_errors_name_the_problem() {
     );
     assert!(!text.contains("panicked"), "{text}");
     std::fs::remove_dir_all(&bad).ok();
+    std::fs::remove_dir_all(&good).ok();
 }
