@@ -1,6 +1,6 @@
 //! Entry points of `pir2 collect|train|eval leap-cube`, compiled with or without the `mujoco`
 //! feature: without it each returns one error saying to rebuild with `--features mujoco`, so
-//! `main.rs` needs no feature gates. The work itself lives in [`crate::leap`].
+//! `main.rs` needs no feature gates. The work itself lives in `crate::leap` (feature `mujoco`).
 
 use std::path::Path;
 
