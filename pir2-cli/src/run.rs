@@ -52,6 +52,23 @@ pub struct RunArgs {
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
     #[arg(long)]
     pub remote_slow: Option<String>,
+    /// Run the action head on `pir2 serve policy --gr00t-checkpoint` at this Zenoh endpoint
+    /// (e.g. `tcp/10.0.0.3:7447`) instead of in this process; needs feature `remote`. The
+    /// checkpoint directory is still read here (embodiment, statistics, vocabulary) and the
+    /// head is checked before any robot is connected. Each call's round trip is part of the
+    /// measured call latency, so `d` grows with the network.
+    #[arg(long)]
+    pub remote_policy: Option<String>,
+    /// With --remote-policy: how long one request may take before it is sent again, ms.
+    #[arg(long, default_value_t = 200)]
+    pub policy_timeout_ms: u64,
+    /// With --remote-policy: requests in a row without a reply before the run stops the
+    /// robot (safety stop).
+    #[arg(long, default_value_t = 10)]
+    pub max_failed_calls: u32,
+    /// With --remote-policy: seconds to wait for the policy server at start-up.
+    #[arg(long, default_value_t = 10.0)]
+    pub connect_timeout: f64,
     /// Stop after this many control ticks.
     #[arg(long, conflicts_with = "seconds")]
     pub ticks: Option<u64>,
@@ -75,6 +92,8 @@ pub struct RunSummary {
     pub robot: String,
     /// Where the backbone features came from.
     pub slow: String,
+    /// Where the action head ran.
+    pub head: String,
     /// Calls per `d_vis` value fed through the delay embedding.
     pub d_vis_counts: Vec<u64>,
     /// Commands the emulated hand received (emulated runs).
@@ -84,6 +103,9 @@ pub struct RunSummary {
     /// Remote slow-channel counters (`--remote-slow` runs).
     #[cfg(feature = "remote")]
     pub remote_slow: Option<pir2_runtime::remote::RemoteCounters>,
+    /// Remote action-head counters (`--remote-policy` runs).
+    #[cfg(feature = "remote")]
+    pub remote_policy: Option<pir2_runtime::remote::RemoteCounters>,
     /// The run's trace (ticks, swaps, overruns, latencies, per-call `d` and `d_vis`).
     pub trace: pir2_runtime::RunTrace,
 }
@@ -94,6 +116,7 @@ impl std::fmt::Display for RunSummary {
         let us = |n: u64| n as f64 / 1e3;
         writeln!(f, "prompt: {:?}", self.prompt)?;
         writeln!(f, "robot: {}; slow features: {}", self.robot, self.slow)?;
+        writeln!(f, "action head: {}", self.head)?;
         writeln!(
             f,
             "ticks {} calls {} swaps {} overruns {} holds {}",
@@ -134,6 +157,21 @@ impl std::fmt::Display for RunSummary {
                 c.offset_rtt_ns / 2
             )?;
         }
+        #[cfg(feature = "remote")]
+        if let Some(c) = &self.remote_policy {
+            writeln!(
+                f,
+                "remote policy: calls {} attempts {} timeouts {} reconnects {} failed calls {} \
+                 server errors {} last rtt {} µs",
+                c.calls,
+                c.attempts,
+                c.timeouts,
+                c.reconnects,
+                c.failed_calls,
+                c.server_errors,
+                c.last_rtt_ns / 1000
+            )?;
+        }
         for e in &t.events {
             writeln!(f, "event: {e}")?;
         }
@@ -168,7 +206,8 @@ mod imp {
 
     use pir2_backends::gr00t::testing::SyntheticCamera;
     use pir2_backends::gr00t::{
-        run_gr00t_report, BackboneChoice, CheckpointFiles, EmbodimentConfig, Gr00tRunOptions,
+        load_action_head, run_gr00t_report, CheckpointFiles, EmbodimentConfig, Gr00tActionHead,
+        Gr00tRunOptions, HeadChoice,
     };
     use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
     use pir2_robots::{
@@ -236,34 +275,90 @@ mod imp {
     }
 
     /// Validate the checkpoint's action head (every graph against the contract, the side
-    /// weights, the statistics) before any robot is connected: a bad export must fail while
-    /// nothing is powered.
-    fn preflight(args: &RunArgs, cfg: &EmbodimentConfig) -> Result<()> {
-        let files = CheckpointFiles::in_dir(&args.checkpoint);
-        let ctx = || format!("checking checkpoint {}", args.checkpoint.display());
-        let norm =
-            pir2_backends::gr00t::Normalizer::load(&files.statistics, cfg).with_context(ctx)?;
-        let id = pir2_backends::gr00t::config::read_embodiment_id(
-            &files.embodiment_id,
-            &cfg.embodiment_tag,
-        )
-        .with_context(ctx)?
-        .unwrap_or(cfg.embodiment_id);
-        pir2_backends::gr00t::Gr00tActionHead::load(
-            &files,
-            cfg,
-            norm,
-            id,
+    /// weights, the statistics, the task's prompt layout) before any robot is connected: a
+    /// bad export must fail while nothing is powered. The loaded head is the one the run
+    /// uses (local head), or the source of the backbone width (remote head).
+    fn preflight(args: &RunArgs) -> Result<Gr00tActionHead> {
+        let (head, _) = load_action_head(
+            &args.checkpoint,
+            &args.task,
             &pir2_backends::ort::OrtOptions::default(),
         )
-        .with_context(ctx)?;
-        Ok(())
+        .with_context(|| format!("checking checkpoint {}", args.checkpoint.display()))?;
+        Ok(head)
+    }
+
+    /// The action head of the run and how to report it.
+    struct Head {
+        choice: HeadChoice,
+        what: String,
+        #[cfg(feature = "remote")]
+        stats: Option<Arc<pir2_runtime::remote::RemoteStats>>,
+    }
+
+    impl Head {
+        fn local(head: Gr00tActionHead) -> Self {
+            Head {
+                choice: HeadChoice::Loaded(Box::new(head)),
+                what: "the checkpoint's ONNX graphs, in this process".into(),
+                #[cfg(feature = "remote")]
+                stats: None,
+            }
+        }
+    }
+
+    #[cfg(not(feature = "remote"))]
+    fn head(args: &RunArgs, head: Gr00tActionHead) -> Result<Head> {
+        if args.remote_policy.is_some() {
+            bail!("--remote-policy needs a pir2 built with feature `remote` (--features gr00t,remote)")
+        }
+        Ok(Head::local(head))
+    }
+
+    /// Connect to the policy server (before any robot is connected: an unreachable server
+    /// fails while nothing is powered).
+    #[cfg(feature = "remote")]
+    fn head(args: &RunArgs, head: Gr00tActionHead) -> Result<Head> {
+        use pir2_runtime::remote::{Link, RemoteModel, RemoteModelConfig};
+        let Some(endpoint) = &args.remote_policy else {
+            return Ok(Head::local(head));
+        };
+        if !args.connect_timeout.is_finite() || args.connect_timeout <= 0.0 {
+            bail!(
+                "--connect-timeout must be > 0, got {}",
+                args.connect_timeout
+            );
+        }
+        let d_vl = head.dims().d_vl;
+        drop(head);
+        let cfg = RemoteModelConfig {
+            link: Link::connect(endpoint.clone()),
+            timeout: Duration::from_millis(args.policy_timeout_ms),
+            max_failed_calls: args.max_failed_calls,
+            connect_timeout: Duration::from_secs_f64(args.connect_timeout),
+            ..Default::default()
+        };
+        let model = RemoteModel::connect(cfg).with_context(|| {
+            format!(
+                "connecting to the policy server at {endpoint} (is `pir2 serve policy \
+                 --gr00t-checkpoint …` running there?)"
+            )
+        })?;
+        eprintln!("connected to the policy server at {endpoint}");
+        Ok(Head {
+            stats: Some(model.stats()),
+            choice: HeadChoice::Custom {
+                model: Box::new(model),
+                d_vl,
+            },
+            what: format!("pir2 serve policy at {endpoint}"),
+        })
     }
 
     pub(super) fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
         let cfg = embodiment(args)?;
         check_task(&cfg, &args.task, args.free_prompt)?;
-        preflight(args, &cfg)?;
+        let head = head(args, preflight(args)?)?;
         let max_ticks = match (args.ticks, args.seconds) {
             (Some(t), _) => Some(t),
             (None, Some(s)) if s > 0.0 => Some((s * cfg.control_hz).round().max(1.0) as u64),
@@ -311,6 +406,7 @@ mod imp {
             let (source, actuator) = split(layer);
             let r = drive(
                 args,
+                head,
                 max_ticks,
                 slow_timeout,
                 source,
@@ -351,6 +447,7 @@ mod imp {
         let robot = format!("xArm6 at {cmd} + XHand on {}", xhand.display());
         drive(
             args,
+            head,
             max_ticks,
             slow_timeout,
             source,
@@ -364,6 +461,7 @@ mod imp {
     #[allow(clippy::too_many_arguments)]
     fn drive<F: FastSource, A: Actuator>(
         args: &RunArgs,
+        head: Head,
         max_ticks: Option<u64>,
         slow_timeout: Duration,
         source: F,
@@ -372,7 +470,11 @@ mod imp {
         stop: Arc<AtomicBool>,
         robot: &str,
     ) -> Result<RunSummary> {
+        #[cfg(feature = "remote")]
+        let head_stats = head.stats.clone();
+        let what = head.what.clone();
         let opts = Gr00tRunOptions {
+            head: head.choice,
             max_ticks,
             clock: clock.clone(),
             stop,
@@ -380,30 +482,51 @@ mod imp {
             ..Default::default()
         };
         let ctx = || {
-            format!(
+            #[allow(unused_mut)]
+            let mut m = format!(
                 "running gr00t-xarm-xhand from {}",
                 args.checkpoint.display()
-            )
-        };
-        if let Some(endpoint) = &args.remote_slow {
-            return remote_slow(args, endpoint, source, actuator, clock, opts, robot);
-        }
-        let camera = SyntheticCamera::new(clock, CAMERA_PERIOD);
-        let frames = camera.frames();
-        let report = run_gr00t_report(&args.checkpoint, &args.task, source, actuator, camera, opts)
-            .with_context(ctx)?;
-        let period = (1e9 / report.embodiment.control_hz).round() as u64;
-        Ok(RunSummary {
-            prompt: report.prompt,
-            robot: robot.to_string(),
-            slow: "backbone.onnx on a synthetic camera (local slow worker)".into(),
-            d_vis_counts: report.d_vis_counts,
-            hand_commands: None,
-            camera_frames: Some(frames.load(Ordering::Relaxed)),
+            );
             #[cfg(feature = "remote")]
-            remote_slow: None,
-            trace: report.metrics.trace(period),
-        })
+            if let Some(s) = &head_stats {
+                m += &format!(
+                    " with the action head at {} (remote policy counters: {:?})",
+                    args.remote_policy.as_deref().unwrap_or("?"),
+                    s.counters()
+                );
+            }
+            m
+        };
+        let mut summary = if let Some(endpoint) = &args.remote_slow {
+            remote_slow(args, endpoint, source, actuator, clock, opts, robot).with_context(ctx)?
+        } else {
+            let camera = SyntheticCamera::new(clock, CAMERA_PERIOD);
+            let frames = camera.frames();
+            let report =
+                run_gr00t_report(&args.checkpoint, &args.task, source, actuator, camera, opts)
+                    .with_context(ctx)?;
+            let period = (1e9 / report.embodiment.control_hz).round() as u64;
+            RunSummary {
+                prompt: report.prompt,
+                robot: robot.to_string(),
+                slow: "backbone.onnx on a synthetic camera (local slow worker)".into(),
+                head: String::new(),
+                d_vis_counts: report.d_vis_counts,
+                hand_commands: None,
+                camera_frames: Some(frames.load(Ordering::Relaxed)),
+                #[cfg(feature = "remote")]
+                remote_slow: None,
+                #[cfg(feature = "remote")]
+                remote_policy: None,
+                trace: report.metrics.trace(period),
+            }
+        };
+        summary.head = what;
+        #[cfg(feature = "remote")]
+        {
+            summary.remote_policy = head_stats.map(|s| s.counters());
+        }
+        Ok(summary)
     }
 
     #[cfg(not(feature = "remote"))]
@@ -431,7 +554,7 @@ mod imp {
         mut opts: Gr00tRunOptions,
         robot: &str,
     ) -> Result<RunSummary> {
-        use pir2_backends::gr00t::{build_sequence, VocabTokenizer};
+        use pir2_backends::gr00t::{build_sequence, BackboneChoice, VocabTokenizer};
         use pir2_runtime::remote::{Link, RemoteSlowConfig, RemoteSlowSource};
 
         let cfg = embodiment(args)?;
@@ -464,10 +587,12 @@ mod imp {
             prompt: report.prompt,
             robot: robot.to_string(),
             slow: format!("pir2 serve slow at {endpoint}"),
+            head: String::new(),
             d_vis_counts: report.d_vis_counts,
             hand_commands: None,
             camera_frames: None,
             remote_slow: Some(counters),
+            remote_policy: None,
             trace: report.metrics.trace(period),
         })
     }

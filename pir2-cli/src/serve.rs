@@ -29,12 +29,30 @@ use crate::demo::Policy;
 /// `pir2 serve …`.
 #[derive(Subcommand, Debug, Clone)]
 pub enum ServeCmd {
-    /// Answer action-head (one-NFE) requests with a candle checkpoint until Ctrl-C.
+    /// Answer action-head (one-NFE) requests until Ctrl-C: a candle checkpoint
+    /// (`--checkpoint`, for `pir2 eval --remote`) or a GR00T export's ONNX action head
+    /// (`--gr00t-checkpoint --task`, for `pir2 run … --remote-policy`).
     Policy {
-        /// Checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
+        /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
         /// `best/` directory `pir2 train` writes.
+        #[arg(
+            long,
+            required_unless_present = "gr00t_checkpoint",
+            conflicts_with = "gr00t_checkpoint"
+        )]
+        checkpoint: Option<PathBuf>,
+        /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
+        /// weights + statistics) is served; feature `gr00t`.
+        #[arg(long, requires = "task")]
+        gr00t_checkpoint: Option<PathBuf>,
+        /// With --gr00t-checkpoint: the task (key or prompt) whose prompt layout (image and
+        /// text token masks) the DiT is fed; must be the robot's `--task`.
         #[arg(long)]
-        checkpoint: PathBuf,
+        task: Option<String>,
+        /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
+        /// `d` follows the round trip). Zero in deployment.
+        #[arg(long, default_value_t = 0)]
+        inject_delay_ms: u64,
         /// Zenoh endpoint to listen on.
         #[arg(long, default_value = "tcp/127.0.0.1:7447")]
         listen: String,
@@ -170,23 +188,46 @@ mod imp {
         match cmd {
             ServeCmd::Policy {
                 checkpoint,
+                gr00t_checkpoint,
+                task,
+                inject_delay_ms,
                 listen,
                 key,
             } => {
-                let model = CandleModel::load(checkpoint)
-                    .with_context(|| format!("loading checkpoint {}", checkpoint.display()))?;
                 let cfg = PolicyServerConfig {
                     link: Link::listen(listen.clone()),
                     key: key.clone(),
-                    reply_delay: Duration::ZERO,
+                    reply_delay: Duration::from_millis(*inject_delay_ms),
                 };
-                eprintln!(
-                    "serving {} ({}) on {listen}, key {key} (Ctrl-C to stop)",
-                    checkpoint.display(),
-                    model.backend()
-                );
-                serve_policy(model, &cfg, stop)
-                    .with_context(|| format!("serving the policy on {listen}"))
+                let delay = if *inject_delay_ms > 0 {
+                    format!(", every reply held {inject_delay_ms} ms")
+                } else {
+                    String::new()
+                };
+                let ctx = || format!("serving the policy on {listen}");
+                match (checkpoint, gr00t_checkpoint) {
+                    (Some(ck), _) => {
+                        let model = CandleModel::load(ck)
+                            .with_context(|| format!("loading checkpoint {}", ck.display()))?;
+                        eprintln!(
+                            "serving {} ({}) on {listen}, key {key}{delay} (Ctrl-C to stop)",
+                            ck.display(),
+                            model.backend()
+                        );
+                        serve_policy(Announce::new(model), &cfg, stop).with_context(ctx)
+                    }
+                    (None, Some(dir)) => {
+                        let task = task
+                            .as_deref()
+                            .context("--task is required with --gr00t-checkpoint")?;
+                        let (model, what) = gr00t_head(dir, task)?;
+                        eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
+                        serve_policy(Announce::new(model), &cfg, stop).with_context(ctx)
+                    }
+                    (None, None) => {
+                        anyhow::bail!("give --checkpoint DIR or --gr00t-checkpoint DIR --task T")
+                    }
+                }
             }
             ServeCmd::Slow {
                 listen,
@@ -222,6 +263,63 @@ mod imp {
                     .with_context(|| format!("serving slow features on {listen}"))
             }
         }
+    }
+
+    /// Says on stderr when the first request was answered (a client is being served).
+    struct Announce<M> {
+        inner: M,
+        calls: u64,
+    }
+
+    impl<M> Announce<M> {
+        fn new(inner: M) -> Self {
+            Announce { inner, calls: 0 }
+        }
+    }
+
+    impl<M: VelocityModel> VelocityModel for Announce<M> {
+        fn backend(&self) -> &'static str {
+            self.inner.backend()
+        }
+        fn velocity(
+            &mut self,
+            input: &ModelInput<'_>,
+            out: &mut [f32],
+        ) -> pir2_runtime::Result<()> {
+            let r = self.inner.velocity(input, out);
+            self.calls += 1;
+            if self.calls == 1 {
+                eprintln!("answered the first request");
+            }
+            r
+        }
+    }
+
+    /// The GR00T action head of a checkpoint, with the VL layout of `task`'s prompt.
+    #[cfg(feature = "gr00t")]
+    fn gr00t_head(dir: &std::path::Path, task: &str) -> Result<(Box<dyn VelocityModel>, String)> {
+        let (head, prompt) = pir2_backends::gr00t::load_action_head(
+            dir,
+            task,
+            &pir2_backends::ort::OrtOptions::default(),
+        )
+        .with_context(|| format!("loading the GR00T action head from {}", dir.display()))?;
+        let d = *head.dims();
+        Ok((
+            Box::new(head),
+            format!(
+                "GR00T action head of {} (H {}, A {}, D_vl {}; prompt {prompt:?})",
+                dir.display(),
+                d.horizon,
+                d.action_dim,
+                d.d_vl
+            ),
+        ))
+    }
+
+    #[cfg(not(feature = "gr00t"))]
+    fn gr00t_head(_: &std::path::Path, _: &str) -> Result<(Box<dyn VelocityModel>, String)> {
+        anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
     }
 
     type SlowPair = (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String);

@@ -230,3 +230,280 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     assert!(!calls.is_empty());
     assert!(calls.iter().all(|c| c["d_vis"].as_u64().unwrap() <= 5));
 }
+
+/// `pir2 run … --remote-policy`: the GR00T action head behind `pir2 serve policy`.
+#[cfg(feature = "gr00t")]
+mod remote_head {
+    use super::*;
+    use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+
+    fn gr00t_checkpoint(s: &Scratch) -> PathBuf {
+        let ck = s.path().join("ck");
+        write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
+        ck
+    }
+
+    fn head_server(ck: &str, endpoint: &str, extra: &[&str]) -> Server {
+        let mut a = vec![
+            "policy",
+            "--gr00t-checkpoint",
+            ck,
+            "--task",
+            "catch_book",
+            "--listen",
+            endpoint,
+        ];
+        a.extend_from_slice(extra);
+        serve(&a)
+    }
+
+    fn head_server_piped(ck: &str, endpoint: &str) -> Server {
+        Server(
+            pir2()
+                .args([
+                    "serve",
+                    "policy",
+                    "--gr00t-checkpoint",
+                    ck,
+                    "--task",
+                    "catch_book",
+                ])
+                .args(["--listen", endpoint])
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .expect("spawn pir2 serve"),
+        )
+    }
+
+    /// `pir2 run` with the head at `endpoint`, stderr piped; returns once it is connected.
+    // The child is returned to the caller, which waits for it.
+    #[allow(clippy::zombie_processes)]
+    fn start_run(
+        ck: &str,
+        endpoint: &str,
+        json: &Path,
+        extra: &[&str],
+    ) -> (Child, BufReader<std::process::ChildStderr>) {
+        let mut run = pir2()
+            .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck])
+            .args(["--task", "catch the book", "--emulate"])
+            .args(["--remote-policy", endpoint, "--json"])
+            .arg(json)
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut err = BufReader::new(run.stderr.take().unwrap());
+        let mut lines = Vec::new();
+        loop {
+            let mut l = String::new();
+            if err.read_line(&mut l).unwrap() == 0 {
+                let _ = run.wait();
+                panic!("run exited: {lines:?}");
+            }
+            let connected = l.contains("connected to the policy server");
+            lines.push(l);
+            if connected {
+                return (run, err);
+            }
+        }
+    }
+
+    fn read_json(p: &Path) -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    }
+
+    fn ds(v: &serde_json::Value) -> Vec<u64> {
+        let mut d: Vec<u64> = v["trace"]["calls"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["d"].as_u64().unwrap())
+            .collect();
+        d.sort_unstable();
+        d
+    }
+
+    /// A head server whose stderr is read until it has answered its first request (the
+    /// run's warm start: the run is about to tick).
+    fn wait_first_request(server: &mut Server) {
+        let mut err = BufReader::new(server.0.stderr.take().unwrap());
+        let mut lines = Vec::new();
+        loop {
+            let mut l = String::new();
+            assert!(
+                err.read_line(&mut l).unwrap() > 0,
+                "server exited: {lines:?}"
+            );
+            let first = l.contains("answered the first request");
+            lines.push(l);
+            if first {
+                // Keep draining so the server never blocks on a full pipe.
+                std::thread::spawn(move || std::io::copy(&mut err, &mut std::io::sink()));
+                return;
+            }
+        }
+    }
+
+    #[test]
+    fn gr00t_run_survives_a_policy_server_restart() {
+        let s = Scratch::new("gr00t-remote-head");
+        let ck = gr00t_checkpoint(&s);
+        let ck_s = ck.to_str().unwrap();
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let mut server = head_server_piped(ck_s, &endpoint);
+        let json = s.path().join("run.json");
+        // 10 s at 25 Hz; up to 50 × 200 ms without a reply before a safety stop.
+        let (mut run, mut err) = start_run(
+            ck_s,
+            &endpoint,
+            &json,
+            &["--ticks", "250", "--max-failed-calls", "50"],
+        );
+        wait_first_request(&mut server);
+        std::thread::sleep(Duration::from_millis(1500));
+        drop(server);
+        std::thread::sleep(Duration::from_millis(800));
+        let still_running = run.try_wait().unwrap().is_none();
+        let _server = head_server(ck_s, &endpoint, &[]);
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+        let status = run.wait().unwrap();
+        eprintln!("{rest}");
+        assert!(status.success(), "{rest}");
+        assert!(
+            still_running,
+            "the run finished before the server was killed"
+        );
+
+        let v = read_json(&json);
+        let t = &v["trace"];
+        assert_eq!(t["ticks"], 250);
+        assert!(
+            v["head"].as_str().unwrap().contains(&endpoint),
+            "{}",
+            v["head"]
+        );
+        assert!(v["hand_commands"].as_u64().unwrap() >= 250);
+        let r = &v["remote_policy"];
+        assert!(r["timeouts"].as_u64().unwrap() >= 1, "{r}");
+        assert!(r["reconnects"].as_u64().unwrap() >= 1, "{r}");
+        assert_eq!(r["failed_calls"], 0, "{r}");
+        // Every runtime call went through the server (warm start and NFEs included).
+        let calls = t["calls"].as_array().unwrap().len() as u64;
+        assert!(
+            calls >= 50 && r["calls"].as_u64().unwrap() >= calls,
+            "{r} {calls}"
+        );
+        // The outage ran the overrun path: ticks without a fresh chunk.
+        assert!(
+            t["overruns"].as_u64().unwrap() + t["holds"].as_u64().unwrap() >= 1,
+            "{t:?}"
+        );
+        // The outage call was measured whole (≥ 800 ms), so the window saw the network.
+        let max_latency = t["calls"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["latency"].as_u64().unwrap())
+            .max()
+            .unwrap();
+        assert!(
+            max_latency >= 500_000_000,
+            "max call latency {max_latency} ns"
+        );
+    }
+
+    #[test]
+    fn gr00t_run_d_follows_the_round_trip() {
+        let s = Scratch::new("gr00t-remote-delay");
+        let ck = gr00t_checkpoint(&s);
+        let ck_s = ck.to_str().unwrap();
+        let mut medians = Vec::new();
+        for delay in ["0", "60"] {
+            let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+            let _server = head_server(ck_s, &endpoint, &["--inject-delay-ms", delay]);
+            let json = s.path().join(format!("run-{delay}.json"));
+            let (mut run, mut err) = start_run(ck_s, &endpoint, &json, &["--ticks", "75"]);
+            let mut rest = String::new();
+            std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+            assert!(run.wait().unwrap().success(), "{rest}");
+            let d = ds(&read_json(&json));
+            assert!(!d.is_empty());
+            medians.push(d[d.len() / 2]);
+        }
+        // 40 ms ticks: a prompt server gives d = 1; a 60 ms round trip needs d = 2.
+        assert_eq!(medians[0], 1, "{medians:?}");
+        assert!(medians[1] >= 2, "{medians:?}");
+    }
+
+    #[test]
+    fn gr00t_run_stops_the_robot_when_the_policy_server_is_gone() {
+        let s = Scratch::new("gr00t-remote-gone");
+        let ck = gr00t_checkpoint(&s);
+        let ck_s = ck.to_str().unwrap();
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let mut server = head_server_piped(ck_s, &endpoint);
+        let json = s.path().join("run.json");
+        let (mut run, mut err) = start_run(
+            ck_s,
+            &endpoint,
+            &json,
+            &[
+                "--seconds",
+                "60",
+                "--max-failed-calls",
+                "5",
+                "--policy-timeout-ms",
+                "100",
+            ],
+        );
+        wait_first_request(&mut server);
+        std::thread::sleep(Duration::from_millis(1000));
+        drop(server);
+        let t0 = Instant::now();
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+        let status = run.wait().unwrap();
+        eprintln!("{rest}");
+        assert!(!status.success());
+        // 5 × 100 ms without a reply, then a safety stop that names the server.
+        assert!(t0.elapsed() < Duration::from_secs(15), "{:?}", t0.elapsed());
+        assert!(
+            rest.contains("safety stop") && rest.contains(&endpoint),
+            "{rest}"
+        );
+        assert!(rest.contains("failed_calls: 1"), "{rest}");
+        assert!(!rest.contains("panicked"), "{rest}");
+        assert!(!json.exists(), "no summary is written for a failed run");
+    }
+
+    #[test]
+    fn gr00t_run_without_a_policy_server_fails_before_the_robot_connects() {
+        let s = Scratch::new("gr00t-remote-none");
+        let ck = gr00t_checkpoint(&s);
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        // Real-robot arguments pointing nowhere: the error must be the server's, i.e. no
+        // robot connection was attempted.
+        let out = pir2()
+            .args([
+                "run",
+                "gr00t-xarm-xhand",
+                "--checkpoint",
+                ck.to_str().unwrap(),
+            ])
+            .args(["--task", "catch_book", "--xarm", "10.255.255.1"])
+            .args(["--xhand", "/nonexistent/ttyUSB0", "--synthetic-camera"])
+            .args(["--remote-policy", &endpoint, "--connect-timeout", "1"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(
+            err.contains(&endpoint) && err.contains("pir2 serve policy") && !err.contains("xArm"),
+            "{err}"
+        );
+    }
+}

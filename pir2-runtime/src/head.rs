@@ -206,6 +206,11 @@ impl<M: VelocityModel> ActionHead<M> {
         &self.model
     }
 
+    /// Give the model back (e.g. to read its counters after a run).
+    pub fn into_model(self) -> M {
+        self.model
+    }
+
     /// Record a call latency into the rolling window.
     pub fn record_latency(&mut self, latency: Nanos) {
         self.window.push(latency);

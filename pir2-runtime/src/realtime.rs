@@ -423,14 +423,22 @@ where
             let sh = &shared;
             s.spawn(move || slow_worker(sh, src, enc))
         });
-        // Warm start (before the robot moves): the first observation and slow features.
+        // Warm start (before the robot moves): the first slow features, then the first
+        // observation, then the warm-start chunk. Both waits can last far longer than a tick
+        // (a backbone's first frame, a warm start over the network), so the robot's state is
+        // read once per period meanwhile: a robot driver or safety layer with a stale-state
+        // watchdog must not trip before the run has begun. Those reads are discarded.
+        let mut scratch = vec![0.0; spec.fast_dim];
+        let mut last_read = clock.now();
+        let mut keepalive = |fast: &mut F| -> Result<()> {
+            if clock.now().saturating_sub(last_read) >= cfg.period {
+                fast.read(&mut scratch)?;
+                last_read = clock.now();
+            }
+            Ok(())
+        };
         let warm = (|| -> Result<Chunk> {
-            let mut obs = vec![0.0; spec.fast_dim];
-            let t_state = fast.read(&mut obs)?;
-            lp.prime(&obs);
             let mut snap = Snapshot::new(&spec);
-            snap.fast.copy_from_slice(lp.history());
-            snap.t_state = t_state;
             if spec.slow_dim > 0 {
                 if let Some((source, encoder)) = slow_inline.as_mut() {
                     let feats = block_on(async {
@@ -455,13 +463,35 @@ where
                                 "no features before the timeout",
                             ));
                         }
+                        keepalive(&mut fast)?;
                         std::thread::sleep(Duration::from_millis(1));
                     }
                     copy_slow(&mut snap, &shared.slow.lock().unwrap(), spec.slow_dim)?;
                 }
             }
+            let mut obs = vec![0.0; spec.fast_dim];
+            let t_state = fast.read(&mut obs)?;
+            lp.prime(&obs);
+            snap.fast.copy_from_slice(lp.history());
+            snap.t_state = t_state;
             let mut first = Chunk::new(spec.horizon, spec.action_dim);
-            head.warm_start(&snap, cfg.initial_delay, &mut first)?;
+            let head_ref = &mut head;
+            let first_ref = &mut first;
+            let snap_ref = &snap;
+            std::thread::scope(|ws| -> Result<()> {
+                let h =
+                    ws.spawn(move || head_ref.warm_start(snap_ref, cfg.initial_delay, first_ref));
+                let mut kept = Ok(());
+                while !h.is_finished() {
+                    if kept.is_ok() {
+                        kept = keepalive(&mut fast);
+                    }
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                h.join()
+                    .map_err(|_| Error::WorkerStopped("warm start (panicked)"))??;
+                kept
+            })?;
             Ok(first)
         })();
         let mut first = match warm {

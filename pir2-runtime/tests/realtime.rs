@@ -123,3 +123,104 @@ fn slow_worker_feeds_d_vis() {
         "slow features never aged: {dv:?}"
     );
 }
+
+/// A robot whose state stream records when it was read.
+struct Recorded {
+    inner: FakeRobot,
+    reads: Arc<std::sync::Mutex<Vec<Nanos>>>,
+}
+
+impl FastSource for Recorded {
+    fn dim(&self) -> usize {
+        FastSource::dim(&self.inner)
+    }
+    fn read(&mut self, out: &mut [f32]) -> Result<Nanos> {
+        let t = self.inner.read(out)?;
+        self.reads.lock().unwrap().push(t);
+        Ok(t)
+    }
+}
+
+/// A slow first frame (150 ms encoder) and a slow warm start (3 × 60 ms calls) must not leave
+/// the robot's state stream unread for longer than a few ticks: robot drivers and the safety
+/// layer stop the robot on a stale state (200 ms by default).
+#[test]
+fn state_is_read_every_tick_while_warming_up() {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let spec = HeadSpec {
+        horizon: 16,
+        action_dim: 3,
+        n_obs: 2,
+        fast_dim: 6,
+        slow_dim: 4,
+        period: PERIOD,
+        d_max: 5,
+        d_vis_max: 5,
+    };
+    let mode = HeadMode::PiR2 {
+        nfe: Some(2),
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+        warm_start_steps: 3,
+    };
+    let head = ActionHead::new(
+        SleepyModel {
+            latency: Duration::from_millis(60),
+        },
+        spec,
+        mode,
+        LatencyWindow::new(20, 2, PERIOD, spec.d_max),
+        0,
+    )
+    .unwrap();
+    let robot = FakeRobot::new(3, clock.clone());
+    let reads = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let source = Recorded {
+        inner: robot.clone(),
+        reads: reads.clone(),
+    };
+    let control = ControlConfig {
+        horizon: 16,
+        action_dim: 3,
+        policy: CallPolicy::Async,
+        ensemble: None,
+        output: Default::default(),
+    };
+    let slow = SlowChannel::Async {
+        source: Box::new(CameraStub::new(clock.clone(), Duration::from_millis(30), 4)),
+        encoder: Box::new(PassThroughEncoder {
+            latency: Duration::from_millis(150),
+        }),
+    };
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(10),
+        ..Default::default()
+    };
+    let t0 = clock.now();
+    run(
+        head,
+        control,
+        source,
+        robot,
+        slow,
+        clock.clone(),
+        cfg,
+        Arc::new(AtomicBool::new(false)),
+    )
+    .unwrap();
+    let reads = reads.lock().unwrap();
+    let mut prev = t0;
+    let mut max_gap = 0;
+    for &t in reads.iter() {
+        max_gap = max_gap.max(t - prev);
+        prev = t;
+    }
+    // The warm-up alone took ≥ 150 + 3 × 60 ms; reads kept coming at about one per tick.
+    assert!(reads.len() >= 10 + 10, "{} reads", reads.len());
+    assert!(
+        max_gap < 5 * PERIOD,
+        "state unread for {} ms",
+        max_gap / 1_000_000
+    );
+}

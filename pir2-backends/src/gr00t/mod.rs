@@ -47,4 +47,7 @@ pub use backbone::{
 pub use config::{CheckpointFiles, EmbodimentConfig, Group, Norm, Normalizer, PAPER_TASKS};
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
-pub use run::{run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport};
+pub use run::{
+    load_action_head, run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport,
+    HeadChoice,
+};

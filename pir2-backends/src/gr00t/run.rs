@@ -25,7 +25,7 @@ use std::time::Duration;
 use pir2_runtime::realtime::{run, RealtimeConfig, SlowChannel};
 use pir2_runtime::{
     ActionHead, Actuator, CallPolicy, Clock, ControlConfig, FastSource, HeadMode, HeadSpec,
-    LatencyWindow, RunMetrics, SlowEncoder, SlowSource, SystemClock,
+    LatencyWindow, ModelInput, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
 };
 use pir2_schedule::{Alignment, FrontMode};
 
@@ -68,6 +68,60 @@ impl std::fmt::Debug for BackboneChoice {
     }
 }
 
+/// Where the action head runs.
+pub enum HeadChoice {
+    /// The checkpoint's four ONNX graphs, loaded here.
+    Local,
+    /// The checkpoint's action head, already loaded (e.g. by a pre-flight check before any
+    /// robot was connected); its VL layout is set by the run.
+    Loaded(Box<Gr00tActionHead>),
+    /// Any other model with the checkpoint's interface, e.g. a
+    /// `pir2_runtime::remote::RemoteModel` talking to `pir2 serve policy --gr00t-checkpoint`
+    /// on another machine. The checkpoint's embodiment and statistics are still read here
+    /// (the executed actions are denormalised on the robot side); `d_vl` is the backbone
+    /// token width the model expects. The runtime measures each call as a whole, so network
+    /// round trips enter the latency window and `d`.
+    Custom {
+        /// The model.
+        model: Box<dyn VelocityModel>,
+        /// Backbone token width `D_vl` the model takes.
+        d_vl: usize,
+    },
+}
+
+impl std::fmt::Debug for HeadChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HeadChoice::Local => f.write_str("Local"),
+            HeadChoice::Loaded(h) => f.debug_tuple("Loaded").field(h.dims()).finish(),
+            HeadChoice::Custom { model, d_vl } => f
+                .debug_struct("Custom")
+                .field("backend", &model.backend())
+                .field("d_vl", d_vl)
+                .finish(),
+        }
+    }
+}
+
+/// Counts the calls per clamped `d_vis` of a model that does not count them itself.
+struct CountDvis {
+    inner: Box<dyn VelocityModel>,
+    counts: Vec<u64>,
+}
+
+impl VelocityModel for CountDvis {
+    fn backend(&self) -> &'static str {
+        self.inner.backend()
+    }
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> pir2_runtime::Result<()> {
+        let last = self.counts.len() - 1;
+        for &d in input.d_vis {
+            self.counts[(d as usize).min(last)] += 1;
+        }
+        self.inner.velocity(input, out)
+    }
+}
+
 /// Options of [`run_gr00t`].
 #[derive(Debug)]
 pub struct Gr00tRunOptions {
@@ -78,6 +132,8 @@ pub struct Gr00tRunOptions {
     pub ort: OrtOptions,
     /// The backbone.
     pub backbone: BackboneChoice,
+    /// The action head.
+    pub head: HeadChoice,
     /// NFEs per action (`None` = full ramp; DESIGN.md §1 recommends a short ramp).
     pub nfe: Option<usize>,
     /// Staircase alignment.
@@ -106,6 +162,7 @@ impl Default for Gr00tRunOptions {
             embodiment: None,
             ort: OrtOptions::default(),
             backbone: BackboneChoice::Onnx { tokenizer: None },
+            head: HeadChoice::Local,
             nfe: Some(2),
             alignment: Alignment::Fresh,
             front: FrontMode::Visible,
@@ -156,6 +213,51 @@ where
     run_gr00t_report(checkpoint_dir, task, fast, actuator, camera, opts).map(|r| r.metrics)
 }
 
+/// Load the checkpoint's action head (embodiment, statistics, embodiment id, the four
+/// graphs and side weights, all checked against the contract) with the VL token layout of
+/// `task`'s prompt (from `vocab.txt` and the embodiment's prompt layout) set, so it answers
+/// calls on its own: what `pir2 serve policy --gr00t-checkpoint` serves, and what the
+/// pre-flight check of `pir2 run` loads before any robot is connected. Returns the head and
+/// the prompt.
+pub fn load_action_head(
+    checkpoint_dir: &Path,
+    task: &str,
+    ort: &OrtOptions,
+) -> Result<(Gr00tActionHead, String)> {
+    let files = CheckpointFiles::in_dir(checkpoint_dir);
+    let cfg = if files.embodiment.exists() {
+        EmbodimentConfig::load(&files.embodiment)?
+    } else {
+        EmbodimentConfig::xarm6_xhand()
+    };
+    cfg.validate()?;
+    let prompt = cfg.prompt_for(task).to_string();
+    if prompt.trim().is_empty() {
+        return Err(Gr00tError::Config("empty task prompt".to_string()));
+    }
+    let norm = Normalizer::load(&files.statistics, &cfg)?;
+    let embodiment_id =
+        read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
+    let mut head = Gr00tActionHead::load(&files, &cfg, norm, embodiment_id, ort)?;
+    let tok = VocabTokenizer::load(&files.vocab)?;
+    let layout = super::backbone::build_sequence(&tok, &prompt, &cfg.prompt)?.layout;
+    if let Some(t) = head.dims().vl_tokens {
+        if t != layout.image_mask.len() {
+            return Err(Gr00tError::Contract {
+                path: files.dit.clone(),
+                tensor: "vl_embs".to_string(),
+                problem: format!(
+                    "fixes T = {t} tokens but the prompt layout has {} \
+                     (prompt.image_tokens + prompt.text_tokens)",
+                    layout.image_mask.len()
+                ),
+            });
+        }
+    }
+    head.set_vl_layout(layout);
+    Ok((head, prompt))
+}
+
 /// [`run_gr00t`] with the per-`d_vis` call counts and the resolved configuration.
 pub fn run_gr00t_report<F, A, C>(
     checkpoint_dir: &Path,
@@ -182,15 +284,34 @@ where
         return Err(Gr00tError::Config("empty task prompt".to_string()));
     }
     let norm = Normalizer::load(&files.statistics, &cfg)?;
-    let embodiment_id =
-        read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
-    let mut model = Gr00tActionHead::load(&files, &cfg, norm.clone(), embodiment_id, &opts.ort)?;
-    let d_vl = model.dims().d_vl;
+    let mut local = match opts.head {
+        HeadChoice::Local => {
+            let embodiment_id = read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?
+                .unwrap_or(cfg.embodiment_id);
+            Ok(Gr00tActionHead::load(
+                &files,
+                &cfg,
+                norm.clone(),
+                embodiment_id,
+                &opts.ort,
+            )?)
+        }
+        HeadChoice::Loaded(h) => Ok(*h),
+        HeadChoice::Custom { model, d_vl } => Err((model, d_vl)),
+    };
+    let (d_vl, vl_tokens) = match &local {
+        Ok(h) => (h.dims().d_vl, h.dims().vl_tokens),
+        Err((_, d_vl)) => (*d_vl, None),
+    };
     let (encoder, layout): (Box<dyn SlowEncoder>, VlLayout) = match opts.backbone {
         BackboneChoice::Onnx { tokenizer } => {
             let tok: Box<dyn PromptTokenizer> = match tokenizer {
                 Some(t) => t,
                 None => Box::new(VocabTokenizer::load(&files.vocab)?),
+            };
+            let d_vl_source = match &local {
+                Ok(_) => files.dit.clone(),
+                Err(_) => "<the custom action head's D_vl>".into(),
             };
             let bb = Gr00tBackbone::load(
                 &files,
@@ -198,7 +319,7 @@ where
                 &cfg.prompt,
                 tok.as_ref(),
                 &prompt,
-                Some((d_vl, files.dit.clone())),
+                Some((d_vl, d_vl_source)),
                 &opts.ort,
             )?;
             let layout = bb.layout().clone();
@@ -214,7 +335,7 @@ where
             layout.attention_mask.len(),
         ));
     }
-    if let Some(t) = model.dims().vl_tokens {
+    if let Some(t) = vl_tokens {
         if t != tokens {
             return Err(Gr00tError::Contract {
                 path: files.dit.clone(),
@@ -226,8 +347,9 @@ where
             });
         }
     }
-    model.set_vl_layout(layout);
-
+    if let Ok(h) = &mut local {
+        h.set_vl_layout(layout);
+    }
     let period = cfg.period_ns();
     let spec = HeadSpec {
         horizon: cfg.horizon,
@@ -245,13 +367,6 @@ where
         front: opts.front,
         warm_start_steps: opts.warm_start_steps,
     };
-    let head = ActionHead::new(
-        model,
-        spec,
-        mode,
-        LatencyWindow::new(opts.window.max(1), 2, period, cfg.d_max),
-        opts.seed,
-    )?;
     let control = ControlConfig {
         horizon: cfg.horizon,
         action_dim: cfg.action_dim(),
@@ -270,13 +385,61 @@ where
         source: Box::new(camera),
         encoder,
     };
-    let (metrics, head) = run(
-        head, control, fast, actuator, slow, opts.clock, rt, opts.stop,
-    )?;
+    let setup = Setup {
+        spec,
+        mode,
+        window: LatencyWindow::new(opts.window.max(1), 2, period, cfg.d_max),
+        seed: opts.seed,
+        control,
+        rt,
+        slow,
+        clock: opts.clock,
+        stop: opts.stop,
+    };
+    let (metrics, d_vis_counts) = match local {
+        Ok(model) => {
+            let (m, model) = drive(model, setup, fast, actuator)?;
+            (m, model.d_vis_counts().to_vec())
+        }
+        Err((inner, _)) => {
+            let model = CountDvis {
+                inner,
+                counts: vec![0; cfg.d_vis_max + 1],
+            };
+            let (m, model) = drive(model, setup, fast, actuator)?;
+            (m, model.counts)
+        }
+    };
     Ok(Gr00tRunReport {
         metrics,
-        d_vis_counts: head.model().d_vis_counts().to_vec(),
+        d_vis_counts,
         prompt,
         embodiment: cfg,
     })
+}
+
+/// Everything of a run but the model and the robot.
+struct Setup {
+    spec: HeadSpec,
+    mode: HeadMode,
+    window: LatencyWindow,
+    seed: u64,
+    control: ControlConfig,
+    rt: RealtimeConfig,
+    slow: SlowChannel,
+    clock: Arc<dyn Clock>,
+    stop: Arc<AtomicBool>,
+}
+
+fn drive<M: VelocityModel + 'static, F: FastSource, A: Actuator>(
+    model: M,
+    s: Setup,
+    fast: F,
+    actuator: A,
+) -> Result<(RunMetrics, M)> {
+    let head = ActionHead::new(model, s.spec, s.mode, s.window, s.seed)?;
+    let (metrics, head) = run(
+        head, s.control, fast, actuator, s.slow, s.clock, s.rt, s.stop,
+    )?;
+    Ok((metrics, head.into_model()))
 }
