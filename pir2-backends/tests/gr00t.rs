@@ -430,3 +430,98 @@ fn custom_backbone_seam_drives_the_head_on_a_fake_robot() {
     assert_eq!(robot.sent.load(Ordering::Relaxed), 0);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Counts the calls it forwards (a stand-in for a remote action-head client).
+struct Forward<M> {
+    inner: M,
+    calls: Arc<AtomicU64>,
+}
+
+impl<M: pir2_runtime::VelocityModel> pir2_runtime::VelocityModel for Forward<M> {
+    fn backend(&self) -> &'static str {
+        "forward"
+    }
+    fn velocity(
+        &mut self,
+        input: &pir2_runtime::ModelInput<'_>,
+        out: &mut [f32],
+    ) -> pir2_runtime::Result<()> {
+        self.calls.fetch_add(1, Ordering::Relaxed);
+        self.inner.velocity(input, out)
+    }
+}
+
+#[test]
+fn custom_head_seam_drives_a_forwarded_head_on_a_fake_robot() {
+    use pir2_backends::gr00t::{load_action_head, run_gr00t_report, HeadChoice};
+    use pir2_backends::ort::OrtOptions;
+    use pir2_runtime::testing::FakeRobot;
+
+    let dir = fixture("custom-head", "");
+    let (head, prompt) = load_action_head(&dir, "catch_book", &OrtOptions::default()).unwrap();
+    assert_eq!(prompt, "catch the book");
+    let d_vl = head.dims().d_vl;
+    let calls = Arc::new(AtomicU64::new(0));
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let robot = FakeRobot::new(18, clock.clone());
+    let sent = robot.sent.clone();
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(25),
+        clock: clock.clone(),
+        warm_start_steps: 2,
+        head: HeadChoice::Custom {
+            model: Box::new(Forward {
+                inner: head,
+                calls: calls.clone(),
+            }),
+            d_vl,
+        },
+        ..Default::default()
+    };
+    // The checkpoint's ONNX backbone on the synthetic camera; the head behind the seam.
+    let camera = SyntheticCamera::new(clock.clone(), Duration::from_millis(60));
+    let report = run_gr00t_report(
+        &dir,
+        "catch_book",
+        State45(robot.clone(), [0.0; 36]),
+        robot,
+        camera,
+        opts,
+    )
+    .unwrap();
+    let m = &report.metrics;
+    assert_eq!(m.ticks, 25);
+    assert_eq!(sent.load(Ordering::Relaxed), 25);
+    assert!(!m.calls.is_empty());
+    // Every model call went through the seam and was counted per d_vis.
+    let n = calls.load(Ordering::Relaxed);
+    assert!(n >= m.calls.len() as u64, "{n} < {}", m.calls.len());
+    assert_eq!(report.d_vis_counts.iter().sum::<u64>(), n);
+
+    // A custom head whose D_vl disagrees with the backbone is refused before the robot moves.
+    let (head, _) = load_action_head(&dir, "catch_book", &OrtOptions::default()).unwrap();
+    let robot = FakeRobot::new(18, clock.clone());
+    let opts = Gr00tRunOptions {
+        max_ticks: Some(5),
+        clock: clock.clone(),
+        head: HeadChoice::Custom {
+            model: Box::new(head),
+            d_vl: d_vl + 1,
+        },
+        ..Default::default()
+    };
+    let camera = SyntheticCamera::new(clock.clone(), Duration::from_millis(60));
+    let e = run_gr00t_report(
+        &dir,
+        "catch_book",
+        State45(robot.clone(), [0.0; 36]),
+        robot.clone(),
+        camera,
+        opts,
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("D_vl"), "{e}");
+    assert_eq!(robot.sent.load(Ordering::Relaxed), 0);
+    std::fs::remove_dir_all(&dir).ok();
+}
