@@ -380,6 +380,20 @@ mod remote_head {
 
         let v = read_json(&json);
         let t = &v["trace"];
+        eprintln!(
+            "restart run: ticks {} calls {} swaps {} overruns {} holds {} latency {} d {:?} remote {}",
+            t["ticks"],
+            t["calls"].as_array().map_or(0, |c| c.len()),
+            t["swaps"],
+            t["overruns"],
+            t["holds"],
+            t["call_latency"],
+            ds(&v).iter().fold([0u64; 8], |mut h, &d| {
+                h[(d as usize).min(7)] += 1;
+                h
+            }),
+            v["remote_policy"]
+        );
         assert_eq!(t["ticks"], 250);
         assert!(
             v["head"].as_str().unwrap().contains(&endpoint),
@@ -430,7 +444,18 @@ mod remote_head {
             let mut rest = String::new();
             std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
             assert!(run.wait().unwrap().success(), "{rest}");
-            let d = ds(&read_json(&json));
+            let v = read_json(&json);
+            let d = ds(&v);
+            eprintln!(
+                "delay {delay} ms: latency {} d {:?} overruns {} remote last rtt {}",
+                v["trace"]["call_latency"],
+                d.iter().fold([0u64; 8], |mut h, &d| {
+                    h[(d as usize).min(7)] += 1;
+                    h
+                }),
+                v["trace"]["overruns"],
+                v["remote_policy"]["last_rtt_ns"]
+            );
             assert!(!d.is_empty());
             medians.push(d[d.len() / 2]);
         }
