@@ -274,7 +274,17 @@ fn policy_server_restart_mid_run_is_survived_and_counted() {
     let stats = model.stats();
     let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
     let runner = std::thread::spawn(move || go(model, None, robot_clock, 100, None));
-    std::thread::sleep(Duration::from_millis(600));
+    // Kill the server once the run is ticking (the warm start is a few calls; a fixed sleep
+    // could land in the warm start on a loaded machine, whose latency is not traced).
+    let t0 = std::time::Instant::now();
+    while stats.counters().calls < 15 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "the run never started calling"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    std::thread::sleep(Duration::from_millis(200));
     policy.kill();
     std::thread::sleep(Duration::from_millis(400));
     let policy = policy_server(pp, 2, Duration::ZERO);
