@@ -5,7 +5,8 @@
 //! cargo run --release -p pir2-sim --features mujoco --example leap_expert -- --episodes 100
 //! ```
 //! Options: `--episodes N` (100), `--start I` (0, first episode index), `--seed S` (0),
-//! `--fast` (the cheaper recipe), `--threads T` (2), `--samples K`, `--horizon H`.
+//! `--fast` (the cheaper recipe), `--pin` (`MpcConfig::pin_first_knot`, as `pir2 collect`
+//! uses), `--threads T` (2), `--samples K`, `--horizon H`.
 
 use std::time::Instant;
 
@@ -20,6 +21,7 @@ fn main() -> anyhow::Result<()> {
     let mut threads = None;
     let mut samples = None;
     let mut horizon = None;
+    let mut pin = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut val = |name: &str| args.next().with_context(|| format!("{name} needs a value"));
@@ -28,6 +30,7 @@ fn main() -> anyhow::Result<()> {
             "--start" => start = val("--start")?.parse()?,
             "--seed" => cfg.seed = val("--seed")?.parse()?,
             "--fast" => mpc = MpcConfig::fast(),
+            "--pin" => pin = true,
             "--threads" => threads = Some(val("--threads")?.parse()?),
             "--samples" => samples = Some(val("--samples")?.parse()?),
             "--horizon" => horizon = Some(val("--horizon")?.parse()?),
@@ -37,6 +40,7 @@ fn main() -> anyhow::Result<()> {
     mpc.threads = threads.unwrap_or(mpc.threads);
     mpc.samples = samples.unwrap_or(mpc.samples);
     mpc.horizon = horizon.unwrap_or(mpc.horizon);
+    mpc.pin_first_knot |= pin;
     cfg.mpc = mpc;
     let model = LeapModel::load(None)?;
     println!("config: {:?}", cfg);
