@@ -117,7 +117,11 @@ fn slow_worker_feeds_d_vis() {
     let m = go(2, 60, true);
     // Frames every ~40 ms (30 ms capture + 10 ms encode), stamped at capture: d_vis ∈ [0, 3].
     let dv: Vec<usize> = m.calls.iter().skip(10).map(|c| c.d_vis).collect();
-    assert!(dv.iter().all(|&d| d <= 4), "{dv:?}");
+    // A loaded machine can stall the slow worker for a few ticks (seen in CI: three calls at
+    // 5); features that stopped refreshing would sit at the clamp for every later call.
+    let fresh = dv.iter().filter(|&&d| d <= 4).count();
+    assert!(fresh * 10 >= dv.len() * 9, "{dv:?}");
+    assert!(dv.iter().rev().take(5).all(|&d| d <= 4), "{dv:?}");
     assert!(
         dv.iter().any(|&d| d >= 1),
         "slow features never aged: {dv:?}"
