@@ -31,6 +31,17 @@ fn features(cur: &[f32], prev: &[f32], slow: &[f32], out: &mut [f64; D]) {
     out[D - 1] = 1.0;
 }
 
+/// The features of frame `t` of a demonstration (the first frame is its own predecessor).
+fn frame_features(e: &pir2_sim::dataset::Episode, t: usize, out: &mut [f64; D]) {
+    let p = t.saturating_sub(1);
+    features(
+        &e.fast[t * F..(t + 1) * F],
+        &e.fast[p * F..(p + 1) * F],
+        &e.slow[t * S..(t + 1) * S],
+        out,
+    );
+}
+
 /// Solve `(XᵀX + λI) W = XᵀY` (Cholesky), `W` is `[D, A]`.
 fn ridge(xtx: &[f64], xty: &[f64], lambda: f64) -> Vec<f64> {
     let mut l = xtx.to_vec();
@@ -88,13 +99,7 @@ fn main() -> Result<()> {
     let mut mean = [0.0f64; A];
     for e in &demos {
         for t in 0..e.len() {
-            let p = t.saturating_sub(1);
-            features(
-                &e.fast[t * F..(t + 1) * F],
-                &e.fast[p * F..(p + 1) * F],
-                &e.slow[t * S..(t + 1) * S],
-                &mut x,
-            );
+            frame_features(e, t, &mut x);
             let y = &e.action[t * A..(t + 1) * A];
             for i in 0..D {
                 for j in 0..D {
@@ -116,13 +121,7 @@ fn main() -> Result<()> {
     let w = ridge(&xtx, &xty, lambda * n as f64);
     for e in &demos {
         for t in 0..e.len() {
-            let p = t.saturating_sub(1);
-            features(
-                &e.fast[t * F..(t + 1) * F],
-                &e.fast[p * F..(p + 1) * F],
-                &e.slow[t * S..(t + 1) * S],
-                &mut x,
-            );
+            frame_features(e, t, &mut x);
             for a in 0..A {
                 let pred: f64 = (0..D).map(|i| x[i] * w[i * A + a]).sum();
                 let y = e.action[t * A + a] as f64;
