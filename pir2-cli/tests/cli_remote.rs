@@ -347,6 +347,15 @@ mod remote_head {
         }
     }
 
+    /// Calls per `d` (the last bin holds `d ≥ 7`).
+    fn histogram(d: &[u64]) -> [u64; 8] {
+        let mut h = [0u64; 8];
+        for &d in d {
+            h[(d as usize).min(7)] += 1;
+        }
+        h
+    }
+
     #[test]
     fn gr00t_run_survives_a_policy_server_restart() {
         let s = Scratch::new("gr00t-remote-head");
@@ -388,10 +397,7 @@ mod remote_head {
             t["overruns"],
             t["holds"],
             t["call_latency"],
-            ds(&v).iter().fold([0u64; 8], |mut h, &d| {
-                h[(d as usize).min(7)] += 1;
-                h
-            }),
+            histogram(&ds(&v)),
             v["remote_policy"]
         );
         assert_eq!(t["ticks"], 250);
@@ -449,10 +455,7 @@ mod remote_head {
             eprintln!(
                 "delay {delay} ms: latency {} d {:?} overruns {} remote last rtt {}",
                 v["trace"]["call_latency"],
-                d.iter().fold([0u64; 8], |mut h, &d| {
-                    h[(d as usize).min(7)] += 1;
-                    h
-                }),
+                histogram(&d),
                 v["trace"]["overruns"],
                 v["remote_policy"]["last_rtt_ns"]
             );
