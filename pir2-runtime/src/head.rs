@@ -31,7 +31,12 @@ pub struct HeadSpec {
     pub slow_dim: usize,
     /// Control period, ns.
     pub period: Nanos,
-    /// Largest delay the model was trained for.
+    /// Largest delay the model was trained for. `0` declares a zero-delay policy (trained
+    /// with `d_max = 0`): every call uses the `d = 0` streaming ramp, its single step sees
+    /// the newest observation and slot 0 is executed in the same tick. Such a policy runs
+    /// only where a call takes zero ticks (the lock-step driver with zero injected latency,
+    /// the paper's horizon study); the real-time driver refuses it, since a real call always
+    /// takes time.
     pub d_max: usize,
     /// Largest slow-feature age the model was trained for.
     pub d_vis_max: usize,
@@ -224,9 +229,17 @@ impl<M: VelocityModel> ActionHead<M> {
 
     /// The delay the next call uses.
     pub fn delay(&self) -> usize {
-        self.forced_delay
-            .unwrap_or_else(|| self.window.delay())
-            .clamp(1, self.spec.d_max.max(1))
+        self.clamp_delay(self.forced_delay.unwrap_or_else(|| self.window.delay()))
+    }
+
+    /// `d` clamped to what the model was trained for: `[1, d_max]`, or exactly `0` for a
+    /// zero-delay policy (`d_max = 0`).
+    pub fn clamp_delay(&self, d: usize) -> usize {
+        if self.spec.d_max == 0 {
+            0
+        } else {
+            d.clamp(1, self.spec.d_max)
+        }
     }
 
     /// Stale-slow safety check: a call fails with [`Error::SafetyStop`] when its slow
@@ -305,6 +318,7 @@ impl<M: VelocityModel> ActionHead<M> {
     /// first chunk (slot 0 = `snap.tick`, every slot clean).
     pub fn warm_start(&mut self, snap: &Snapshot, d0: usize, out: &mut Chunk) -> Result<()> {
         let d_vis = self.d_vis(snap) as u32;
+        let d0 = self.clamp_delay(d0);
         let spec = self.spec;
         let (model, x, tau, v) = (&mut self.model, &mut self.x, &mut self.tau, &mut self.v);
         match &mut self.state {
@@ -313,13 +327,9 @@ impl<M: VelocityModel> ActionHead<M> {
                 offset,
                 warm_k,
             } => {
-                buf.warm_start_with(
-                    d0.clamp(1, spec.d_max.max(1)),
-                    *warm_k,
-                    |xs: &[f32], ts: &[f32], vs: &mut [f32]| {
-                        Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
-                    },
-                )?;
+                buf.warm_start_with(d0, *warm_k, |xs: &[f32], ts: &[f32], vs: &mut [f32]| {
+                    Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
+                })?;
                 *offset = snap.tick - buf.index();
                 out.x.copy_from_slice(buf.xhat());
                 out.xhat.copy_from_slice(buf.xhat());

@@ -127,10 +127,20 @@ impl LockstepDriver {
         }
         let period = spec.period;
         // `call_ticks = 0` simulates zero inference latency: the chunk is swapped in within
-        // the tick of its snapshot (the horizon study); `d` is still at least 1.
+        // the tick of its snapshot (the horizon study). `d` stays at least 1 unless the
+        // policy is a zero-delay one (`d_max = 0`), which needs exactly that timing.
         let call_ticks = timing.call_ticks;
+        if spec.d_max == 0
+            && (call_ticks > 0 || (timing.overrun_every > 0 && timing.overrun_ticks > 0))
+        {
+            return Err(Error::Config(format!(
+                "a zero-delay policy (d_max = 0) needs calls that take zero ticks, got call_ticks = {call_ticks}, \
+                 overrun_ticks = {} every {} calls",
+                timing.overrun_ticks, timing.overrun_every
+            )));
+        }
         if timing.pin_delay {
-            head.force_delay(Some(call_ticks.clamp(1, spec.d_max.max(1))));
+            head.force_delay(Some(head.clamp_delay(call_ticks)));
         }
         let mut control = ControlState::new(ControlConfig {
             horizon: spec.horizon,
@@ -182,7 +192,7 @@ impl LockstepDriver {
             };
             if t == 0 {
                 fill_snapshot(&mut self.snap, &self.fast_hist, &self.slow_hist);
-                head.warm_start(&self.snap, call_ticks.max(1), &mut self.spare)?;
+                head.warm_start(&self.snap, head.clamp_delay(call_ticks), &mut self.spare)?;
                 control.deliver(&mut self.spare);
             }
             if due == Some(t) {

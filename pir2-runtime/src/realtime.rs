@@ -388,6 +388,13 @@ where
     A: Actuator,
 {
     let spec = *head.spec();
+    if spec.d_max == 0 {
+        return Err(Error::Config(
+            "a zero-delay policy (d_max = 0) runs only in lock-step with zero-latency calls; \
+             a real-time call always takes at least one tick"
+                .into(),
+        ));
+    }
     if fast.dim() != spec.fast_dim {
         return Err(Error::shape("fast source dim", spec.fast_dim, fast.dim()));
     }

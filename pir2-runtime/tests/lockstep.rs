@@ -344,3 +344,62 @@ fn zero_latency_calls_swap_within_the_tick() {
     assert_eq!(r.metrics.overruns, 0);
     assert_tracks(&env, 1e-4, "zero-latency πR²");
 }
+
+#[test]
+fn zero_delay_policy_acts_on_the_newest_observation_within_the_tick() {
+    // A policy trained with d_max = 0 (the paper's zero-delay variant for the horizon study):
+    // every call uses the d = 0 ramp, sees the observation of its own tick, and the slot it
+    // finishes is executed in that same tick.
+    let mode = pir2(FrontMode::Visible, Some(2), Alignment::Fresh);
+    let mut sp = spec(&mode);
+    sp.d_max = 0;
+    let new_head = || {
+        ActionHead::new(
+            Oracle::default(),
+            sp,
+            mode.head_mode(4),
+            LatencyWindow::new(20, 0, PERIOD, 1),
+            7,
+        )
+        .unwrap()
+    };
+    let timing = LockstepTiming {
+        call_ticks: 0,
+        slow_delay: 0,
+        overrun_ticks: 0,
+        overrun_every: 0,
+        pin_delay: true,
+    };
+    let steps = 40;
+    let mut head = new_head();
+    let mut env = TrackEnv {
+        max_steps: steps,
+        ..Default::default()
+    };
+    let mut drv = LockstepDriver::new(&head);
+    let r = drv
+        .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
+        .unwrap();
+    assert_eq!(
+        r.metrics.calls.len(),
+        1 + steps,
+        "the warm start, then one call per tick"
+    );
+    assert!(r.metrics.calls.iter().all(|c| c.d == 0 && c.elapsed == 0));
+    assert_eq!(r.metrics.overruns, 0);
+    // After the 4 warm-start evaluations (tick 0), call t evaluates on tick t's observation.
+    let ticks: Vec<u64> = head.model().log[4..].iter().map(|l| l.0).collect();
+    assert_eq!(ticks, (0..steps as u64).collect::<Vec<_>>());
+    assert_tracks(&env, 1e-4, "zero-delay πR²");
+
+    // The same policy refuses timing it was not trained for.
+    let mut head = new_head();
+    let late = LockstepTiming {
+        call_ticks: 1,
+        ..timing
+    };
+    let err = drv
+        .run_episode(&mut env, &mut head, &mode, late, 1, |_, _| {})
+        .unwrap_err();
+    assert!(err.to_string().contains("d_max = 0"), "{err}");
+}
