@@ -145,6 +145,26 @@ pub(crate) fn tolerance_linear(x: f64, hi: f64, margin: f64) -> f64 {
     }
 }
 
+/// MuJoCo's full integration state (what [`LeapCubeEnv::save`] keeps of the physics).
+const STATE_SPEC: u32 = MjtState::mjSTATE_INTEGRATION as u32;
+
+/// A saved [`LeapCubeEnv`] state (see [`LeapCubeEnv::save`]).
+#[derive(Debug, Clone)]
+pub struct LeapEnvState {
+    physics: Vec<f64>,
+    sensors: Vec<f64>,
+    rng: Rng,
+    targets: [f64; NU],
+    last_act: [f32; NU],
+    last_last_act: [f32; NU],
+    goal: Quat,
+    goal_dquat: [f64; 3],
+    goals: Vec<Quat>,
+    steps: usize,
+    successes: usize,
+    ended: Option<EnvStep>,
+}
+
 /// The LEAP hand holding a cube, as a lock-step [`Environment`].
 #[derive(Debug)]
 pub struct LeapCubeEnv {
@@ -252,6 +272,56 @@ impl LeapCubeEnv {
     /// Orientation error of the (sensed, noise-free) cube to the nearest goal (rad).
     pub fn orientation_error(&self) -> f64 {
         math::nearest_goal_error(&self.sensed_cube_quat(), &self.goals)
+    }
+
+    /// Save the whole environment state: physics (MuJoCo's integration state and the sensor
+    /// values the next [`observe`](Environment::observe) reads), motor targets, noise RNG,
+    /// episode counters. [`restore`](Self::restore) continues bit-identically from it, so a
+    /// caller can branch an episode (e.g. to ask what another expert seed would have done).
+    pub fn save(&self) -> LeapEnvState {
+        let mut physics = vec![0.0; self.lm.model.state_size(STATE_SPEC)];
+        self.data.read_state_into(STATE_SPEC, &mut physics);
+        LeapEnvState {
+            physics,
+            sensors: self.data.sensordata().to_vec(),
+            rng: self.rng.clone(),
+            targets: self.targets,
+            last_act: self.last_act,
+            last_last_act: self.last_last_act,
+            goal: self.goal,
+            goal_dquat: self.goal_dquat,
+            goals: self.goals.clone(),
+            steps: self.steps,
+            successes: self.successes,
+            ended: self.ended,
+        }
+    }
+
+    /// Return to a state taken with [`save`](Self::save) from an environment on the same
+    /// model.
+    pub fn restore(&mut self, s: &LeapEnvState) -> Result<()> {
+        self.data
+            .set_state(&s.physics, STATE_SPEC)
+            .map_err(|e| LeapError::Config(format!("restoring a saved state: {e:?}")))?;
+        let n = self.data.sensordata().len();
+        if s.sensors.len() != n {
+            return Err(LeapError::Config(format!(
+                "restoring a saved state: {} sensor values, the model has {n}",
+                s.sensors.len()
+            )));
+        }
+        self.data.sensordata_mut().copy_from_slice(&s.sensors);
+        self.rng = s.rng.clone();
+        self.targets = s.targets;
+        self.last_act = s.last_act;
+        self.last_last_act = s.last_last_act;
+        self.goal = s.goal;
+        self.goal_dquat = s.goal_dquat;
+        self.goals.clone_from(&s.goals);
+        self.steps = s.steps;
+        self.successes = s.successes;
+        self.ended = s.ended;
+        Ok(())
     }
 
     /// Place the cube (position, quaternion) at rest and recompute the sensors. For tests

@@ -20,7 +20,7 @@ mod mpc;
 pub mod scene;
 
 pub use collect::{collect, episode_seeds, CollectConfig, Episode, Frame};
-pub use env::{LeapConfig, LeapCubeEnv, NoiseConfig, Variant};
+pub use env::{LeapConfig, LeapCubeEnv, LeapEnvState, NoiseConfig, Variant};
 pub use error::{LeapError, Result};
 pub use model::{LeapModel, NU};
-pub use mpc::{MpcConfig, MpcExpert};
+pub use mpc::{MpcConfig, MpcExpert, MpcSnapshot};

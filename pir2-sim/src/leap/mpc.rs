@@ -132,6 +132,15 @@ pub struct MpcExpert {
     rollout_steps: u64,
 }
 
+/// A saved plan state of an [`MpcExpert`] (see [`MpcExpert::snapshot`]).
+#[derive(Debug, Clone)]
+pub struct MpcSnapshot {
+    nominal: Vec<f64>,
+    elapsed: usize,
+    planned: bool,
+    rng: Rng,
+}
+
 /// Everything a rollout reads besides its plan.
 struct Ctx<'a> {
     lm: &'a LeapModel,
@@ -238,6 +247,32 @@ impl MpcExpert {
         }
         self.elapsed = 0;
         self.planned = false;
+    }
+
+    /// The expert's plan state (nominal plan, steps since the last replan, RNG): everything
+    /// [`act`](Self::act) reads besides the environment. With [`restore`](Self::restore) it
+    /// lets a caller ask "what would the expert have done from here with another seed"
+    /// (the repeatability diagnosis) without disturbing the episode.
+    pub fn snapshot(&self) -> MpcSnapshot {
+        MpcSnapshot {
+            nominal: self.nominal.clone(),
+            elapsed: self.elapsed,
+            planned: self.planned,
+            rng: self.rng.clone(),
+        }
+    }
+
+    /// Return to a state taken with [`snapshot`](Self::snapshot).
+    pub fn restore(&mut self, s: &MpcSnapshot) {
+        self.nominal.copy_from_slice(&s.nominal);
+        self.elapsed = s.elapsed;
+        self.planned = s.planned;
+        self.rng = s.rng.clone();
+    }
+
+    /// Replace the sampling RNG (the plan state is kept).
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = Rng::new(seed);
     }
 
     /// Physics steps simulated in rollouts since construction.
