@@ -5,6 +5,10 @@
 //!
 //! With default features only the pure-Rust parts run (the reference and the exporter's
 //! encoding); `--features ort` adds ONNX Runtime, `--features tch` adds libtorch.
+//!
+//! One file of about a thousand lines on purpose: every backend's section runs the same
+//! reference models, inputs and tolerances defined here, so a change of the contract shows
+//! up in one place.
 
 #![allow(missing_docs)]
 
