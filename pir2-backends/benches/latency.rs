@@ -75,11 +75,11 @@ fn time(model: &mut dyn VelocityModel, input: &ModelInput<'_>, iters: usize) -> 
 #[allow(unused_variables, unused_mut)]
 fn native(kind: &str, model: &CandleModel) -> Vec<Box<dyn VelocityModel>> {
     let mut v: Vec<Box<dyn VelocityModel>> = Vec::new();
-    let spec = pir2_backends::onnx::candle_bridge::spec_from_config(model.config(), model.stats())
+    let spec = pir2_backends::candle::export::spec_from_config(model.config(), model.stats())
         .expect("exportable");
     #[cfg(feature = "ort")]
     {
-        let bytes = pir2_backends::onnx::export(&spec, model)
+        let bytes = pir2_backends::export::export(&spec, model)
             .expect("export")
             .encode();
         v.push(Box::new(

@@ -21,56 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
-/// The slow-channel layout a model expects.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum SlowSpec {
-    /// No slow input.
-    #[default]
-    None,
-    /// One feature vector of width `dim` per sample.
-    Vector {
-        /// Feature width `S`.
-        dim: usize,
-    },
-    /// `tokens` tokens of width `dim` per sample.
-    Tokens {
-        /// Tokens `T`.
-        tokens: usize,
-        /// Token width `D`.
-        dim: usize,
-    },
-}
-
-impl SlowSpec {
-    /// Values per sample (`S` or `T·D`).
-    pub fn len(&self) -> usize {
-        match *self {
-            SlowSpec::None => 0,
-            SlowSpec::Vector { dim } => dim,
-            SlowSpec::Tokens { tokens, dim } => tokens * dim,
-        }
-    }
-    /// Whether there is no slow input.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-    /// Width of one slow feature (the normalisation width): `S` or `D`.
-    pub fn width(&self) -> usize {
-        match *self {
-            SlowSpec::None => 0,
-            SlowSpec::Vector { dim } | SlowSpec::Tokens { dim, .. } => dim,
-        }
-    }
-    /// Number of tokens (1 for a vector, 0 for none).
-    pub fn tokens(&self) -> usize {
-        match *self {
-            SlowSpec::None => 0,
-            SlowSpec::Vector { .. } => 1,
-            SlowSpec::Tokens { tokens, .. } => tokens,
-        }
-    }
-}
+pub use pir2_runtime::SlowSpec;
 
 /// What every model takes and returns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

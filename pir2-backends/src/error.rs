@@ -103,7 +103,7 @@ pub enum Error {
     // ---- export and native backends ----
     /// ONNX export failed (names the model and the weight or option).
     #[error(transparent)]
-    Export(#[from] crate::onnx::ExportError),
+    Export(#[from] crate::export::ExportError),
     /// The ONNX Runtime backend could not load its library or a model.
     #[cfg(feature = "ort")]
     #[error(transparent)]

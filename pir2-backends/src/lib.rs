@@ -4,7 +4,7 @@
 //! (MLP, conditional U-Net 1D with per-position FiLM, DiT with per-position AdaLN) that
 //! implement [`pir2_runtime::model::VelocityModel`], checkpoints (safetensors + JSON), and the
 //! trainer ([`train`]). Native backends sit behind their own features: ONNX Runtime (`ort`,
-//! `ort::OrtModel`) and libtorch (`tch`, `tch::TchModel`). ONNX export ([`onnx`]) is pure
+//! `ort::OrtModel`) and libtorch (`tch`, `tch::TchModel`). ONNX export ([`export`]) is pure
 //! Rust and always available. The GR00T-N1.7 xArm6 + XHand stack is behind feature `gr00t`
 //! (module `gr00t`, `docs/gr00t-contract.md`).
 //!
@@ -14,9 +14,9 @@
 pub mod checkpoint;
 pub mod config;
 pub mod error;
+pub mod export;
 #[cfg(feature = "gr00t")]
 pub mod gr00t;
-pub mod onnx;
 
 #[cfg(feature = "candle")]
 pub mod candle;

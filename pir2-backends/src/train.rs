@@ -7,7 +7,7 @@
 //! action repeats past the end), normalised; `τ`/mask from [`TrainSchedule::draw`] and the
 //! input/target from [`Draw::build`]. The loss is `Σ_p mask_p·|v_p − target_p|² / (A·Σ_p mask_p)`.
 //!
-//! Checkpoints are chosen by the caller's closed-loop validation (DESIGN.md §1): every
+//! Checkpoints are chosen by the caller's closed-loop validation (docs/method.md §1): every
 //! `checkpoint_every` steps and at the end, the trainer calls `validate(&mut model, step)` on
 //! the evaluated weights (EMA if enabled); the highest score wins. Loss alone picks policies
 //! that drift in closed loop.
@@ -186,7 +186,7 @@ pub fn compute_stats<D: Dataset + ?Sized>(data: &D, spec: &Spec) -> Result<Stats
 
 // ---------------------------------------------------------------- config
 
-/// Train on buffers partly denoised by the model itself (DESIGN.md §1: a fix worth measuring).
+/// Train on buffers partly denoised by the model itself (docs/method.md §1: a fix worth measuring).
 ///
 /// For a fraction `prob` of the samples, each non-front position with `τ_p ≤ 0.95` starts one
 /// step earlier, at `max(0, τ_p − step)`, on the noised ground truth; the model (no gradient)
@@ -200,7 +200,7 @@ pub struct SelfRollout {
     pub step: f32,
 }
 
-/// Trainer hyper-parameters (defaults: the Leap-cube recipe of DESIGN.md §4).
+/// Trainer hyper-parameters (defaults: the Leap-cube recipe of docs/method.md §4).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TrainConfig {

@@ -5,10 +5,14 @@
 //!
 //! With default features only the pure-Rust parts run (the reference and the exporter's
 //! encoding); `--features ort` adds ONNX Runtime, `--features tch` adds libtorch.
+//!
+//! One file of about a thousand lines on purpose: every backend's section runs the same
+//! reference models, inputs and tolerances defined here, so a change of the contract shows
+//! up in one place.
 
 #![allow(missing_docs)]
 
-use pir2_backends::onnx::{self, ContractDims, SlowSpec};
+use pir2_backends::export::{self, ContractDims, SlowSpec};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 use pir2_schedule::Rng;
 
@@ -200,7 +204,7 @@ impl Probe {
 
     fn onnx_bytes(&self) -> Vec<u8> {
         let d = &self.dims;
-        let (mut g, v) = onnx::contract_graph("probe", d);
+        let (mut g, v) = export::contract_graph("probe", d);
         let xf = g.reshape(&v.x, &[0, -1]);
         let of = g.reshape(&v.obs_fast, &[0, -1]);
         let dv = g.cast_f32(v.d_vis.as_deref().expect("probe declares d_vis"));
@@ -224,7 +228,7 @@ impl Probe {
             d.horizon * d.action_dim,
         );
         let o = g.reshape(&o, &[0, d.horizon as i64, d.action_dim as i64]);
-        onnx::finish_contract(g, &o, d, "probe").encode()
+        export::finish_contract(g, &o, d, "probe").encode()
     }
 }
 
@@ -407,7 +411,7 @@ fn assert_close_rejects_a_difference_above_tolerance() {
 #[cfg(feature = "ort")]
 mod ort_backend {
     use super::*;
-    use pir2_backends::onnx::proto::{DataType, Dim};
+    use pir2_backends::export::proto::{DataType, Dim};
     use pir2_backends::ort::{OrtModel, OrtOptions};
 
     fn make(p: &Probe) -> Box<dyn VelocityModel> {
@@ -454,7 +458,7 @@ mod ort_backend {
 
     #[test]
     fn ort_rejects_a_graph_that_breaks_the_contract() {
-        use pir2_backends::onnx::GraphBuilder;
+        use pir2_backends::export::GraphBuilder;
         // Input named `obs` instead of `obs_fast`.
         let mut g = GraphBuilder::new("bad");
         let x = g.input(
@@ -628,9 +632,9 @@ mod tch_backend {
 
 mod exported {
     use super::*;
-    use pir2_backends::onnx::models::{Film, MlpSpec, ObsNorm, UnetSpec};
-    use pir2_backends::onnx::ops::NamedWeights;
-    use pir2_backends::onnx::ModelSpec;
+    use pir2_backends::export::models::{Film, MlpSpec, ObsNorm, UnetSpec};
+    use pir2_backends::export::ops::NamedWeights;
+    use pir2_backends::export::ModelSpec;
 
     pub(super) fn dims(slow: SlowSpec) -> ContractDims {
         ContractDims {
@@ -709,13 +713,13 @@ mod exported {
         for spec in specs() {
             let shapes = spec.weight_shapes();
             let w = weights(&spec);
-            assert!(onnx::export(&spec, &w).is_ok(), "{}", spec.kind());
+            assert!(export::export(&spec, &w).is_ok(), "{}", spec.kind());
             let (drop, _) = &shapes[shapes.len() / 2];
             let mut partial = NamedWeights::new();
             for (n, s, d) in w.iter().filter(|(n, _, _)| n != drop) {
                 partial.insert(n, s.to_vec(), d.to_vec());
             }
-            let e = onnx::export(&spec, &partial).unwrap_err();
+            let e = export::export(&spec, &partial).unwrap_err();
             assert!(e.to_string().contains(drop.as_str()), "{e}");
         }
     }
@@ -725,7 +729,7 @@ mod exported {
         let spec = &specs()[0];
         let mut w = weights(spec);
         w.insert("mlp.out.bias", vec![7], vec![0.0; 7]);
-        let e = onnx::export(spec, &w).unwrap_err();
+        let e = export::export(spec, &w).unwrap_err();
         assert!(
             e.to_string().contains("mlp.out.bias") && e.to_string().contains("[7]"),
             "{e}"
@@ -748,7 +752,7 @@ mod exported_ort_vs_tch {
         for (i, spec) in specs().iter().enumerate() {
             let w = weights(spec);
             let mut ort = OrtModel::from_bytes(
-                &onnx::export(spec, &w).unwrap().encode(),
+                &export::export(spec, &w).unwrap().encode(),
                 &OrtOptions::default(),
             )
             .unwrap();
@@ -790,7 +794,7 @@ fn dump_exported_models_for_external_checking() {
     std::fs::create_dir_all(&dir).unwrap();
     for (i, spec) in exported::specs().iter().enumerate() {
         let path = dir.join(format!("{}-{i}.onnx", spec.kind()));
-        onnx::export_to_file(spec, &exported::weights(spec), &path).unwrap();
+        export::export_to_file(spec, &exported::weights(spec), &path).unwrap();
         assert!(std::fs::metadata(&path).unwrap().len() > 100);
     }
 }
@@ -888,7 +892,7 @@ mod candle_models {
 
     #[cfg(any(feature = "ort", feature = "tch"))]
     pub(super) fn dims_of(m: &CandleModel) -> ContractDims {
-        *onnx::candle_bridge::spec_from_config(m.config(), m.stats())
+        *pir2_backends::candle::export::spec_from_config(m.config(), m.stats())
             .unwrap()
             .dims()
     }
@@ -921,8 +925,9 @@ mod candle_models {
     #[test]
     fn candle_models_export_to_valid_contract_graphs() {
         for m in models() {
-            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
-            let model = onnx::export(&spec, &m).unwrap();
+            let spec =
+                pir2_backends::candle::export::spec_from_config(m.config(), m.stats()).unwrap();
+            let model = export::export(&spec, &m).unwrap();
             assert_eq!(model.graph.outputs[0].name, "v");
         }
     }
@@ -932,8 +937,9 @@ mod candle_models {
     fn ort_matches_candle_on_the_same_weights() {
         use pir2_backends::ort::{OrtModel, OrtOptions};
         for mut m in models() {
-            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
-            let bytes = onnx::export(&spec, &m).unwrap().encode();
+            let spec =
+                pir2_backends::candle::export::spec_from_config(m.config(), m.stats()).unwrap();
+            let bytes = export::export(&spec, &m).unwrap().encode();
             let mut ort = OrtModel::from_bytes(&bytes, &OrtOptions::default()).unwrap();
             check_against_candle("onnxruntime", &mut m, &mut ort);
         }
@@ -947,7 +953,8 @@ mod candle_models {
             std::env::temp_dir().join(format!("pir2-conformance-candle-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         for (i, mut m) in models().into_iter().enumerate() {
-            let spec = onnx::candle_bridge::spec_from_config(m.config(), m.stats()).unwrap();
+            let spec =
+                pir2_backends::candle::export::spec_from_config(m.config(), m.stats()).unwrap();
             let path = dir.join(format!("m{i}.pt"));
             export_torchscript(&spec, &m, &path).unwrap();
             let mut t = TchModel::load(&path).unwrap();
@@ -966,9 +973,9 @@ mod candle_models {
         m.save(&dir).unwrap();
         let ck = pir2_backends::checkpoint::Checkpoint::load(&dir).unwrap();
         let from_ck = dir.join("exported.onnx");
-        onnx::candle_bridge::export_checkpoint(&ck, &from_ck).unwrap();
+        pir2_backends::candle::export::export_checkpoint(&ck, &from_ck).unwrap();
         let live = dir.join("live.onnx");
-        onnx::candle_bridge::export_candle_model(m, &live).unwrap();
+        pir2_backends::candle::export::export_candle_model(m, &live).unwrap();
         assert_eq!(
             std::fs::read(&from_ck).unwrap(),
             std::fs::read(&live).unwrap(),
@@ -989,7 +996,8 @@ mod candle_models {
             spec: s,
             model: ModelConfig::Dit(Default::default()),
         };
-        let e = onnx::candle_bridge::spec_from_config(&cfg, &Stats::identity(&s)).unwrap_err();
+        let e = pir2_backends::candle::export::spec_from_config(&cfg, &Stats::identity(&s))
+            .unwrap_err();
         assert!(e.to_string().contains("DiT"), "{e}");
     }
 }

@@ -7,9 +7,8 @@
 //! end to end through the real-time driver at 25 Hz on the xArm6 + XHand emulators.
 #![cfg(feature = "gr00t")]
 
-use std::net::{IpAddr, Ipv4Addr};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -228,37 +227,13 @@ fn backbone_encodes_camera_frames_into_tokens() {
 
 #[test]
 fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
-    use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
-    use pir2_robots::{
-        split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
-    };
+    use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
+    use pir2_robots::split;
 
     let dir = fixture("e2e", "");
-    let local = IpAddr::V4(Ipv4Addr::LOCALHOST);
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let arm_emu = XArmEmulator::spawn(local, XArmPorts::ephemeral()).unwrap();
-    let (host, dev) = duplex(Duration::from_millis(5));
-    let hand_emu = XHandEmulator::spawn(dev, 0, Arc::new(AtomicBool::new(false))).unwrap();
-    let mut acfg = XArm6Config::new(local);
-    acfg.cmd_addr = arm_emu.cmd_addr();
-    acfg.report_addr = arm_emu.real_report_addr();
-    acfg.stream_hz = 100.0;
-    let arm = XArm6::connect(acfg, clock.clone()).unwrap();
-    let hand = XHand::new(
-        host,
-        XHandConfig {
-            timeout: Duration::from_millis(100),
-            ..Default::default()
-        },
-        clock.clone(),
-    );
-    let mut layer = SafetyLayer::new(
-        ArmHand::new(arm, hand).unwrap(),
-        SafetyConfig::xarm6_xhand(),
-        clock.clone(),
-    )
-    .unwrap();
-    layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
+    let (emu, layer) =
+        EmulatedArmHand::start(&EmulatedArmHandConfig::default(), clock.clone()).unwrap();
     let (source, actuator) = split(layer);
 
     let camera = SyntheticCamera::new(clock.clone(), Duration::from_millis(60));
@@ -295,7 +270,7 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
         m.calls.len(),
         m.swaps
     );
-    assert!(hand_emu.handle().commands() >= ticks);
+    assert!(emu.hand_commands() >= ticks);
     // The backbone refreshed the cache more than once while the robot ran.
     assert!(frames.load(Ordering::Relaxed) >= 3);
     // Every call's d_vis is within the table, and each reached the delay embedding.
@@ -314,7 +289,7 @@ fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
         "{:?}",
         m.calls.iter().map(|c| c.d_vis).collect::<Vec<_>>()
     );
-    drop(arm_emu);
+    drop(emu);
     std::fs::remove_dir_all(&dir).ok();
 }
 

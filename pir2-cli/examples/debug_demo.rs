@@ -2,8 +2,18 @@
 //! error of sampled vs expert actions on demonstration frames, then run one closed-loop
 //! episode printing the actions.
 //! Run: `cargo run --release -p pir2-cli --example debug_demo -- [demo.toml]`
-use pir2_cli::demo::*;
+use pir2_backends::candle::CandleModel;
+use pir2_cli::study::ballplate::{collect, BallPlateTask, DemoConfig};
+use pir2_cli::study::pipeline::{output_map, train_policy};
 use pir2_runtime::*;
+
+/// A copy of a model for another head (same weights, own scratch).
+fn clone_model(m: &CandleModel) -> anyhow::Result<CandleModel> {
+    let mut c = CandleModel::new(m.config().clone(), m.stats().clone(), 0)?;
+    c.restore(&m.snapshot()?)?;
+    Ok(c)
+}
+
 use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 fn main() -> anyhow::Result<()> {
     let cfg: DemoConfig = match std::env::args().nth(1) {
@@ -21,8 +31,8 @@ fn main() -> anyhow::Result<()> {
         demos[0].fast(0),
         demos[0].slow(0)
     );
-    let pb = indicatif::ProgressBar::hidden();
-    let (m, scores) = train_policy(&demos, Policy::Flow, 0, &cfg, None, &pb)?;
+    let task = BallPlateTask::new(cfg);
+    let (m, scores) = train_policy(&task, &demos, Policy::Flow, 0, None, &|_| {})?;
     println!("scores {scores:?} out {:?}", output_map(&m));
     // Open loop: the model's first sampled action vs the expert's label on demo frames.
     let mut mm = clone_model(&m)?;

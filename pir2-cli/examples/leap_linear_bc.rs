@@ -92,7 +92,7 @@ fn main() -> Result<()> {
         .context("usage: leap_linear_bc DATA [EPISODES] [LAMBDA]")?;
     let episodes: u64 = args.get(2).map_or(Ok(40), |s| s.parse())?;
     let lambda: f64 = args.get(3).map_or(Ok(1e-3), |s| s.parse())?;
-    let demos = pir2_cli::leap::load_demos(std::path::Path::new(data))?;
+    let demos = pir2_cli::study::leap_cube::load_demos(std::path::Path::new(data))?;
     let (mut xtx, mut xty) = (vec![0.0; D * D], vec![0.0; D * A]);
     let (mut n, mut sse, mut sst) = (0usize, 0.0, 0.0);
     let mut x = [0.0; D];

@@ -38,7 +38,7 @@ pub fn collect(
     #[cfg(feature = "mujoco")]
     {
         let t = std::time::Instant::now();
-        let s = crate::leap::collect_leap(out, seeds, per_seed, mode, fast_expert)?;
+        let s = crate::study::leap_cube::collect_leap(out, seeds, per_seed, mode, fast_expert)?;
         println!(
             "{}: {} episodes, {} frames ({} written now, {:.1} s)",
             out.display(),
@@ -57,9 +57,9 @@ pub fn collect(
 }
 
 #[cfg(feature = "mujoco")]
-fn load_config(args: &LeapArgs) -> Result<crate::leap::LeapStudyConfig> {
+fn load_config(args: &LeapArgs) -> Result<crate::study::leap_cube::LeapStudyConfig> {
     use anyhow::Context;
-    let mut cfg: crate::leap::LeapStudyConfig = match args.config {
+    let mut cfg: crate::study::leap_cube::LeapStudyConfig = match args.config {
         Some(p) => {
             let text = std::fs::read_to_string(p)
                 .with_context(|| format!("reading config {}", p.display()))?;
@@ -79,30 +79,19 @@ fn load_config(args: &LeapArgs) -> Result<crate::leap::LeapStudyConfig> {
     Ok(cfg)
 }
 
-/// `pir2 train leap-cube`: train `policies` (names as `pir2 train --policy`: `pir2`,
-/// `pir2-full`, `rtc`, `flow`; all four when empty) × the config's seeds into `out`.
-pub fn train(args: &LeapArgs, policies: &[&str], out: &Path) -> Result<()> {
+/// `pir2 train leap-cube`: train `policies` (all four of the study when empty) × the
+/// config's seeds into `out`.
+pub fn train(args: &LeapArgs, policies: &[pir2_runtime::Policy], out: &Path) -> Result<()> {
     #[cfg(feature = "mujoco")]
     {
-        use crate::leap::LeapPolicy;
+        use crate::study::leap_cube;
         let cfg = load_config(args)?;
-        let ps: Vec<LeapPolicy> = if policies.is_empty() {
-            LeapPolicy::ALL.to_vec()
+        let ps = if policies.is_empty() {
+            leap_cube::POLICIES.to_vec()
         } else {
-            policies
-                .iter()
-                .map(|p| match *p {
-                    "pir2" => Ok(LeapPolicy::PiR2),
-                    "pir2-full" => Ok(LeapPolicy::PiR2Full),
-                    "rtc" => Ok(LeapPolicy::Rtc),
-                    "flow" => Ok(LeapPolicy::Flow),
-                    other => Err(anyhow::anyhow!(
-                        "policy {other} is not part of the leap-cube study (pir2, pir2-full, rtc, flow)"
-                    )),
-                })
-                .collect::<Result<_>>()?
+            policies.to_vec()
         };
-        let r = crate::leap::train_policies(&cfg, &ps, out)?;
+        let r = leap_cube::train_policies(&cfg, &ps, out)?;
         for (p, s, scores) in r {
             println!("{p:?} seed {s}: closed-loop validation (step, success) {scores:?}");
         }
@@ -127,8 +116,8 @@ pub fn eval(study: &str, args: &LeapArgs, out: &Path) -> Result<()> {
     {
         let cfg = load_config(args)?;
         let r = match study {
-            "deployment" => crate::leap::study_deployment(&cfg, out)?,
-            "horizon" => crate::leap::study_horizon(&cfg, out)?,
+            "deployment" => crate::study::leap_cube::study_deployment(&cfg, out)?,
+            "horizon" => crate::study::leap_cube::study_horizon(&cfg, out)?,
             other => anyhow::bail!("unknown study {other} (deployment or horizon)"),
         };
         println!(
@@ -137,7 +126,7 @@ pub fn eval(study: &str, args: &LeapArgs, out: &Path) -> Result<()> {
             r.demos,
             r.config.episodes,
             r.config.seeds,
-            crate::leap::result_table(&r)
+            r.table()
         );
         for (stage, s) in &r.timings {
             println!("{stage:>9}: {s:7.1} s");

@@ -1,14 +1,13 @@
 //! # pir2-cli
 //!
-//! The stock pipelines behind the `pir2` binary, callable from code: deployment studies
-//! through the lock-step runtime, plots, and benchmarks. `main.rs` is a thin argument parser.
+//! The stock pipelines behind the `pir2` binary, callable from code: the study pipeline
+//! ([`study`]: a [`study::Task`] collected, trained and evaluated under latency through the
+//! lock-step runtime), plots, benchmarks, and one function per subcommand ([`commands`]).
+//! `main.rs` only parses arguments.
 
 pub mod bench;
-pub mod demo;
-#[cfg(feature = "mujoco")]
-pub mod leap;
+pub mod commands;
 pub mod leap_cmd;
-pub mod pipeline;
 pub mod plot;
 pub mod run;
 pub mod serve;

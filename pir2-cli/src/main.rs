@@ -1,15 +1,22 @@
-//! The `pir2` binary: a thin argument parser over `pir2_cli`.
+//! The `pir2` binary: parses arguments and makes one call into `pir2_cli::commands` (or
+//! `run`, `serve`) per subcommand.
 
-use std::net::{IpAddr, SocketAddr};
+use std::net::IpAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
-use clap::{Parser, Subcommand, ValueEnum};
+use anyhow::{bail, Result};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use pir2_cli::demo::{self, DemoConfig, Policy};
-use pir2_cli::leap_cmd;
+use pir2_cli::commands::{
+    self, CollectOptions, DemoOptions, Emulated, EvalOptions, RemoteOptions, TaskName, TrainOptions,
+};
+use pir2_cli::run::{self, RunOptions};
+use pir2_cli::serve::{self, ServeOptions};
+use pir2_runtime::Policy;
+use pir2_sim::dataset::WriteMode;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -166,11 +173,11 @@ enum Cmd {
         connect_timeout: f64,
     },
     /// Run a policy stack on a robot (or its emulators).
-    Run(pir2_cli::run::RunArgs),
+    Run(RunArgs),
     /// Servers for the remote slow channel and the remote action head (feature `remote`).
     Serve {
         #[command(subcommand)]
-        cmd: pir2_cli::serve::ServeCmd,
+        cmd: ServeCmd,
     },
     /// Plot a demo result (`result.json`) or a run trace (`trace.json`) to PNG.
     Plot {
@@ -204,6 +211,188 @@ enum Cmd {
     },
 }
 
+/// Arguments of `pir2 run`.
+#[derive(Args, Debug, Clone)]
+struct RunArgs {
+    /// The stack to run.
+    #[arg(value_parser = ["gr00t-xarm-xhand"])]
+    stack: String,
+    /// Checkpoint directory (export layout in docs/gr00t-contract.md).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// Task: a key of the embodiment's tasks (`catch_book`, …) or one of their prompts
+    /// verbatim ("catch the book").
+    #[arg(long)]
+    task: String,
+    /// Accept a `--task` that is not a configured task and send it as the prompt verbatim.
+    #[arg(long)]
+    free_prompt: bool,
+    /// xArm controller address (command port 502 unless given as host:port).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
+    xarm: Option<String>,
+    /// XHand serial device (RS-485 adapter).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
+    xhand: Option<PathBuf>,
+    /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
+    /// camera unless --remote-slow).
+    #[arg(long)]
+    emulate: bool,
+    /// Use the synthetic camera with real robots (no camera driver exists yet).
+    #[arg(long)]
+    synthetic_camera: bool,
+    /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
+    /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
+    #[arg(long)]
+    remote_slow: Option<String>,
+    /// Run the action head on `pir2 serve policy --gr00t-checkpoint` at this Zenoh endpoint
+    /// (e.g. `tcp/10.0.0.3:7447`) instead of in this process; needs feature `remote`. The
+    /// checkpoint directory is still read here (embodiment, statistics, vocabulary) and the
+    /// head is checked before any robot is connected. Each call's round trip is part of the
+    /// measured call latency, so `d` grows with the network.
+    #[arg(long)]
+    remote_policy: Option<String>,
+    /// With --remote-policy: how long one request may take before it is sent again, ms.
+    #[arg(long, default_value_t = 200)]
+    policy_timeout_ms: u64,
+    /// With --remote-policy: requests in a row without a reply before the run stops the
+    /// robot (safety stop).
+    #[arg(long, default_value_t = 10)]
+    max_failed_calls: u32,
+    /// With --remote-policy: seconds to wait for the policy server at start-up.
+    #[arg(long, default_value_t = 10.0)]
+    connect_timeout: f64,
+    /// Stop after this many control ticks.
+    #[arg(long, conflicts_with = "seconds")]
+    ticks: Option<u64>,
+    /// Stop after this many seconds (rounded to ticks of the embodiment's rate).
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// Seconds to wait for the first backbone features.
+    #[arg(long, default_value_t = 60.0)]
+    slow_timeout: f64,
+    /// Write the run summary (and the per-call trace) as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+impl From<RunArgs> for RunOptions {
+    fn from(a: RunArgs) -> Self {
+        RunOptions {
+            stack: a.stack,
+            checkpoint: a.checkpoint,
+            task: a.task,
+            free_prompt: a.free_prompt,
+            xarm: a.xarm,
+            xhand: a.xhand,
+            emulate: a.emulate,
+            synthetic_camera: a.synthetic_camera,
+            remote_slow: a.remote_slow,
+            remote_policy: a.remote_policy,
+            policy_timeout_ms: a.policy_timeout_ms,
+            max_failed_calls: a.max_failed_calls,
+            connect_timeout: a.connect_timeout,
+            ticks: a.ticks,
+            seconds: a.seconds,
+            slow_timeout: a.slow_timeout,
+            json: a.json,
+        }
+    }
+}
+
+/// `pir2 serve …` (→ `ServeOptions`).
+#[derive(Subcommand, Debug, Clone)]
+enum ServeCmd {
+    /// Answer action-head (one-NFE) requests until Ctrl-C: a candle checkpoint
+    /// (`--checkpoint`, for `pir2 eval --remote`) or a GR00T export's ONNX action head
+    /// (`--gr00t-checkpoint --task`, for `pir2 run … --remote-policy`).
+    Policy {
+        /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
+        /// `best/` directory `pir2 train` writes.
+        #[arg(
+            long,
+            required_unless_present = "gr00t_checkpoint",
+            conflicts_with = "gr00t_checkpoint"
+        )]
+        checkpoint: Option<PathBuf>,
+        /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
+        /// weights + statistics) is served; feature `gr00t`.
+        #[arg(long, requires = "task")]
+        gr00t_checkpoint: Option<PathBuf>,
+        /// With --gr00t-checkpoint: the task (key or prompt) whose prompt layout (image and
+        /// text token masks) the DiT is fed; must be the robot's `--task`.
+        #[arg(long)]
+        task: Option<String>,
+        /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
+        /// `d` follows the round trip). Zero in deployment.
+        #[arg(long, default_value_t = 0)]
+        inject_delay_ms: u64,
+        /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+        listen: String,
+        /// Key the requests arrive on.
+        #[arg(long, default_value = "pir2/policy")]
+        key: String,
+    },
+    /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
+    Slow {
+        /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7448")]
+        listen: String,
+        /// Key the features are published on (clock pings on `<key>/clock`).
+        #[arg(long, default_value = "pir2/slow")]
+        key: String,
+        /// The GR00T ONNX backbone of this checkpoint (feature `gr00t`) on a synthetic camera.
+        #[arg(long, required_unless_present = "stub", conflicts_with = "stub")]
+        gr00t_checkpoint: Option<PathBuf>,
+        /// Task (key or prompt) whose prompt the GR00T backbone encodes.
+        #[arg(long, requires = "gr00t_checkpoint")]
+        task: Option<String>,
+        /// A stub: a counter camera of this many values and a pass-through encoder.
+        #[arg(long)]
+        stub: Option<usize>,
+        /// Camera frame period, ms.
+        #[arg(long, default_value_t = 60)]
+        frame_ms: u64,
+    },
+}
+
+impl From<ServeCmd> for ServeOptions {
+    fn from(c: ServeCmd) -> Self {
+        match c {
+            ServeCmd::Policy {
+                checkpoint,
+                gr00t_checkpoint,
+                task,
+                inject_delay_ms,
+                listen,
+                key,
+            } => ServeOptions::Policy {
+                checkpoint,
+                gr00t_checkpoint,
+                task,
+                inject_delay_ms,
+                listen,
+                key,
+            },
+            ServeCmd::Slow {
+                listen,
+                key,
+                gr00t_checkpoint,
+                task,
+                stub,
+                frame_ms,
+            } => ServeOptions::Slow {
+                listen,
+                key,
+                gr00t_checkpoint,
+                task,
+                stub,
+                frame_ms,
+            },
+        }
+    }
+}
+
 #[derive(Subcommand, Debug)]
 enum RobotCmd {
     /// Connect, read state, report.
@@ -227,21 +416,6 @@ enum RobotCmd {
         #[arg(long)]
         pty: bool,
     },
-}
-
-fn load_demo_config(path: Option<&PathBuf>, quick: bool) -> Result<DemoConfig> {
-    match path {
-        Some(p) => {
-            let text = std::fs::read_to_string(p)
-                .with_context(|| format!("reading config {}", p.display()))?;
-            toml::from_str(&text).with_context(|| format!("parsing config {}", p.display()))
-        }
-        None => Ok(if quick {
-            DemoConfig::quick()
-        } else {
-            DemoConfig::default()
-        }),
-    }
 }
 
 static INTERRUPTED: AtomicBool = AtomicBool::new(false);
@@ -268,6 +442,13 @@ fn ctrl_c_flag() -> Arc<AtomicBool> {
     stop
 }
 
+fn task(name: &str) -> TaskName {
+    match name {
+        "leap-cube" => TaskName::LeapCube,
+        _ => TaskName::BallPlate,
+    }
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.cmd {
@@ -276,35 +457,14 @@ fn main() -> Result<()> {
             config,
             out,
             episodes,
-        } => {
-            let mut cfg = load_demo_config(config.as_ref(), quick)?;
-            if let Some(e) = episodes {
-                cfg.episodes = e;
-            }
-            let out = out.unwrap_or_else(demo::default_out_dir);
-            println!(
-                "pir2 demo → {}  ({} demos, {} steps/policy, {} episodes/cell, seeds {:?})",
-                out.display(),
-                cfg.demos,
-                cfg.train_steps,
-                cfg.episodes,
-                cfg.seeds
-            );
-            let r = demo::run(&cfg, &out)?;
-            println!(
-                "\n{}",
-                pir2_cli::study::table(&r.cells, &r.labels, &r.config.d0s)
-            );
-            for (stage, s) in &r.timings {
-                println!("{stage:>9}: {s:6.1} s");
-            }
-            println!(
-                "wrote {}/result.json, table.md, success.png, dataset/, checkpoints/",
-                out.display()
-            );
-        }
+        } => commands::demo(&DemoOptions {
+            quick,
+            config,
+            out,
+            episodes,
+        }),
         Cmd::Collect {
-            task,
+            task: t,
             out,
             episodes,
             seed,
@@ -313,65 +473,39 @@ fn main() -> Result<()> {
             seeds,
             per_seed,
             fast,
-        } => {
-            let mode = if resume {
-                pir2_sim::dataset::WriteMode::Resume
+        } => commands::collect(&CollectOptions {
+            task: task(&t),
+            out,
+            seeds,
+            per_seed,
+            fast,
+            episodes,
+            seed,
+            mode: if resume {
+                WriteMode::Resume
             } else if overwrite {
-                pir2_sim::dataset::WriteMode::Overwrite
+                WriteMode::Overwrite
             } else {
-                pir2_sim::dataset::WriteMode::New
-            };
-            if task == "leap-cube" {
-                return leap_cmd::collect(&out, &seeds, per_seed, mode, fast);
-            }
-            let eps = demo::collect(episodes, seed, true)?;
-            demo::write_dataset(&out, &eps, mode)?;
-            println!("wrote {} episodes to {}", eps.len(), out.display());
-        }
+                WriteMode::New
+            },
+        }),
         Cmd::Train {
-            task,
+            task: t,
             data,
             policy,
             out,
             config,
             seed,
-        } => {
-            if task == "leap-cube" {
-                let args = leap_cmd::LeapArgs {
-                    config: config.as_deref(),
-                    data: Some(&data),
-                    ..Default::default()
-                };
-                let p = policy.and_then(|p| p.to_possible_value());
-                let ps: Vec<&str> = p.iter().map(|p| p.get_name()).collect();
-                return leap_cmd::train(&args, &ps, &out);
-            }
-            let policy = policy.context("--policy is required for ballplate")?;
-            if out.exists() {
-                bail!(
-                    "checkpoint directory {} already exists; choose another --out",
-                    out.display()
-                );
-            }
-            let cfg = load_demo_config(config.as_ref(), false)?;
-            let ds = pir2_sim::dataset::read_dataset(&data)
-                .with_context(|| format!("reading dataset {}", data.display()))?;
-            let pb = indicatif::ProgressBar::new(cfg.train_steps as u64);
-            let (model, scores) = demo::train_policy(
-                &ds.episodes,
-                policy.into(),
-                seed,
-                &cfg,
-                Some(&out.join("steps")),
-                &pb,
-            )?;
-            pb.finish();
-            model.save(&out.join("best"))?;
-            println!("closed-loop validation (step, success): {scores:?}");
-            println!("best checkpoint: {}", out.join("best").display());
-        }
+        } => commands::train(&TrainOptions {
+            task: task(&t),
+            data,
+            policy: policy.map(Into::into),
+            out,
+            config,
+            seed,
+        }),
         Cmd::Eval {
-            task,
+            task: t,
             checkpoint,
             policy,
             study,
@@ -386,182 +520,44 @@ fn main() -> Result<()> {
             remote_timeout_ms,
             remote_max_failed,
             connect_timeout,
-        } => {
-            if task == "leap-cube" {
-                let args = leap_cmd::LeapArgs {
-                    config: config.as_deref(),
-                    data: data.as_deref(),
-                    pretrained: checkpoint.as_deref(),
-                    episodes,
-                };
-                let out = out.context("--out is required for leap-cube")?;
-                return leap_cmd::eval(&study, &args, &out);
-            }
-            let checkpoint = checkpoint.context("--checkpoint is required for ballplate")?;
-            let policy: Policy = policy.context("--policy is required for ballplate")?.into();
-            let episodes = episodes.unwrap_or(100);
-            if let Some(p) = json.as_ref().filter(|p| p.exists()) {
-                bail!("{} already exists; choose another --json path", p.display());
-            }
-            let model = pir2_backends::candle::CandleModel::load(&checkpoint)
-                .with_context(|| format!("loading {}", checkpoint.display()))?;
-            let remote = match remote {
-                Some(ep) => {
-                    let r = pir2_cli::serve::RemotePolicy::connect(
-                        &ep,
-                        std::time::Duration::from_millis(remote_timeout_ms.max(1)),
-                        std::time::Duration::from_secs_f64(connect_timeout.max(0.0)),
-                        remote_max_failed.max(1),
-                    )?;
-                    eprintln!("connected to the policy server at {ep}");
-                    Some(r)
-                }
-                None => None,
-            };
-            let cfg = DemoConfig::default();
-            let mut cells = Vec::new();
-            let rows: Vec<_> = demo::rows(&cfg)
-                .into_iter()
-                .filter(|r| r.policy == policy)
-                .collect();
-            for row in &rows {
-                for &d in &d0 {
-                    let (ok, overruns) = match &remote {
-                        Some(r) => r.closed_loop(
-                            &model,
-                            policy,
-                            &row.mode,
-                            d,
-                            episodes,
-                            seed,
-                            cfg.threads,
-                        )?,
-                        None => demo::closed_loop(
-                            &model,
-                            policy,
-                            &row.mode,
-                            d,
-                            episodes,
-                            seed,
-                            cfg.threads,
-                            &|| {},
-                        )?,
-                    };
-                    cells.push(pir2_cli::study::Cell {
-                        label: row.label.clone(),
-                        d0: d,
-                        seed,
-                        successes: ok,
-                        episodes,
-                        overruns,
-                    });
-                }
-            }
-            let labels: Vec<String> = rows.iter().map(|r| r.label.clone()).collect();
-            println!("{}", pir2_cli::study::table(&cells, &labels, &d0));
-            if let Some(r) = &remote {
-                eprintln!("{}", r.report());
-            }
-            if let Some(p) = json {
-                std::fs::write(&p, serde_json::to_string_pretty(&cells)?)?;
-            }
-        }
-        Cmd::Run(args) => {
-            let summary = pir2_cli::run::run(&args, ctrl_c_flag())?;
-            print!("{summary}");
-            if let Some(p) = &args.json {
-                std::fs::write(p, serde_json::to_string_pretty(&summary)?)
-                    .with_context(|| format!("writing {}", p.display()))?;
-            }
-        }
-        Cmd::Serve { cmd } => pir2_cli::serve::serve(&cmd, ctrl_c_flag())?,
-        Cmd::Plot { input, out } => {
-            let text = std::fs::read_to_string(&input)
-                .with_context(|| format!("reading {}", input.display()))?;
-            let v: serde_json::Value = serde_json::from_str(&text)
-                .with_context(|| format!("parsing {}", input.display()))?;
-            let out = out.unwrap_or_else(|| input.with_extension("png"));
-            if out.exists() {
-                bail!(
-                    "{} already exists; choose another path with --out",
-                    out.display()
-                );
-            }
-            if v.get("cells").is_some() {
-                let r: demo::DemoResult = serde_json::from_value(v)?;
-                let series = pir2_cli::study::to_series(&r.cells, &r.labels, &r.config.d0s);
-                pir2_cli::plot::plot_series(
-                    &out,
-                    "success vs unit delay",
-                    "unit delay d0 (ticks)",
-                    "success rate",
-                    &series,
-                )?;
-            } else if v.get("calls").is_some() {
-                let t: pir2_runtime::RunTrace = serde_json::from_value(v)?;
-                pir2_cli::plot::plot_trace(&out, &t)?;
-            } else {
-                bail!(
-                    "{} is neither a demo result (cells) nor a run trace (calls)",
-                    input.display()
-                );
-            }
-            println!("wrote {}", out.display());
-        }
-        Cmd::Export { checkpoint, onnx } => {
-            if onnx.exists() {
-                bail!(
-                    "{} already exists; choose another --onnx path",
-                    onnx.display()
-                );
-            }
-            let ck = pir2_backends::checkpoint::Checkpoint::load(&checkpoint)
-                .with_context(|| format!("loading checkpoint {}", checkpoint.display()))?;
-            pir2_backends::onnx::candle_bridge::export_checkpoint(&ck, &onnx)
-                .with_context(|| format!("exporting {} to ONNX", checkpoint.display()))?;
-            println!("wrote {}", onnx.display());
-        }
-        Cmd::Bench { what, seconds } => {
-            if what == "schedule" || what == "all" {
-                print!("{}", pir2_cli::bench::schedule()?);
-            }
-            if what == "runtime" || what == "all" {
-                print!("{}", pir2_cli::bench::runtime(seconds)?);
-            }
-        }
+        } => commands::eval(&EvalOptions {
+            task: task(&t),
+            checkpoint,
+            policy: policy.map(Into::into),
+            study,
+            config,
+            data,
+            out,
+            d0,
+            episodes,
+            seed,
+            json,
+            remote: remote.map(|endpoint| RemoteOptions {
+                endpoint,
+                timeout: Duration::from_millis(remote_timeout_ms.max(1)),
+                max_failed: remote_max_failed.max(1),
+                connect_timeout: Duration::from_secs_f64(connect_timeout.max(0.0)),
+            }),
+        }),
+        Cmd::Run(args) => run::run_command(&args.into(), ctrl_c_flag()),
+        Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
+        Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),
+        Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),
+        Cmd::Bench { what, seconds } => commands::bench(&what, seconds),
         Cmd::Robot { cmd } => match cmd {
             RobotCmd::Check { xarm, xhand } => {
-                let addr = match xarm {
-                    None => None,
-                    Some(s) => Some(match s.parse::<SocketAddr>() {
-                        Ok(a) => a,
-                        Err(_) => SocketAddr::new(
-                            s.parse::<IpAddr>()
-                                .with_context(|| format!("bad --xarm address {s}"))?,
-                            502,
-                        ),
-                    }),
-                };
-                let report = pir2_robots::check(addr, xhand.as_deref())?;
-                println!("{report}");
+                commands::robot_check(xarm.as_deref(), xhand.as_deref())
             }
             RobotCmd::Emulate { robot, host, pty } => {
-                let stop = ctrl_c_flag();
-                if robot == "xarm" {
-                    println!("xArm emulator on {host}: ports 502, 30001-30003 (Ctrl-C to stop)");
-                    pir2_robots::run_xarm_emulator(host, pir2_robots::XArmPorts::standard(), stop)?;
+                let which = if robot == "xarm" {
+                    Emulated::XArm(host)
+                } else if pty {
+                    Emulated::XHandPty
                 } else {
-                    if !pty {
-                        bail!("the XHand emulator needs --pty (a pseudo-terminal other programs can open)");
-                    }
-                    let path = pir2_robots::run_xhand_emulator_pty(stop.clone())?;
-                    println!("XHand emulator on {} (Ctrl-C to stop)", path.display());
-                    while !stop.load(Ordering::SeqCst) {
-                        std::thread::sleep(std::time::Duration::from_millis(200));
-                    }
-                }
+                    bail!("the XHand emulator needs --pty (a pseudo-terminal other programs can open)");
+                };
+                commands::robot_emulate(which, ctrl_c_flag())
             }
         },
     }
-    Ok(())
 }

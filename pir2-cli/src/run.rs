@@ -16,70 +16,52 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use anyhow::Result;
-use clap::Args;
 use serde::{Deserialize, Serialize};
 
-/// Arguments of `pir2 run`.
-#[derive(Args, Debug, Clone)]
-pub struct RunArgs {
+/// Options of `pir2 run` (the binary fills them from its arguments).
+#[derive(Debug, Clone)]
+pub struct RunOptions {
     /// The stack to run.
-    #[arg(value_parser = ["gr00t-xarm-xhand"])]
     pub stack: String,
     /// Checkpoint directory (export layout in docs/gr00t-contract.md).
-    #[arg(long)]
     pub checkpoint: PathBuf,
     /// Task: a key of the embodiment's tasks (`catch_book`, …) or one of their prompts
     /// verbatim ("catch the book").
-    #[arg(long)]
     pub task: String,
     /// Accept a `--task` that is not a configured task and send it as the prompt verbatim.
-    #[arg(long)]
     pub free_prompt: bool,
     /// xArm controller address (command port 502 unless given as host:port).
-    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     pub xarm: Option<String>,
     /// XHand serial device (RS-485 adapter).
-    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     pub xhand: Option<PathBuf>,
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
-    #[arg(long)]
     pub emulate: bool,
     /// Use the synthetic camera with real robots (no camera driver exists yet).
-    #[arg(long)]
     pub synthetic_camera: bool,
     /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
-    #[arg(long)]
     pub remote_slow: Option<String>,
     /// Run the action head on `pir2 serve policy --gr00t-checkpoint` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.3:7447`) instead of in this process; needs feature `remote`. The
     /// checkpoint directory is still read here (embodiment, statistics, vocabulary) and the
     /// head is checked before any robot is connected. Each call's round trip is part of the
     /// measured call latency, so `d` grows with the network.
-    #[arg(long)]
     pub remote_policy: Option<String>,
     /// With --remote-policy: how long one request may take before it is sent again, ms.
-    #[arg(long, default_value_t = 200)]
     pub policy_timeout_ms: u64,
     /// With --remote-policy: requests in a row without a reply before the run stops the
     /// robot (safety stop).
-    #[arg(long, default_value_t = 10)]
     pub max_failed_calls: u32,
     /// With --remote-policy: seconds to wait for the policy server at start-up.
-    #[arg(long, default_value_t = 10.0)]
     pub connect_timeout: f64,
     /// Stop after this many control ticks.
-    #[arg(long, conflicts_with = "seconds")]
     pub ticks: Option<u64>,
     /// Stop after this many seconds (rounded to ticks of the embodiment's rate).
-    #[arg(long)]
     pub seconds: Option<f64>,
     /// Seconds to wait for the first backbone features.
-    #[arg(long, default_value_t = 60.0)]
     pub slow_timeout: f64,
     /// Write the run summary (and the per-call trace) as JSON here.
-    #[arg(long)]
     pub json: Option<PathBuf>,
 }
 
@@ -181,13 +163,25 @@ impl std::fmt::Display for RunSummary {
 
 /// Run the stack (see the module docs); `stop` ends the run early (Ctrl-C).
 #[cfg(feature = "gr00t")]
-pub fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
+pub fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
     imp::run(args, stop)
+}
+
+/// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set.
+pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
+    use anyhow::Context;
+    let summary = run(args, stop)?;
+    print!("{summary}");
+    if let Some(p) = &args.json {
+        std::fs::write(p, serde_json::to_string_pretty(&summary)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+    }
+    Ok(())
 }
 
 /// Without feature `gr00t` there is no stack to run.
 #[cfg(not(feature = "gr00t"))]
-pub fn run(_args: &RunArgs, _stop: Arc<AtomicBool>) -> Result<RunSummary> {
+pub fn run(_args: &RunOptions, _stop: Arc<AtomicBool>) -> Result<RunSummary> {
     anyhow::bail!(
         "this pir2 was built without the GR00T stack: rebuild with \
          `cargo build --release -p pir2-cli --features gr00t` (add `remote` for --remote-slow), \
@@ -197,7 +191,7 @@ pub fn run(_args: &RunArgs, _stop: Arc<AtomicBool>) -> Result<RunSummary> {
 
 #[cfg(feature = "gr00t")]
 mod imp {
-    use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+    use std::net::{IpAddr, SocketAddr};
     use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::Arc;
     use std::time::Duration;
@@ -209,20 +203,18 @@ mod imp {
         load_action_head, run_gr00t_report, CheckpointFiles, EmbodimentConfig, Gr00tActionHead,
         Gr00tRunOptions, HeadChoice,
     };
-    use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
-    use pir2_robots::{
-        split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
-    };
+    use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
+    use pir2_robots::{split, SafetyConfig, XArm6Config, XHandConfig};
     use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
 
-    use super::{RunArgs, RunSummary};
+    use super::{RunOptions, RunSummary};
 
     /// Frame period of the synthetic camera (a 30 fps camera with a slow backbone is
     /// slower than one 40 ms tick; this keeps `d_vis` moving).
     const CAMERA_PERIOD: Duration = Duration::from_millis(60);
 
     /// The embodiment the run will use (the checkpoint's `embodiment.toml` or the paper's).
-    fn embodiment(args: &RunArgs) -> Result<EmbodimentConfig> {
+    fn embodiment(args: &RunOptions) -> Result<EmbodimentConfig> {
         let dir = &args.checkpoint;
         if !dir.is_dir() {
             bail!(
@@ -278,7 +270,7 @@ mod imp {
     /// weights, the statistics, the task's prompt layout) before any robot is connected: a
     /// bad export must fail while nothing is powered. The loaded head is the one the run
     /// uses (local head), or the source of the backbone width (remote head).
-    fn preflight(args: &RunArgs) -> Result<Gr00tActionHead> {
+    fn preflight(args: &RunOptions) -> Result<Gr00tActionHead> {
         let (head, _) = load_action_head(
             &args.checkpoint,
             &args.task,
@@ -308,7 +300,7 @@ mod imp {
     }
 
     #[cfg(not(feature = "remote"))]
-    fn head(args: &RunArgs, head: Gr00tActionHead) -> Result<Head> {
+    fn head(args: &RunOptions, head: Gr00tActionHead) -> Result<Head> {
         if args.remote_policy.is_some() {
             bail!("--remote-policy needs a pir2 built with feature `remote` (--features gr00t,remote)")
         }
@@ -318,7 +310,7 @@ mod imp {
     /// Connect to the policy server (before any robot is connected: an unreachable server
     /// fails while nothing is powered).
     #[cfg(feature = "remote")]
-    fn head(args: &RunArgs, head: Gr00tActionHead) -> Result<Head> {
+    fn head(args: &RunOptions, head: Gr00tActionHead) -> Result<Head> {
         use pir2_runtime::remote::{Link, RemoteModel, RemoteModelConfig};
         let Some(endpoint) = &args.remote_policy else {
             return Ok(Head::local(head));
@@ -355,7 +347,7 @@ mod imp {
         })
     }
 
-    pub(super) fn run(args: &RunArgs, stop: Arc<AtomicBool>) -> Result<RunSummary> {
+    pub(super) fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
         let cfg = embodiment(args)?;
         check_task(&cfg, &args.task, args.free_prompt)?;
         let head = head(args, preflight(args)?)?;
@@ -376,33 +368,14 @@ mod imp {
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
 
         if args.emulate {
-            let local = IpAddr::V4(Ipv4Addr::LOCALHOST);
-            let emu_stop = Arc::new(AtomicBool::new(false));
-            let arm_emu =
-                XArmEmulator::spawn_with_stop(local, XArmPorts::ephemeral(), emu_stop.clone())
-                    .context("starting the xArm emulator")?;
-            let (host, dev) = duplex(Duration::from_millis(5));
-            let hand_emu = XHandEmulator::spawn(dev, 0, emu_stop.clone())
-                .context("starting the XHand emulator")?;
-            let mut acfg = xarm_config(&arm_emu.cmd_addr().to_string(), cfg.control_hz)?;
-            acfg.report_addr = arm_emu.real_report_addr();
-            acfg.stream_hz = 100.0;
-            let arm =
-                XArm6::connect(acfg, clock.clone()).context("connecting to the xArm emulator")?;
-            let hand = XHand::new(
-                host,
-                XHandConfig {
-                    timeout: Duration::from_millis(100),
+            let (rig, layer) = EmulatedArmHand::start(
+                &EmulatedArmHandConfig {
+                    action_period: Some(Duration::from_secs_f64(1.0 / cfg.control_hz)),
                     ..Default::default()
                 },
                 clock.clone(),
-            );
-            let mut layer = SafetyLayer::new(
-                ArmHand::new(arm, hand)?,
-                SafetyConfig::xarm6_xhand(),
-                clock.clone(),
-            )?;
-            layer.spawn_watchdog(Duration::from_millis(10))?;
+            )
+            .context("starting the xArm6 + XHand emulators")?;
             let (source, actuator) = split(layer);
             let r = drive(
                 args,
@@ -415,9 +388,8 @@ mod imp {
                 stop,
                 "emulated xArm6 + XHand (in-process)",
             );
-            let commands = hand_emu.handle().commands();
-            emu_stop.store(true, Ordering::SeqCst);
-            drop(arm_emu);
+            let commands = rig.hand_commands();
+            drop(rig);
             let mut s = r?;
             s.hand_commands = Some(commands);
             return Ok(s);
@@ -460,7 +432,7 @@ mod imp {
 
     #[allow(clippy::too_many_arguments)]
     fn drive<F: FastSource, A: Actuator>(
-        args: &RunArgs,
+        args: &RunOptions,
         head: Head,
         max_ticks: Option<u64>,
         slow_timeout: Duration,
@@ -531,7 +503,7 @@ mod imp {
 
     #[cfg(not(feature = "remote"))]
     fn remote_slow<F: FastSource, A: Actuator>(
-        _: &RunArgs,
+        _: &RunOptions,
         _: &str,
         _: F,
         _: A,
@@ -546,7 +518,7 @@ mod imp {
     /// from the local checkpoint (its tokenizer and prompt layout), the action head here.
     #[cfg(feature = "remote")]
     fn remote_slow<F: FastSource, A: Actuator>(
-        args: &RunArgs,
+        args: &RunOptions,
         endpoint: &str,
         source: F,
         actuator: A,

@@ -6,7 +6,8 @@
 //!
 //! - `serve policy --checkpoint DIR`: a candle checkpoint (e.g. `pir2 train`'s `best/`)
 //!   answers one-NFE requests; `pir2 eval --remote ENDPOINT` sends the ball-plate
-//!   evaluation's action-head calls there (the lock-step eval is deterministic, so the result
+//!   evaluation's action-head calls there ([`RemotePolicy::models`] is a model factory for
+//!   the study pipeline's one closed loop) (the lock-step eval is deterministic, so the result
 //!   equals the local eval's, outages included: a call is retried until the server answers or
 //!   `max_failed_calls` timeouts in a row stop the run);
 //! - `serve slow`: a camera + backbone publishing features with capture times, either the
@@ -19,79 +20,61 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use anyhow::Result;
-use clap::Subcommand;
 
 use pir2_backends::candle::CandleModel;
-use pir2_runtime::Mode;
 
-use crate::demo::Policy;
+use crate::study::pipeline::Models;
 
-/// `pir2 serve …`.
-#[derive(Subcommand, Debug, Clone)]
-pub enum ServeCmd {
+/// What `pir2 serve …` runs (the binary fills it from its arguments).
+#[derive(Debug, Clone)]
+pub enum ServeOptions {
     /// Answer action-head (one-NFE) requests until Ctrl-C: a candle checkpoint
     /// (`--checkpoint`, for `pir2 eval --remote`) or a GR00T export's ONNX action head
     /// (`--gr00t-checkpoint --task`, for `pir2 run … --remote-policy`).
     Policy {
         /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
         /// `best/` directory `pir2 train` writes.
-        #[arg(
-            long,
-            required_unless_present = "gr00t_checkpoint",
-            conflicts_with = "gr00t_checkpoint"
-        )]
         checkpoint: Option<PathBuf>,
         /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
         /// weights + statistics) is served; feature `gr00t`.
-        #[arg(long, requires = "task")]
         gr00t_checkpoint: Option<PathBuf>,
         /// With --gr00t-checkpoint: the task (key or prompt) whose prompt layout (image and
         /// text token masks) the DiT is fed; must be the robot's `--task`.
-        #[arg(long)]
         task: Option<String>,
         /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
         /// `d` follows the round trip). Zero in deployment.
-        #[arg(long, default_value_t = 0)]
         inject_delay_ms: u64,
         /// Zenoh endpoint to listen on.
-        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
         listen: String,
         /// Key the requests arrive on.
-        #[arg(long, default_value = "pir2/policy")]
         key: String,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
         /// Zenoh endpoint to listen on.
-        #[arg(long, default_value = "tcp/127.0.0.1:7448")]
         listen: String,
         /// Key the features are published on (clock pings on `<key>/clock`).
-        #[arg(long, default_value = "pir2/slow")]
         key: String,
         /// The GR00T ONNX backbone of this checkpoint (feature `gr00t`) on a synthetic camera.
-        #[arg(long, required_unless_present = "stub", conflicts_with = "stub")]
         gr00t_checkpoint: Option<PathBuf>,
         /// Task (key or prompt) whose prompt the GR00T backbone encodes.
-        #[arg(long, requires = "gr00t_checkpoint")]
         task: Option<String>,
         /// A stub: a counter camera of this many values and a pass-through encoder.
-        #[arg(long)]
         stub: Option<usize>,
         /// Camera frame period, ms.
-        #[arg(long, default_value_t = 60)]
         frame_ms: u64,
     },
 }
 
 /// Run a server until `stop` (Ctrl-C).
 #[cfg(feature = "remote")]
-pub fn serve(cmd: &ServeCmd, stop: Arc<AtomicBool>) -> Result<()> {
+pub fn serve(cmd: &ServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
     imp::serve(cmd, stop)
 }
 
 /// Without feature `remote` there is no transport.
 #[cfg(not(feature = "remote"))]
-pub fn serve(_cmd: &ServeCmd, _stop: Arc<AtomicBool>) -> Result<()> {
+pub fn serve(_cmd: &ServeOptions, _stop: Arc<AtomicBool>) -> Result<()> {
     anyhow::bail!("{NO_REMOTE}")
 }
 
@@ -130,25 +113,25 @@ impl RemotePolicy {
         anyhow::bail!("--remote: {NO_REMOTE}")
     }
 
-    /// [`crate::demo::closed_loop`] with the action head on the server; `local` supplies only
-    /// the output (denormalisation) map and must be the checkpoint the server runs.
-    #[allow(clippy::too_many_arguments, unused_variables)]
-    pub fn closed_loop(
-        &self,
-        local: &CandleModel,
-        policy: Policy,
-        mode: &Mode,
-        d0: usize,
-        episodes: usize,
-        seed: u64,
-        threads: usize,
-    ) -> Result<(usize, u64)> {
+    /// The server as a model factory for the one closed loop
+    /// ([`crate::study::pipeline::closed_loop`]): every model made shares this connection;
+    /// `local` supplies only the output (denormalisation) map and must be the checkpoint the
+    /// server runs.
+    #[allow(unused_variables)]
+    pub fn models(&self, local: &CandleModel) -> Models<'_> {
+        let output = crate::study::pipeline::output_map(local);
         #[cfg(feature = "remote")]
-        return self
-            .inner
-            .closed_loop(local, policy, mode, d0, episodes, seed, threads);
+        return self.inner.models(output);
         #[cfg(not(feature = "remote"))]
-        anyhow::bail!("--remote: {NO_REMOTE}")
+        unreachable!("a RemotePolicy exists only in a build with feature `remote`")
+    }
+
+    /// A line naming the server and its counters, for errors of an evaluation through it.
+    pub fn context(&self) -> String {
+        #[cfg(feature = "remote")]
+        return self.inner.context();
+        #[cfg(not(feature = "remote"))]
+        String::new()
     }
 
     /// One line of counters (calls, attempts, timeouts, reconnects, last round trip).
@@ -175,18 +158,15 @@ mod imp {
     };
     use pir2_runtime::testing::{CameraStub, PassThroughEncoder};
     use pir2_runtime::{
-        Clock, HeadSpec, LockstepTiming, Mode, ModelInput, SlowEncoder, SlowSource, SystemClock,
-        VelocityModel,
+        Clock, ModelInput, OutputMap, SlowEncoder, SlowSource, SystemClock, VelocityModel,
     };
-    use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 
-    use super::ServeCmd;
-    use crate::demo::{output_map, spec, Policy};
-    use crate::study::eval_cell;
+    use super::ServeOptions;
+    use crate::study::pipeline::Models;
 
-    pub(super) fn serve(cmd: &ServeCmd, stop: Arc<AtomicBool>) -> Result<()> {
+    pub(super) fn serve(cmd: &ServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
         match cmd {
-            ServeCmd::Policy {
+            ServeOptions::Policy {
                 checkpoint,
                 gr00t_checkpoint,
                 task,
@@ -229,7 +209,7 @@ mod imp {
                     }
                 }
             }
-            ServeCmd::Slow {
+            ServeOptions::Slow {
                 listen,
                 key,
                 gr00t_checkpoint,
@@ -429,50 +409,16 @@ mod imp {
             })
         }
 
-        #[allow(clippy::too_many_arguments)]
-        pub(super) fn closed_loop(
-            &self,
-            local: &CandleModel,
-            policy: Policy,
-            mode: &Mode,
-            d0: usize,
-            episodes: usize,
-            seed: u64,
-            threads: usize,
-        ) -> Result<(usize, u64)> {
-            let task = BallPlateConfig::default();
-            let s = spec();
-            let head = HeadSpec {
-                horizon: s.horizon,
-                action_dim: s.action_dim,
-                n_obs: s.n_obs,
-                fast_dim: s.fast_dim,
-                slow_dim: s.slow.len(),
-                period: (1e9 / task.control_hz).round() as u64,
-                d_max: policy.d_max(),
-                d_vis_max: s.d_vis_max,
-            };
-            let make_model = || self.model.clone();
-            let make_env = || BallPlate::new(task.clone()).expect("default task is valid");
-            eval_cell(
-                &make_env,
-                &make_model,
-                head,
-                mode,
-                LockstepTiming::for_mode(mode, d0),
-                &output_map(local),
-                episodes,
-                seed,
-                threads,
-                &|| {},
+        pub(super) fn models(&self, output: OutputMap) -> Models<'_> {
+            Models::new(output, move || Box::new(self.model.clone()))
+        }
+
+        pub(super) fn context(&self) -> String {
+            format!(
+                "evaluating with the policy server at {} (counters: {:?})",
+                self.endpoint,
+                self.stats.counters()
             )
-            .with_context(|| {
-                format!(
-                    "evaluating with the policy server at {} (counters: {:?})",
-                    self.endpoint,
-                    self.stats.counters()
-                )
-            })
         }
 
         pub(super) fn report(&self) -> String {

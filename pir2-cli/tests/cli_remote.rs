@@ -13,7 +13,8 @@ use std::time::{Duration, Instant};
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, MlpConfig, ModelConfig};
 use pir2_backends::train::compute_stats;
-use pir2_cli::demo::{self, Episodes};
+use pir2_cli::study::ballplate as demo;
+use pir2_cli::study::pipeline::Episodes;
 
 mod common;
 use common::Scratch;

@@ -1,10 +1,12 @@
-//! The ball-on-plate demo end to end at a tiny scale: the library pipeline (`demo::run`) and
+//! The ball-on-plate demo end to end at a tiny scale: the library pipeline (`ballplate::run`) and
 //! the same stages through the `pir2` binary (`collect` → `train` → `eval` → `plot`).
 
 use std::path::Path;
 use std::process::Command;
 
-use pir2_cli::demo::{self, DemoConfig, Policy};
+use pir2_cli::study::ballplate::{self as demo, BallPlateTask, DemoConfig, POLICIES};
+use pir2_cli::study::pipeline::{self, Models};
+use pir2_cli::study::{Policy, Task};
 
 mod common;
 use common::Scratch;
@@ -31,7 +33,7 @@ fn demo_writes_every_row_and_refuses_a_used_directory() {
     let out = dir.path().join("demo");
     let cfg = tiny();
     let r = demo::run(&cfg, &out).unwrap();
-    let rows = demo::rows(&cfg);
+    let rows = BallPlateTask::new(cfg.clone()).rows();
     assert_eq!(r.labels.len(), rows.len());
     assert_eq!(r.cells.len(), rows.len() * cfg.d0s.len() * cfg.seeds.len());
     for c in &r.cells {
@@ -39,7 +41,7 @@ fn demo_writes_every_row_and_refuses_a_used_directory() {
         assert!(c.successes <= c.episodes);
     }
     // Every policy was validated at each checkpoint (closed loop, not loss).
-    assert_eq!(r.validation.len(), Policy::ALL.len());
+    assert_eq!(r.validation.len(), POLICIES.len());
     for (_, _, scores) in &r.validation {
         assert_eq!(scores.len(), cfg.checkpoints);
     }
@@ -169,14 +171,27 @@ fn a_short_training_run_balances_the_ball() {
         ..DemoConfig::default()
     };
     let demos = demo::collect(40, 11, false).unwrap();
-    let pb = indicatif::ProgressBar::hidden();
-    let (m, _) = demo::train_policy(&demos, Policy::PiR2, 0, &cfg, None, &pb).unwrap();
+    let task = BallPlateTask::new(cfg);
+    let (m, _) = pipeline::train_policy(&task, &demos, Policy::PiR2, 0, None, &|_| {}).unwrap();
     let mode = pir2_runtime::Mode::PiR2Async {
         nfe: Some(2),
         alignment: pir2_schedule::Alignment::Fresh,
         front: pir2_schedule::FrontMode::Visible,
     };
-    let (ok, _) = demo::closed_loop(&m, Policy::PiR2, &mode, 1, 12, 77, 2, &|| {}).unwrap();
+    let timing = pir2_runtime::LockstepTiming::for_mode(&mode, 1);
+    let models = Models::local(&m).unwrap();
+    let (ok, _) = pipeline::closed_loop(
+        &task,
+        &models,
+        Policy::PiR2,
+        &mode,
+        timing,
+        12,
+        77,
+        2,
+        &|| {},
+    )
+    .unwrap();
     eprintln!("πR² async, d0 = 1: {ok}/12");
     assert!(ok >= 6, "πR² async after 600 steps: {ok}/12");
 }

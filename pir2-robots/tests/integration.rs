@@ -1,56 +1,32 @@
 //! The xArm6 + XHand composite driven through both emulators at 25 Hz with the safety layer
 //! on, with actions fed through the runtime's `FastSource` / `Actuator` traits.
 
-use std::net::{IpAddr, Ipv4Addr};
-use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
 
-use pir2_robots::emu::{duplex, XArmEmulator, XArmPorts, XHandEmulator};
+use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot};
 use pir2_robots::robot::{ARM_HAND_ACTION_DIM, ARM_HAND_STATE_DIM};
 use pir2_robots::xarm::proto::state;
-use pir2_robots::{
-    split, ArmHand, SafetyConfig, SafetyLayer, XArm6, XArm6Config, XHand, XHandConfig,
-};
+use pir2_robots::{split, SafetyConfig};
 use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
 
-const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
 const PERIOD_NS: u64 = 40_000_000; // 25 Hz
 
 struct Rig {
-    arm_emu: XArmEmulator,
-    hand_emu: XHandEmulator,
+    emu: EmulatedArmHand,
     clock: Arc<dyn Clock>,
-    layer: SafetyLayer<ArmHand<XArm6, XHand<pir2_robots::emu::DuplexPort>>>,
+    layer: EmulatedRobot,
 }
 
 fn rig(safety: SafetyConfig) -> Rig {
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let arm_emu = XArmEmulator::spawn(LOCAL, XArmPorts::ephemeral()).unwrap();
-    let (host, dev) = duplex(Duration::from_millis(10));
-    let hand_emu = XHandEmulator::spawn(dev, 0, Arc::new(AtomicBool::new(false))).unwrap();
-    let mut cfg = XArm6Config::new(LOCAL);
-    cfg.cmd_addr = arm_emu.cmd_addr();
-    cfg.report_addr = arm_emu.real_report_addr();
-    cfg.stream_hz = 100.0;
-    let arm = XArm6::connect(cfg, clock.clone()).unwrap();
-    let hand = XHand::new(
-        host,
-        XHandConfig {
-            timeout: Duration::from_millis(100),
-            ..Default::default()
-        },
-        clock.clone(),
-    );
-    let composite = ArmHand::new(arm, hand).unwrap();
-    let mut layer = SafetyLayer::new(composite, safety, clock.clone()).unwrap();
-    layer.spawn_watchdog(Duration::from_millis(10)).unwrap();
-    Rig {
-        arm_emu,
-        hand_emu,
-        clock,
-        layer,
-    }
+    let cfg = EmulatedArmHandConfig {
+        serial_latency: Duration::from_millis(10),
+        safety,
+        ..Default::default()
+    };
+    let (emu, layer) = EmulatedArmHand::start(&cfg, clock.clone()).unwrap();
+    Rig { emu, clock, layer }
 }
 
 /// A smooth 18-d reference around the arm's home pose.
@@ -68,12 +44,7 @@ fn reference(k: usize, home: &[f32]) -> Vec<f32> {
 
 #[test]
 fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
-    let Rig {
-        arm_emu,
-        hand_emu,
-        clock,
-        layer,
-    } = rig(SafetyConfig::xarm6_xhand());
+    let Rig { emu, clock, layer } = rig(SafetyConfig::xarm6_xhand());
     let (mut source, mut actuator) = split(layer);
     assert_eq!(source.dim(), ARM_HAND_STATE_DIM);
     assert_eq!(actuator.dim(), ARM_HAND_ACTION_DIM);
@@ -128,19 +99,18 @@ fn composite_runs_at_25_hz_through_both_emulators_with_safety_on() {
         "{stats}"
     );
     // The arm was streamed at ~100 Hz: clearly more servo-j frames than policy targets.
-    assert!(arm_emu.handle().sim().servoj > 2 * ticks as u64);
-    assert!(hand_emu.handle().commands() >= ticks as u64);
+    assert!(emu.arm.handle().sim().servoj > 2 * ticks as u64);
+    assert!(emu.hand.handle().commands() >= ticks as u64);
 
     actuator.stop().unwrap();
-    assert_eq!(arm_emu.handle().sim().state, state::STOP);
+    assert_eq!(emu.arm.handle().sim().state, state::STOP);
     assert!(actuator.send(&last_action).is_err());
 }
 
 #[test]
 fn silent_policy_is_stopped_by_the_watchdog() {
     let Rig {
-        arm_emu,
-        hand_emu: _h,
+        emu,
         clock: _c,
         layer,
     } = rig(SafetyConfig::xarm6_xhand());
@@ -152,10 +122,10 @@ fn silent_policy_is_stopped_by_the_watchdog() {
     actuator.send(&a).unwrap();
     // The policy goes quiet; the watchdog (200 ms command timeout) stops arm and hand.
     let t0 = std::time::Instant::now();
-    while arm_emu.handle().sim().state != state::STOP && t0.elapsed() < Duration::from_secs(3) {
+    while emu.arm.handle().sim().state != state::STOP && t0.elapsed() < Duration::from_secs(3) {
         std::thread::sleep(Duration::from_millis(10));
     }
-    assert_eq!(arm_emu.handle().sim().state, state::STOP);
+    assert_eq!(emu.arm.handle().sim().state, state::STOP);
     let err = actuator.send(&a).unwrap_err();
     assert!(
         matches!(err, pir2_runtime::Error::SafetyStop(ref m) if m.contains("no target")),
@@ -167,8 +137,7 @@ fn silent_policy_is_stopped_by_the_watchdog() {
 #[test]
 fn wild_policy_is_clamped_not_executed() {
     let Rig {
-        arm_emu,
-        hand_emu,
+        emu,
         clock: _c,
         layer,
     } = rig(SafetyConfig::xarm6_xhand());
@@ -184,14 +153,14 @@ fn wild_policy_is_clamped_not_executed() {
     jump[0] += 1.0;
     actuator.send(&jump).unwrap();
     std::thread::sleep(Duration::from_millis(100));
-    let sim = arm_emu.handle().sim();
+    let sim = emu.arm.handle().sim();
     assert!(
         (sim.target[0] - home[0]).abs() <= 0.05 + 1e-5,
         "arm moved at most one step: {}",
         sim.target[0]
     );
     assert!(
-        hand_emu.handle().targets().iter().all(|&q| q <= 0.2 + 1e-5),
+        emu.hand.handle().targets().iter().all(|&q| q <= 0.2 + 1e-5),
         "hand moved at most one step from 0"
     );
     let stats = source.robot().lock().unwrap().stats();

@@ -5,7 +5,7 @@
 //! actuator, the clock, the environment of the lock-step driver) and depends on no ML
 //! framework, robot driver or simulator.
 //!
-//! One state machine, two drivers (DESIGN.md §2):
+//! One state machine, two drivers (docs/method.md §2):
 //! - [`head::ActionHead`] turns a [`head::Snapshot`] into a [`chunk::Chunk`] (one NFE for
 //!   πR²; `K` steps for the baselines) and owns the rolling latency window;
 //! - [`control::ControlState`] picks the action of each tick (swap at the elapsed index,
@@ -25,6 +25,7 @@ pub mod lockstep;
 pub mod metrics;
 pub mod mode;
 pub mod model;
+pub mod policy;
 pub mod realtime;
 #[cfg(feature = "remote")]
 pub mod remote;
@@ -40,8 +41,9 @@ pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,
     SlowSource,
 };
-pub use lockstep::{EpisodeResult, LockstepDriver, LockstepTiming};
+pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};
 pub use mode::{EffectiveDelays, Mode};
-pub use model::{ModelInput, SlowInput, VelocityModel};
+pub use model::{ModelInput, SlowInput, SlowSpec, VelocityModel};
+pub use policy::{Deployment, Policy, Recipe};
 pub use window::LatencyWindow;

@@ -11,11 +11,13 @@ use serde::{Deserialize, Serialize};
 use crate::chunk::Chunk;
 use crate::control::{ControlConfig, ControlState, OutputMap};
 use crate::error::{Error, Result};
-use crate::head::{ActionHead, Snapshot};
+use crate::head::{ActionHead, HeadSpec, Snapshot};
 use crate::io::Environment;
 use crate::metrics::RunMetrics;
 use crate::mode::Mode;
 use crate::model::VelocityModel;
+use crate::window::LatencyWindow;
+use pir2_schedule::Rng;
 
 /// Timing injected into a lock-step episode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -33,6 +35,18 @@ pub struct LockstepTiming {
 }
 
 impl LockstepTiming {
+    /// Zero injected latency: a call takes no tick and the slow features are fresh (the
+    /// horizon study's timing; `d` is pinned).
+    pub fn zero_latency() -> Self {
+        Self {
+            call_ticks: 0,
+            slow_delay: 0,
+            overrun_ticks: 0,
+            overrun_every: 0,
+            pin_delay: true,
+        }
+    }
+
     /// The paper's timing for `mode` at unit delay `d0`.
     pub fn for_mode(mode: &Mode, d0: usize) -> Self {
         let e = mode.effective_delays(d0);
@@ -233,4 +247,71 @@ impl LockstepDriver {
         result.metrics = std::mem::take(&mut control.metrics);
         Ok(result)
     }
+}
+
+/// Run `episodes` episodes of one study cell (one mode, one timing) in parallel on
+/// `threads` threads; returns the successes and the overrun ticks over all episodes. Every episode
+/// gets its own environment, head and seeds derived from `(seed, episode)`, so the result
+/// does not depend on the thread count.
+#[allow(clippy::too_many_arguments)]
+pub fn eval_cell<E, M, FE, FM>(
+    make_env: &FE,
+    make_model: &FM,
+    spec: HeadSpec,
+    mode: &Mode,
+    timing: LockstepTiming,
+    output: &OutputMap,
+    episodes: usize,
+    seed: u64,
+    threads: usize,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(usize, u64)>
+where
+    E: Environment,
+    M: VelocityModel,
+    FE: Fn() -> E + Sync,
+    FM: Fn() -> M + Sync,
+{
+    let threads = threads.clamp(1, episodes.max(1));
+    let results: Vec<Result<(usize, u64)>> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..threads)
+            .map(|w| {
+                s.spawn(move || -> Result<(usize, u64)> {
+                    let mut env = make_env();
+                    let (mut ok, mut overruns) = (0, 0);
+                    let mut ep = w;
+                    while ep < episodes {
+                        let ep_seed = Rng::derive(seed, ep as u64).next_u64();
+                        let window = LatencyWindow::new(20, 0, spec.period, spec.d_max);
+                        let mut head = ActionHead::new(
+                            make_model(),
+                            spec,
+                            mode.head_mode(10),
+                            window,
+                            ep_seed ^ 0xA5A5,
+                        )?;
+                        let mut drv = LockstepDriver::new(&head).with_output(output.clone());
+                        let r =
+                            drv.run_episode(&mut env, &mut head, mode, timing, ep_seed, |_, _| {})?;
+                        ok += r.success as usize;
+                        overruns += r.metrics.overruns;
+                        progress();
+                        ep += threads;
+                    }
+                    Ok((ok, overruns))
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().expect("evaluation thread panicked"))
+            .collect()
+    });
+    let mut total = (0, 0);
+    for r in results {
+        let (a, b) = r?;
+        total.0 += a;
+        total.1 += b;
+    }
+    Ok(total)
 }

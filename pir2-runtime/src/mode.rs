@@ -1,4 +1,4 @@
-//! Deployment modes: each is a small policy over the same machinery (DESIGN.md §2, §4).
+//! Deployment modes: each is a small policy over the same machinery (docs/method.md §2, §4).
 
 use serde::{Deserialize, Serialize};
 
@@ -72,7 +72,7 @@ impl Mode {
         }
     }
 
-    /// The paper's effective delays for unit delay `d0` (DESIGN.md §4): `⌈1.75·d0⌉` for the
+    /// The paper's effective delays for unit delay `d0` (docs/method.md §4): `⌈1.75·d0⌉` for the
     /// `K`-step baselines, `d0` for πR² without async (action head + slow encoder in one
     /// call), and `1` for πR² with async plus `d_vis = d0` on the slow subset.
     pub fn effective_delays(&self, d0: usize) -> EffectiveDelays {

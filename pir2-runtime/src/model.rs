@@ -1,5 +1,7 @@
 //! The velocity-model trait every backend implements.
 
+use serde::{Deserialize, Serialize};
+
 use crate::error::{Error, Result};
 
 /// The slow-channel input of a model call.
@@ -23,6 +25,85 @@ pub enum SlowInput<'a> {
         /// Token width.
         dim: usize,
     },
+}
+
+/// The slow-channel layout a model expects: the shape side of [`SlowInput`], shared by the
+/// model configurations, the ONNX contract and the checkpoints.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum SlowSpec {
+    /// No slow input.
+    #[default]
+    None,
+    /// One feature vector of width `dim` per sample (`[B, S]`).
+    Vector {
+        /// Feature width `S`.
+        dim: usize,
+    },
+    /// `tokens` tokens of width `dim` per sample (`[B, T, D]`).
+    Tokens {
+        /// Tokens `T`.
+        tokens: usize,
+        /// Token width `D`.
+        dim: usize,
+    },
+}
+
+impl SlowSpec {
+    /// Values per sample (`S` or `T·D`).
+    pub fn len(&self) -> usize {
+        match *self {
+            SlowSpec::None => 0,
+            SlowSpec::Vector { dim } => dim,
+            SlowSpec::Tokens { tokens, dim } => tokens * dim,
+        }
+    }
+
+    /// Whether there is no slow input.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Width of one slow feature (the normalisation width): `S` or `D`.
+    pub fn width(&self) -> usize {
+        match *self {
+            SlowSpec::None => 0,
+            SlowSpec::Vector { dim } | SlowSpec::Tokens { dim, .. } => dim,
+        }
+    }
+
+    /// Number of tokens (1 for a vector, 0 for none).
+    pub fn tokens(&self) -> usize {
+        match *self {
+            SlowSpec::None => 0,
+            SlowSpec::Vector { .. } => 1,
+            SlowSpec::Tokens { tokens, .. } => tokens,
+        }
+    }
+
+    /// Does a call's slow input match this spec?
+    pub fn matches(&self, slow: &SlowInput<'_>) -> bool {
+        match (self, slow) {
+            (SlowSpec::None, SlowInput::None) => true,
+            (SlowSpec::Vector { dim }, SlowInput::Vector { dim: d, .. }) => dim == d,
+            (
+                SlowSpec::Tokens { tokens, dim },
+                SlowInput::Tokens {
+                    tokens: t, dim: d, ..
+                },
+            ) => tokens == t && dim == d,
+            _ => false,
+        }
+    }
+
+    /// Human-readable shape, e.g. `[B, 9]`.
+    pub fn describe(&self) -> String {
+        match self {
+            SlowSpec::None => "none".to_string(),
+            SlowSpec::Vector { dim } => format!("[B, {dim}]"),
+            SlowSpec::Tokens { tokens, dim } => format!("[B, {tokens}, {dim}]"),
+        }
+    }
 }
 
 /// One batched model call. All tensors are flat, row-major, `f32`.

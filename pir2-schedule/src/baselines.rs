@@ -62,8 +62,8 @@ impl StandardFlow {
 ///
 /// RTC proper adds a guidance term that needs the model's vector–Jacobian product; the
 /// [`VelocityModel`](https://docs.rs/pir2-runtime) contract does not expose one, so this is
-/// the replacement form of the same soft-masked inpainting (documented in DESIGN.md §1
-/// as "inference-time RTC inpainting with a frozen prefix").
+/// the replacement form of the same soft-masked inpainting (listed among the
+/// baselines in `docs/method.md` §1 as inference-time RTC inpainting).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RtcInpainting {
     /// Euler steps `K`.

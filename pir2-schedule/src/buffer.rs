@@ -1,6 +1,6 @@
 //! The streaming inference buffer: one denoising step per call, `d` clean actions out.
 //!
-//! A call at delay `d` runs in three steps (DESIGN.md §1):
+//! A call at delay `d` runs in three steps (docs/method.md §1):
 //!
 //! 1. [`StreamBuffer::plan`]: the front `[0, d)` is what the robot executes during this
 //!    call, so any front slot with `τ < 1` is committed to its clean estimate `x̂` and set

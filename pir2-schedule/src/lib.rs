@@ -3,7 +3,8 @@
 //! The math of πR² (Reactive Real-time Flow Policies): per-position noise schedules
 //! (the *staircase*), the streaming inference buffer that runs one denoising step per
 //! call and emits `d` clean actions, training draws, and the baseline schedules.
-//! Pure Rust, no heavy dependencies. See `DESIGN.md` §1 for the binding definitions.
+//! Pure Rust, no heavy dependencies. The binding definitions (staircase family, invariants,
+//! the rule for a changing `d`, front visibility) are in `docs/method.md` §1 of the repository.
 #![warn(missing_docs)]
 
 pub mod baselines;

@@ -1,4 +1,4 @@
-//! The staircase family of per-position noise levels (DESIGN.md §1).
+//! The staircase family of per-position noise levels (docs/method.md §1).
 //!
 //! `τ = 0` is pure noise, `τ = 1` is clean. A staircase has a clean *front* of `d`
 //! in-flight actions, a *ramp*, and a *tail* of fresh noise.
@@ -130,7 +130,7 @@ impl Staircase {
     }
 
     /// The same family (alignment, requested `n`) at another delay; `n` is capped at the
-    /// new delay's `n_max` (DESIGN.md §1, "changing d").
+    /// new delay's `n_max` (docs/method.md §1, "changing d").
     pub fn at_delay(&self, d: usize, requested_n: Option<usize>) -> Result<Self> {
         match self.alignment {
             Alignment::Fresh => {

@@ -1,7 +1,7 @@
 //! Training draws: per-position `τ`, loss mask and delay for one training sample.
 //!
 //! Every schedule the deployment can use has a training counterpart here, so a model is
-//! trained on exactly the family (and `n`) it will meet at inference (DESIGN.md §1).
+//! trained on exactly the family (and `n`) it will meet at inference (docs/method.md §1).
 //!
 //! ```
 //! use pir2_schedule::{train::{TrainSchedule, PiR2Draws, DelayDist, Draw}, Alignment, Rng};
@@ -109,7 +109,7 @@ impl DelayDist {
     }
 }
 
-/// How the model sees the front (the committed, in-flight actions). DESIGN.md §1.
+/// How the model sees the front (the committed, in-flight actions). docs/method.md §1.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum FrontVisibility {
@@ -125,7 +125,7 @@ pub enum FrontVisibility {
     },
 }
 
-/// πR² training draws (DESIGN.md §1).
+/// πR² training draws (docs/method.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct PiR2Draws {

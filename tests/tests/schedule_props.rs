@@ -1,4 +1,4 @@
-//! Property tests for the invariants of DESIGN.md §1 (numbered as there).
+//! Property tests for the invariants of `docs/method.md` §1 (numbered as there).
 
 use pir2_schedule::train::{DelayDist, Draw, FrontVisibility, PiR2Draws, TrainSchedule};
 use pir2_schedule::{Alignment, FrontMode, Rng, Staircase, StreamBuffer, StreamConfig};

@@ -19,6 +19,7 @@
 //! ```
 
 pub(crate) mod dit;
+pub mod export;
 pub(crate) mod layers;
 pub(crate) mod mlp;
 pub(crate) mod unet;

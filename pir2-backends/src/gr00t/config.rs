@@ -153,7 +153,7 @@ pub struct EmbodimentConfig {
 }
 
 impl EmbodimentConfig {
-    /// The paper's xArm6 + XHand setup (DESIGN.md §4).
+    /// The paper's xArm6 + XHand setup (docs/method.md §4).
     pub fn xarm6_xhand() -> Self {
         EmbodimentConfig {
             name: "gr00t-xarm-xhand".to_string(),

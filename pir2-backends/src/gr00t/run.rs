@@ -134,7 +134,7 @@ pub struct Gr00tRunOptions {
     pub backbone: BackboneChoice,
     /// The action head.
     pub head: HeadChoice,
-    /// NFEs per action (`None` = full ramp; DESIGN.md §1 recommends a short ramp).
+    /// NFEs per action (`None` = full ramp; docs/method.md §1 recommends a short ramp).
     pub nfe: Option<usize>,
     /// Staircase alignment.
     pub alignment: Alignment,

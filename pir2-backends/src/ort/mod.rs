@@ -2,7 +2,7 @@
 //!
 //! # The graph contract
 //!
-//! One ONNX graph per model, called once per NFE (see [`crate::onnx::contract`]):
+//! One ONNX graph per model, called once per NFE (see [`crate::export::contract`]):
 //!
 //! | name       | type    | shape                   |                                           |
 //! |------------|---------|-------------------------|-------------------------------------------|
@@ -16,7 +16,7 @@
 //! `B` may be dynamic; `H, A, n_obs, F, S, T, D` must be fixed in the file. A loaded model is
 //! checked against this table (names, element types, ranks, dimensions) and rejected with an
 //! [`OrtError::Contract`] naming the file, the tensor and what was wrong. Files written by
-//! [`crate::onnx`] follow the contract by construction.
+//! [`crate::export`] follow the contract by construction.
 //!
 //! # Loading ONNX Runtime
 //!
@@ -44,7 +44,7 @@ use ::ort::value::{TensorElementType, TensorRef, ValueType};
 use ndarray::{ArrayView1, ArrayView2, ArrayView3};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
-use crate::onnx::contract::{self, describe_slow, ContractDims, SlowSpec};
+use crate::export::contract::{self, describe_slow, ContractDims, SlowSpec};
 
 /// The ONNX Runtime version this backend is built and tested against.
 pub const EXPECTED_VERSION: &str = "1.31.x";

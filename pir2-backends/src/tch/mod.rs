@@ -3,7 +3,7 @@
 //! # The module contract
 //!
 //! `forward(x, tau, obs_fast, obs_slow, d_vis) -> v`, the same tensors as the ONNX contract
-//! ([`crate::onnx::contract`]): `x [B,H,A]` f32, `tau [B,H]` f32, `obs_fast [B,n_obs,F]` f32,
+//! ([`crate::export::contract`]): `x [B,H,A]` f32, `tau [B,H]` f32, `obs_fast [B,n_obs,F]` f32,
 //! `obs_slow` f32 `[B,S]` or `[B,T,D]` (a `[B,0]` tensor when the model has no slow input),
 //! `d_vis [B]` int64; returns `v [B,H,A]` f32. TorchScript files carry no shapes, so the output
 //! shape is checked on every call.
@@ -210,8 +210,8 @@ where
 }
 
 /// Example inputs (batch 2, zeros) with the contract shapes of `dims`, for tracing.
-pub fn example_inputs(dims: &crate::onnx::ContractDims) -> [Tensor; 5] {
-    use crate::onnx::SlowSpec;
+pub fn example_inputs(dims: &crate::export::ContractDims) -> [Tensor; 5] {
+    use crate::export::SlowSpec;
     let f = (Kind::Float, Device::Cpu);
     let (h, a) = (dims.horizon as i64, dims.action_dim as i64);
     let slow = match dims.slow {
@@ -228,15 +228,15 @@ pub fn example_inputs(dims: &crate::onnx::ContractDims) -> [Tensor; 5] {
     ]
 }
 
-/// Trace a model definition ([`crate::onnx::ModelSpec`], the same one the ONNX exporter
+/// Trace a model definition ([`crate::export::ModelSpec`], the same one the ONNX exporter
 /// writes) with `weights` into a TorchScript file that [`TchModel`] loads.
-pub fn export_torchscript<W: crate::onnx::ops::WeightSource>(
-    spec: &crate::onnx::ModelSpec,
+pub fn export_torchscript<W: crate::export::ops::WeightSource>(
+    spec: &crate::export::ModelSpec,
     weights: &W,
     path: &Path,
 ) -> crate::Result<()> {
-    use crate::onnx::models::Inputs;
-    use crate::onnx::SlowSpec;
+    use crate::export::models::Inputs;
+    use crate::export::SlowSpec;
     let has_slow = spec.dims().slow != SlowSpec::None;
     let example = example_inputs(spec.dims());
     let inputs = |xs: &[Tensor]| Inputs {
@@ -253,7 +253,7 @@ pub fn export_torchscript<W: crate::onnx::ops::WeightSource>(
         spec.forward(&mut rec, weights, &inputs(&example))?;
     }
     let mut ops = TchOps::replay(rec);
-    let mut failure: Option<crate::onnx::ExportError> = None;
+    let mut failure: Option<crate::export::ExportError> = None;
     trace_to_file(path, &example, |x, tau, obs, slow, d_vis| {
         let xs = [
             x.shallow_clone(),

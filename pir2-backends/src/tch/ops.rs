@@ -5,7 +5,7 @@
 
 use ::tch::{Kind, Tensor};
 
-use crate::onnx::ops::{Ops, Unary};
+use crate::export::ops::{Ops, Unary};
 
 /// A libtorch tensor with a cheap (reference-sharing) `Clone`.
 #[derive(Debug)]

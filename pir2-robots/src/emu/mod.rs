@@ -4,10 +4,12 @@
 //! transaction ids, controller error codes).
 
 pub mod duplex;
+pub mod rig;
 pub mod xarm;
 pub mod xhand;
 
 pub use duplex::{duplex, DuplexPort};
+pub use rig::{EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot};
 pub use xarm::{run_xarm_emulator, XArmEmuHandle, XArmEmulator, XArmFault, XArmPorts};
 #[cfg(unix)]
 pub use xhand::run_xhand_emulator_pty;

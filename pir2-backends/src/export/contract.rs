@@ -10,7 +10,7 @@
 //! | `v` (out)  | float32 | `[B, H, A]`                  | velocity                               |
 //!
 //! `B` is dynamic (a symbolic dimension, e.g. `"batch"`, or `-1`); every other dimension
-//! must be fixed in the file. Graphs written by [`crate::onnx`] always declare `d_vis`
+//! must be fixed in the file. Graphs written by [`crate::export`] always declare `d_vis`
 //! (it may be unused by the graph) and declare `obs_slow` exactly when the model has a
 //! slow input.
 
@@ -31,50 +31,7 @@ pub const V: &str = "v";
 /// The symbolic name exported graphs give the batch dimension.
 pub const BATCH: &str = "batch";
 
-/// Shape of the slow input a model takes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SlowSpec {
-    /// No slow input.
-    None,
-    /// `[B, S]`.
-    Vector {
-        /// `S`.
-        dim: usize,
-    },
-    /// `[B, T, D]`.
-    Tokens {
-        /// `T`.
-        tokens: usize,
-        /// `D`.
-        dim: usize,
-    },
-}
-
-impl SlowSpec {
-    /// Does a call's slow input match this spec?
-    pub fn matches(&self, slow: &SlowInput<'_>) -> bool {
-        match (self, slow) {
-            (SlowSpec::None, SlowInput::None) => true,
-            (SlowSpec::Vector { dim }, SlowInput::Vector { dim: d, .. }) => dim == d,
-            (
-                SlowSpec::Tokens { tokens, dim },
-                SlowInput::Tokens {
-                    tokens: t, dim: d, ..
-                },
-            ) => tokens == t && dim == d,
-            _ => false,
-        }
-    }
-
-    /// Human-readable shape, e.g. `[B, 9]`.
-    pub fn describe(&self) -> String {
-        match self {
-            SlowSpec::None => "none".to_string(),
-            SlowSpec::Vector { dim } => format!("[B, {dim}]"),
-            SlowSpec::Tokens { tokens, dim } => format!("[B, {tokens}, {dim}]"),
-        }
-    }
-}
+pub use pir2_runtime::SlowSpec;
 
 /// Describe a call's slow input the same way as [`SlowSpec::describe`].
 pub fn describe_slow(slow: &SlowInput<'_>) -> String {

@@ -6,8 +6,6 @@
 //! weights are stored as initializers (raw little-endian `f32`). See [`contract`] for the
 //! input/output names and shapes.
 
-#[cfg(feature = "candle")]
-pub mod candle_bridge;
 pub mod contract;
 pub mod graph;
 pub mod models;

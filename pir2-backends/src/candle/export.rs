@@ -2,26 +2,21 @@
 //! [`Stats`] into the [`ModelSpec`] the exporter and the libtorch tracer run, and
 //! [`CandleModel`] / [`Checkpoint`] are [`WeightSource`]s (same names, same layouts).
 
-use super::contract::{ContractDims, SlowSpec};
-use super::models::{Film, MlpSpec, ObsNorm, UnetSpec};
-use super::ops::WeightSource;
-use super::{ExportError, ModelSpec};
-use crate::candle::CandleModel;
+use super::CandleModel;
 use crate::checkpoint::Checkpoint;
 use crate::config::{self, Config, FilmMode, ModelConfig, Stats};
+use crate::export::contract::ContractDims;
+use crate::export::models::{Film, MlpSpec, ObsNorm, UnetSpec};
+use crate::export::ops::WeightSource;
+use crate::export::{export_to_file, ExportError, ModelSpec};
 
 fn dims(spec: &config::Spec) -> ContractDims {
-    let slow = match spec.slow {
-        config::SlowSpec::None => SlowSpec::None,
-        config::SlowSpec::Vector { dim } => SlowSpec::Vector { dim },
-        config::SlowSpec::Tokens { tokens, dim } => SlowSpec::Tokens { tokens, dim },
-    };
     ContractDims {
         horizon: spec.horizon,
         action_dim: spec.action_dim,
         n_obs: spec.n_obs,
         fast_dim: spec.fast_dim,
-        slow,
+        slow: spec.slow,
         has_d_vis: true,
     }
 }
@@ -132,11 +127,11 @@ impl WeightSource for Checkpoint {
 /// exactly like the candle model; observations are normalised inside the graph).
 pub fn export_candle_model(model: &CandleModel, path: &std::path::Path) -> Result<(), ExportError> {
     let spec = spec_from_config(model.config(), model.stats())?;
-    super::export_to_file(&spec, model, path)
+    export_to_file(&spec, model, path)
 }
 
 /// Export a checkpoint directory (`config.json`, `stats.json`, `model.safetensors`) to ONNX.
 pub fn export_checkpoint(ck: &Checkpoint, path: &std::path::Path) -> Result<(), ExportError> {
     let spec = spec_from_config(&ck.config, &ck.stats)?;
-    super::export_to_file(&spec, ck, path)
+    export_to_file(&spec, ck, path)
 }

@@ -1,0 +1,351 @@
+//! The ball-on-plate task (the embedded default, `pir2 demo`): LQR-expert demonstrations,
+//! candle MLPs, every deployment mode under latency.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use indicatif::ProgressBar;
+use serde::{Deserialize, Serialize};
+
+use pir2_backends::config::{MlpConfig, ModelConfig, SlowSpec, Spec};
+use pir2_backends::train::TrainConfig;
+use pir2_runtime::Mode;
+use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
+use pir2_sim::dataset::{CollectConfig, DatasetSpec, DatasetWriter, Episode, WriteMode};
+use pir2_sim::expert::{LqrConfig, LqrExpert};
+
+use super::pipeline::{self, bar};
+use super::{Policy, Row, Settings, Study, StudyResult, Task};
+
+/// Everything `pir2 demo` does, as a TOML-able config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DemoConfig {
+    /// Demonstrations to collect.
+    pub demos: usize,
+    /// Optimiser steps per policy.
+    pub train_steps: usize,
+    /// Batch size.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Checkpoints validated in closed loop per policy (evenly spaced, the last at the end).
+    pub checkpoints: usize,
+    /// Closed-loop validation episodes per checkpoint.
+    pub val_episodes: usize,
+    /// Test episodes per cell.
+    pub episodes: usize,
+    /// Seeds (each trains its own policies and evaluates on its own episodes).
+    pub seeds: Vec<u64>,
+    /// Unit delays.
+    pub d0s: Vec<usize>,
+    /// NFEs per action of the default πR² policy.
+    pub nfe: usize,
+    /// Euler steps of the flow baselines.
+    pub flow_steps: usize,
+    /// Worker threads.
+    pub threads: usize,
+    /// MLP width.
+    pub width: usize,
+    /// MLP depth.
+    pub depth: usize,
+}
+
+impl Default for DemoConfig {
+    fn default() -> Self {
+        Self {
+            demos: 200,
+            train_steps: 2000,
+            batch_size: 128,
+            lr: 1e-3,
+            checkpoints: 4,
+            val_episodes: 20,
+            episodes: 100,
+            seeds: vec![0, 1, 2],
+            d0s: vec![1, 2, 3],
+            nfe: 2,
+            flow_steps: 10,
+            threads: 2,
+            width: 128,
+            depth: 3,
+        }
+    }
+}
+
+impl DemoConfig {
+    /// The `--quick` variant: fewer demos, steps and episodes.
+    pub fn quick() -> Self {
+        Self {
+            demos: 100,
+            train_steps: 1000,
+            episodes: 30,
+            val_episodes: 10,
+            checkpoints: 2,
+            ..Self::default()
+        }
+    }
+
+    /// Read a TOML config (`None`: the default, or [`DemoConfig::quick`]).
+    pub fn load(path: Option<&Path>, quick: bool) -> Result<Self> {
+        match path {
+            Some(p) => {
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("reading config {}", p.display()))?;
+                toml::from_str(&text).with_context(|| format!("parsing config {}", p.display()))
+            }
+            None if quick => Ok(Self::quick()),
+            None => Ok(Self::default()),
+        }
+    }
+}
+
+/// The policies the demo trains (one of each per seed), in table order of their rows.
+pub const POLICIES: [Policy; 5] = [
+    Policy::Flow,
+    Policy::Rtc,
+    Policy::PiR2,
+    Policy::PiR2Hidden,
+    Policy::PiR2Full,
+];
+
+/// The ball-on-plate task with a [`DemoConfig`].
+#[derive(Debug, Clone)]
+pub struct BallPlateTask {
+    cfg: DemoConfig,
+    env: BallPlateConfig,
+}
+
+impl BallPlateTask {
+    /// The task at the default environment.
+    pub fn new(cfg: DemoConfig) -> Self {
+        Self {
+            cfg,
+            env: BallPlateConfig::default(),
+        }
+    }
+}
+
+/// The ball-on-plate spec (H = 16, 2 fast frames, 4-d delayed camera tracker).
+pub fn spec() -> Spec {
+    Spec {
+        horizon: 16,
+        action_dim: 2,
+        n_obs: 2,
+        fast_dim: pir2_sim::ballplate::FAST_DIM,
+        slow: SlowSpec::Vector {
+            dim: pir2_sim::ballplate::SLOW_DIM,
+        },
+        d_vis_max: 3,
+    }
+}
+
+impl Task for BallPlateTask {
+    type Env = BallPlate;
+    type Config = DemoConfig;
+
+    fn config(&self) -> &DemoConfig {
+        &self.cfg
+    }
+
+    fn settings(&self) -> Settings {
+        let c = &self.cfg;
+        Settings::from_config(
+            c.nfe,
+            c.flow_steps,
+            &c.seeds,
+            c.episodes,
+            c.checkpoints,
+            c.val_episodes,
+            c.threads,
+        )
+    }
+
+    fn spec(&self) -> Spec {
+        spec()
+    }
+
+    fn period_ns(&self) -> u64 {
+        (1e9 / self.env.control_hz).round() as u64
+    }
+
+    fn make_env(&self) -> Result<BallPlate> {
+        Ok(BallPlate::new(self.env.clone())?)
+    }
+
+    fn model(&self, _: Policy) -> ModelConfig {
+        ModelConfig::Mlp(MlpConfig {
+            width: self.cfg.width,
+            depth: self.cfg.depth,
+            ..MlpConfig::default()
+        })
+    }
+
+    fn optimiser(&self) -> TrainConfig {
+        let c = &self.cfg;
+        TrainConfig {
+            steps: c.train_steps,
+            batch_size: c.batch_size,
+            lr: c.lr,
+            min_lr: c.lr * 0.01,
+            warmup: (c.train_steps / 20).max(1),
+            betas: (0.9, 0.999),
+            weight_decay: 1e-4,
+            grad_clip: Some(1.0),
+            ema: None,
+            log_every: 50,
+            ..TrainConfig::default()
+        }
+    }
+
+    /// Every mode of every policy: sync flow, naive async (plain and with ensembling),
+    /// train-time RTC, πR² without and with async, front hidden, paper full ramp.
+    fn rows(&self) -> Vec<Row> {
+        let r = self.settings().recipe;
+        POLICIES.iter().flat_map(|p| p.deployments(&r)).collect()
+    }
+
+    /// Flow is validated in naive async without ensembling, the πR² policies with async.
+    fn validation_mode(&self, policy: Policy) -> Mode {
+        let rows = self.rows();
+        let mine = || rows.iter().filter(|r| r.policy == policy);
+        let pick = match policy {
+            Policy::Flow => {
+                mine().find(|r| matches!(r.mode, Mode::NaiveAsync { ensemble: None, .. }))
+            }
+            _ => mine().find(|r| matches!(r.mode, Mode::PiR2Async { .. })),
+        };
+        pick.or_else(|| mine().next())
+            .map(|r| r.mode)
+            .unwrap_or_else(|| panic!("{policy:?} has no ball-plate row"))
+    }
+
+    /// Collects `demos` expert episodes (seed 7) and writes them to `out/dataset`.
+    fn demonstrations(&self, out: &Path) -> Result<Vec<Episode>> {
+        let demos = collect(self.cfg.demos, 7, true)?;
+        write_dataset(&out.join("dataset"), &demos, WriteMode::New)?;
+        Ok(demos)
+    }
+
+    fn title(&self, _study: &str) -> String {
+        format!(
+            "ball-on-plate: success vs unit delay (mean ± std over {} seeds)",
+            self.cfg.seeds.len()
+        )
+    }
+}
+
+/// Collect `n` expert demonstrations (seeded).
+pub fn collect(n: usize, seed: u64, show: bool) -> Result<Vec<Episode>> {
+    let task = BallPlateConfig::default();
+    let mut env = BallPlate::new(task.clone())?;
+    let mut expert = LqrExpert::new(&task, LqrConfig::default())?;
+    let pb = if show {
+        bar(n as u64, "collecting demonstrations")
+    } else {
+        ProgressBar::hidden()
+    };
+    let cfg = CollectConfig {
+        episodes: n,
+        seed,
+        ..CollectConfig::default()
+    };
+    let eps = pir2_sim::dataset::collect_episodes(&mut env, &mut expert, &cfg, &mut |p| {
+        pb.set_position(p.kept as u64)
+    })?;
+    pb.finish();
+    Ok(eps)
+}
+
+/// Write episodes as a LeRobotDataset v3.0 (the same writer as every other stack).
+pub fn write_dataset(root: &Path, episodes: &[Episode], mode: WriteMode) -> Result<()> {
+    let fps = BallPlateConfig::default().control_hz.round() as u32;
+    let mut w = DatasetWriter::open(root, DatasetSpec::ballplate(fps), mode)
+        .with_context(|| format!("opening dataset {}", root.display()))?;
+    for ep in episodes {
+        w.append(ep)?;
+    }
+    w.finish()?;
+    Ok(())
+}
+
+/// The demo's result file.
+pub type DemoResult = StudyResult<DemoConfig>;
+
+/// Run the whole demo into `out` (a new directory): collect, train every policy × seed,
+/// evaluate every row × unit delay × seed.
+pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
+    let task = BallPlateTask::new(cfg.clone());
+    let study = Study::deployment(task.rows(), &cfg.d0s);
+    pipeline::run(&task, &study, out)
+}
+
+/// `pir2 train ballplate`: train one policy on a dataset into `out` (a new directory:
+/// step checkpoints under `out/steps`, the chosen one in `out/best`). Returns the
+/// closed-loop validation scores.
+pub fn train_checkpoint(
+    data: &Path,
+    policy: Policy,
+    cfg: &DemoConfig,
+    seed: u64,
+    out: &Path,
+) -> Result<super::Scores> {
+    if out.exists() {
+        anyhow::bail!(
+            "checkpoint directory {} already exists; choose another --out",
+            out.display()
+        );
+    }
+    let ds = pir2_sim::dataset::read_dataset(data)
+        .with_context(|| format!("reading dataset {}", data.display()))?;
+    let task = BallPlateTask::new(cfg.clone());
+    let pb = indicatif::ProgressBar::new(cfg.train_steps as u64);
+    let (model, scores) = pipeline::train_policy(
+        &task,
+        &ds.episodes,
+        policy,
+        seed,
+        Some(&out.join("steps")),
+        &|s| pb.set_position(s as u64),
+    )?;
+    pb.finish();
+    model.save(&out.join("best"))?;
+    Ok(scores)
+}
+
+/// `pir2 eval ballplate`: a checkpoint of `policy` in each of its rows at each unit delay,
+/// `episodes` episodes per cell seeded from `seed`; `models` runs the action head (the
+/// checkpoint itself, or a policy server running it).
+pub fn eval_checkpoint(
+    models: &pipeline::Models<'_>,
+    policy: Policy,
+    d0s: &[usize],
+    episodes: usize,
+    seed: u64,
+) -> Result<(Vec<super::Cell>, Vec<String>)> {
+    let task = BallPlateTask::new(DemoConfig {
+        episodes,
+        seeds: vec![seed],
+        ..DemoConfig::default()
+    });
+    let rows: Vec<Row> = task
+        .rows()
+        .into_iter()
+        .filter(|r| r.policy == policy)
+        .collect();
+    let labels = rows.iter().map(|r| r.label.clone()).collect();
+    let study = Study {
+        seed_base: 0,
+        ..Study::deployment(rows, d0s)
+    };
+    let cells = pipeline::evaluate(&task, &study, &|_, _| models, &ProgressBar::hidden())?;
+    Ok((cells, labels))
+}
+
+/// A fresh output directory under `runs/`.
+pub fn default_out_dir() -> PathBuf {
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    PathBuf::from("runs").join(format!("demo-{t}"))
+}

@@ -1,0 +1,94 @@
+//! A study's results: one [`Cell`] per row × seed × column, aggregated over seeds into
+//! plot series and a Markdown table.
+
+use serde::{Deserialize, Serialize};
+
+use crate::plot::Series;
+
+/// One cell of a study: a row (policy + mode) at one `d0` and seed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Cell {
+    /// Row label.
+    pub label: String,
+    /// Unit delay.
+    pub d0: usize,
+    /// Training/evaluation seed.
+    pub seed: u64,
+    /// Episodes that succeeded.
+    pub successes: usize,
+    /// Episodes run.
+    pub episodes: usize,
+    /// Overrun ticks over all episodes.
+    pub overruns: u64,
+}
+
+impl Cell {
+    /// Success rate.
+    pub fn rate(&self) -> f64 {
+        self.successes as f64 / self.episodes.max(1) as f64
+    }
+}
+
+/// Mean and (population) standard deviation.
+pub fn mean_std(xs: &[f64]) -> (f64, f64) {
+    if xs.is_empty() {
+        return (0.0, 0.0);
+    }
+    let m = xs.iter().sum::<f64>() / xs.len() as f64;
+    let v = xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / xs.len() as f64;
+    (m, v.sqrt())
+}
+
+/// Aggregate cells into one series per label: `(d0, mean, std)` over seeds.
+pub fn to_series(cells: &[Cell], labels: &[String], d0s: &[usize]) -> Vec<Series> {
+    labels
+        .iter()
+        .map(|l| Series {
+            label: l.clone(),
+            points: d0s
+                .iter()
+                .filter_map(|&d0| {
+                    let rates: Vec<f64> = cells
+                        .iter()
+                        .filter(|c| &c.label == l && c.d0 == d0)
+                        .map(Cell::rate)
+                        .collect();
+                    (!rates.is_empty()).then(|| {
+                        let (m, s) = mean_std(&rates);
+                        (d0 as f64, m, s)
+                    })
+                })
+                .collect(),
+        })
+        .filter(|s| !s.points.is_empty())
+        .collect()
+}
+
+/// A Markdown table: one row per label, one column per `d0`, `mean ± std`.
+pub fn table(cells: &[Cell], labels: &[String], d0s: &[usize]) -> String {
+    table_keyed(cells, labels, d0s, "d0")
+}
+
+/// [`table`] with the columns named `key=` (`d0`, `h`).
+pub fn table_keyed(cells: &[Cell], labels: &[String], columns: &[usize], key: &str) -> String {
+    let mut out = String::from("| policy / mode |");
+    for c in columns {
+        out += &format!(" {key}={c} |");
+    }
+    out += "\n|---|";
+    for _ in columns {
+        out += "---|";
+    }
+    out += "\n";
+    for s in to_series(cells, labels, columns) {
+        out += &format!("| {} |", s.label);
+        for &c in columns {
+            match s.points.iter().find(|p| p.0 as usize == c) {
+                Some(p) => out += &format!(" {:.2} ± {:.2} |", p.1, p.2),
+                None => out += " – |",
+            }
+        }
+        out += "\n";
+    }
+    out
+}

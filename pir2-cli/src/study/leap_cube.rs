@@ -1,0 +1,466 @@
+//! The Leap-hand cube task (feature `mujoco`): MPC-expert demonstrations in a
+//! LeRobotDataset v3.0, Conditional U-Net 1D policies, the deployment study (modes × unit
+//! delay) and the zero-delay horizon study (sync flow `h ∈ {1, 2, 4, 8}` vs πR²).
+//!
+//! Defaults of [`LeapStudyConfig`] are a reduced scale that fits a shared 2-core machine in
+//! minutes; the paper's scale is noted on every field.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+use pir2_backends::config::{FilmMode, ModelConfig, SlowSpec, Spec, UNetConfig};
+use pir2_backends::train::TrainConfig;
+use pir2_runtime::{LockstepTiming, Mode};
+use pir2_sim::dataset::{
+    read_dataset, DatasetSpec, DatasetSummary, DatasetWriter, Episode, WriteMode,
+};
+use pir2_sim::leap::{CollectConfig, LeapConfig, LeapCubeEnv, LeapModel, MpcConfig, NU};
+
+use super::pipeline::{self, bar, log_line};
+use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, Task};
+
+/// The policies of the Leap study.
+pub const POLICIES: [Policy; 4] = [Policy::PiR2, Policy::PiR2Full, Policy::Rtc, Policy::Flow];
+
+/// The study's scale. Defaults: the reduced scale run on this machine (paper values in the
+/// field docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LeapStudyConfig {
+    /// Dataset directory (collected with [`collect_leap`]).
+    pub dataset: String,
+    /// Optimiser steps per policy (paper: far more; not stated per policy).
+    pub train_steps: usize,
+    /// Batch size (paper 256).
+    pub batch_size: usize,
+    /// Peak learning rate (paper 1e-4, cosine).
+    pub lr: f64,
+    /// Warm-up steps (paper 500).
+    pub warmup: usize,
+    /// U-Net channel widths per level (paper: the diffusion-policy U-Net, 256/512/1024).
+    pub widths: Vec<usize>,
+    /// GroupNorm groups.
+    pub groups: usize,
+    /// Checkpoints validated in closed loop per policy.
+    pub checkpoints: usize,
+    /// Closed-loop validation episodes per checkpoint (at d0 = 2).
+    pub val_episodes: usize,
+    /// Evaluation episodes per cell (paper 100).
+    pub episodes: usize,
+    /// Training/evaluation seeds.
+    pub seeds: Vec<u64>,
+    /// Unit delays of the deployment study.
+    pub d0s: Vec<usize>,
+    /// Execution horizons of the horizon study.
+    pub hs: Vec<usize>,
+    /// NFEs per action of the small-n πR² policy.
+    pub nfe: usize,
+    /// Euler steps of the flow baselines.
+    pub flow_steps: usize,
+    /// Episode length in control steps (paper 600).
+    pub max_steps: usize,
+    /// Worker threads.
+    pub threads: usize,
+    /// Directory of trained policies (`<policy>-seed<s>/best`, as written by
+    /// [`train_policies`] / `pir2 train leap-cube` or an earlier study's `checkpoints/`):
+    /// policies found there are loaded instead of trained.
+    pub pretrained: Option<String>,
+    /// Policies whose rows are run (all four by default; rows of the others are skipped).
+    pub policies: Vec<Policy>,
+}
+
+impl Default for LeapStudyConfig {
+    fn default() -> Self {
+        Self {
+            dataset: "runs/leap-dataset".into(),
+            train_steps: 400,
+            batch_size: 64,
+            lr: 1e-3,
+            warmup: 40,
+            widths: vec![32, 64],
+            groups: 8,
+            checkpoints: 2,
+            val_episodes: 2,
+            episodes: 4,
+            seeds: vec![0],
+            d0s: vec![1, 2, 3],
+            hs: vec![1, 2, 4, 8],
+            nfe: 2,
+            flow_steps: 10,
+            max_steps: 300,
+            threads: 2,
+            pretrained: None,
+            policies: POLICIES.to_vec(),
+        }
+    }
+}
+
+/// Names of the 32 fast entries (noisy joint angles, noisy joint angle − motor target).
+pub fn fast_names() -> Vec<String> {
+    (0..NU)
+        .map(|i| format!("q{i}"))
+        .chain((0..NU).map(|i| format!("q{i}_minus_target{i}")))
+        .collect()
+}
+
+/// Names of the 9 slow (cube) entries: palm − cube position, rows 2–3 of R(cube quat).
+pub fn slow_names() -> Vec<String> {
+    let mut v: Vec<String> = [
+        "palm_minus_cube_x",
+        "palm_minus_cube_y",
+        "palm_minus_cube_z",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    for r in 2..=3 {
+        for c in 1..=3 {
+            v.push(format!("cube_rot_r{r}c{c}"));
+        }
+    }
+    v
+}
+
+/// The Leap cube's dataset: 50 fps, 32 fast / 9 slow / 16 action entries.
+pub fn dataset_spec() -> DatasetSpec {
+    DatasetSpec {
+        fps: 50,
+        robot_type: Some("leap_hand".into()),
+        tasks: vec!["reorient the cube blue side up".into()],
+        fast_names: fast_names(),
+        slow_names: slow_names(),
+        action_names: (0..NU).map(|i| format!("motor_target_delta{i}")).collect(),
+    }
+}
+
+/// The model spec: H = 16, 16-d action, n_obs = 2, 32 fast, 9 slow, d_vis ≤ 3.
+pub fn spec() -> Spec {
+    Spec {
+        horizon: 16,
+        action_dim: NU,
+        n_obs: 2,
+        fast_dim: 32,
+        slow: SlowSpec::Vector { dim: 9 },
+        d_vis_max: 3,
+    }
+}
+
+fn load_model() -> Result<LeapModel> {
+    LeapModel::load(None)
+        .context("loading the Leap cube scene (source .native/env.sh; see scripts/setup-native.sh)")
+}
+
+/// The Leap cube task with a [`LeapStudyConfig`] (holds the loaded scene).
+pub struct LeapCubeTask {
+    cfg: LeapStudyConfig,
+    scene: LeapModel,
+}
+
+impl std::fmt::Debug for LeapCubeTask {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LeapCubeTask")
+            .field("cfg", &self.cfg)
+            .finish_non_exhaustive()
+    }
+}
+
+impl LeapCubeTask {
+    /// Load the scene.
+    pub fn new(cfg: LeapStudyConfig) -> Result<Self> {
+        Ok(Self {
+            cfg,
+            scene: load_model()?,
+        })
+    }
+
+    /// The horizon study at zero delay (`call_ticks = 0`, no slow delay): sync flow with
+    /// each `h ∈ hs` vs πR² (n = `nfe`, and the full ramp), which acts every tick. πR² does
+    /// not depend on `h`: it is evaluated once and its cell repeated in every column.
+    pub fn horizon_study(&self) -> Study {
+        let c = &self.cfg;
+        let zero = LockstepTiming::zero_latency();
+        let rows = self.rows();
+        let find = |p: Policy, m: fn(&Mode) -> bool| {
+            rows.iter().find(|r| r.policy == p && m(&r.mode)).cloned()
+        };
+        let mut out = Vec::new();
+        if c.policies.contains(&Policy::Flow) {
+            let steps = c.flow_steps;
+            out.push(StudyRow {
+                row: Row {
+                    label: "sync flow".into(),
+                    policy: Policy::Flow,
+                    mode: Mode::SyncFlow { steps, h: 1 },
+                },
+                sweep: Sweep::Horizon,
+            });
+        }
+        let pir2 = find(Policy::PiR2, |m| matches!(m, Mode::PiR2Async { .. }));
+        if let Some(r) = pir2 {
+            out.push(StudyRow {
+                row: Row {
+                    label: format!("πR² (n={})", c.nfe),
+                    ..r
+                },
+                sweep: Sweep::Once(zero),
+            });
+        }
+        if let Some(r) = find(Policy::PiR2Full, |_| true) {
+            out.push(StudyRow {
+                row: Row {
+                    label: "πR², paper full ramp".into(),
+                    ..r
+                },
+                sweep: Sweep::Once(zero),
+            });
+        }
+        Study {
+            name: "horizon".into(),
+            key: "h".into(),
+            x_label: "execution horizon h (ticks), zero delay".into(),
+            columns: c.hs.clone(),
+            rows: out,
+            seed_base: 3_000_000,
+        }
+    }
+}
+
+impl Task for LeapCubeTask {
+    type Env = LeapCubeEnv;
+    type Config = LeapStudyConfig;
+
+    fn config(&self) -> &LeapStudyConfig {
+        &self.cfg
+    }
+
+    fn settings(&self) -> Settings {
+        let c = &self.cfg;
+        Settings {
+            pretrained: c.pretrained.as_ref().map(Into::into),
+            ..Settings::from_config(
+                c.nfe,
+                c.flow_steps,
+                &c.seeds,
+                c.episodes,
+                c.checkpoints,
+                c.val_episodes,
+                c.threads,
+            )
+        }
+    }
+
+    fn spec(&self) -> Spec {
+        spec()
+    }
+
+    fn period_ns(&self) -> u64 {
+        20_000_000
+    }
+
+    fn make_env(&self) -> Result<LeapCubeEnv> {
+        let cfg = LeapConfig {
+            max_steps: self.cfg.max_steps,
+            ..LeapConfig::paper()
+        };
+        Ok(LeapCubeEnv::new(&self.scene, cfg)?)
+    }
+
+    /// U-Net with per-position FiLM for the πR² policies, shared FiLM for the baselines.
+    fn model(&self, policy: Policy) -> ModelConfig {
+        let film = match policy {
+            Policy::Rtc | Policy::Flow => FilmMode::Shared,
+            _ => FilmMode::PerPosition,
+        };
+        ModelConfig::UNet(UNetConfig {
+            widths: self.cfg.widths.clone(),
+            groups: self.cfg.groups,
+            tau_dim: 32,
+            dvis_dim: 8,
+            film,
+            ..UNetConfig::default()
+        })
+    }
+
+    /// AdamW β = (0.95, 0.999), cosine to 0, wd 1e-6, clip 1.0; steps, batch, lr and
+    /// warm-up from the config.
+    fn optimiser(&self) -> TrainConfig {
+        let c = &self.cfg;
+        TrainConfig {
+            steps: c.train_steps,
+            batch_size: c.batch_size,
+            lr: c.lr,
+            min_lr: 0.0,
+            warmup: c.warmup.min(c.train_steps.saturating_sub(1)),
+            betas: (0.95, 0.999),
+            weight_decay: 1e-6,
+            grad_clip: Some(1.0),
+            ema: None,
+            log_every: 50,
+            ..TrainConfig::default()
+        }
+    }
+
+    /// Naive async with ensembling, train-time RTC, πR² without and with async, πR² full
+    /// ramp (rows of policies outside the config's `policies` are left out).
+    fn rows(&self) -> Vec<Row> {
+        let r = self.settings().recipe;
+        [Policy::Flow, Policy::Rtc, Policy::PiR2, Policy::PiR2Full]
+            .iter()
+            .filter(|p| self.cfg.policies.contains(p))
+            .flat_map(|p| p.deployments(&r))
+            .filter(|d| match d.mode {
+                Mode::SyncFlow { .. } => false,
+                Mode::NaiveAsync { ensemble, .. } => ensemble.is_some(),
+                _ => true,
+            })
+            .collect()
+    }
+
+    /// The successful episodes of the config's dataset.
+    fn demonstrations(&self, _out: &Path) -> Result<Vec<Episode>> {
+        load_demos(Path::new(&self.cfg.dataset))
+    }
+
+    fn title(&self, study: &str) -> String {
+        format!(
+            "Leap cube ({study} study): success (mean ± std over {} seeds)",
+            self.cfg.seeds.len()
+        )
+    }
+}
+
+fn to_dataset_episode(ep: &pir2_sim::leap::Episode) -> Episode {
+    let mut out = Episode::new(32, 9, NU);
+    for f in &ep.frames {
+        out.push(&f.fast, &f.slow, &f.action);
+    }
+    out.done = ep.frames.last().map(|f| f.done).unwrap_or(false);
+    out.success = ep.success;
+    out.seed = ep.env_seed;
+    out
+}
+
+/// Collect `per_seed` expert episodes for each collection seed into the LeRobotDataset at
+/// `out`. Episodes are ordered seed-major (global index `k·per_seed + i` is episode `i` of
+/// `seeds[k]`); with [`WriteMode::Resume`] the episodes already in the dataset are skipped,
+/// so an interrupted collection continues where it stopped (the writer is finished every
+/// 5 episodes). All episodes are written, failures included (`next.success` says which);
+/// training uses the successful ones. `fast_expert` selects [`MpcConfig::fast`]; either
+/// recipe runs with [`MpcConfig::pin_first_knot`] so the demonstrated actions are smooth.
+pub fn collect_leap(
+    out: &Path,
+    seeds: &[u64],
+    per_seed: usize,
+    mode: WriteMode,
+    fast_expert: bool,
+) -> Result<DatasetSummary> {
+    let model = load_model()?;
+    let mut w = DatasetWriter::open(out, dataset_spec(), mode)
+        .with_context(|| format!("opening dataset {}", out.display()))?;
+    let total = seeds.len() * per_seed;
+    let mut done = w.num_episodes();
+    if done > total {
+        bail!(
+            "dataset {} already holds {done} episodes, more than the {total} requested",
+            out.display()
+        );
+    }
+    let pb = bar(total as u64, "collecting Leap-cube demonstrations");
+    pb.set_position(done as u64);
+    let base = if fast_expert {
+        MpcConfig::fast()
+    } else {
+        MpcConfig::default()
+    };
+    // Smooth executed targets: without this the actions are mostly the winning sample's
+    // fresh perturbation (std ≈ 0.5 in [−1, 1], no temporal structure) and a cloned policy
+    // learns noise (flow loss stuck at its zero-prediction value).
+    let mpc = MpcConfig {
+        pin_first_knot: true,
+        ..base
+    };
+    let mut successes = 0usize;
+    let mut summary = None;
+    let t0 = Instant::now();
+    while done < total {
+        let (k, i) = (done / per_seed, done % per_seed);
+        let end = (i + 5).min(per_seed);
+        let cfg = CollectConfig {
+            env: LeapConfig::paper(),
+            mpc,
+            seed: seeds[k],
+        };
+        let eps = pir2_sim::leap::collect(&model, &cfg, i..end, |_| pb.inc(1))?;
+        for ep in &eps {
+            successes += ep.success as usize;
+            w.append(&to_dataset_episode(ep))?;
+        }
+        done += eps.len();
+        summary = Some(w.finish()?);
+        w = DatasetWriter::open(out, dataset_spec(), WriteMode::Resume)?;
+        pb.set_message(format!("collecting ({successes} successes)"));
+        log_line(&format!(
+            "collected {done}/{total} episodes ({successes} successes this session), {:.0} s",
+            t0.elapsed().as_secs_f64()
+        ));
+    }
+    pb.finish();
+    match summary {
+        Some(s) => Ok(s),
+        None => Ok(w.finish()?),
+    }
+}
+
+/// Load the dataset and keep the successful episodes.
+pub fn load_demos(root: &Path) -> Result<Vec<Episode>> {
+    let ds = read_dataset(root).with_context(|| format!("reading dataset {}", root.display()))?;
+    let eps: Vec<Episode> = ds
+        .episodes
+        .into_iter()
+        .filter(|e| e.success && e.len() >= 2)
+        .collect();
+    if eps.is_empty() {
+        bail!("dataset {} has no successful episodes", root.display());
+    }
+    Ok(eps)
+}
+
+/// Result of a Leap study.
+pub type LeapStudyResult = StudyResult<LeapStudyConfig>;
+
+/// Train `policies` × `cfg.seeds` on the dataset `cfg.dataset` into `out` (a new directory):
+/// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the chosen
+/// checkpoint `best/`. Point [`LeapStudyConfig::pretrained`] at `out` to evaluate them.
+pub fn train_policies(
+    cfg: &LeapStudyConfig,
+    policies: &[Policy],
+    out: &Path,
+) -> Result<Vec<(Policy, u64, Scores)>> {
+    if let Some(p) = policies.iter().find(|p| !POLICIES.contains(p)) {
+        bail!("policy {p:?} is not part of the leap-cube study ({POLICIES:?})");
+    }
+    let task = LeapCubeTask::new(LeapStudyConfig {
+        pretrained: None,
+        ..cfg.clone()
+    })?;
+    pipeline::train_into(&task, policies, out)
+}
+
+/// Deployment study: every row × `d0s` × seeds through the lock-step runtime with
+/// `LockstepTiming::for_mode` (h = d, slow features delayed by d_vis). Writes
+/// `result.json`, `table.md`, `success.png` into `out` (a new directory).
+pub fn study_deployment(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResult> {
+    let task = LeapCubeTask::new(cfg.clone())?;
+    let study = Study::deployment(task.rows(), &cfg.d0s);
+    pipeline::run(&task, &study, out)
+}
+
+/// Horizon study ([`LeapCubeTask::horizon_study`]) into `out` (a new directory).
+pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResult> {
+    let task = LeapCubeTask::new(cfg.clone())?;
+    let study = task.horizon_study();
+    pipeline::run(&task, &study, out)
+}

@@ -1,0 +1,562 @@
+//! The one pipeline every [`Task`] runs: demonstrations → train each `(policy, seed)` with
+//! closed-loop checkpoint validation → evaluate rows × seeds × columns through the lock-step
+//! runtime → `result.json`, `table.md`, `success.png`.
+//!
+//! There is one closed loop ([`closed_loop`]); what runs the action head comes from a
+//! [`Models`] factory: a local candle model, or a remote one (`pir2 eval --remote`).
+
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use pir2_backends::candle::CandleModel;
+use pir2_backends::config::Config;
+use pir2_backends::train::{compute_stats, Dataset, Progress, TrainConfig, Trainer};
+use pir2_runtime::lockstep::eval_cell;
+use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
+use pir2_sim::dataset::Episode;
+
+use super::{Cell, Policy, Scores, Study, StudyResult, Sweep, Task};
+use crate::plot::plot_series;
+
+/// A progress bar with the studies' style.
+pub fn bar(len: u64, msg: &str) -> ProgressBar {
+    let pb = ProgressBar::new(len);
+    pb.set_style(
+        ProgressStyle::with_template("{msg:<34} [{bar:30}] {pos}/{len} {elapsed_precise}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_message(msg.to_string());
+    pb
+}
+
+/// A progress line for logs (progress bars are invisible when stderr is not a terminal).
+pub fn log_line(msg: &str) {
+    use std::io::IsTerminal;
+    if !std::io::stderr().is_terminal() {
+        eprintln!("{msg}");
+    }
+}
+
+/// Create `out`, refusing a directory that exists and is not empty.
+pub fn prepare_out(out: &Path) -> Result<()> {
+    if out.exists()
+        && std::fs::read_dir(out)
+            .map(|mut d| d.next().is_some())
+            .unwrap_or(true)
+    {
+        bail!(
+            "output directory {} exists and is not empty; choose another with --out",
+            out.display()
+        );
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
+}
+
+/// Sim episodes as a training dataset.
+#[derive(Debug)]
+pub struct Episodes<'a>(pub &'a [Episode]);
+
+impl Dataset for Episodes<'_> {
+    fn num_episodes(&self) -> usize {
+        self.0.len()
+    }
+    fn episode_len(&self, e: usize) -> usize {
+        self.0[e].len()
+    }
+    fn fast(&self, e: usize, t: usize) -> &[f32] {
+        self.0[e].fast(t)
+    }
+    fn slow(&self, e: usize, t: usize) -> &[f32] {
+        self.0[e].slow(t)
+    }
+    fn action(&self, e: usize, t: usize) -> &[f32] {
+        self.0[e].action(t)
+    }
+}
+
+type MakeModel<'a> = Box<dyn Fn() -> Box<dyn VelocityModel> + Sync + 'a>;
+
+/// What runs the action head in a closed loop: a factory of velocity models (one per
+/// evaluation thread) and the map that denormalises their actions.
+pub struct Models<'a> {
+    output: OutputMap,
+    make: MakeModel<'a>,
+}
+
+impl std::fmt::Debug for Models<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Models")
+            .field("output", &self.output)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<'a> Models<'a> {
+    /// Models made by `make`, their actions denormalised by `output`.
+    pub fn new(output: OutputMap, make: impl Fn() -> Box<dyn VelocityModel> + Sync + 'a) -> Self {
+        Models {
+            output,
+            make: Box::new(make),
+        }
+    }
+
+    /// Copies of a candle model (same weights, own scratch per thread).
+    pub fn local(m: &CandleModel) -> Result<Models<'static>> {
+        let weights = m.snapshot()?;
+        let (config, stats) = (m.config().clone(), m.stats().clone());
+        Ok(Models::new(output_map(m), move || {
+            let mut c =
+                CandleModel::new(config.clone(), stats.clone(), 0).expect("config was valid");
+            c.restore(&weights).expect("same architecture");
+            Box::new(c)
+        }))
+    }
+}
+
+/// The output map that denormalises a candle model's actions.
+pub fn output_map(m: &CandleModel) -> OutputMap {
+    let n = &m.stats().action;
+    OutputMap {
+        scale: n.std.clone(),
+        offset: n.mean.clone(),
+    }
+}
+
+/// The action head's spec for `policy` on `task`.
+pub fn head_spec<T: Task>(task: &T, policy: Policy) -> HeadSpec {
+    let s = task.spec();
+    HeadSpec {
+        horizon: s.horizon,
+        action_dim: s.action_dim,
+        n_obs: s.n_obs,
+        fast_dim: s.fast_dim,
+        slow_dim: s.slow.len(),
+        period: task.period_ns(),
+        d_max: policy.d_max(),
+        d_vis_max: s.d_vis_max,
+    }
+}
+
+/// Closed-loop successes (and overrun ticks) of `policy`'s models under `mode` with `timing`
+/// over `episodes` episodes seeded from `seed`, on `threads` threads.
+#[allow(clippy::too_many_arguments)]
+pub fn closed_loop<T: Task>(
+    task: &T,
+    models: &Models<'_>,
+    policy: Policy,
+    mode: &Mode,
+    timing: LockstepTiming,
+    episodes: usize,
+    seed: u64,
+    threads: usize,
+    progress: &(dyn Fn() + Sync),
+) -> Result<(usize, u64)> {
+    let make_env = || {
+        task.make_env()
+            .expect("the task's environment config is valid")
+    };
+    let make_model = || (models.make)();
+    Ok(eval_cell(
+        &make_env,
+        &make_model,
+        head_spec(task, policy),
+        mode,
+        timing,
+        &models.output,
+        episodes,
+        seed,
+        threads,
+        progress,
+    )?)
+}
+
+/// Train `policy` on `demos` (seeded); the checkpoint is chosen by closed-loop validation
+/// ([`Task::validation_mode`] at the settings' `val_d0`). With `out_dir`, step checkpoints,
+/// `loss.jsonl` and `best.json` are written there. `on_step` sees the optimiser step.
+pub fn train_policy<T: Task>(
+    task: &T,
+    demos: &[Episode],
+    policy: Policy,
+    seed: u64,
+    out_dir: Option<&Path>,
+    on_step: &dyn Fn(usize),
+) -> Result<(CandleModel, Scores)> {
+    let spec = task.spec();
+    let stats = compute_stats(&Episodes(demos), &spec)?;
+    let config = Config {
+        spec,
+        model: task.model(policy),
+    };
+    let mut model = CandleModel::new(config, stats, seed)?;
+    let s = task.settings();
+    let base = task.optimiser();
+    let tc = TrainConfig {
+        seed,
+        schedule: policy.schedule(s.recipe.nfe),
+        checkpoint_every: Some((base.steps / s.checkpoints.max(1)).max(1)),
+        ..base
+    };
+    let val_mode = task.validation_mode(policy);
+    let val_timing = LockstepTiming::for_mode(&val_mode, s.val_d0);
+    let val_seed = 1_000_000 + seed;
+    let t0 = Instant::now();
+    let mut loss_sum = 0.0f64;
+    let on_progress = |p: &Progress| {
+        on_step(p.step);
+        loss_sum += p.loss as f64;
+        if p.step % 100 == 0 || p.step == p.steps {
+            log_line(&format!(
+                "  {policy:?} seed {seed}: step {}/{}, mean loss {:.4}, {:.1} steps/s",
+                p.step,
+                p.steps,
+                loss_sum / 100.0,
+                p.step as f64 / t0.elapsed().as_secs_f64()
+            ));
+            loss_sum = 0.0;
+        }
+    };
+    let mut scores = Vec::new();
+    let mut trainer = Trainer::new(tc)
+        .on_progress(on_progress)
+        .validate(|m, step| {
+            let ok = Models::local(m)
+                .and_then(|models| {
+                    closed_loop(
+                        task,
+                        &models,
+                        policy,
+                        &val_mode,
+                        val_timing,
+                        s.val_episodes,
+                        val_seed,
+                        1,
+                        &|| {},
+                    )
+                })
+                .map(|r| r.0)
+                .unwrap_or(0); // an error counts as no success
+            log_line(&format!(
+                "  {policy:?} seed {seed}: checkpoint validation {ok}/{} at d0 = {}",
+                s.val_episodes, s.val_d0
+            ));
+            let rate = ok as f64 / s.val_episodes.max(1) as f64;
+            scores.push((step, rate));
+            rate
+        });
+    if let Some(d) = out_dir {
+        trainer = trainer.out_dir(d);
+    }
+    trainer.run(&mut model, &Episodes(demos))?;
+    Ok((model, scores))
+}
+
+/// One trained `(policy, seed)`.
+#[derive(Debug)]
+pub struct Trained {
+    /// Policy.
+    pub policy: Policy,
+    /// Seed.
+    pub seed: u64,
+    /// The chosen checkpoint.
+    pub model: CandleModel,
+    /// Its closed-loop validation scores (empty when loaded).
+    pub scores: Scores,
+}
+
+/// Directory name of a trained policy under a checkpoints directory.
+pub fn policy_dir(p: Policy, seed: u64) -> String {
+    format!("{p:?}-seed{seed}").to_lowercase()
+}
+
+/// Run `train(job index, policy, seed)` for every job on `threads` worker threads (jobs are
+/// taken in order; each is seeded on its own, so the result does not depend on `threads`).
+/// Returns the results in job order.
+pub fn train_jobs<P, T>(
+    jobs: &[(P, u64)],
+    threads: usize,
+    train: impl Fn(usize, P, u64) -> Result<T> + Sync,
+) -> Result<Vec<T>>
+where
+    P: Copy + Sync,
+    T: Send,
+{
+    let next = AtomicUsize::new(0);
+    let results: Vec<Result<Vec<(usize, T)>>> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..threads.clamp(1, jobs.len().max(1)))
+            .map(|_| {
+                s.spawn(|| -> Result<Vec<(usize, T)>> {
+                    let mut mine = Vec::new();
+                    loop {
+                        let j = next.fetch_add(1, Ordering::SeqCst);
+                        if j >= jobs.len() {
+                            return Ok(mine);
+                        }
+                        let (policy, seed) = jobs[j];
+                        mine.push((j, train(j, policy, seed)?));
+                    }
+                })
+            })
+            .collect();
+        hs.into_iter()
+            .map(|h| h.join().expect("training thread panicked"))
+            .collect()
+    });
+    let mut out: Vec<Option<T>> = (0..jobs.len()).map(|_| None).collect();
+    for r in results {
+        for (j, t) in r? {
+            out[j] = Some(t);
+        }
+    }
+    Ok(out.into_iter().map(|t| t.expect("every job ran")).collect())
+}
+
+/// Train (or load from the settings' `pretrained`) every policy × seed on the worker
+/// threads; each trained policy's run goes to `ckpt_root/<policy>-seed<s>/` and its chosen
+/// checkpoint to `.../best`.
+pub fn train_all<T: Task>(
+    task: &T,
+    demos: &[Episode],
+    policies: &[Policy],
+    ckpt_root: &Path,
+) -> Result<Vec<Trained>> {
+    let s = task.settings();
+    let steps = task.optimiser().steps;
+    let jobs: Vec<(Policy, u64)> = s
+        .seeds
+        .iter()
+        .flat_map(|&seed| policies.iter().map(move |&p| (p, seed)))
+        .collect();
+    let pb = bar(
+        (jobs.len() * steps) as u64,
+        &format!("training {} policies", jobs.len()),
+    );
+    let done = AtomicUsize::new(0);
+    let models = train_jobs(&jobs, s.threads, |i, policy, seed| {
+        if let Some(dir) = &s.pretrained {
+            let best = dir.join(policy_dir(policy, seed)).join("best");
+            if best.exists() {
+                let model = CandleModel::load_expect(&best, &task.spec())
+                    .with_context(|| format!("loading {}", best.display()))?;
+                log_line(&format!(
+                    "loaded {policy:?} seed {seed} from {}",
+                    best.display()
+                ));
+                return Ok((model, Vec::new()));
+            }
+        }
+        let t = Instant::now();
+        let ckpt = ckpt_root.join(policy_dir(policy, seed));
+        let (model, scores) = train_policy(task, demos, policy, seed, Some(&ckpt), &|_| {})?;
+        model.save(&ckpt.join("best"))?;
+        pb.set_position((done.fetch_add(1, Ordering::SeqCst) + 1) as u64 * steps as u64);
+        log_line(&format!(
+            "trained {policy:?} seed {seed} ({}/{}) in {:.0} s; closed-loop validation (step, success): {scores:?}",
+            i + 1,
+            jobs.len(),
+            t.elapsed().as_secs_f64()
+        ));
+        Ok((model, scores))
+    })?;
+    pb.finish();
+    Ok(jobs
+        .into_iter()
+        .zip(models)
+        .map(|((policy, seed), (model, scores))| Trained {
+            policy,
+            seed,
+            model,
+            scores,
+        })
+        .collect())
+}
+
+/// Evaluate every row × seed × column of `study` (in that order) over the settings'
+/// episodes; `models(policy, seed)` supplies what runs the action head.
+pub fn evaluate<'m, T: Task>(
+    task: &T,
+    study: &Study,
+    models: &dyn Fn(Policy, u64) -> &'m Models<'m>,
+    pb: &ProgressBar,
+) -> Result<Vec<Cell>> {
+    let s = task.settings();
+    let zero = LockstepTiming::zero_latency();
+    let mut cells = Vec::new();
+    for r in &study.rows {
+        let (label, policy) = (&r.row.label, r.row.policy);
+        for &seed in &s.seeds {
+            let m = models(policy, seed);
+            let run = |mode: &Mode, timing| {
+                closed_loop(
+                    task,
+                    m,
+                    policy,
+                    mode,
+                    timing,
+                    s.episodes,
+                    study.seed_base + seed,
+                    s.threads,
+                    &|| pb.inc(1),
+                )
+            };
+            let once = match r.sweep {
+                Sweep::Once(timing) => {
+                    let res = run(&r.row.mode, timing)?;
+                    log_line(&format!("{label} seed {seed}: {}/{}", res.0, s.episodes));
+                    Some(res)
+                }
+                _ => None,
+            };
+            for &col in &study.columns {
+                let (successes, overruns) = match (r.sweep, once) {
+                    (_, Some(res)) => res,
+                    (Sweep::Horizon, None) => {
+                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
+                            bail!("row {label}: a horizon sweep needs a sync-flow mode");
+                        };
+                        let res = run(&Mode::SyncFlow { steps, h: col }, zero)?;
+                        log_line(&format!(
+                            "{label} h={col} seed {seed}: {}/{}",
+                            res.0, s.episodes
+                        ));
+                        res
+                    }
+                    _ => {
+                        let mode = &r.row.mode;
+                        let res = run(mode, LockstepTiming::for_mode(mode, col))?;
+                        log_line(&format!(
+                            "{policy:?} {mode:?} d0={col} seed {seed}: {}/{}",
+                            res.0, s.episodes
+                        ));
+                        res
+                    }
+                };
+                cells.push(Cell {
+                    label: label.clone(),
+                    d0: col,
+                    seed,
+                    successes,
+                    episodes: s.episodes,
+                    overruns,
+                });
+            }
+        }
+    }
+    Ok(cells)
+}
+
+/// Episodes `study` runs in total (for a progress bar).
+pub fn total_episodes<T: Task>(task: &T, study: &Study) -> usize {
+    let s = task.settings();
+    let per_seed: usize = study
+        .rows
+        .iter()
+        .map(|r| match r.sweep {
+            Sweep::Once(_) => 1,
+            _ => study.columns.len(),
+        })
+        .sum();
+    per_seed * s.seeds.len() * s.episodes
+}
+
+/// Run `study` on `task` into `out` (a new directory): demonstrations, training (checkpoints
+/// under `out/checkpoints/`), evaluation; writes `result.json`, `table.md`, `success.png`.
+pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T::Config>> {
+    prepare_out(out)?;
+    let t0 = Instant::now();
+    let mut timings = Vec::new();
+    let demos = task.demonstrations(out)?;
+    timings.push(("collect".to_string(), t0.elapsed().as_secs_f64()));
+
+    let t1 = Instant::now();
+    let trained = train_all(task, &demos, &study.policies(), &out.join("checkpoints"))?;
+    timings.push(("train".to_string(), t1.elapsed().as_secs_f64()));
+
+    let t2 = Instant::now();
+    let pb = bar(
+        total_episodes(task, study) as u64,
+        &format!("evaluating ({} study)", study.name),
+    );
+    let local = trained
+        .iter()
+        .map(|t| Ok((t.policy, t.seed, Models::local(&t.model)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let cells = evaluate(
+        task,
+        study,
+        &|p, s| {
+            &local
+                .iter()
+                .find(|m| m.0 == p && m.1 == s)
+                .expect("every policy of the study was trained")
+                .2
+        },
+        &pb,
+    )?;
+    pb.finish();
+    timings.push(("evaluate".to_string(), t2.elapsed().as_secs_f64()));
+    timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
+    let result = StudyResult {
+        study: study.name.clone(),
+        config: task.config().clone(),
+        demos: demos.len(),
+        labels: study.rows.iter().map(|r| r.row.label.clone()).collect(),
+        key: study.key.clone(),
+        columns: study.columns.clone(),
+        cells,
+        validation: trained
+            .iter()
+            .map(|t| (t.policy, t.seed, t.scores.clone()))
+            .collect(),
+        timings,
+    };
+    write_outputs(task, &result, &study.x_label, out)?;
+    Ok(result)
+}
+
+/// Train `policies` × the settings' seeds into `out` (a new directory):
+/// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the
+/// chosen checkpoint `best/`; the task's config is written to `out/config.toml`.
+pub fn train_into<T: Task>(
+    task: &T,
+    policies: &[Policy],
+    out: &Path,
+) -> Result<Vec<(Policy, u64, Scores)>> {
+    prepare_out(out)?;
+    let demos = task.demonstrations(out)?;
+    let trained = train_all(task, &demos, policies, out)?;
+    std::fs::write(
+        out.join("config.toml"),
+        toml::to_string(task.config()).context("serialising the config")?,
+    )?;
+    Ok(trained
+        .into_iter()
+        .map(|t| (t.policy, t.seed, t.scores))
+        .collect())
+}
+
+/// Write `result.json`, `table.md` and `success.png` into `out`.
+pub fn write_outputs<T: Task>(
+    task: &T,
+    result: &StudyResult<T::Config>,
+    x_label: &str,
+    out: &Path,
+) -> Result<()> {
+    let json = serde_json::to_string_pretty(result)?;
+    std::fs::write(out.join("result.json"), json)
+        .with_context(|| format!("writing {}", out.join("result.json").display()))?;
+    std::fs::write(out.join("table.md"), result.table())?;
+    let series = super::to_series(&result.cells, &result.labels, &result.columns);
+    plot_series(
+        &out.join("success.png"),
+        &task.title(&result.study),
+        x_label,
+        "success rate",
+        &series,
+    )?;
+    Ok(())
+}

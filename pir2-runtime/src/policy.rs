@@ -1,0 +1,260 @@
+//! Policies: how a model is trained and how it is deployed, in one place.
+//!
+//! A [`Mode`] says how a trained model is run; a [`Policy`] says which training schedule
+//! (the draw recipe of [`pir2_schedule::train`]) produced the model and in which modes it is
+//! deployed. The two must agree: a πR² policy is trained on the same staircase family and
+//! the same `n` it is deployed with, a front-hidden policy hides the front in both, and the
+//! largest delay a policy must handle at run time is the largest delay it was trained on.
+//!
+//! The study tasks (ball-on-plate, Leap cube) pick their rows from [`Policy::deployments`]
+//! and train every policy with [`Policy::schedule`]; nothing else names a schedule.
+
+use serde::{Deserialize, Serialize};
+
+use pir2_schedule::train::{DelayDist, FrontVisibility, PiR2Draws, TrainSchedule};
+use pir2_schedule::{Alignment, FrontMode};
+
+use crate::mode::Mode;
+
+/// A trained policy: schedule at training time, modes at deployment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Policy {
+    /// πR², small `n` (fresh alignment), front visible.
+    PiR2,
+    /// πR², small `n`, front hidden in training and at inference.
+    PiR2Hidden,
+    /// πR² with the paper's literal full-chunk ramp (paper alignment, `n = n_max`).
+    PiR2Full,
+    /// Train-time RTC: clean front of `d`, one shared `τ` on the back.
+    Rtc,
+    /// Standard chunked flow matching (deployed sync, naive async, or with ensembling).
+    Flow,
+    /// πR², small `n`, trained for zero delay only (`d_max = 0`: every staircase draw has
+    /// `d = 0`, the streaming ramp). This is the policy of the zero-latency horizon study.
+    /// It is declared here as data (its schedule); the runtime does not deploy `d = 0` yet,
+    /// so [`Policy::deployments`] lists no mode for it.
+    PiR2ZeroDelay,
+}
+
+/// The knobs shared by a study's policies: `n` of the πR² policies, the baselines' Euler
+/// steps, the sync-flow execution horizon and the ensembling decay.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Recipe {
+    /// NFEs per action of the small-`n` πR² policies (training and inference).
+    pub nfe: usize,
+    /// Euler steps `K` of the flow baselines (standard flow, train-time RTC).
+    pub flow_steps: usize,
+    /// Execution horizon of the sync-flow row.
+    pub sync_h: usize,
+    /// Decay `m` of ACT temporal ensembling in the "naive async + TE" row.
+    pub ensemble: f32,
+}
+
+impl Default for Recipe {
+    fn default() -> Self {
+        Self {
+            nfe: 2,
+            flow_steps: 10,
+            sync_h: 8,
+            ensemble: 0.1,
+        }
+    }
+}
+
+/// One way to deploy a policy: a table label and the mode.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Deployment {
+    /// Table label.
+    pub label: String,
+    /// The policy (the trained model) deployed.
+    pub policy: Policy,
+    /// The deployment mode.
+    pub mode: Mode,
+}
+
+impl Policy {
+    /// Every policy, in table order.
+    pub const ALL: [Policy; 6] = [
+        Policy::PiR2,
+        Policy::PiR2Hidden,
+        Policy::PiR2Full,
+        Policy::Rtc,
+        Policy::Flow,
+        Policy::PiR2ZeroDelay,
+    ];
+
+    /// The largest delay the policy must handle (the trained `d_max`; the head's latency
+    /// window is capped there).
+    pub fn d_max(self) -> usize {
+        match self {
+            Policy::Rtc | Policy::Flow => 6,
+            Policy::PiR2ZeroDelay => 0,
+            Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full => 5,
+        }
+    }
+
+    /// The training schedule: the same staircase family and `n` as deployment
+    /// (α = 0.2, `d ~ U{1..5}` for πR²; `d ~ U{1..6}` for train-time RTC).
+    pub fn schedule(self, nfe: usize) -> TrainSchedule {
+        let base = PiR2Draws {
+            alpha: 0.2,
+            delay: DelayDist::Uniform { max: 5 },
+            n: Some(nfe),
+            ..Default::default()
+        };
+        match self {
+            Policy::PiR2 => TrainSchedule::PiR2(base),
+            Policy::PiR2Hidden => TrainSchedule::PiR2(PiR2Draws {
+                front: FrontVisibility::Hidden,
+                ..base
+            }),
+            Policy::PiR2Full => TrainSchedule::PiR2(PiR2Draws {
+                n: None,
+                alignment: Alignment::Paper,
+                ..base
+            }),
+            Policy::Rtc => TrainSchedule::TrainTimeRtc {
+                delay: DelayDist::Uniform { max: 6 },
+            },
+            Policy::Flow => TrainSchedule::StandardFlow,
+            // The exponential law over {0..0} draws d = 0 every time.
+            Policy::PiR2ZeroDelay => TrainSchedule::PiR2(PiR2Draws {
+                delay: DelayDist::Exponential { max: 0, rate: 1.0 },
+                ..base
+            }),
+        }
+    }
+
+    /// The modes this policy is deployed in, with their table labels, in table order.
+    pub fn deployments(self, r: &Recipe) -> Vec<Deployment> {
+        let k = r.flow_steps;
+        let fresh = |front| Mode::PiR2Async {
+            nfe: Some(r.nfe),
+            alignment: Alignment::Fresh,
+            front,
+        };
+        let rows: Vec<(String, Mode)> = match self {
+            Policy::Flow => vec![
+                (
+                    "sync flow".into(),
+                    Mode::SyncFlow {
+                        steps: k,
+                        h: r.sync_h,
+                    },
+                ),
+                (
+                    "naive async".into(),
+                    Mode::NaiveAsync {
+                        steps: k,
+                        ensemble: None,
+                    },
+                ),
+                (
+                    "naive async + TE".into(),
+                    Mode::NaiveAsync {
+                        steps: k,
+                        ensemble: Some(r.ensemble),
+                    },
+                ),
+            ],
+            Policy::Rtc => vec![("train-time RTC".into(), Mode::TrainTimeRtc { steps: k })],
+            Policy::PiR2 => vec![
+                (
+                    format!("πR² w/o async (n={})", r.nfe),
+                    Mode::PiR2Sync {
+                        nfe: Some(r.nfe),
+                        alignment: Alignment::Fresh,
+                        front: FrontMode::Visible,
+                    },
+                ),
+                (
+                    format!("πR² async (n={})", r.nfe),
+                    fresh(FrontMode::Visible),
+                ),
+            ],
+            Policy::PiR2Hidden => vec![(
+                format!("πR² async, front hidden (n={})", r.nfe),
+                fresh(FrontMode::Hidden),
+            )],
+            Policy::PiR2Full => vec![(
+                "πR² async, paper full ramp".into(),
+                Mode::PiR2Async {
+                    nfe: None,
+                    alignment: Alignment::Paper,
+                    front: FrontMode::Visible,
+                },
+            )],
+            Policy::PiR2ZeroDelay => Vec::new(),
+        };
+        rows.into_iter()
+            .map(|(label, mode)| Deployment {
+                label,
+                policy: self,
+                mode,
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn deployments_match_the_training_schedule() {
+        let r = Recipe::default();
+        for p in Policy::ALL {
+            let s = p.schedule(r.nfe);
+            for d in p.deployments(&r) {
+                assert_eq!(d.policy, p);
+                match (s, d.mode) {
+                    (
+                        TrainSchedule::PiR2(draws),
+                        Mode::PiR2Async {
+                            nfe,
+                            alignment,
+                            front,
+                        },
+                    )
+                    | (
+                        TrainSchedule::PiR2(draws),
+                        Mode::PiR2Sync {
+                            nfe,
+                            alignment,
+                            front,
+                        },
+                    ) => {
+                        assert_eq!(draws.n, nfe, "{p:?}");
+                        assert_eq!(draws.alignment, alignment, "{p:?}");
+                        let hidden = draws.front == FrontVisibility::Hidden;
+                        assert_eq!(hidden, front == FrontMode::Hidden, "{p:?}");
+                        assert!(draws.delay.max() <= p.d_max());
+                    }
+                    (TrainSchedule::TrainTimeRtc { delay }, Mode::TrainTimeRtc { .. }) => {
+                        assert_eq!(delay.max(), p.d_max());
+                    }
+                    (
+                        TrainSchedule::StandardFlow,
+                        Mode::SyncFlow { .. } | Mode::NaiveAsync { .. },
+                    ) => {}
+                    (s, m) => panic!("{p:?}: schedule {s:?} deployed as {m:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_zero_delay_policy_draws_only_zero_delays_and_is_not_deployed() {
+        let TrainSchedule::PiR2(draws) = Policy::PiR2ZeroDelay.schedule(2) else {
+            panic!("a πR² schedule");
+        };
+        draws.delay.validate().unwrap();
+        let mut rng = pir2_schedule::Rng::new(3);
+        assert!((0..100).all(|_| draws.delay.sample(&mut rng) == 0));
+        assert_eq!(Policy::PiR2ZeroDelay.d_max(), 0);
+        assert!(Policy::PiR2ZeroDelay
+            .deployments(&Recipe::default())
+            .is_empty());
+    }
+}

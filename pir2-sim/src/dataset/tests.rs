@@ -1,0 +1,489 @@
+//! Collection, writing, resuming and reading back, on the ball-on-plate task.
+
+use arrow_array::cast::AsArray;
+use arrow_array::types::Float64Type;
+use arrow_array::ArrayRef;
+use arrow_array::Float32Array;
+use arrow_array::Int64Array;
+use arrow_array::ListArray;
+use arrow_array::RecordBatch;
+use arrow_array::StringArray;
+use serde_json::json;
+use serde_json::Value;
+use std::fs;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use super::*;
+use crate::ballplate::{BallPlate, BallPlateConfig};
+use crate::expert::{LqrConfig, LqrExpert};
+
+fn tmpdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("pir2-sim-test-{}-{name}", std::process::id()));
+    let _ = fs::remove_dir_all(&d);
+    d
+}
+
+fn setup() -> (BallPlate, LqrExpert) {
+    let cfg = BallPlateConfig::default();
+    (
+        BallPlate::new(cfg.clone()).unwrap(),
+        LqrExpert::new(&cfg, LqrConfig::default()).unwrap(),
+    )
+}
+
+fn short(n: usize) -> CollectConfig {
+    CollectConfig {
+        episodes: n,
+        seed: 7,
+        ..Default::default()
+    }
+}
+
+#[test]
+fn template_formatting() {
+    assert_eq!(
+        fill_template(DATA_PATH, 0, 7),
+        "data/chunk-000/file-007.parquet"
+    );
+    assert_eq!(
+        fill_template("x/{chunk_index}/{file_index:05d}/{other}", 12, 3),
+        "x/12/00003/{other}"
+    );
+}
+
+#[test]
+fn collects_successful_demos_with_clean_labels() {
+    let (mut env, mut ex) = setup();
+    let mut calls = 0;
+    let eps = collect_episodes(&mut env, &mut ex, &short(3), &mut |p| {
+        calls += 1;
+        assert!(p.kept <= 3);
+    })
+    .unwrap();
+    assert_eq!(eps.len(), 3);
+    assert!(calls >= 4);
+    for e in &eps {
+        assert!(e.success && e.done);
+        assert_eq!(e.len(), 500);
+        assert_eq!((e.fast_dim, e.slow_dim, e.action_dim), (6, 4, 2));
+        // Labels are the expert's clamped actions.
+        assert!(e.action.iter().all(|a| a.abs() <= 0.15 + 1e-6));
+    }
+    // Executed actions carry noise: "θ − last target" differs from the label's effect, so
+    // re-running the episode without noise gives other observations.
+    let e0 = &eps[0];
+    let clean = run_episode(&mut env, &mut ex, e0.seed, 0.0, 0);
+    assert_eq!(
+        clean.fast(0),
+        e0.fast(0),
+        "same seed, same first observation"
+    );
+    assert_ne!(
+        clean.fast, e0.fast,
+        "action noise must change the trajectory"
+    );
+    let again = run_episode(&mut env, &mut ex, e0.seed, 0.01, 0);
+    assert_eq!(&again, e0, "collection is deterministic");
+}
+
+#[test]
+fn write_read_roundtrip() {
+    let root = tmpdir("roundtrip");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    let (stats, summary) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(3),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(stats.kept, 3);
+    assert_eq!(summary.total_episodes, 3);
+    assert!(root.join("data/chunk-000/file-000.parquet").exists());
+    assert!(root
+        .join("meta/episodes/chunk-000/file-000.parquet")
+        .exists());
+    assert!(root.join("meta/tasks.parquet").exists());
+    let ds = read_dataset(&root).unwrap();
+    assert_eq!(ds.fps, 50.0);
+    assert_eq!(ds.tasks, spec.tasks);
+    assert_eq!(ds.episodes.len(), 3);
+    assert_eq!(ds.total_frames(), summary.total_frames);
+    let mut env2 = env.clone();
+    let direct = collect_episodes(&mut env2, &mut ex, &short(3), &mut |_| {}).unwrap();
+    assert_eq!(ds.episodes, direct, "parquet round trip must be lossless");
+
+    let info: Value =
+        serde_json::from_str(&fs::read_to_string(root.join(INFO_PATH)).unwrap()).unwrap();
+    assert_eq!(info["codebase_version"], "v3.0");
+    assert_eq!(info["total_frames"], 1500);
+    assert_eq!(info["features"]["observation.state"]["shape"], json!([6]));
+    assert_eq!(
+        info["features"]["observation.environment_state"]["names"],
+        json!(["ball_x", "ball_y", "ball_vx", "ball_vy"])
+    );
+    assert_eq!(info["splits"]["train"], "0:3");
+    let eb = read_parquet(&root.join("meta/episodes/chunk-000/file-000.parquet")).unwrap();
+    let col = eb[0]
+        .column_by_name("stats/index/max")
+        .expect("per-episode index stats");
+    let maxes = col.as_list::<i32>().value(2);
+    assert_eq!(
+        maxes.as_primitive::<Float64Type>().values().to_vec(),
+        vec![1499.0]
+    );
+    assert!(eb[0]
+        .column_by_name("stats/observation.state/q99")
+        .is_some());
+    let st: Value =
+        serde_json::from_str(&fs::read_to_string(root.join(STATS_PATH)).unwrap()).unwrap();
+    assert_eq!(st["action"]["count"], json!([1500]));
+    assert_eq!(st["index"]["max"], json!([1499.0]));
+    let m = st["observation.environment_state"]["mean"][0]
+        .as_f64()
+        .unwrap();
+    let direct_mean = direct
+        .iter()
+        .flat_map(|e| (0..e.len()).map(move |t| e.slow(t)[0] as f64))
+        .sum::<f64>()
+        / 1500.0;
+    assert!((m - direct_mean).abs() < 1e-9);
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn refuses_to_overwrite_and_resumes() {
+    let root = tmpdir("resume");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(2),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap();
+    let err = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(3),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap_err();
+    assert!(matches!(err, Error::AlreadyExists { .. }), "{err}");
+    assert!(err.to_string().contains("Resume"));
+    // Resume to 3: only one more episode, in a new file pair.
+    let mut seen = Vec::new();
+    let (stats, summary) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(3),
+        &root,
+        &spec,
+        WriteMode::Resume,
+        &mut |p| seen.push(p.kept),
+    )
+    .unwrap();
+    assert_eq!(stats.kept, 1);
+    assert_eq!(seen.first(), Some(&2));
+    assert_eq!(summary.total_episodes, 3);
+    assert!(root.join("data/chunk-000/file-001.parquet").exists());
+    assert!(root
+        .join("meta/episodes/chunk-000/file-001.parquet")
+        .exists());
+    // Same episodes as a one-shot collection (the attempt sequence continues).
+    let ds = read_dataset(&root).unwrap();
+    let direct = collect_episodes(&mut env, &mut ex, &short(3), &mut |_| {}).unwrap();
+    assert_eq!(ds.episodes, direct);
+    // Resuming a complete dataset writes nothing new.
+    let (stats, _) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(3),
+        &root,
+        &spec,
+        WriteMode::Resume,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(stats.kept, 0);
+    assert!(!root.join("data/chunk-000/file-002.parquet").exists());
+    // Overwrite starts from scratch.
+    let (_, summary) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(1),
+        &root,
+        &spec,
+        WriteMode::Overwrite,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(summary.total_episodes, 1);
+    assert!(!root.join("data/chunk-000/file-001.parquet").exists());
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn resume_refuses_orphan_data_files() {
+    let root = tmpdir("orphan");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(1),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap();
+    // A data file whose episodes file never got written.
+    fs::copy(
+        root.join("data/chunk-000/file-000.parquet"),
+        root.join("data/chunk-000/file-001.parquet"),
+    )
+    .unwrap();
+    let err = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap_err();
+    assert!(
+        matches!(&err, Error::Inconsistent { path, .. } if path.ends_with("data/chunk-000/file-001.parquet")),
+        "{err}"
+    );
+    fs::remove_file(root.join("data/chunk-000/file-001.parquet")).unwrap();
+    // A temporary leftover is harmless and its number is not reused.
+    fs::write(root.join("data/chunk-000/file-001.parquet.tmp"), b"partial").unwrap();
+    let w = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap();
+    assert_eq!(w.file_no, 2);
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn resume_refuses_other_features() {
+    let root = tmpdir("features");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(1),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap();
+    let other = DatasetSpec {
+        fps: 25,
+        ..spec.clone()
+    };
+    let err = DatasetWriter::open(&root, other, WriteMode::Resume).unwrap_err();
+    assert!(matches!(err, Error::Inconsistent { .. }), "{err}");
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn refuses_non_dataset_directory() {
+    let root = tmpdir("nondataset");
+    fs::create_dir_all(&root).unwrap();
+    fs::write(root.join("notes.txt"), "mine").unwrap();
+    for mode in [WriteMode::New, WriteMode::Resume] {
+        let err = DatasetWriter::open(&root, DatasetSpec::ballplate(50), mode).unwrap_err();
+        assert!(matches!(err, Error::AlreadyExists { .. }), "{err}");
+    }
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn missing_file_and_column_errors_name_them() {
+    let root = tmpdir("errors");
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::MissingFile { path } if path.ends_with("meta/info.json")),
+        "{err}"
+    );
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(1),
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |_| {},
+    )
+    .unwrap();
+    let opts = ReadOptions {
+        action_key: "action.absent".into(),
+        ..Default::default()
+    };
+    let err = read_dataset_with(&root, &opts).unwrap_err();
+    match &err {
+        Error::MissingColumn { path, column } => {
+            assert_eq!(column, "action.absent");
+            assert!(path.ends_with("data/chunk-000/file-000.parquet"));
+        }
+        e => panic!("unexpected {e}"),
+    }
+    assert!(
+        err.to_string().contains("file-000.parquet") && err.to_string().contains("action.absent")
+    );
+    // A column of the wrong type.
+    let opts = ReadOptions {
+        action_key: "next.done".into(),
+        ..Default::default()
+    };
+    let err = read_dataset_with(&root, &opts).unwrap_err();
+    assert!(
+        matches!(&err, Error::ColumnType { column, .. } if column == "next.done"),
+        "{err}"
+    );
+    // A missing data file.
+    fs::remove_file(root.join("data/chunk-000/file-000.parquet")).unwrap();
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::MissingFile { path } if path.ends_with("file-000.parquet")),
+        "{err}"
+    );
+    fs::remove_dir_all(&root).unwrap();
+}
+
+/// A dataset laid out like LeRobot writes it through HF `datasets`/pandas: variable-size
+/// float64 lists, int32 indices, no pir2 columns, task as an unnamed pandas index.
+#[test]
+fn reads_foreign_layout() {
+    let root = tmpdir("foreign");
+    let data = root.join("data/chunk-000/file-000.parquet");
+    let n = 5usize;
+    let state = ListArray::from_iter_primitive::<Float64Type, _, _>(
+        (0..n).map(|t| Some(vec![Some(t as f64), Some(-(t as f64))])),
+    );
+    let action = ListArray::from_iter_primitive::<Float64Type, _, _>(
+        (0..n).map(|t| Some(vec![Some(0.5 * t as f64)])),
+    );
+    let batch = RecordBatch::try_from_iter(vec![
+        ("observation.state", Arc::new(state) as ArrayRef),
+        ("action", Arc::new(action) as ArrayRef),
+        (
+            "episode_index",
+            Arc::new(arrow_array::Int32Array::from(vec![0, 0, 1, 1, 1])) as ArrayRef,
+        ),
+        (
+            "frame_index",
+            Arc::new(Int64Array::from(vec![0, 1, 0, 1, 2])) as ArrayRef,
+        ),
+        (
+            "timestamp",
+            Arc::new(Float32Array::from(vec![0.0, 0.1, 0.0, 0.1, 0.2])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&data, &batch).unwrap();
+    let eps = RecordBatch::try_from_iter(vec![
+        (
+            "episode_index",
+            Arc::new(Int64Array::from(vec![0, 1])) as ArrayRef,
+        ),
+        ("length", Arc::new(Int64Array::from(vec![2, 3])) as ArrayRef),
+        (
+            "data/chunk_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+        (
+            "data/file_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&root.join("meta/episodes/chunk-000/file-000.parquet"), &eps).unwrap();
+    let tasks = RecordBatch::try_from_iter(vec![
+        (
+            "task_index",
+            Arc::new(Int64Array::from(vec![0])) as ArrayRef,
+        ),
+        (
+            "__index_level_0__",
+            Arc::new(StringArray::from(vec!["push the T"])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&root.join(TASKS_PATH), &tasks).unwrap();
+    write_json_file(
+        &root.join(INFO_PATH),
+        &json!({"codebase_version": "v3.0", "fps": 10, "data_path": DATA_PATH, "features": {}}),
+    )
+    .unwrap();
+    let ds = read_dataset(&root).unwrap();
+    assert_eq!(ds.tasks, vec!["push the T".to_string()]);
+    assert_eq!(ds.episodes.len(), 2);
+    let e1 = &ds.episodes[1];
+    assert_eq!(
+        (e1.fast_dim, e1.slow_dim, e1.action_dim, e1.len()),
+        (2, 0, 1, 3)
+    );
+    assert_eq!(e1.fast(2), &[4.0, -4.0]);
+    assert_eq!(e1.action(0), &[1.0]);
+    // Length mismatch is reported against the data file.
+    let bad = RecordBatch::try_from_iter(vec![
+        (
+            "episode_index",
+            Arc::new(Int64Array::from(vec![0, 1])) as ArrayRef,
+        ),
+        ("length", Arc::new(Int64Array::from(vec![2, 4])) as ArrayRef),
+        (
+            "data/chunk_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+        (
+            "data/file_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&root.join("meta/episodes/chunk-000/file-000.parquet"), &bad).unwrap();
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::Inconsistent { reason, .. } if reason.contains("3 frames")),
+        "{err}"
+    );
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn stats_match_numpy_conventions() {
+    let s = FeatureStats::compute(&[1.0, 10.0, 2.0, 20.0, 3.0, 30.0, 4.0, 40.0], 2);
+    assert_eq!(s.count, 4);
+    assert_eq!(s.min, vec![1.0, 10.0]);
+    assert_eq!(s.max, vec![4.0, 40.0]);
+    assert_eq!(s.mean, vec![2.5, 25.0]);
+    assert!((s.std[0] - 1.25f64.sqrt()).abs() < 1e-12, "population std");
+    // numpy.quantile([1,2,3,4], 0.5) = 2.5, 0.1 → 1.3
+    assert!((s.quantiles[2][0] - 2.5).abs() < 1e-12);
+    assert!((s.quantiles[1][0] - 1.3).abs() < 1e-12);
+}
+
+#[test]
+fn rejects_misshapen_episodes() {
+    let root = tmpdir("shape");
+    let mut w = DatasetWriter::open(&root, DatasetSpec::ballplate(50), WriteMode::New).unwrap();
+    let mut e = Episode::new(5, 2, 2);
+    e.push(&[0.0; 5], &[0.0; 2], &[0.0; 2]);
+    assert!(matches!(w.append(&e), Err(Error::EpisodeShape { .. })));
+    assert!(matches!(
+        w.append(&Episode::new(6, 2, 2)),
+        Err(Error::EpisodeShape { .. })
+    ));
+    let _ = fs::remove_dir_all(&root);
+}
