@@ -6,6 +6,7 @@
 //! unchanged batch size allocates nothing.
 
 use gemm::Parallelism;
+use rayon::prelude::*;
 
 /// `gemm` parallelism for `threads` (≤ 1: on the calling thread).
 pub(crate) fn parallelism(threads: usize) -> Parallelism {
@@ -76,6 +77,11 @@ pub(crate) fn mm(
             par,
         )
     }
+}
+
+/// Whether elementwise kernels split the batch over the rayon pool.
+fn threaded(par: Parallelism) -> bool {
+    matches!(par, Parallelism::Rayon(_))
 }
 
 /// Single-threaded calls with few rows (batch-1 inference) use [`mm_nt`].
@@ -268,19 +274,18 @@ impl Conv {
         self.k == 1 && self.mode == ConvMode::Same
     }
 
-    fn im2col(&mut self, x: &[f32], b: usize, lin: usize) {
+    fn im2col(&mut self, par: Parallelism, x: &[f32], b: usize, lin: usize) {
         let (c, k, mode) = (self.cin, self.k, self.mode);
         let lo = mode.lout(lin);
         let ck = c * k;
         self.cols.resize(b * lo * ck, 0.0);
-        for bi in 0..b {
-            for pos in 0..lo {
-                let row = &mut self.cols[(bi * lo + pos) * ck..(bi * lo + pos + 1) * ck];
+        // One sample: rows `[lo, ck]` from `x` `[lin, c]`.
+        let one = |cols: &mut [f32], x: &[f32]| {
+            for (pos, row) in cols.chunks_exact_mut(ck).enumerate() {
                 for j in 0..k {
                     match mode.src(k, lin, pos, j) {
                         Some(q) => {
-                            let xr = &x[(bi * lin + q) * c..(bi * lin + q + 1) * c];
-                            for (ci, &v) in xr.iter().enumerate() {
+                            for (ci, &v) in x[q * c..(q + 1) * c].iter().enumerate() {
                                 row[ci * k + j] = v;
                             }
                         }
@@ -291,6 +296,16 @@ impl Conv {
                         }
                     }
                 }
+            }
+        };
+        let (cols, x) = (&mut self.cols[..b * lo * ck], &x[..b * lin * c]);
+        if threaded(par) {
+            cols.par_chunks_mut(lo * ck)
+                .zip(x.par_chunks(lin * c))
+                .for_each(|(cs, xs)| one(cs, xs));
+        } else {
+            for (cs, xs) in cols.chunks_mut(lo * ck).zip(x.chunks(lin * c)) {
+                one(cs, xs);
             }
         }
     }
@@ -313,7 +328,7 @@ impl Conv {
             row.copy_from_slice(&p[self.b]);
         }
         if !self.direct() {
-            self.im2col(x, b, lin);
+            self.im2col(par, x, b, lin);
         }
         let lhs: &[f32] = if self.direct() { x } else { &self.cols };
         if small(par, m) {
@@ -358,17 +373,26 @@ impl Conv {
         scratch.resize(m * ck, 0.0);
         mm(par, m, ck, o, scratch, false, dy, o, 1, &p[self.w], ck, 1);
         let mode = self.mode;
-        for bi in 0..b {
-            for pos in 0..lo {
-                let row = &scratch[(bi * lo + pos) * ck..(bi * lo + pos + 1) * ck];
+        // One sample: scatter-add rows `[lo, ck]` into `dx` `[lin, c]`.
+        let one = |rows: &[f32], dx: &mut [f32]| {
+            for (pos, row) in rows.chunks_exact(ck).enumerate() {
                 for j in 0..k {
                     if let Some(q) = mode.src(k, lin, pos, j) {
-                        let xr = &mut dx[(bi * lin + q) * c..(bi * lin + q + 1) * c];
-                        for (ci, d) in xr.iter_mut().enumerate() {
+                        for (ci, d) in dx[q * c..(q + 1) * c].iter_mut().enumerate() {
                             *d += row[ci * k + j];
                         }
                     }
                 }
+            }
+        };
+        let (rows, dx) = (&scratch[..m * ck], &mut dx[..b * lin * c]);
+        if threaded(par) {
+            rows.par_chunks(lo * ck)
+                .zip(dx.par_chunks_mut(lin * c))
+                .for_each(|(r, d)| one(r, d));
+        } else {
+            for (r, d) in rows.chunks(lo * ck).zip(dx.chunks_mut(lin * c)) {
+                one(r, d);
             }
         }
     }
@@ -376,6 +400,8 @@ impl Conv {
 
 /// GroupNorm (biased variance, `eps = 1e-5`, affine) followed by Mish, on channels-last
 /// `[B, L, C]`. Keeps the normalised values and `1/σ` per (sample, group) for the backward.
+/// With a rayon [`Parallelism`] the batch is split over the pool; the backward reduces `dγ`,
+/// `dβ` over a fixed chunking of the batch, so its bits do not depend on the thread count.
 #[derive(Debug, Clone)]
 pub(crate) struct GnMish {
     pub(crate) gamma: usize,
@@ -384,6 +410,116 @@ pub(crate) struct GnMish {
     pub(crate) c: usize,
     xn: Vec<f32>,
     rstd: Vec<f32>,
+    part: Vec<f32>,
+}
+
+/// Chunks of the batch for the backward's parameter-gradient partial sums.
+const GN_CHUNKS: usize = 16;
+
+/// Forward of one sample: `z`, `xn`, `out` `[l, c]`, `rstd` `[groups]`.
+#[allow(clippy::too_many_arguments)]
+fn gn_fwd_one(
+    z: &[f32],
+    xn: &mut [f32],
+    out: &mut [f32],
+    rstd: &mut [f32],
+    gamma: &[f32],
+    beta: &[f32],
+    l: usize,
+    c: usize,
+) {
+    let gr = rstd.len();
+    let cg = c / gr;
+    let inv = 1.0 / (l * cg) as f32;
+    for gi in 0..gr {
+        let ch = gi * cg..(gi + 1) * cg;
+        let mut s = 0.0f32;
+        for pos in 0..l {
+            s += z[pos * c + ch.start..pos * c + ch.end].iter().sum::<f32>();
+        }
+        let mean = s * inv;
+        let mut v = 0.0f32;
+        for pos in 0..l {
+            v += z[pos * c + ch.start..pos * c + ch.end]
+                .iter()
+                .map(|&t| (t - mean) * (t - mean))
+                .sum::<f32>();
+        }
+        let r = 1.0 / (v * inv + 1e-5).sqrt();
+        rstd[gi] = r;
+        for pos in 0..l {
+            let rg = pos * c + ch.start..pos * c + ch.end;
+            for (((x, o), &zz), (&ga, &be)) in xn[rg.clone()]
+                .iter_mut()
+                .zip(&mut out[rg.clone()])
+                .zip(&z[rg])
+                .zip(gamma[ch.clone()].iter().zip(&beta[ch.clone()]))
+            {
+                let t = (zz - mean) * r;
+                *x = t;
+                *o = mish1(t * ga + be);
+            }
+        }
+    }
+}
+
+/// Backward of a run of samples: `dz` from `da`; adds `Σ dy·xn` and `Σ dy` per channel to
+/// `part` `[2c]`.
+#[allow(clippy::too_many_arguments)]
+fn gn_bwd_chunk(
+    da: &[f32],
+    xn: &[f32],
+    rstd: &[f32],
+    dz: &mut [f32],
+    part: &mut [f32],
+    gamma: &[f32],
+    beta: &[f32],
+    l: usize,
+    c: usize,
+    gr: usize,
+) {
+    let cg = c / gr;
+    let inv = 1.0 / (l * cg) as f32;
+    let (pg, pb) = part.split_at_mut(c);
+    for (((dz, xn), da), rstd) in dz
+        .chunks_exact_mut(l * c)
+        .zip(xn.chunks_exact(l * c))
+        .zip(da.chunks_exact(l * c))
+        .zip(rstd.chunks_exact(gr))
+    {
+        for ((dzr, xr), dar) in dz
+            .chunks_exact_mut(c)
+            .zip(xn.chunks_exact(c))
+            .zip(da.chunks_exact(c))
+        {
+            for ci in 0..c {
+                let y = xr[ci] * gamma[ci] + beta[ci];
+                let dy = dar[ci] * mish_and_grad(y).1;
+                pg[ci] += dy * xr[ci];
+                pb[ci] += dy;
+                dzr[ci] = dy * gamma[ci];
+            }
+        }
+        for gi in 0..gr {
+            let ch = gi * cg..(gi + 1) * cg;
+            let (mut s1, mut s2) = (0.0f32, 0.0f32);
+            for pos in 0..l {
+                let r = pos * c + ch.start..pos * c + ch.end;
+                for (&d, &x) in dz[r.clone()].iter().zip(&xn[r]) {
+                    s1 += d;
+                    s2 += d * x;
+                }
+            }
+            let (m1, m2) = (s1 * inv, s2 * inv);
+            let rs = rstd[gi];
+            for pos in 0..l {
+                let r = pos * c + ch.start..pos * c + ch.end;
+                for (d, &x) in dz[r.clone()].iter_mut().zip(&xn[r]) {
+                    *d = rs * (*d - m1 - x * m2);
+                }
+            }
+        }
+    }
 }
 
 impl GnMish {
@@ -395,12 +531,14 @@ impl GnMish {
             c,
             xn: Vec::new(),
             rstd: Vec::new(),
+            part: Vec::new(),
         }
     }
 
     /// `out = mish(GN(z))`.
     pub(crate) fn fwd(
         &mut self,
+        par: Parallelism,
         p: &[Vec<f32>],
         z: &[f32],
         b: usize,
@@ -408,53 +546,38 @@ impl GnMish {
         out: &mut Vec<f32>,
     ) {
         let (c, gr) = (self.c, self.groups);
-        let cg = c / gr;
-        let n = b * l * c;
+        let (lc, n) = (l * c, b * l * c);
         self.xn.resize(n, 0.0);
         self.rstd.resize(b * gr, 0.0);
         out.resize(n, 0.0);
-        let (gamma, beta) = (&p[self.gamma], &p[self.beta]);
-        let inv = 1.0 / (l * cg) as f32;
-        for bi in 0..b {
-            let zs = &z[bi * l * c..(bi + 1) * l * c];
-            for gi in 0..gr {
-                let ch = gi * cg..(gi + 1) * cg;
-                let mut s = 0.0f32;
-                for pos in 0..l {
-                    s += zs[pos * c + ch.start..pos * c + ch.end].iter().sum::<f32>();
-                }
-                let mean = s * inv;
-                let mut v = 0.0f32;
-                for pos in 0..l {
-                    v += zs[pos * c + ch.start..pos * c + ch.end]
-                        .iter()
-                        .map(|&t| (t - mean) * (t - mean))
-                        .sum::<f32>();
-                }
-                let rstd = 1.0 / (v * inv + 1e-5).sqrt();
-                self.rstd[bi * gr + gi] = rstd;
-                for pos in 0..l {
-                    let base = bi * l * c + pos * c;
-                    let r = base + ch.start..base + ch.end;
-                    for (((xn, o), &zz), (&ga, &be)) in self.xn[r.clone()]
-                        .iter_mut()
-                        .zip(&mut out[r.clone()])
-                        .zip(&z[r])
-                        .zip(gamma[ch.clone()].iter().zip(&beta[ch.clone()]))
-                    {
-                        let t = (zz - mean) * rstd;
-                        *xn = t;
-                        *o = mish1(t * ga + be);
-                    }
-                }
+        let (gamma, beta) = (&p[self.gamma][..], &p[self.beta][..]);
+        let one = |z: &[f32], xn: &mut [f32], o: &mut [f32], r: &mut [f32]| {
+            gn_fwd_one(z, xn, o, r, gamma, beta, l, c)
+        };
+        let (xn, rstd, z) = (&mut self.xn[..n], &mut self.rstd[..b * gr], &z[..n]);
+        if threaded(par) {
+            xn.par_chunks_mut(lc)
+                .zip(out.par_chunks_mut(lc))
+                .zip(z.par_chunks(lc))
+                .zip(rstd.par_chunks_mut(gr))
+                .for_each(|(((x, o), z), r)| one(z, x, o, r));
+        } else {
+            for (((x, o), z), r) in xn
+                .chunks_mut(lc)
+                .zip(out.chunks_mut(lc))
+                .zip(z.chunks(lc))
+                .zip(rstd.chunks_mut(gr))
+            {
+                one(z, x, o, r);
             }
         }
     }
 
-    /// `dz` (overwritten) from `da`; accumulates `dγ`, `dβ`. `tmp` is scratch.
+    /// `dz` (overwritten) from `da`; accumulates `dγ`, `dβ`.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn bwd(
-        &self,
+        &mut self,
+        par: Parallelism,
         p: &[Vec<f32>],
         g: &mut [Vec<f32>],
         da: &[f32],
@@ -463,64 +586,44 @@ impl GnMish {
         dz: &mut Vec<f32>,
     ) {
         let (c, gr) = (self.c, self.groups);
-        let cg = c / gr;
-        let n = b * l * c;
+        let (lc, n) = (l * c, b * l * c);
         dz.resize(n, 0.0);
-        let (gamma, beta) = (&p[self.gamma], &p[self.beta]);
-        // dxn = γ·mish'(y)·da into dz; dγ, dβ.
-        {
-            let (dg, db) = if self.gamma < self.beta {
-                let (lo, hi) = g.split_at_mut(self.beta);
-                (&mut lo[self.gamma], &mut hi[0])
-            } else {
-                let (lo, hi) = g.split_at_mut(self.gamma);
-                (&mut hi[0], &mut lo[self.beta])
-            };
-            for ((dzr, xr), dar) in dz[..n]
-                .chunks_exact_mut(c)
-                .zip(self.xn.chunks_exact(c))
-                .zip(da.chunks_exact(c))
+        let (gamma, beta) = (&p[self.gamma][..], &p[self.beta][..]);
+        let per = b.div_ceil(GN_CHUNKS).max(1);
+        let chunks = b.div_ceil(per);
+        self.part.clear();
+        self.part.resize(chunks * 2 * c, 0.0);
+        let one = |da: &[f32], xn: &[f32], r: &[f32], dz: &mut [f32], part: &mut [f32]| {
+            gn_bwd_chunk(da, xn, r, dz, part, gamma, beta, l, c, gr)
+        };
+        let (dzs, das, xns, rs) = (&mut dz[..n], &da[..n], &self.xn[..n], &self.rstd[..b * gr]);
+        if threaded(par) {
+            dzs.par_chunks_mut(per * lc)
+                .zip(das.par_chunks(per * lc))
+                .zip(xns.par_chunks(per * lc))
+                .zip(rs.par_chunks(per * gr))
+                .zip(self.part.par_chunks_mut(2 * c))
+                .for_each(|((((dz, da), xn), r), part)| one(da, xn, r, dz, part));
+        } else {
+            for ((((dz, da), xn), r), part) in dzs
+                .chunks_mut(per * lc)
+                .zip(das.chunks(per * lc))
+                .zip(xns.chunks(per * lc))
+                .zip(rs.chunks(per * gr))
+                .zip(self.part.chunks_mut(2 * c))
             {
-                for ci in 0..c {
-                    let y = xr[ci] * gamma[ci] + beta[ci];
-                    let (_, d) = mish_and_grad(y);
-                    let dy = da_at(dar, ci) * d;
-                    dg[ci] += dy * xr[ci];
-                    db[ci] += dy;
-                    dzr[ci] = dy * gamma[ci];
-                }
+                one(da, xn, r, dz, part);
             }
         }
-        let inv = 1.0 / (l * cg) as f32;
-        for bi in 0..b {
-            for gi in 0..gr {
-                let ch = gi * cg..(gi + 1) * cg;
-                let (mut s1, mut s2) = (0.0f32, 0.0f32);
-                for pos in 0..l {
-                    let base = bi * l * c + pos * c;
-                    let r = base + ch.start..base + ch.end;
-                    for (&d, &x) in dz[r.clone()].iter().zip(&self.xn[r]) {
-                        s1 += d;
-                        s2 += d * x;
-                    }
-                }
-                let (m1, m2) = (s1 * inv, s2 * inv);
-                let rstd = self.rstd[bi * gr + gi];
-                for pos in 0..l {
-                    let base = bi * l * c + pos * c;
-                    let r = base + ch.start..base + ch.end;
-                    for (d, &x) in dz[r.clone()].iter_mut().zip(&self.xn[r]) {
-                        *d = rstd * (*d - m1 - x * m2);
-                    }
-                }
+        for part in self.part.chunks_exact(2 * c) {
+            for (d, &v) in g[self.gamma].iter_mut().zip(&part[..c]) {
+                *d += v;
+            }
+            for (d, &v) in g[self.beta].iter_mut().zip(&part[c..]) {
+                *d += v;
             }
         }
     }
-}
-
-#[inline(always)]
-fn da_at(row: &[f32], i: usize) -> f32 {
-    row[i]
 }
 
 /// `y[m×n] += x[m×k] · wᵀ` with `x` and `w` (`[n×k]`) row-major: the GEMM of a forward layer

@@ -60,7 +60,7 @@ impl Res {
     ) {
         let c = self.cout;
         self.c0.fwd(par, p, x, b, l, &mut self.z0);
-        self.n0.fwd(p, &self.z0, b, l, &mut self.a0);
+        self.n0.fwd(par, p, &self.z0, b, l, &mut self.a0);
         self.film.fwd(par, p, shared, b, &mut self.fs);
         match (&self.film_pos, pooled) {
             (Some(fp), Some(pl)) => {
@@ -92,7 +92,7 @@ impl Res {
             }
         }
         self.c1.fwd(par, p, &self.h, b, l, &mut self.z1);
-        self.n1.fwd(p, &self.z1, b, l, y);
+        self.n1.fwd(par, p, &self.z1, b, l, y);
         match &mut self.res {
             Some(rc) => {
                 rc.fwd(par, p, x, b, l, &mut self.r);
@@ -110,7 +110,7 @@ impl Res {
 
     #[allow(clippy::too_many_arguments)]
     fn bwd(
-        &self,
+        &mut self,
         par: Parallelism,
         p: &[Vec<f32>],
         g: &mut [Vec<f32>],
@@ -137,7 +137,7 @@ impl Res {
                 }
             }
         }
-        self.n1.bwd(p, g, dy, b, l, &mut ws.t1);
+        self.n1.bwd(par, p, g, dy, b, l, &mut ws.t1);
         ws.t2.clear();
         ws.t2.resize(n, 0.0);
         self.c1.bwd(
@@ -174,7 +174,7 @@ impl Res {
         }
         self.film
             .bwd(par, p, g, shared, &ws.t4, b, Some((dshared, true)));
-        self.n0.bwd(p, g, &ws.t1, b, l, &mut ws.t2);
+        self.n0.bwd(par, p, g, &ws.t1, b, l, &mut ws.t2);
         self.c0.bwd(par, p, g, x, &ws.t2, b, l, dx, &mut ws.s0);
     }
 }
@@ -573,7 +573,7 @@ impl FastUNet {
                 Op::Gn { gn, x, y } => {
                     let mut out = std::mem::take(&mut self.acts[y]);
                     let l = self.shapes[x].0;
-                    self.gns[gn].fwd(p, &self.acts[x], b, l, &mut out);
+                    self.gns[gn].fwd(par, p, &self.acts[x], b, l, &mut out);
                     self.acts[y] = out;
                 }
             }
@@ -677,7 +677,7 @@ impl FastUNet {
                 Op::Gn { gn, x, y } => {
                     let gy = std::mem::take(&mut self.gacts[y]);
                     let l = self.shapes[x].0;
-                    self.gns[gn].bwd(p, g, &gy, b, l, &mut self.ws.t1);
+                    self.gns[gn].bwd(par, p, g, &gy, b, l, &mut self.ws.t1);
                     for (d, &v) in self.gacts[x].iter_mut().zip(&self.ws.t1) {
                         *d += v;
                     }
