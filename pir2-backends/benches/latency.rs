@@ -1,18 +1,23 @@
 //! One-NFE latency at batch 1, single thread, for the MLP and the U-Net of the Leap-cube stack
 //! (`H = 16`, `A = 16`, `n_obs = 2`, 32-d fast + 9-d slow observation), on every enabled
 //! backend with the same weights (a candle model, exported to ONNX and traced to TorchScript),
-//! printed side by side with ratios to ONNX Runtime.
+//! printed side by side with ratios to ONNX Runtime; then U-Net training steps/s at batch 256
+//! on two threads, candle's autograd graph next to the hand-written kernels.
 //!
 //! `cargo bench -p pir2-backends --features ort,tch --bench latency`
-//! (`PIR2_BENCH_ITERS`, default 300, sets the timed calls per cell). A plain timing loop
-//! (warm-up, then median and p90 of per-call wall time) so that all backends share one table.
-//! Single thread: `RAYON_NUM_THREADS=1` for candle (set here before candle starts its pool),
-//! intra/inter-op 1 for ONNX Runtime and libtorch (their defaults in this crate).
+//! (`PIR2_BENCH_ITERS`, default 300, sets the timed calls per cell; `PIR2_BENCH_TRAIN_STEPS`,
+//! default 5, the timed training steps per cell, 0 skips training; `PIR2_BENCH_TRAIN_THREADS`,
+//! default 2). A plain timing loop (warm-up, then median and p90 of per-call wall time) so that
+//! all backends share one table. Single thread: `RAYON_NUM_THREADS=1` for candle (set here
+//! before candle starts its pool), intra/inter-op 1 for ONNX Runtime and libtorch (their
+//! defaults in this crate). `candle-graph` is candle's op-by-op graph (the path before the
+//! hand-written kernels), `candle` the default (hand-written kernels for the U-Net).
 
 use std::time::Instant;
 
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats};
+use pir2_backends::train::{Episode, TrainConfig, Trainer};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 fn leap_spec() -> Spec {
@@ -146,11 +151,20 @@ fn main() {
             d_vis: &[0],
         };
         let mut models = native(kind, &candle);
+        let mut graph = CandleModel::new(candle.config().clone(), candle.stats().clone(), 0)
+            .expect("candle model");
+        graph.set_fused(false);
+        let mut labels: Vec<&str> = models.iter().map(|m| m.backend()).collect();
         models.insert(0, Box::new(candle));
+        labels.insert(0, "candle");
+        if kind != "mlp" {
+            models.insert(0, Box::new(graph));
+            labels.insert(0, "candle-graph");
+        }
         let mut rows = Vec::new();
-        for m in models.iter_mut() {
+        for (m, label) in models.iter_mut().zip(labels) {
             let t = time(m.as_mut(), &input, iters);
-            rows.push((m.backend(), t));
+            rows.push((label, t));
         }
         let base = rows
             .iter()
@@ -164,5 +178,88 @@ fn main() {
             );
         }
         println!("{kind:<7} ({n_params} parameters)");
+    }
+    let steps: usize = std::env::var("PIR2_BENCH_TRAIN_STEPS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(5);
+    if steps > 0 {
+        train_table(steps);
+    }
+}
+
+/// Seconds per training step (batch 256) after one warm-up step.
+fn train_step_s(cfg: &Config, fused: bool, steps: usize) -> f64 {
+    let spec = cfg.spec;
+    let mut rng = pir2_schedule::Rng::new(2);
+    let data: Vec<Episode> = (0..20)
+        .map(|_| {
+            let mut ep = Episode::new(spec.fast_dim, spec.slow.len(), spec.action_dim);
+            let mut f = vec![0.0; spec.fast_dim];
+            let mut s = vec![0.0; spec.slow.len()];
+            let mut a = vec![0.0; spec.action_dim];
+            for _ in 0..100 {
+                rng.fill_normal(&mut f);
+                rng.fill_normal(&mut s);
+                rng.fill_normal(&mut a);
+                ep.push(&f, &s, &a);
+            }
+            ep
+        })
+        .collect();
+    let mut m = CandleModel::new(cfg.clone(), Stats::identity(&spec), 0).expect("candle model");
+    let tc = TrainConfig {
+        steps: steps + 1,
+        batch_size: 256,
+        warmup: 1,
+        ..TrainConfig::default()
+    };
+    let mut first = None;
+    let mut last = Instant::now();
+    Trainer::new(tc)
+        .fused(fused)
+        .on_progress(|p| {
+            if p.step == 1 {
+                first = Some(Instant::now());
+            }
+            last = Instant::now();
+        })
+        .run(&mut m, data.as_slice())
+        .expect("training");
+    last.duration_since(first.expect("ran")).as_secs_f64() / steps as f64
+}
+
+fn train_table(steps: usize) {
+    let threads: usize = std::env::var("PIR2_BENCH_TRAIN_THREADS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(2);
+    // candle's kernels read RAYON_NUM_THREADS per call; both paths run inside one pool.
+    std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool");
+    println!();
+    println!("U-Net training step, batch 256, {threads} threads, {steps} timed steps per cell (s/step; ratio = graph / fused)");
+    println!(
+        "{:<7} {:>14} {:>14} {:>8} {:>12}",
+        "model", "candle-graph", "candle", "ratio", "fused steps/s"
+    );
+    for (kind, cfg) in configs().into_iter().filter(|(k, _)| *k != "mlp") {
+        let (graph, fused) = pool.install(|| {
+            (
+                train_step_s(&cfg, false, steps),
+                train_step_s(&cfg, true, steps),
+            )
+        });
+        println!(
+            "{:<7} {:>14.3} {:>14.3} {:>7.2}x {:>12.2}",
+            kind,
+            graph,
+            fused,
+            graph / fused,
+            1.0 / fused
+        );
     }
 }

@@ -28,14 +28,13 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use candle_core::{backprop::GradStore, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW};
+use candle_core::{Device, Tensor};
 use pir2_runtime::model::{ModelInput, SlowInput};
 use pir2_schedule::train::{Draw, PiR2Draws, TrainSchedule};
 use pir2_schedule::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::candle::CandleModel;
+use crate::candle::{kernels, CandleModel};
 use crate::config::{Norm, SlowSpec, Spec, Stats};
 use crate::error::{Error, Result};
 
@@ -345,6 +344,12 @@ pub struct TrainReport {
 type ProgressFn<'a> = Box<dyn FnMut(&Progress) + 'a>;
 type ValidateFn<'a> = Box<dyn FnMut(&mut CandleModel, usize) -> f64 + 'a>;
 
+/// Files the trainer adds to every step checkpoint so a run can continue from it
+/// ([`Trainer::resume`]).
+pub const TRAIN_STATE_FILE: &str = "train_state.json";
+/// Raw weights, AdamW moments, EMA and best weights of a step checkpoint.
+pub const TRAIN_TENSORS_FILE: &str = "train_state.safetensors";
+
 /// Builder and runner of one training run.
 pub struct Trainer<'a> {
     cfg: TrainConfig,
@@ -352,6 +357,9 @@ pub struct Trainer<'a> {
     validate: Option<ValidateFn<'a>>,
     out_dir: Option<PathBuf>,
     log: Option<Box<dyn Write + 'a>>,
+    resume: bool,
+    fused: bool,
+    stop_after: Option<usize>,
 }
 
 impl std::fmt::Debug for Trainer<'_> {
@@ -359,6 +367,8 @@ impl std::fmt::Debug for Trainer<'_> {
         f.debug_struct("Trainer")
             .field("cfg", &self.cfg)
             .field("out_dir", &self.out_dir)
+            .field("resume", &self.resume)
+            .field("fused", &self.fused)
             .finish_non_exhaustive()
     }
 }
@@ -372,6 +382,9 @@ impl<'a> Trainer<'a> {
             validate: None,
             out_dir: None,
             log: None,
+            resume: false,
+            fused: true,
+            stop_after: None,
         }
     }
     /// Called after every step.
@@ -385,7 +398,8 @@ impl<'a> Trainer<'a> {
         self
     }
     /// Save checkpoints to `dir/step-NNNNNN/`, the loss log to `dir/loss.jsonl`, and the
-    /// best pick to `dir/best.json`. `run` fails at once if `dir` already holds `step-*` checkpoints.
+    /// best pick to `dir/best.json`. `run` fails at once if `dir` already holds `step-*`
+    /// checkpoints, unless [`Trainer::resume`] is on.
     pub fn out_dir(mut self, dir: impl AsRef<Path>) -> Self {
         self.out_dir = Some(dir.as_ref().to_owned());
         self
@@ -393,6 +407,35 @@ impl<'a> Trainer<'a> {
     /// Also write the JSON-lines loss log to `w`.
     pub fn log_to(mut self, w: impl Write + 'a) -> Self {
         self.log = Some(Box::new(w));
+        self
+    }
+    /// Continue from the last step checkpoint in [`Trainer::out_dir`] (default off).
+    ///
+    /// Every step checkpoint carries the full training state ([`TRAIN_STATE_FILE`],
+    /// [`TRAIN_TENSORS_FILE`]: raw weights, AdamW moments and step count, EMA, the best pick
+    /// so far, the batch generator's random state, the loss history), so a resumed run
+    /// continues **bit-identically** to an uninterrupted one with the same configuration,
+    /// data and thread count. The model's own weights are replaced by the checkpoint's. With
+    /// no step checkpoint in the directory the run starts from scratch; a checkpoint written
+    /// with a different [`TrainConfig`] or model is an error naming the difference. Steps
+    /// after the checkpoint that an interrupted run had logged appear twice in `loss.jsonl`.
+    pub fn resume(mut self, on: bool) -> Self {
+        self.resume = on;
+        self
+    }
+    /// Return once `steps` steps are done (counted from step 0, not from a resume point), as
+    /// if the run had been interrupted there: no extra validation or checkpoint is made, the
+    /// model holds the raw weights of that step, and a later run with [`Trainer::resume`]
+    /// continues from the last step checkpoint written. For time-sliced training and tests.
+    pub fn stop_after(mut self, steps: usize) -> Self {
+        self.stop_after = Some(steps);
+        self
+    }
+    /// Train a U-Net with the hand-written host kernels (default `true`; see
+    /// [`CandleModel::set_fused`]); `false` uses candle's autograd graph. Other architectures
+    /// always use candle's autograd.
+    pub fn fused(mut self, on: bool) -> Self {
+        self.fused = on;
         self
     }
 
@@ -407,13 +450,25 @@ impl<'a> Trainer<'a> {
         let cfg = self.cfg.clone();
         cfg.validate(spec.horizon)?;
         check_dataset(data, &spec)?;
+        if self.resume && self.out_dir.is_none() {
+            return Err(Error::config(
+                "train.resume",
+                "needs an output directory (Trainer::out_dir)",
+            ));
+        }
+        let resume_from = match (&self.out_dir, self.resume) {
+            (Some(d), true) => latest_step_checkpoint(d)?,
+            _ => None,
+        };
         let mut file_log = match &self.out_dir {
             Some(d) => {
                 // Fail now, not after hours of training, if earlier checkpoints are in the way.
-                if let Ok(rd) = std::fs::read_dir(d) {
-                    for e in rd.flatten() {
-                        if e.file_name().to_string_lossy().starts_with("step-") {
-                            return Err(Error::CheckpointExists(e.path()));
+                if !self.resume {
+                    if let Ok(rd) = std::fs::read_dir(d) {
+                        for e in rd.flatten() {
+                            if e.file_name().to_string_lossy().starts_with("step-") {
+                                return Err(Error::CheckpointExists(e.path()));
+                            }
                         }
                     }
                 }
@@ -429,7 +484,14 @@ impl<'a> Trainer<'a> {
             }
             None => None,
         };
-        let mut log_line = |line: String, this: &mut Self| -> Result<()> {
+        // `None` flushes the file log.
+        let mut log_line = |line: Option<String>, this: &mut Self| -> Result<()> {
+            let Some(line) = line else {
+                if let Some(w) = file_log.as_mut() {
+                    w.flush().map_err(|e| Error::io("loss.jsonl", e))?;
+                }
+                return Ok(());
+            };
             if let Some(w) = file_log.as_mut() {
                 writeln!(w, "{line}").map_err(|e| Error::io("loss.jsonl", e))?;
             }
@@ -439,66 +501,127 @@ impl<'a> Trainer<'a> {
             Ok(())
         };
 
-        let vars: Vec<_> = model.vars().iter().map(|(_, v)| v.clone()).collect();
-        let params = ParamsAdamW {
-            lr: cfg.lr_at(0),
-            beta1: cfg.betas.0,
-            beta2: cfg.betas.1,
-            eps: cfg.eps,
-            weight_decay: cfg.weight_decay,
+        let out_dir = self.out_dir.clone();
+        let names: Vec<String> = model.vars().iter().map(|(n, _)| n.clone()).collect();
+        let mut st = State {
+            step: 0,
+            params: model.host_params()?,
+            opt: AdamW::new(&cfg, &[]),
+            ema: None,
+            best: None,
+            report: TrainReport::default(),
         };
-        let mut opt = AdamW::new(vars.clone(), params)?;
-        let mut ema: Option<Vec<Tensor>> = match cfg.ema {
-            Some(_) => Some(model.snapshot()?),
-            None => None,
-        };
+        st.opt = AdamW::new(&cfg, &st.params);
+        if cfg.ema.is_some() {
+            st.ema = Some(st.params.clone());
+        }
         let mut batcher = Batcher::new(data, &spec, model.stats(), &cfg);
-        let mut report = TrainReport::default();
-        let mut best: Option<(f64, Vec<Tensor>)> = None;
+        if let Some(dir) = &resume_from {
+            let rng = st.load(dir, &cfg, &names)?;
+            batcher.rng = rng;
+            // A finished run resumed: leave the model as the run left it (best, else EMA).
+            let done = st.step >= cfg.steps;
+            match (&st.best, &st.ema) {
+                (Some((_, w)), _) if done => model.set_host_params(w)?,
+                (None, Some(e)) if done => model.set_host_params(e)?,
+                _ => model.set_host_params(&st.params)?,
+            }
+        }
+        let mut grads: Vec<Vec<f32>> = st.params.iter().map(|p| vec![0.0; p.len()]).collect();
+        let mut fused_net = if self.fused { model.fast_unet()? } else { None };
+        let par = kernels::parallelism(rayon::current_num_threads());
+        let mut dv = Vec::new();
+        let vars: Vec<_> = model.vars().iter().map(|(_, v)| v.clone()).collect();
 
-        for step in 0..cfg.steps {
+        for step in st.step..cfg.steps {
+            if self.stop_after.is_some_and(|s| step >= s) {
+                break;
+            }
             let lr = cfg.lr_at(step);
-            opt.set_learning_rate(lr);
             batcher.fill(data)?;
             if let Some(r) = cfg.self_rollout {
                 batcher.self_roll(model, r)?;
             }
-            let (v, target, mask) = {
-                let bt = &batcher;
-                let input = bt.input();
-                let v = model.forward_input(&input)?;
-                let dev = Device::Cpu;
-                let b = cfg.batch_size;
-                let target =
-                    Tensor::from_slice(&bt.target, (b, spec.horizon, spec.action_dim), &dev)?;
-                let mask = Tensor::from_slice(&bt.mask, (b, spec.horizon, 1), &dev)?;
-                (v, target, mask)
-            };
+            for g in grads.iter_mut() {
+                g.fill(0.0);
+            }
+            let a = spec.action_dim;
+            let mut gn = None;
             let msum: f32 = batcher.mask.iter().sum();
-            let err = (v - target)?.sqr()?.broadcast_mul(&mask)?;
-            let loss = (err.sum_all()? / (msum.max(1.0) as f64 * spec.action_dim as f64))?;
-            let loss_v = loss.to_scalar::<f32>()?;
+            let denom = msum.max(1.0) * a as f32;
+            let loss_v = match fused_net.as_mut() {
+                Some(net) => {
+                    let input = batcher.input();
+                    let hb = model.host_batch(&input)?;
+                    let v = net.forward(par, &st.params, &hb);
+                    dv.resize(v.len(), 0.0);
+                    let mut loss = 0.0f64;
+                    for (i, ((d, &vi), &t)) in dv.iter_mut().zip(v).zip(&batcher.target).enumerate()
+                    {
+                        let m = batcher.mask[i / a];
+                        let e = vi - t;
+                        loss += (m * e * e) as f64;
+                        *d = 2.0 * m * e / denom;
+                    }
+                    net.backward(par, &st.params, &mut grads, &dv);
+                    (loss / denom as f64) as f32
+                }
+                None => {
+                    let (v, target, mask) = {
+                        let bt = &batcher;
+                        let input = bt.input();
+                        let v = model.forward_input(&input)?;
+                        let dev = Device::Cpu;
+                        let b = cfg.batch_size;
+                        let target = Tensor::from_slice(&bt.target, (b, spec.horizon, a), &dev)?;
+                        let mask = Tensor::from_slice(&bt.mask, (b, spec.horizon, 1), &dev)?;
+                        (v, target, mask)
+                    };
+                    let err = (v - target)?.sqr()?.broadcast_mul(&mask)?;
+                    let loss = (err.sum_all()? / (msum.max(1.0) as f64 * a as f64))?;
+                    let lv = loss.to_scalar::<f32>()?;
+                    if lv.is_finite() {
+                        let mut gs = loss.backward()?;
+                        // Clip in candle as before the host optimiser existed: same bits.
+                        gn = Some(clip_grad_store(&mut gs, &vars, cfg.grad_clip)?);
+                        for (g, v) in grads.iter_mut().zip(&vars) {
+                            if let Some(t) = gs.get(v.as_tensor()) {
+                                g.copy_from_slice(&t.flatten_all()?.to_vec1::<f32>()?);
+                            }
+                        }
+                    }
+                    lv
+                }
+            };
             if !loss_v.is_finite() {
                 return Err(Error::Diverged {
                     step: step + 1,
                     loss: loss_v,
                 });
             }
-            let mut grads = loss.backward()?;
-            let gn = clip_grads(&mut grads, &vars, cfg.grad_clip)?;
-            opt.step(&grads)?;
-            model.weights_changed();
-            if let (Some(e), Some(decay)) = (ema.as_mut(), cfg.ema) {
+            let gn = match gn {
+                Some(gn) => gn,
+                None => clip_grads(&mut grads, cfg.grad_clip),
+            };
+            st.opt.step(&mut st.params, &grads, lr);
+            model.set_host_params(&st.params)?;
+            if let (Some(e), Some(decay)) = (st.ema.as_mut(), cfg.ema) {
                 let d = decay.min((1 + step) as f64 / (10 + step) as f64);
-                for (m, (_, v)) in e.iter_mut().zip(model.vars()) {
-                    *m = ((&*m * d)? + (v.as_tensor() * (1.0 - d))?)?.detach();
+                let (df, cf) = (d as f32, (1.0 - d) as f32);
+                for (m, p) in e.iter_mut().zip(&st.params) {
+                    for (mi, &pi) in m.iter_mut().zip(p) {
+                        *mi = *mi * df + pi * cf;
+                    }
                 }
             }
             let done = step + 1;
-            report.losses.push((done, loss_v));
+            st.step = done;
+            st.report.losses.push((done, loss_v));
             if done % cfg.log_every.max(1) == 0 || done == cfg.steps {
                 log_line(
-                    format!(r#"{{"step":{done},"loss":{loss_v},"lr":{lr},"grad_norm":{gn}}}"#),
+                    Some(format!(
+                        r#"{{"step":{done},"loss":{loss_v},"lr":{lr},"grad_norm":{gn}}}"#
+                    )),
                     &mut self,
                 )?;
             }
@@ -518,67 +641,65 @@ impl<'a> Trainer<'a> {
                 continue;
             }
             // Evaluate the EMA weights (swap in, evaluate, swap back).
-            let raw = match &ema {
-                Some(e) => {
-                    let raw = model.snapshot()?;
-                    model.restore(e)?;
-                    Some(raw)
-                }
-                None => None,
-            };
+            if let Some(e) = &st.ema {
+                model.set_host_params(e)?;
+            }
             let score = self.validate.as_mut().map(|f| f(model, done));
-            let dir = match &self.out_dir {
-                Some(d) => {
-                    let p = d.join(format!("step-{done:06}"));
-                    model.save(&p)?;
-                    Some(p)
-                }
-                None => None,
-            };
+            let step_dir = self
+                .out_dir
+                .as_ref()
+                .map(|d| d.join(format!("step-{done:06}")));
             if let Some(s) = score {
-                log_line(format!(r#"{{"step":{done},"val":{s}}}"#), &mut self)?;
-                if best.as_ref().is_none_or(|(b, _)| s > *b) {
-                    best = Some((s, model.snapshot()?));
-                    report.best = Some(CheckpointRecord {
+                log_line(Some(format!(r#"{{"step":{done},"val":{s}}}"#)), &mut self)?;
+                if st.best.as_ref().is_none_or(|(b, _)| s > *b) {
+                    st.best = Some((s, st.ema.as_ref().unwrap_or(&st.params).clone()));
+                    st.report.best = Some(CheckpointRecord {
                         step: done,
                         score,
-                        dir: dir.clone(),
+                        dir: step_dir.clone(),
                     });
-                    if let Some(d) = &self.out_dir {
-                        let p = d.join("best.json");
-                        let text = serde_json::to_string_pretty(&report.best).map_err(|e| {
-                            Error::Format {
-                                path: p.clone(),
-                                message: e.to_string(),
-                            }
-                        })?;
-                        std::fs::write(&p, text).map_err(|e| Error::io(&p, e))?;
-                    }
                 }
             }
-            report.checkpoints.push(CheckpointRecord {
+            st.report.checkpoints.push(CheckpointRecord {
                 step: done,
                 score,
-                dir,
+                dir: step_dir.clone(),
             });
+            if let (Some(d), Some(p)) = (out_dir.as_deref(), &step_dir) {
+                // Flush the log first: a resumed run appends after what is on disk.
+                log_line(None, &mut self)?;
+                st.save_step(model, d, p, batcher.rng.state(), &names, &cfg)?;
+                if score.is_some() && st.report.best.as_ref().is_some_and(|b| b.step == done) {
+                    let path = d.join("best.json");
+                    let text = serde_json::to_string_pretty(&st.report.best).map_err(|e| {
+                        Error::Format {
+                            path: path.clone(),
+                            message: e.to_string(),
+                        }
+                    })?;
+                    write_durable(&path, text.as_bytes())?;
+                }
+            }
             if done == cfg.steps {
                 // Leave the evaluated (EMA) weights in the model, then the best if validated.
-                if let Some((_, w)) = &best {
-                    model.restore(w)?;
+                if let Some((_, w)) = &st.best {
+                    model.set_host_params(w)?;
                 }
-            } else if let Some(raw) = raw {
-                model.restore(&raw)?;
+            } else if st.ema.is_some() {
+                model.set_host_params(&st.params)?;
             }
         }
-        if let Some(w) = file_log.as_mut() {
-            w.flush().map_err(|e| Error::io("loss.jsonl", e))?;
-        }
-        Ok(report)
+        log_line(None, &mut self)?;
+        Ok(st.report)
     }
 }
 
-/// Global grad norm; scales the gradients in place when it exceeds `clip`.
-fn clip_grads(grads: &mut GradStore, vars: &[candle_core::Var], clip: Option<f64>) -> Result<f32> {
+/// Global grad norm of candle gradients; scales them in place when it exceeds `clip`.
+fn clip_grad_store(
+    grads: &mut candle_core::backprop::GradStore,
+    vars: &[candle_core::Var],
+    clip: Option<f64>,
+) -> Result<f32> {
     let mut sq = 0.0f64;
     for v in vars {
         if let Some(g) = grads.get(v.as_tensor()) {
@@ -597,6 +718,303 @@ fn clip_grads(grads: &mut GradStore, vars: &[candle_core::Var], clip: Option<f64
         }
     }
     Ok(norm as f32)
+}
+
+/// Global grad norm (f64 accumulation); scales the gradients in place when it exceeds `clip`.
+fn clip_grads(grads: &mut [Vec<f32>], clip: Option<f64>) -> f32 {
+    let sq: f64 = grads
+        .iter()
+        .map(|g| g.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
+        .sum();
+    let norm = sq.sqrt();
+    if let Some(c) = clip {
+        if norm > c && norm.is_finite() {
+            let s = (c / (norm + 1e-6)) as f32;
+            for g in grads.iter_mut() {
+                for v in g.iter_mut() {
+                    *v *= s;
+                }
+            }
+        }
+    }
+    norm as f32
+}
+
+// ---------------------------------------------------------------- optimiser and state
+
+/// AdamW on host buffers, the same update as `candle_nn::AdamW` (decoupled weight decay,
+/// bias-corrected moments), with state that can be saved and restored.
+#[derive(Debug, Clone)]
+struct AdamW {
+    beta1: f64,
+    beta2: f64,
+    eps: f64,
+    weight_decay: f64,
+    t: u64,
+    m: Vec<Vec<f32>>,
+    v: Vec<Vec<f32>>,
+}
+
+impl AdamW {
+    fn new(cfg: &TrainConfig, params: &[Vec<f32>]) -> Self {
+        Self {
+            beta1: cfg.betas.0,
+            beta2: cfg.betas.1,
+            eps: cfg.eps,
+            weight_decay: cfg.weight_decay,
+            t: 0,
+            m: params.iter().map(|p| vec![0.0; p.len()]).collect(),
+            v: params.iter().map(|p| vec![0.0; p.len()]).collect(),
+        }
+    }
+
+    fn step(&mut self, params: &mut [Vec<f32>], grads: &[Vec<f32>], lr: f64) {
+        self.t += 1;
+        let (b1, b2) = (self.beta1, self.beta2);
+        let scale_m = (1.0 / (1.0 - b1.powi(self.t as i32))) as f32;
+        let scale_v = (1.0 / (1.0 - b2.powi(self.t as i32))) as f32;
+        let decay = (1.0 - lr * self.weight_decay) as f32;
+        let (b1f, c1) = (b1 as f32, (1.0 - b1) as f32);
+        let (b2f, c2) = (b2 as f32, (1.0 - b2) as f32);
+        let (eps, lrf) = (self.eps as f32, lr as f32);
+        for (((p, g), m), v) in params
+            .iter_mut()
+            .zip(grads)
+            .zip(self.m.iter_mut())
+            .zip(self.v.iter_mut())
+        {
+            for (((pi, &gi), mi), vi) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *mi = *mi * b1f + gi * c1;
+                *vi = *vi * b2f + gi * gi * c2;
+                let mh = *mi * scale_m;
+                let vh = *vi * scale_v;
+                *pi = *pi * decay - (mh / (vh.sqrt() + eps)) * lrf;
+            }
+        }
+    }
+}
+
+/// Everything a run carries from one step to the next.
+struct State {
+    /// Steps done.
+    step: usize,
+    /// Raw (trained) weights, in [`CandleModel::vars`] order.
+    params: Vec<Vec<f32>>,
+    opt: AdamW,
+    ema: Option<Vec<Vec<f32>>>,
+    best: Option<(f64, Vec<Vec<f32>>)>,
+    report: TrainReport,
+}
+
+/// The JSON part of a step checkpoint's training state.
+#[derive(Debug, Serialize, Deserialize)]
+struct StateMeta {
+    step: usize,
+    adam_t: u64,
+    rng: [u64; 4],
+    best_score: Option<f64>,
+    config: TrainConfig,
+    report: TrainReport,
+}
+
+impl State {
+    /// Write the step checkpoint `dir` (model weights as evaluated + training state): into a
+    /// uniquely named temp directory, every file fsynced, then renamed into place.
+    fn save_step(
+        &self,
+        model: &CandleModel,
+        out: &Path,
+        dir: &Path,
+        rng: [u64; 4],
+        names: &[String],
+        cfg: &TrainConfig,
+    ) -> Result<()> {
+        if dir.exists() {
+            return Err(Error::CheckpointExists(dir.to_owned()));
+        }
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        let leaf = dir
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let tmp = out.join(format!(".{leaf}.tmp-{}-{nanos}", std::process::id()));
+        model.save(&tmp)?;
+        let meta = StateMeta {
+            step: self.step,
+            adam_t: self.opt.t,
+            rng,
+            best_score: self.best.as_ref().map(|b| b.0),
+            config: cfg.clone(),
+            report: self.report.clone(),
+        };
+        let path = tmp.join(TRAIN_STATE_FILE);
+        let text = serde_json::to_string(&meta).map_err(|e| Error::Format {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        write_durable(&path, text.as_bytes())?;
+        let mut tensors: Vec<(String, &[f32])> = Vec::new();
+        for (i, n) in names.iter().enumerate() {
+            tensors.push((format!("param/{n}"), &self.params[i]));
+            tensors.push((format!("adam_m/{n}"), &self.opt.m[i]));
+            tensors.push((format!("adam_v/{n}"), &self.opt.v[i]));
+            if let Some(e) = &self.ema {
+                tensors.push((format!("ema/{n}"), &e[i]));
+            }
+            if let Some((_, b)) = &self.best {
+                tensors.push((format!("best/{n}"), &b[i]));
+            }
+        }
+        let tpath = tmp.join(TRAIN_TENSORS_FILE);
+        let st_err = |e: safetensors::SafeTensorError| Error::Safetensors {
+            path: tpath.clone(),
+            message: e.to_string(),
+        };
+        let bytes: Vec<(String, Vec<u8>)> = tensors
+            .iter()
+            .map(|(n, d)| (n.clone(), d.iter().flat_map(|v| v.to_le_bytes()).collect()))
+            .collect();
+        let mut views = Vec::with_capacity(bytes.len());
+        for ((n, b), (_, d)) in bytes.iter().zip(&tensors) {
+            views.push((
+                n.clone(),
+                safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![d.len()], b)
+                    .map_err(st_err)?,
+            ));
+        }
+        let data = safetensors::serialize(views, None).map_err(st_err)?;
+        write_durable(&tpath, &data)?;
+        // The model's own files (written by `CandleModel::save`), then the directories.
+        for f in std::fs::read_dir(&tmp)
+            .map_err(|e| Error::io(&tmp, e))?
+            .flatten()
+        {
+            sync_path(&f.path())?;
+        }
+        sync_path(&tmp)?;
+        std::fs::rename(&tmp, dir).map_err(|e| Error::io(dir, e))?;
+        sync_path(out)
+    }
+
+    /// Read the training state of the step checkpoint `dir`; returns the batch generator.
+    fn load(&mut self, dir: &Path, cfg: &TrainConfig, names: &[String]) -> Result<Rng> {
+        let path = dir.join(TRAIN_STATE_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let meta: StateMeta = serde_json::from_str(&text).map_err(|e| Error::Format {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        if meta.config != *cfg {
+            return Err(Error::config(
+                "train.resume",
+                format!(
+                    "{} was written with another training configuration ({:?}); resume needs the same",
+                    path.display(),
+                    meta.config
+                ),
+            ));
+        }
+        let tpath = dir.join(TRAIN_TENSORS_FILE);
+        let bytes = std::fs::read(&tpath).map_err(|e| Error::io(&tpath, e))?;
+        let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| Error::Safetensors {
+            path: tpath.clone(),
+            message: e.to_string(),
+        })?;
+        let read = |key: String, want: usize| -> Result<Vec<f32>> {
+            let v = st.tensor(&key).map_err(|e| Error::Safetensors {
+                path: tpath.clone(),
+                message: format!("`{key}`: {e}"),
+            })?;
+            let d: Vec<f32> = v
+                .data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            if d.len() != want || v.dtype() != safetensors::Dtype::F32 {
+                return Err(Error::shape("train state tensor", want, d.len()));
+            }
+            Ok(d)
+        };
+        for (i, n) in names.iter().enumerate() {
+            let len = self.params[i].len();
+            self.params[i] = read(format!("param/{n}"), len)?;
+            self.opt.m[i] = read(format!("adam_m/{n}"), len)?;
+            self.opt.v[i] = read(format!("adam_v/{n}"), len)?;
+            if let Some(e) = self.ema.as_mut() {
+                e[i] = read(format!("ema/{n}"), len)?;
+            }
+        }
+        self.best = match meta.best_score {
+            Some(s) => Some((
+                s,
+                names
+                    .iter()
+                    .zip(&self.params)
+                    .map(|(n, p)| read(format!("best/{n}"), p.len()))
+                    .collect::<Result<Vec<_>>>()?,
+            )),
+            None => None,
+        };
+        self.step = meta.step;
+        self.opt.t = meta.adam_t;
+        self.report = meta.report;
+        Rng::from_state(meta.rng).ok_or_else(|| Error::Format {
+            path,
+            message: "all-zero random state".into(),
+        })
+    }
+}
+
+/// Write `bytes` to `path` and fsync it.
+fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    f.write_all(bytes).map_err(|e| Error::io(path, e))?;
+    f.sync_all().map_err(|e| Error::io(path, e))
+}
+
+/// fsync a file or a directory.
+fn sync_path(path: &Path) -> Result<()> {
+    std::fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+/// The step checkpoint with the highest step that carries a training state, if any.
+fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
+    let rd = match std::fs::read_dir(out) {
+        Ok(rd) => rd,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(out, e)),
+    };
+    let mut best: Option<(usize, PathBuf)> = None;
+    let mut without_state = None;
+    for e in rd.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(n) = name
+            .strip_prefix("step-")
+            .and_then(|s| s.parse::<usize>().ok())
+        else {
+            continue;
+        };
+        if !e.path().join(TRAIN_STATE_FILE).is_file() {
+            without_state = Some(e.path());
+            continue;
+        }
+        if best.as_ref().is_none_or(|(b, _)| n > *b) {
+            best = Some((n, e.path()));
+        }
+    }
+    match (best, without_state) {
+        (Some((_, p)), _) => Ok(Some(p)),
+        (None, Some(p)) => Err(Error::config(
+            "train.resume",
+            format!("{} has no training state to resume from", p.display()),
+        )),
+        (None, None) => Ok(None),
+    }
 }
 
 // ---------------------------------------------------------------- batches
@@ -758,8 +1176,9 @@ impl Batcher {
         self.tau.copy_from_slice(&tau_start);
         let v = {
             let input = self.input();
-            let v = model.forward_input(&input)?.detach();
-            v.flatten_all()?.to_vec1::<f32>()?
+            let mut v = vec![0.0f32; self.b * h * a];
+            model.velocity_into(&input, &mut v)?;
+            v
         };
         self.tau.copy_from_slice(&tau_final);
         for i in 0..self.b {

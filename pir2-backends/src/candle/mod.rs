@@ -20,9 +20,11 @@
 
 pub(crate) mod dit;
 pub mod export;
+pub(crate) mod kernels;
 pub(crate) mod layers;
 pub(crate) mod mlp;
 pub(crate) mod unet;
+pub(crate) mod unet_fast;
 
 use std::path::Path;
 
@@ -75,6 +77,17 @@ struct Scratch {
     dvis: Vec<u32>,
     /// Host copy of the MLP weights for batch-1 calls; `None` = stale, rebuilt on demand.
     mlp_fast: Option<mlp::MlpFast>,
+    /// The hand-written U-Net and a host copy of the weights (see [`CandleModel::set_fused`]).
+    unet: Option<UNetHost>,
+}
+
+/// The U-Net's host kernels with the weights they run on.
+#[derive(Debug)]
+struct UNetHost {
+    net: unet_fast::FastUNet,
+    params: Vec<Vec<f32>>,
+    /// The weights changed since `params` was copied.
+    stale: bool,
 }
 
 /// A candle velocity model (MLP, U-Net or DiT) with its normalisation statistics.
@@ -85,6 +98,7 @@ pub struct CandleModel {
     vars: Vec<(String, Var)>,
     net: Arch,
     scratch: Scratch,
+    fused: bool,
 }
 
 impl CandleModel {
@@ -105,6 +119,7 @@ impl CandleModel {
             vars: ps.vars,
             net,
             scratch: Scratch::default(),
+            fused: true,
         })
     }
 
@@ -129,6 +144,76 @@ impl CandleModel {
     /// host copy the batch-1 MLP path keeps). The trainer and [`CandleModel::restore`] call it.
     pub fn weights_changed(&mut self) {
         self.scratch.mlp_fast = None;
+        if let Some(u) = self.scratch.unet.as_mut() {
+            u.stale = true;
+        }
+    }
+
+    /// Use the hand-written host kernels for the U-Net (default `true`): inference through
+    /// [`VelocityModel::velocity`] at any batch size, and training in [`crate::train`]. They
+    /// compute the same function as the candle graph ([`CandleModel::forward_input`], which
+    /// always uses candle) up to float rounding; `false` selects the candle graph everywhere
+    /// (the reference, e.g. for benchmarks). No effect on the MLP and DiT.
+    pub fn set_fused(&mut self, on: bool) {
+        self.fused = on;
+    }
+
+    /// Whether the hand-written kernels are used for this model (a U-Net with
+    /// [`CandleModel::set_fused`] on).
+    pub fn fused(&self) -> bool {
+        self.fused && matches!(self.net, Arch::UNet(_))
+    }
+
+    /// A fresh instance of the U-Net host kernels (own buffers), if the model is a U-Net.
+    pub(crate) fn fast_unet(&self) -> Result<Option<unet_fast::FastUNet>> {
+        let ModelConfig::UNet(c) = &self.config.model else {
+            return Ok(None);
+        };
+        let names: Vec<&str> = self.vars.iter().map(|(n, _)| n.as_str()).collect();
+        Ok(Some(unet_fast::FastUNet::new(
+            &self.config.spec,
+            c,
+            &names,
+        )?))
+    }
+
+    /// Host copies of every weight (same order as [`CandleModel::vars`]).
+    pub(crate) fn host_params(&self) -> Result<Vec<Vec<f32>>> {
+        Ok(self
+            .vars
+            .iter()
+            .map(|(_, v)| v.flatten_all()?.to_vec1::<f32>())
+            .collect::<CResult<Vec<_>>>()?)
+    }
+
+    /// Overwrite every weight from host copies (same order as [`CandleModel::vars`]).
+    pub(crate) fn set_host_params(&mut self, params: &[Vec<f32>]) -> Result<()> {
+        if params.len() != self.vars.len() {
+            return Err(Error::shape("weights", self.vars.len(), params.len()));
+        }
+        for ((_, v), p) in self.vars.iter().zip(params) {
+            v.set(&Tensor::from_slice(p, v.shape(), &Device::Cpu)?)?;
+        }
+        self.weights_changed();
+        Ok(())
+    }
+
+    /// Validate and encode a runtime input into host buffers (normalised fast history, slow
+    /// features, clamped ages) for the host kernels.
+    pub(crate) fn host_batch<'a>(
+        &'a mut self,
+        input: &ModelInput<'a>,
+    ) -> Result<unet_fast::HostBatch<'a>> {
+        self.encode_host(input)?;
+        let sc = &self.scratch;
+        Ok(unet_fast::HostBatch {
+            b: input.batch,
+            x: input.x,
+            tau: input.tau,
+            fast: &sc.fast,
+            slow: &sc.slow,
+            dvis: &sc.dvis,
+        })
     }
 
     /// Number of scalar parameters.
@@ -384,9 +469,55 @@ impl CandleModel {
                 }
             }
         }
+        if self.fused() {
+            return self.velocity_fused(input, out);
+        }
         let v = self.forward_input(input)?;
         let v = v.flatten_all()?.to_vec1::<f32>()?;
         out.copy_from_slice(&v);
+        Ok(())
+    }
+
+    /// The U-Net on the host kernels: single-threaded at batch 1 (no allocation once warm),
+    /// on the rayon pool otherwise.
+    fn velocity_fused(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        self.encode_host(input)?;
+        if self.scratch.unet.is_none() {
+            let net = self
+                .fast_unet()?
+                .ok_or_else(|| Error::shape("model", "U-Net", "another architecture"))?;
+            self.scratch.unet = Some(UNetHost {
+                net,
+                params: Vec::new(),
+                stale: true,
+            });
+        }
+        let stale = self.scratch.unet.as_ref().is_some_and(|u| u.stale);
+        if stale {
+            let params = self.host_params()?;
+            if let Some(u) = self.scratch.unet.as_mut() {
+                u.params = params;
+                u.stale = false;
+            }
+        }
+        let par = if input.batch == 1 {
+            kernels::parallelism(1)
+        } else {
+            kernels::parallelism(rayon::current_num_threads())
+        };
+        let sc = &mut self.scratch;
+        let Some(u) = sc.unet.as_mut() else {
+            return Err(Error::shape("model", "U-Net", "another architecture"));
+        };
+        let batch = unet_fast::HostBatch {
+            b: input.batch,
+            x: input.x,
+            tau: input.tau,
+            fast: &sc.fast,
+            slow: &sc.slow,
+            dvis: &sc.dvis,
+        };
+        out.copy_from_slice(u.net.forward(par, &u.params, &batch));
         Ok(())
     }
 
