@@ -214,6 +214,9 @@ enum RobotCmd {
         /// XHand serial device.
         #[arg(long)]
         xhand: Option<PathBuf>,
+        /// Clear a latched xArm error/warning (collision, emergency stop) after reporting it.
+        #[arg(long)]
+        clear_errors: bool,
     },
     /// Run an emulator until Ctrl-C.
     Emulate {
@@ -530,7 +533,11 @@ fn main() -> Result<()> {
             }
         }
         Cmd::Robot { cmd } => match cmd {
-            RobotCmd::Check { xarm, xhand } => {
+            RobotCmd::Check {
+                xarm,
+                xhand,
+                clear_errors,
+            } => {
                 let addr = match xarm {
                     None => None,
                     Some(s) => Some(match s.parse::<SocketAddr>() {
@@ -542,7 +549,9 @@ fn main() -> Result<()> {
                         ),
                     }),
                 };
-                let report = pir2_robots::check(addr, xhand.as_deref())?;
+                let mut opts = pir2_robots::CheckOptions::new(addr, xhand.as_deref());
+                opts.clear_errors = clear_errors;
+                let report = pir2_robots::check_with(&opts)?;
                 println!("{report}");
             }
             RobotCmd::Emulate { robot, host, pty } => {

@@ -41,6 +41,10 @@ pub struct RunArgs {
     /// XHand serial device (RS-485 adapter).
     #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     pub xhand: Option<PathBuf>,
+    /// Clear a latched xArm error/warning (collision, emergency stop) at connect instead of
+    /// refusing to start.
+    #[arg(long)]
+    pub clear_errors: bool,
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
     #[arg(long)]
@@ -387,6 +391,7 @@ mod imp {
             let mut acfg = xarm_config(&arm_emu.cmd_addr().to_string(), cfg.control_hz)?;
             acfg.report_addr = arm_emu.real_report_addr();
             acfg.stream_hz = 100.0;
+            acfg.clear_errors = args.clear_errors;
             let arm =
                 XArm6::connect(acfg, clock.clone()).context("connecting to the xArm emulator")?;
             let hand = XHand::new(
@@ -426,7 +431,8 @@ mod imp {
         let (Some(xarm), Some(xhand)) = (&args.xarm, &args.xhand) else {
             bail!("--xarm and --xhand are required unless --emulate");
         };
-        let acfg = xarm_config(xarm, cfg.control_hz)?;
+        let mut acfg = xarm_config(xarm, cfg.control_hz)?;
+        acfg.clear_errors = args.clear_errors;
         let cmd = acfg.cmd_addr;
         let layer = pir2_robots::connect_arm_hand(
             acfg,

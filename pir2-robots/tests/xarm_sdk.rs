@@ -21,8 +21,8 @@ fn emulator() -> XArmEmulator {
         let e = XArmEmulator::spawn(LOCAL, XArmPorts::ephemeral()).unwrap();
         let next = e.cmd_addr().port().wrapping_add(1);
         let clash = [
-            e.report_addr(ReportKind::Normal, 133),
-            e.report_addr(ReportKind::Normal, 233),
+            e.report_addr(ReportKind::Normal),
+            e.report_addr(ReportKind::Rich),
             e.real_report_addr(),
         ]
         .iter()
@@ -41,35 +41,49 @@ fn official_sdk_runs_a_servo_session_against_the_emulator() {
     let e = emulator();
     let port = |a: Option<std::net::SocketAddr>| a.expect("report port").port().to_string();
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/sdk/xarm_sdk_session.py");
+    // Output goes to files, not pipes: the SDK logs a lot, and a full pipe would block it.
+    let dir = std::env::temp_dir();
+    let tag = format!(
+        "pir2-xarm-sdk-{}-{}",
+        std::process::id(),
+        e.cmd_addr().port()
+    );
+    let out_path = dir.join(format!("{tag}.out"));
+    let err_path = dir.join(format!("{tag}.err"));
     let mut child = Command::new(python)
         .arg(script)
         .args(["--cmd-port", &e.cmd_addr().port().to_string()])
-        .args(["--normal-port", &port(e.report_addr(ReportKind::Normal, 133))])
-        .args(["--rich-port", &port(e.report_addr(ReportKind::Normal, 233))])
+        .args(["--normal-port", &port(e.report_addr(ReportKind::Normal))])
+        .args(["--rich-port", &port(e.report_addr(ReportKind::Rich))])
         .args(["--real-port", &port(e.real_report_addr())])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
+        .stdout(std::fs::File::create(&out_path).unwrap())
+        .stderr(std::fs::File::create(&err_path).unwrap())
         .spawn()
         .expect("starting the SDK session script");
+    // The script aborts itself after 45 s; this is the backstop.
     let t0 = Instant::now();
+    let mut killed = false;
     let status = loop {
         if let Some(s) = child.try_wait().unwrap() {
             break s;
         }
-        if t0.elapsed() > Duration::from_secs(60) {
+        if t0.elapsed() > Duration::from_secs(90) {
             let _ = child.kill();
-            panic!("the SDK session did not finish within 60 s");
+            killed = true;
+            break child.wait().unwrap();
         }
         std::thread::sleep(Duration::from_millis(50));
     };
-    let out = child.wait_with_output().unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stdout = std::fs::read_to_string(&out_path).unwrap_or_default();
+    let stderr = std::fs::read_to_string(&err_path).unwrap_or_default();
+    let _ = std::fs::remove_file(&out_path);
+    let _ = std::fs::remove_file(&err_path);
     println!("{stdout}");
     assert!(
-        status.success(),
-        "the SDK session failed ({status}):\n{stdout}\n--- stderr (tail) ---\n{}",
-        tail(&stderr, 40)
+        status.success() && !killed,
+        "the SDK session failed ({status}{}):\n{stdout}\n--- stderr (tail) ---\n{}",
+        if killed { ", killed after 90 s" } else { "" },
+        tail(&stderr, 60)
     );
 }
 

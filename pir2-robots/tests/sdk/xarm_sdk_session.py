@@ -23,6 +23,7 @@ Exits 1 with one line per failed check, 0 if all pass; prints a summary either w
 """
 
 import argparse
+import faulthandler
 import json
 import math
 import sys
@@ -47,6 +48,8 @@ def parse_args():
     p.add_argument("--real-port", type=int, required=True)
     p.add_argument("--connect-wait", type=float, default=5.0,
                    help="seconds to wait for the first report of each stream")
+    p.add_argument("--deadline", type=float, default=45.0,
+                   help="seconds after which the session is aborted (stacks dumped, exit 1)")
     return p.parse_args()
 
 
@@ -116,8 +119,14 @@ def tracking(samples, cmds, q0):
     return best
 
 
+def log(msg):
+    print(f"[sdk-session {time.monotonic():.3f}] {msg}", file=sys.stderr, flush=True)
+
+
 def main():
     a = parse_args()
+    # A hung SDK call must not hang the test: dump every thread's stack and exit non-zero.
+    faulthandler.dump_traceback_later(a.deadline, exit=True)
     patch_ports(a)
     from xarm.wrapper import XArmAPI
 
@@ -136,11 +145,13 @@ def main():
     # Watchers first: they never command, they only parse their report stream.
     watchers = {}
     for kind in ("real", "normal"):
+        log(f"connecting a {kind}-report watcher")
         w = XArmAPI(a.host, is_radian=True, report_type=kind, forbid_uds=True)
         rec = Recorder()
         w.register_report_location_callback(rec, report_cartesian=False, report_joints=True)
         watchers[kind] = (w, rec)
 
+    log("connecting the session (rich report stream)")
     arm = XArmAPI(a.host, is_radian=True, forbid_uds=True)  # report_type "rich" (default)
     rich = Recorder()
     arm.register_report_location_callback(rich, report_cartesian=False, report_joints=True)
@@ -158,6 +169,7 @@ def main():
     for kind, rec in recs.items():
         check(rec.snapshot(), f"no {kind} report frame parsed by the SDK within {a.connect_wait} s")
 
+    log("enable, servo mode, state 0")
     call("motion_enable(True)", arm.motion_enable(enable=True))
     call("set_mode(1)", arm.set_mode(1))
     call("set_state(0)", arm.set_state(0))
@@ -169,6 +181,7 @@ def main():
     q0 = list(q0[:6])
     summary["q0"] = q0
 
+    log("streaming servo-j")
     cmds = []          # (time sent, 6 angles)
     polled = []        # (time read, 6 angles) from get_servo_angle
     servo_codes = {}
@@ -233,9 +246,11 @@ def main():
     check(arm.error_code == 0 and arm.warn_code == 0,
           f"controller error/warning {arm.error_code}/{arm.warn_code} at the end")
 
+    log("disconnecting")
     arm.disconnect()
     for w, _ in watchers.values():
         w.disconnect()
+    faulthandler.cancel_dump_traceback_later()
     check(not arm.connected, "still connected after disconnect()")
 
     print("SUMMARY " + json.dumps(summary))
