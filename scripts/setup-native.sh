@@ -37,6 +37,8 @@ have mujoco 3.17.0 || "$pip" -q install "mujoco==3.17.0"
 have onnxruntime 1.31.1 || "$pip" -q install "onnxruntime==1.31.1"
 # `onnx` + numpy: the GR00T tests write their tiny synthetic graphs with them.
 "$venv/bin/python" -c "import onnx, numpy" 2>/dev/null || "$pip" -q install onnx numpy
+# UFACTORY's official xArm SDK: the real client of the xArm emulator in the native tests.
+have xarm-python-sdk 1.18.4 || "$pip" -q install "xarm-python-sdk==1.18.4"
 if [ "$want_torch" = 1 ]; then
   if ! have torch 2.13.0; then
     if [ "$full_torch" = 1 ]; then

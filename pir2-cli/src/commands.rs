@@ -297,7 +297,7 @@ pub fn bench(what: &str, seconds: f64) -> Result<()> {
 
 /// `pir2 robot check`: connect to an xArm (`host` or `host:port`, port 502 by default)
 /// and/or an XHand serial device, read state, print a report.
-pub fn robot_check(xarm: Option<&str>, xhand: Option<&Path>) -> Result<()> {
+pub fn robot_check(xarm: Option<&str>, xhand: Option<&Path>, clear_errors: bool) -> Result<()> {
     let addr = match xarm {
         None => None,
         Some(s) => Some(match s.parse::<SocketAddr>() {
@@ -309,7 +309,9 @@ pub fn robot_check(xarm: Option<&str>, xhand: Option<&Path>) -> Result<()> {
             ),
         }),
     };
-    let report = pir2_robots::check(addr, xhand)?;
+    let mut opts = pir2_robots::CheckOptions::new(addr, xhand);
+    opts.clear_errors = clear_errors;
+    let report = pir2_robots::check_with(&opts)?;
     println!("{report}");
     Ok(())
 }

@@ -233,6 +233,10 @@ struct RunArgs {
     /// XHand serial device (RS-485 adapter).
     #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     xhand: Option<PathBuf>,
+    /// Clear a latched xArm error/warning (collision, emergency stop) at connect instead of
+    /// refusing to start.
+    #[arg(long)]
+    clear_errors: bool,
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
     #[arg(long)]
@@ -284,6 +288,7 @@ impl From<RunArgs> for RunOptions {
             free_prompt: a.free_prompt,
             xarm: a.xarm,
             xhand: a.xhand,
+            clear_errors: a.clear_errors,
             emulate: a.emulate,
             synthetic_camera: a.synthetic_camera,
             remote_slow: a.remote_slow,
@@ -403,6 +408,9 @@ enum RobotCmd {
         /// XHand serial device.
         #[arg(long)]
         xhand: Option<PathBuf>,
+        /// Clear a latched xArm error/warning (collision, emergency stop) after reporting it.
+        #[arg(long)]
+        clear_errors: bool,
     },
     /// Run an emulator until Ctrl-C.
     Emulate {
@@ -545,8 +553,11 @@ fn main() -> Result<()> {
         Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),
         Cmd::Bench { what, seconds } => commands::bench(&what, seconds),
         Cmd::Robot { cmd } => match cmd {
-            RobotCmd::Check { xarm, xhand } => {
-                commands::robot_check(xarm.as_deref(), xhand.as_deref())
+            RobotCmd::Check {
+                xarm,
+                xhand,
+                clear_errors,
+            } => commands::robot_check(xarm.as_deref(), xhand.as_deref(), clear_errors),
             }
             RobotCmd::Emulate { robot, host, pty } => {
                 let which = if robot == "xarm" {

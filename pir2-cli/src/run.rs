@@ -34,6 +34,9 @@ pub struct RunOptions {
     pub xarm: Option<String>,
     /// XHand serial device (RS-485 adapter).
     pub xhand: Option<PathBuf>,
+    /// Clear a latched xArm error/warning (collision, emergency stop) at connect instead of
+    /// refusing to start.
+    pub clear_errors: bool,
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
     pub emulate: bool,
@@ -371,6 +374,7 @@ mod imp {
             let (rig, layer) = EmulatedArmHand::start(
                 &EmulatedArmHandConfig {
                     action_period: Some(Duration::from_secs_f64(1.0 / cfg.control_hz)),
+                    clear_errors: args.clear_errors,
                     ..Default::default()
                 },
                 clock.clone(),
@@ -398,7 +402,8 @@ mod imp {
         let (Some(xarm), Some(xhand)) = (&args.xarm, &args.xhand) else {
             bail!("--xarm and --xhand are required unless --emulate");
         };
-        let acfg = xarm_config(xarm, cfg.control_hz)?;
+        let mut acfg = xarm_config(xarm, cfg.control_hz)?;
+        acfg.clear_errors = args.clear_errors;
         let cmd = acfg.cmd_addr;
         let layer = pir2_robots::connect_arm_hand(
             acfg,

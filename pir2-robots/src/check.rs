@@ -28,6 +28,8 @@ pub struct CheckOptions {
     pub baud: u32,
     /// Timeout of every request.
     pub timeout: Duration,
+    /// Clear a latched xArm error/warning (`CLEAN_ERR`, `CLEAN_WAR`) after reading it.
+    pub clear_errors: bool,
 }
 
 impl CheckOptions {
@@ -44,6 +46,7 @@ impl CheckOptions {
             hand_id: consts::DEFAULT_HAND_ID,
             baud: consts::BAUD,
             timeout: Duration::from_millis(500),
+            clear_errors: false,
         }
     }
 }
@@ -67,6 +70,8 @@ pub struct XArmCheck {
     pub torques: [f32; 7],
     /// One real-time report, or why none could be read; `None` when not asked.
     pub report: Option<std::result::Result<Report, String>>,
+    /// With [`CheckOptions::clear_errors`]: the codes after clearing.
+    pub after_clear: Option<(u8, u8)>,
 }
 
 /// What the hand answered.
@@ -94,10 +99,9 @@ pub struct CheckReport {
 impl CheckReport {
     /// Whether everything asked answered without an error code.
     pub fn healthy(&self) -> bool {
-        let arm_ok = self
-            .xarm
-            .as_ref()
-            .is_none_or(|a| a.error == 0 && !matches!(a.report, Some(Err(_))));
+        let arm_ok = self.xarm.as_ref().is_none_or(|a| {
+            a.after_clear.map_or(a.error, |c| c.0) == 0 && !matches!(a.report, Some(Err(_)))
+        });
         let hand_ok = self
             .xhand
             .as_ref()
@@ -115,6 +119,12 @@ impl std::fmt::Display for CheckReport {
                 "  state {} error {} warning {}",
                 a.state, a.error, a.warning
             )?;
+            if let Some((e, w)) = a.after_clear {
+                writeln!(
+                    f,
+                    "  cleared: error {e} warning {w} after CLEAN_ERR/CLEAN_WAR"
+                )?;
+            }
             writeln!(f, "  joints (rad) {:.3?}", &a.joints[..6])?;
             writeln!(f, "  torques      {:.3?}", &a.torques[..6])?;
             match &a.report {
@@ -167,9 +177,16 @@ pub fn check_with(opts: &CheckOptions) -> Result<CheckReport> {
     let mut out = CheckReport::default();
     if let Some(addr) = opts.xarm {
         let mut c = XArmClient::connect(addr, opts.timeout, clock.clone())?;
-        let version = c.version()?;
+        let version = c.identify()?.text;
         let state = c.state()?;
         let (error, warning) = c.error_codes()?;
+        let after_clear = if opts.clear_errors && (error != 0 || warning != 0) {
+            c.clean_error()?;
+            c.clean_warning()?;
+            Some(c.error_codes()?)
+        } else {
+            None
+        };
         let joints = c.joint_positions()?;
         let torques = c.joint_torques()?;
         let report = opts.xarm_report.map(|ra| {
@@ -186,6 +203,7 @@ pub fn check_with(opts: &CheckOptions) -> Result<CheckReport> {
             joints,
             torques,
             report,
+            after_clear,
         });
     }
     #[cfg(unix)]

@@ -498,6 +498,7 @@ proptest! {
         let _ = Reply::decode(&bytes);
         let _ = Report::parse(&bytes, ReportKind::Real);
         let _ = Report::parse(&bytes, ReportKind::Normal);
+        let _ = Report::parse(&bytes, ReportKind::Rich);
         let mut fb = FrameBuf::new();
         fb.push(&bytes);
         for _ in 0..64 {
@@ -510,8 +511,9 @@ proptest! {
 
     #[test]
     fn xarm_report_buffer_never_panics(chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..300), 0..6),
-                                      normal in any::<bool>()) {
-        let mut rb = ReportBuf::new(if normal { ReportKind::Normal } else { ReportKind::Real });
+                                      kind in 0usize..3) {
+        let kind = [ReportKind::Real, ReportKind::Normal, ReportKind::Rich][kind];
+        let mut rb = ReportBuf::new(kind);
         for c in chunks {
             rb.push(&c);
             for _ in 0..8 {
@@ -580,8 +582,9 @@ proptest! {
 
     #[test]
     fn report_round_trip(angles in proptest::array::uniform7(-10f32..10.0), torques in proptest::array::uniform7(-50f32..50.0),
-                         state in 0u8..16, mode in 0u8..16, error in any::<u8>()) {
-        let r = Report { state, mode, cmd_num: 3, angles, pose: [0.0; 6], torques, error, warning: 0 };
+                         state in 0u8..10, mode in 0u8..12, error in any::<u8>()) {
+        // (The SDK refuses normal/rich reports with state >= 10 or mode >= 12.)
+        let r = Report { size: 133, state, mode, cmd_num: 3, angles, pose: [0.0; 6], torques, error, ..Report::default() };
         let b = r.encode(ReportKind::Normal, 133).unwrap();
         prop_assert_eq!(Report::parse(&b, ReportKind::Normal).unwrap(), r);
     }

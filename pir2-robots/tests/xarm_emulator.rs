@@ -6,6 +6,7 @@ use std::net::{IpAddr, Ipv4Addr};
 use std::sync::Arc;
 use std::time::Duration;
 
+use pir2_robots::emu::xarm::XArmEmuOptions;
 use pir2_robots::emu::{XArmEmulator, XArmFault, XArmPorts};
 use pir2_robots::xarm::proto::{state, ReportKind};
 use pir2_robots::xarm::{ReportReader, XArmClient};
@@ -82,7 +83,8 @@ fn answers_what_a_client_asks_at_connect() {
         .next(&SystemClock::new(), Duration::from_secs(2))
         .unwrap();
     assert_eq!(r.mode, 1);
-    let normal = e.report_addr(ReportKind::Normal, 133).unwrap();
+    assert_eq!(r.size, 135);
+    let normal = e.report_addr(ReportKind::Normal).unwrap();
     let mut rn =
         ReportReader::connect(normal, ReportKind::Normal, Duration::from_millis(300)).unwrap();
     assert_eq!(
@@ -91,10 +93,114 @@ fn answers_what_a_client_asks_at_connect() {
             .error,
         0
     );
-    let rich = e.report_addr(ReportKind::Normal, 233).unwrap();
-    let mut rx =
-        ReportReader::connect(rich, ReportKind::Normal, Duration::from_millis(300)).unwrap();
-    assert!(rx.next(&SystemClock::new(), Duration::from_secs(2)).is_ok());
+    let rich = e.report_addr(ReportKind::Rich).unwrap();
+    let mut rx = ReportReader::connect(rich, ReportKind::Rich, Duration::from_millis(300)).unwrap();
+    let r = rx
+        .next(&SystemClock::new(), Duration::from_secs(2))
+        .unwrap();
+    assert_eq!(r.size, 587);
+    let info = r.rich.unwrap();
+    assert_eq!(
+        (info.arm_type, info.axis, info.simulation),
+        (6, 6, Some(false))
+    );
+    assert_eq!((r.collision_sens, r.teach_sens), (3, 3));
+}
+
+fn emu_with(opts: XArmEmuOptions) -> XArmEmulator {
+    XArmEmulator::spawn_with(
+        LOCAL,
+        XArmPorts::ephemeral(),
+        Arc::new(std::sync::atomic::AtomicBool::new(false)),
+        opts,
+    )
+    .unwrap()
+}
+
+#[test]
+fn legacy_report_sizes_are_read_and_the_driver_runs_on_them() {
+    let e = emu_with(XArmEmuOptions {
+        legacy_reports: true,
+        ..Default::default()
+    });
+    for (kind, size) in [
+        (ReportKind::Real, 87),
+        (ReportKind::Normal, 133),
+        (ReportKind::Rich, 233),
+    ] {
+        let mut rr = ReportReader::connect(
+            e.report_addr(kind).unwrap(),
+            kind,
+            Duration::from_millis(300),
+        )
+        .unwrap();
+        let r = rr
+            .next(&SystemClock::new(), Duration::from_secs(2))
+            .unwrap();
+        assert_eq!(r.size, size, "{kind:?}");
+        assert_eq!(r.angles, pir2_robots::emu::xarm::ARM_HOME);
+    }
+    let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    let target = [0.1, -0.25, -0.45, 0.05, 0.75, 0.05];
+    for _ in 0..10 {
+        arm.send_targets(&target).unwrap();
+        std::thread::sleep(Duration::from_millis(40));
+    }
+    let mut s = [0f32; 12];
+    assert!(wait_until(
+        || {
+            arm.read_state(&mut s).unwrap();
+            s[..6].iter().zip(target).all(|(a, b)| (a - b).abs() < 1e-3)
+        },
+        Duration::from_secs(3)
+    ));
+    arm.stop().unwrap();
+}
+
+#[test]
+fn connect_speaks_what_the_firmware_expects() {
+    // Current firmware (2.6.0): protocol id 3 after the version, two-byte SET_MODE.
+    let e = emu();
+    let arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    assert_eq!(arm.firmware().number, (2, 6, 0));
+    let sim = e.handle().sim();
+    assert_eq!(sim.last_proto, 3);
+    assert_eq!(sim.set_mode_params, vec![1, 0]);
+    assert_eq!(sim.clean_err, 0);
+    drop(arm);
+    // Firmware 1.6.9 (a real xArm6's string): protocol id 2, one-byte SET_MODE.
+    let e = emu_with(XArmEmuOptions {
+        version: "6,6,XI1203,XX0000,v1.6.9".into(),
+        ..Default::default()
+    });
+    let mut cfg = arm_cfg(&e);
+    cfg.report_addr = None; // and the state is polled with GET_JOINT_POS + GET_JOINT_TAU
+    let mut arm = XArm6::connect(cfg, clock()).unwrap();
+    let sim = e.handle().sim();
+    assert_eq!(sim.last_proto, 2);
+    assert_eq!(sim.set_mode_params, vec![1]);
+    let mut s = [0f32; 12];
+    let t0 = arm.read_state(&mut s).unwrap();
+    assert!(wait_until(
+        || arm.read_state(&mut s).unwrap() > t0,
+        Duration::from_secs(2)
+    ));
+}
+
+#[test]
+fn connect_refuses_an_arm_that_is_not_6_axis_or_not_v1_firmware() {
+    for (version, what) in [
+        ("7,7,XS1304,AC1303,v2.5.5", "7 axes"),
+        ("xArm-Controller-2018-12-20", "version"),
+    ] {
+        let e = emu_with(XArmEmuOptions {
+            version: version.into(),
+            ..Default::default()
+        });
+        let err = XArm6::connect(arm_cfg(&e), clock()).unwrap_err();
+        assert!(err.to_string().contains(what), "{version}: {err}");
+        assert!(!e.handle().sim().enabled, "{version}: never enabled");
+    }
 }
 
 #[test]
@@ -258,13 +364,44 @@ fn controller_error_ends_streaming_and_fails_the_next_call() {
 }
 
 #[test]
-fn connect_clears_a_pending_controller_error() {
-    // Connect sends CLEAN_ERR before enabling, so an error from before the connect is cleared.
+fn connect_reports_a_latched_error_and_leaves_it_latched() {
+    // A collision (31) or emergency stop (1) from before the connect: reported, not cleared,
+    // motors never enabled.
+    for code in [31u8, 1] {
+        let e = emu();
+        e.handle().inject(XArmFault::ErrorCode(code));
+        let err = XArm6::connect(arm_cfg(&e), clock()).unwrap_err();
+        assert!(
+            matches!(err, Error::Stopped { ref reason, .. }
+                if reason.contains(&format!("error code {code}")) && reason.contains("--clear-errors")),
+            "{err}"
+        );
+        let sim = e.handle().sim();
+        assert_eq!(sim.error, code);
+        assert_eq!(sim.clean_err, 0);
+        assert!(!sim.enabled);
+    }
+}
+
+#[test]
+fn connect_clears_a_latched_error_only_when_asked() {
     let e = emu();
-    e.handle().inject(XArmFault::ErrorCode(5));
-    let arm = XArm6::connect(arm_cfg(&e), clock());
-    assert!(arm.is_ok());
-    assert_eq!(e.handle().sim().error, 0);
+    e.handle().inject(XArmFault::ErrorCode(31));
+    e.handle().set_warning(11);
+    let mut cfg = arm_cfg(&e);
+    cfg.clear_errors = true;
+    let mut arm = XArm6::connect(cfg, clock()).unwrap();
+    assert_eq!(arm.cleared_at_connect(), Some((31, 11)));
+    let sim = e.handle().sim();
+    assert_eq!((sim.error, sim.warning, sim.clean_err), (0, 0, 1));
+    assert!(sim.enabled);
+    arm.stop().unwrap();
+    // A warning alone does not stop a connect and is left alone without clear_errors.
+    let e = emu();
+    e.handle().set_warning(11);
+    let arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    assert_eq!(arm.cleared_at_connect(), None);
+    assert_eq!(e.handle().sim().warning, 11);
 }
 
 #[test]
@@ -352,11 +489,20 @@ fn check_reports_an_emulated_arm_without_moving_it() {
     assert!(r.healthy());
     assert!(r.to_string().ends_with("OK"));
     assert!(!e.handle().sim().enabled, "check never enables the motors");
-    // A controller error shows up as unhealthy.
+    // A controller error shows up as unhealthy, and stays latched.
     e.handle().inject(XArmFault::ErrorCode(12));
     let r = pir2_robots::check_with(&opts).unwrap();
     assert_eq!(r.xarm.as_ref().unwrap().error, 12);
     assert!(!r.healthy());
+    assert_eq!(e.handle().sim().error, 12);
+    // Asked to clear it: cleared, reported, healthy.
+    opts.clear_errors = true;
+    let r = pir2_robots::check_with(&opts).unwrap();
+    assert_eq!(r.xarm.as_ref().unwrap().error, 12);
+    assert_eq!(r.xarm.as_ref().unwrap().after_clear, Some((0, 0)));
+    assert!(r.healthy(), "{r}");
+    assert!(r.to_string().contains("cleared"));
+    assert_eq!(e.handle().sim().error, 0);
     // Nobody listening: an error naming the address.
     let addr = e.cmd_addr();
     e.shutdown();

@@ -31,6 +31,8 @@ pub struct EmulatedArmHandConfig {
     pub safety: SafetyConfig,
     /// Period of the safety layer's watchdog.
     pub watchdog: Duration,
+    /// Clear a latched arm error at connect (`--clear-errors`) instead of refusing to start.
+    pub clear_errors: bool,
 }
 
 impl Default for EmulatedArmHandConfig {
@@ -40,6 +42,7 @@ impl Default for EmulatedArmHandConfig {
             action_period: None,
             safety: SafetyConfig::xarm6_xhand(),
             watchdog: Duration::from_millis(10),
+            clear_errors: false,
         }
     }
 }
@@ -75,6 +78,7 @@ impl EmulatedArmHand {
         acfg.cmd_addr = rig.arm.cmd_addr();
         acfg.report_addr = rig.arm.real_report_addr();
         acfg.stream_hz = 100.0;
+        acfg.clear_errors = cfg.clear_errors;
         if let Some(p) = cfg.action_period {
             acfg.action_period = p;
         }

@@ -1,19 +1,29 @@
-//! Loopback xArm emulator: a TCP server speaking the frames of [`crate::xarm::proto`] on a
-//! command port and up to three report ports, with simple joint dynamics and fault injection.
+//! Loopback xArm6 emulator: a TCP server speaking the protocol of [`crate::xarm::proto`]
+//! byte for byte as current firmware does (see that module's reference), on a command port
+//! and the three report ports, with simple joint dynamics and fault injection.
 //!
 //! Ports: the standard ones (502, 30001 normal, 30002 rich, 30003 real) with
 //! [`XArmPorts::standard`], or ephemeral ones (port 0, chosen by the OS) with
 //! [`XArmPorts::ephemeral`]; [`XArmEmulator::cmd_addr`] and [`XArmEmulator::report_addr`] tell
-//! where it listens. The rich stream sends the normal layout padded with zeros to 233 bytes
-//! (`TCP_REPORT_RICH_BUF_SIZE` in the SDK's `x_config.py`); fields past the normal layout are
-//! not emulated.
+//! where it listens.
+//!
+//! What it says about itself: the version string [`XARM_EMU_VERSION`]
+//! (`6,6,XI1304,AC1303,v2.6.0`: 6 axes, type 6, firmware 2.6.0, so clients switch to
+//! protocol id 3 and send the two-byte `SET_MODE`); every reply echoes the request's
+//! protocol id. Reports: 135-byte real frames at 100 Hz, 145-byte normal and 587-byte rich
+//! frames at 5 Hz ([`XArmEmuOptions::legacy_reports`] switches to the 87 / 133 / 233-byte
+//! frames of old firmware). The rich frames carry type 6, axis 6, the SDK's default motion
+//! limits, sensitivities 3, gravity `[0, 0, -1]`, the simulation flag cleared.
 //!
 //! Behaviour: the arm starts stopped (state 4), mode 0, motors disabled. `MOTION_EN [8, 1]`,
-//! `SET_MODE [1]` and `SET_STATE [0]` make it ready (state 2); servo-j is then applied
-//! (state 1) and each joint moves toward its target at up to [`ARM_MAX_SPEED`] rad/s. Servo-j
-//! in any other condition answers with the not-ready bit and is ignored. An injected error code
-//! stops the arm and sets the error bit in every reply until `CLEAN_ERR`. Unknown registers
-//! answer with the invalid bit.
+//! `SET_MODE [1, 0]` (or `[1]`) and `SET_STATE [0]` make it ready (state 2); servo-j is then
+//! applied (state 1) and each joint moves toward its target at up to [`ARM_MAX_SPEED`] rad/s
+//! (joint 7 of the request is ignored: a 6-axis arm). The not-ready status bit is set while
+//! the motors are disabled, the state is 4 or 5 or an error is latched, and on servo-j
+//! outside servo mode; such a servo-j is ignored. An injected error code stops the arm and
+//! sets the error bit in every reply until `CLEAN_ERR`; after that the arm needs
+//! `MOTION_EN`/`SET_STATE 0` again. The SDK's heartbeat frame (protocol id 1) gets no answer.
+//! Unknown registers answer with the invalid bit.
 
 use std::collections::VecDeque;
 use std::io::{ErrorKind, Read, Write};
@@ -26,14 +36,28 @@ use std::time::Duration;
 use pir2_runtime::{Clock, Nanos, SystemClock};
 
 use crate::error::{Error, Result};
-use crate::xarm::proto::{self, reg, state, status, Command, FrameBuf, Reply, Report, ReportKind};
+use crate::xarm::proto::{
+    self, reg, state, status, Command, FrameBuf, Reply, Report, ReportKind, RichInfo,
+};
 
 /// Joint speed limit of the emulated arm, rad/s.
 pub const ARM_MAX_SPEED: f32 = 3.0;
-/// Version string the emulator reports.
-pub const XARM_EMU_VERSION: &str = "xArm-emu 2.0.0";
+/// Version string the emulator reports (format of current firmware).
+/// (Real controllers put the 6-character serial-number prefixes here, which keeps the string
+/// well under the 40-byte reply: the SDK cuts it at the first NUL.)
+pub const XARM_EMU_VERSION: &str = "6,6,XI1304,AC1303,v2.6.0";
+/// Robot serial number the emulator reports.
+pub const XARM_EMU_SN: &str = "XI130400000001";
 /// Joint angles the emulated arm starts at, rad.
 pub const ARM_HOME: [f32; 7] = [0.0, -0.3, -0.5, 0.0, 0.8, 0.0, 0.0];
+/// Collision and teach sensitivity the emulator reports.
+pub const EMU_SENSITIVITY: u8 = 3;
+/// Motion limits of the rich report: the SDK's defaults (TCP jerk, TCP min/max acc, TCP
+/// min/max speed, joint jerk, joint min/max acc, joint min/max speed, rotation jerk, rotation
+/// max acc).
+pub const EMU_LIMITS: [f32; 12] = [
+    1000.0, 1.0, 50000.0, 0.1, 1000.0, 20.0, 0.01, 20.0, 0.0001, 4.0, 2.3, 2.7,
+];
 
 /// Which ports to listen on; `None` leaves a report stream out, `Some(0)` picks a free port.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -69,6 +93,36 @@ impl XArmPorts {
     }
 }
 
+/// What the emulated controller looks like.
+#[derive(Debug, Clone, PartialEq)]
+pub struct XArmEmuOptions {
+    /// GET_VERSION answer.
+    pub version: String,
+    /// Send the frame sizes of old firmware (87 real, 133 normal, 233 rich) instead of the
+    /// current ones (135, 145, 587).
+    pub legacy_reports: bool,
+}
+
+impl Default for XArmEmuOptions {
+    fn default() -> Self {
+        Self {
+            version: XARM_EMU_VERSION.into(),
+            legacy_reports: false,
+        }
+    }
+}
+
+impl XArmEmuOptions {
+    /// The frame size of the stream `kind`.
+    pub fn report_len(&self, kind: ReportKind) -> usize {
+        if self.legacy_reports {
+            kind.min_len()
+        } else {
+            kind.current_len()
+        }
+    }
+}
+
 /// A fault for the emulator to act out. Command faults apply to the next request on any
 /// command connection; report faults to the next report frame on any report connection.
 #[derive(Debug, Clone, PartialEq)]
@@ -83,11 +137,12 @@ pub enum XArmFault {
     Garbage(Vec<u8>),
     /// Send a reply with another transaction id first, then the right one (a late reply).
     WrongTid,
-    /// Answer with protocol id 3 instead of 2.
+    /// Answer with another protocol id than the request's.
     WrongProtocol,
-    /// Set the controller error code (sticky until CLEAN_ERR; the arm stops).
+    /// Latch a controller error code (until CLEAN_ERR; the arm stops), e.g. a collision (31)
+    /// or an emergency stop (1, 2).
     ErrorCode(u8),
-    /// Stop the arm from the controller side (state 4, no error), like an emergency stop.
+    /// Stop the arm from the controller side (state 4, no error).
     EmergencyStop,
     /// Pause the report stream this long.
     ReportStall(Duration),
@@ -102,6 +157,8 @@ pub enum XArmFault {
 pub struct ArmSim {
     /// Joint angles, rad.
     pub q: [f32; 7],
+    /// Joint velocities, rad/s.
+    pub dq: [f32; 7],
     /// Servo targets, rad.
     pub target: [f32; 7],
     /// Joint torques.
@@ -120,6 +177,13 @@ pub struct ArmSim {
     pub servoj: u64,
     /// Requests answered.
     pub requests: u64,
+    /// CLEAN_ERR requests received.
+    pub clean_err: u64,
+    /// Parameters of the last SET_MODE request.
+    pub set_mode_params: Vec<u8>,
+    /// Protocol id of the last request.
+    pub last_proto: u16,
+    counter: u32,
     t: Option<Nanos>,
 }
 
@@ -127,6 +191,7 @@ impl ArmSim {
     fn new() -> Self {
         Self {
             q: ARM_HOME,
+            dq: [0.0; 7],
             target: ARM_HOME,
             tau: [0.0; 7],
             mode: 0,
@@ -136,34 +201,49 @@ impl ArmSim {
             warning: 0,
             servoj: 0,
             requests: 0,
+            clean_err: 0,
+            set_mode_params: Vec::new(),
+            last_proto: 0,
+            counter: 0,
             t: None,
         }
     }
+    /// Enabled, no error, not stopped: motion commands are taken.
     fn ready(&self) -> bool {
-        self.enabled
-            && self.error == 0
-            && self.mode == proto::MODE_SERVO
-            && matches!(self.state, state::MOVING | state::SLEEPING)
+        self.enabled && self.error == 0 && !matches!(self.state, state::STOP | state::NOT_READY)
+    }
+    fn servo_ready(&self) -> bool {
+        self.ready() && self.mode == proto::MODE_SERVO
     }
     fn advance(&mut self, now: Nanos) {
         let dt = self.t.map_or(0.0, |t| now.saturating_sub(t) as f32 * 1e-9);
         self.t = Some(now);
-        let moving = self.ready();
+        let moving = self.servo_ready();
         for i in 0..7 {
+            let before = self.q[i];
             if moving {
                 let step = ARM_MAX_SPEED * dt;
                 self.q[i] += (self.target[i] - self.q[i]).clamp(-step, step);
             }
+            self.dq[i] = if dt > 0.0 {
+                (self.q[i] - before) / dt
+            } else {
+                0.0
+            };
             // A stiff servo plus a gravity-like load on the shoulder and elbow.
             let load = if i == 1 || i == 2 {
                 2.0 * self.q[i].sin()
             } else {
                 0.0
             };
-            self.tau[i] = 5.0 * (self.target[i] - self.q[i]) + load;
+            self.tau[i] = if i < 6 {
+                5.0 * (self.target[i] - self.q[i]) + load
+            } else {
+                0.0
+            };
         }
     }
-    fn status(&self) -> u8 {
+    fn status(&self, servo: bool) -> u8 {
         let mut s = 0;
         if self.error != 0 {
             s |= status::ERROR;
@@ -171,35 +251,73 @@ impl ArmSim {
         if self.warning != 0 {
             s |= status::WARNING;
         }
-        if !self.ready() {
+        let ready = if servo {
+            self.servo_ready()
+        } else {
+            self.ready()
+        };
+        if !ready {
             s |= status::NOT_READY;
         }
         s
     }
-    fn report(&self) -> Report {
-        Report {
+    fn report(&mut self, kind: ReportKind, version: &str) -> Report {
+        let bits = if self.enabled { 0x3f } else { 0 };
+        let mut r = Report {
             state: self.state,
             mode: self.mode,
             cmd_num: 0,
             angles: self.q,
             pose: [200.0, 0.0, 300.0, std::f32::consts::PI, 0.0, 0.0],
             torques: self.tau,
+            ft: Some(([0.0; 6], [0.0; 6])),
+            brake_bits: bits,
+            enable_bits: bits,
             error: self.error,
             warning: self.warning,
+            collision_sens: EMU_SENSITIVITY,
+            teach_sens: EMU_SENSITIVITY,
+            gravity: Some([0.0, 0.0, -1.0]),
+            ..Report::default()
+        };
+        if kind == ReportKind::Rich {
+            self.counter = self.counter.wrapping_add(1);
+            // The version field holds the version number part of the string.
+            let mut text = [0u8; 30];
+            let v = version.rsplit(',').next().unwrap_or("").as_bytes();
+            let n = v.len().min(30);
+            text[..n].copy_from_slice(&v[..n]);
+            r.rich = Some(RichInfo {
+                arm_type: 6,
+                axis: 6,
+                version: text,
+                limits: EMU_LIMITS,
+                servo_codes: [0; 16],
+                temperatures: Some([30; 7]),
+                counter: Some(self.counter),
+                simulation: Some(false),
+                collision_detection: Some(true),
+            });
         }
+        r
     }
     /// Answer one request: `(status, data)`.
-    fn handle(&mut self, c: &Command) -> (u8, Vec<u8>) {
+    fn handle(&mut self, c: &Command, version: &str) -> (u8, Vec<u8>) {
         self.requests += 1;
+        self.last_proto = c.proto;
         let mut data = Vec::new();
         let mut invalid = false;
+        let mut servo = false;
+        let ascii40 = |s: &str| {
+            let mut d = s.as_bytes().to_vec();
+            d.resize(proto::VERSION_LEN, 0);
+            d
+        };
         match c.register {
-            reg::GET_VERSION => {
-                data = XARM_EMU_VERSION.as_bytes().to_vec();
-                data.resize(proto::VERSION_LEN, 0);
-            }
+            reg::GET_VERSION => data = ascii40(version),
+            reg::GET_ROBOT_SN => data = ascii40(XARM_EMU_SN),
             reg::MOTION_EN => match c.params.as_slice() {
-                [_axis, on] => {
+                [axis, on] if *axis == proto::AXIS_ALL || (1..=6).contains(axis) => {
                     self.enabled = *on != 0;
                     if !self.enabled {
                         self.state = state::STOP;
@@ -218,27 +336,36 @@ impl ArmSim {
                 _ => invalid = true,
             },
             reg::GET_STATE => data = vec![self.state],
+            reg::GET_CMDNUM => data = vec![0, 0],
             reg::GET_ERROR => data = vec![self.error, self.warning],
             reg::CLEAN_ERR => {
-                self.error = 0;
-                self.warning = 0;
+                self.clean_err += 1;
+                if self.error != 0 {
+                    // Clearing does not re-arm: enable and SET_STATE 0 again.
+                    self.error = 0;
+                    self.enabled = false;
+                    self.state = state::STOP;
+                }
             }
+            reg::CLEAN_WAR => self.warning = 0,
             reg::SET_MODE => match c.params.as_slice() {
-                [m] => {
+                [m] | [m, _] if *m <= 7 => {
                     self.mode = *m;
-                    // The real controller needs SET_STATE 0 after a mode change.
+                    self.set_mode_params = c.params.clone();
+                    // The controller needs SET_STATE 0 after a mode change.
                     self.state = state::STOP;
                 }
                 _ => invalid = true,
             },
             reg::MOVE_SERVOJ => {
+                servo = true;
                 if c.params.len() != 40 {
                     invalid = true;
-                } else if self.ready() {
+                } else if self.servo_ready() {
                     let mut v = [0f32; 10];
                     let _ = proto::read_fp32s_le(&c.params, &mut v);
-                    if v.iter().all(|x| x.is_finite()) {
-                        self.target.copy_from_slice(&v[..7]);
+                    if v[..7].iter().all(|x| x.is_finite()) {
+                        self.target[..6].copy_from_slice(&v[..6]);
                         self.state = state::MOVING;
                         self.servoj += 1;
                     } else {
@@ -246,17 +373,23 @@ impl ArmSim {
                     }
                 }
             }
-            reg::GET_JOINT_POS => {
-                data = proto::fp32s_le(&self.q);
-                if c.params.first() == Some(&3) {
-                    data.extend(proto::fp32s_le(&[0.0; 7]));
-                    data.extend(proto::fp32s_le(&self.tau));
-                }
+            reg::GET_TCP_POSE => {
+                data = proto::fp32s_le(&[200.0, 0.0, 300.0, std::f32::consts::PI, 0.0, 0.0])
             }
+            reg::GET_JOINT_POS => match c.params.as_slice() {
+                [] => data = proto::fp32s_le(&self.q),
+                [n] if (1..=3).contains(&(n & 0x0f)) => {
+                    let blocks = [self.q, self.dq, self.tau];
+                    for b in &blocks[..(n & 0x0f) as usize] {
+                        data.extend(proto::fp32s_le(b));
+                    }
+                }
+                _ => invalid = true,
+            },
             reg::GET_JOINT_TAU => data = proto::fp32s_le(&self.tau),
             _ => invalid = true,
         }
-        let st = self.status() | if invalid { status::INVALID } else { 0 };
+        let st = self.status(servo) | if invalid { status::INVALID } else { 0 };
         (st, data)
     }
 }
@@ -274,6 +407,7 @@ pub struct XArmEmuHandle {
     faults: Arc<Mutex<Faults>>,
     stop: Arc<AtomicBool>,
     clock: Arc<dyn Clock>,
+    opts: Arc<XArmEmuOptions>,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -301,6 +435,10 @@ impl XArmEmuHandle {
             _ => q.cmd.push_back(f),
         }
     }
+    /// Latch a warning code (cleared by CLEAN_WAR).
+    pub fn set_warning(&self, code: u8) {
+        lock(&self.sim).warning = code;
+    }
     /// A snapshot of the emulated arm (advanced to now).
     pub fn sim(&self) -> ArmSim {
         let mut s = lock(&self.sim);
@@ -318,7 +456,7 @@ impl XArmEmuHandle {
 pub struct XArmEmulator {
     handle: XArmEmuHandle,
     cmd_addr: SocketAddr,
-    reports: Vec<(ReportKind, usize, SocketAddr)>,
+    reports: Vec<(ReportKind, SocketAddr)>,
     threads: Vec<JoinHandle<()>>,
 }
 
@@ -330,11 +468,22 @@ impl XArmEmulator {
 
     /// Like [`XArmEmulator::spawn`], also ending when `stop` is set.
     pub fn spawn_with_stop(host: IpAddr, ports: XArmPorts, stop: Arc<AtomicBool>) -> Result<Self> {
+        Self::spawn_with(host, ports, stop, XArmEmuOptions::default())
+    }
+
+    /// Like [`XArmEmulator::spawn_with_stop`], looking like `opts` says.
+    pub fn spawn_with(
+        host: IpAddr,
+        ports: XArmPorts,
+        stop: Arc<AtomicBool>,
+        opts: XArmEmuOptions,
+    ) -> Result<Self> {
         let handle = XArmEmuHandle {
             sim: Arc::new(Mutex::new(ArmSim::new())),
             faults: Arc::new(Mutex::new(Faults::default())),
             stop,
             clock: Arc::new(SystemClock::new()),
+            opts: Arc::new(opts),
         };
         let bind = |port: u16| -> Result<TcpListener> {
             let addr = SocketAddr::new(host, port);
@@ -357,33 +506,30 @@ impl XArmEmulator {
             accept_loop(cmd, h, Role::Cmd)
         })?);
         let mut reports = Vec::new();
-        for (port, kind, size, period) in [
+        for (port, kind, period) in [
             (
                 ports.report_real,
                 ReportKind::Real,
-                proto::REPORT_REAL_LEN,
                 Duration::from_millis(10),
             ),
             (
                 ports.report_normal,
                 ReportKind::Normal,
-                proto::REPORT_NORMAL_LEN,
                 Duration::from_millis(200),
             ),
             (
                 ports.report_rich,
-                ReportKind::Normal,
-                proto::REPORT_RICH_LEN,
+                ReportKind::Rich,
                 Duration::from_millis(200),
             ),
         ] {
             let Some(port) = port else { continue };
             let l = bind(port)?;
             let addr = l.local_addr().map_err(|e| Error::io("xArm emulator", e))?;
-            reports.push((kind, size, addr));
+            reports.push((kind, addr));
             let h = handle.clone();
             threads.push(spawn_named("xarm-emu-report", move || {
-                accept_loop(l, h, Role::Report { kind, size, period })
+                accept_loop(l, h, Role::Report { kind, period })
             })?);
         }
         Ok(Self {
@@ -398,17 +544,13 @@ impl XArmEmulator {
     pub fn cmd_addr(&self) -> SocketAddr {
         self.cmd_addr
     }
-    /// Where a report stream listens: `(Real, _)` → 30003, `(Normal, 133)` → 30001,
-    /// `(Normal, 233)` → 30002.
-    pub fn report_addr(&self, kind: ReportKind, size: usize) -> Option<SocketAddr> {
-        self.reports
-            .iter()
-            .find(|(k, s, _)| *k == kind && *s == size)
-            .map(|r| r.2)
+    /// Where the report stream `kind` listens, if served.
+    pub fn report_addr(&self, kind: ReportKind) -> Option<SocketAddr> {
+        self.reports.iter().find(|(k, _)| *k == kind).map(|r| r.1)
     }
     /// The real-time (30003) report address, if served.
     pub fn real_report_addr(&self) -> Option<SocketAddr> {
-        self.report_addr(ReportKind::Real, proto::REPORT_REAL_LEN)
+        self.report_addr(ReportKind::Real)
     }
     /// The shared view.
     pub fn handle(&self) -> &XArmEmuHandle {
@@ -453,11 +595,7 @@ fn spawn_named(name: &str, f: impl FnOnce() + Send + 'static) -> Result<JoinHand
 #[derive(Debug, Clone, Copy)]
 enum Role {
     Cmd,
-    Report {
-        kind: ReportKind,
-        size: usize,
-        period: Duration,
-    },
+    Report { kind: ReportKind, period: Duration },
 }
 
 fn accept_loop(l: TcpListener, h: XArmEmuHandle, role: Role) {
@@ -470,10 +608,8 @@ fn accept_loop(l: TcpListener, h: XArmEmuHandle, role: Role) {
                 let _ = s.set_nodelay(true);
                 let r = match role {
                     Role::Cmd => spawn_named("xarm-emu-conn", move || serve_cmd(s, h2)),
-                    Role::Report { kind, size, period } => {
-                        spawn_named("xarm-emu-stream", move || {
-                            serve_report(s, h2, kind, size, period)
-                        })
+                    Role::Report { kind, period } => {
+                        spawn_named("xarm-emu-stream", move || serve_report(s, h2, kind, period))
                     }
                 };
                 if let Ok(j) = r {
@@ -519,10 +655,13 @@ fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
             let Ok(cmd) = Command::decode(&frame) else {
                 return;
             };
+            if cmd.proto == proto::PROTO_HEARTBEAT {
+                continue; // the SDK's keep-alive: nothing to answer
+            }
             let (st, data) = {
                 let mut sim = lock(&h.sim);
                 sim.advance(h.clock.now());
-                sim.handle(&cmd)
+                sim.handle(&cmd, &h.opts.version)
             };
             let fault = lock(&h.faults).cmd.pop_front();
             let mut reply = Reply {
@@ -546,7 +685,7 @@ fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
                     };
                     pre = stale.encode().ok();
                 }
-                Some(XArmFault::WrongProtocol) => reply.proto = 3,
+                Some(XArmFault::WrongProtocol) => reply.proto = cmd.proto ^ 1,
                 _ => {}
             }
             let Ok(mut out) = reply.encode() else { return };
@@ -569,18 +708,16 @@ fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
     }
 }
 
-fn serve_report(
-    mut s: TcpStream,
-    h: XArmEmuHandle,
-    kind: ReportKind,
-    size: usize,
-    period: Duration,
-) {
+fn serve_report(mut s: TcpStream, h: XArmEmuHandle, kind: ReportKind, period: Duration) {
+    let size = h.opts.report_len(kind);
+    let clock = h.clock.clone();
+    let period_ns = period.as_nanos() as Nanos;
+    let mut next = clock.now();
     while !h.stop.load(Ordering::SeqCst) {
         let rep = {
             let mut sim = lock(&h.sim);
-            sim.advance(h.clock.now());
-            sim.report()
+            sim.advance(clock.now());
+            sim.report(kind, &h.opts.version)
         };
         let Ok(mut frame) = rep.encode(kind, size) else {
             return;
@@ -599,6 +736,11 @@ fn serve_report(
         if s.write_all(&frame).is_err() {
             return;
         }
-        std::thread::sleep(period);
+        next += period_ns;
+        let now = clock.now();
+        if next < now {
+            next = now;
+        }
+        clock.sleep_until(next);
     }
 }

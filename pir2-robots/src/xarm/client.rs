@@ -7,7 +7,9 @@ use std::time::Duration;
 
 use pir2_runtime::{Clock, Nanos};
 
-use super::proto::{self, reg, status, FrameBuf, Reply, Report, ReportBuf, ReportKind};
+use super::proto::{
+    self, reg, status, FirmwareVersion, FrameBuf, Reply, Report, ReportBuf, ReportKind,
+};
 use crate::error::{Error, Result};
 
 const CH_CMD: &str = "xArm command port";
@@ -22,13 +24,20 @@ pub struct ClientStats {
     pub requests: u64,
     /// Replies whose transaction id did not match the request (skipped, as the SDK does).
     pub stale_replies: u64,
+    /// Asynchronous motion-feedback frames (register 0xFF) skipped.
+    pub feedback_frames: u64,
 }
 
 /// A connection to the command port (502).
 ///
 /// Every request waits for the reply with the same transaction id; replies with another id
-/// are skipped (they answer a request that already timed out). Any framing error, wrong
-/// protocol id or wrong register closes the stream: the byte stream cannot be trusted after it.
+/// are skipped (they answer a request that already timed out), and so are motion-feedback
+/// frames (register 0xFF). Any framing error, wrong protocol id or wrong register closes the
+/// stream: the byte stream cannot be trusted after it.
+///
+/// Requests use protocol id 2 until [`XArmClient::identify`] reads the firmware version;
+/// from then on they use what that firmware expects (id 3 from 1.8.6 on) and
+/// [`XArmClient::set_mode`] sends the parameter form of that firmware.
 #[derive(Debug)]
 pub struct XArmClient {
     stream: Option<TcpStream>,
@@ -39,6 +48,7 @@ pub struct XArmClient {
     clock: Arc<dyn Clock>,
     stats: ClientStats,
     scratch: Vec<u8>,
+    firmware: Option<FirmwareVersion>,
 }
 
 impl XArmClient {
@@ -66,7 +76,28 @@ impl XArmClient {
             clock,
             stats: ClientStats::default(),
             scratch: Vec::with_capacity(64),
+            firmware: None,
         })
+    }
+
+    /// Read and parse the firmware version, then switch to the protocol id that firmware
+    /// expects (see [`FirmwareVersion::protocol_id`]).
+    pub fn identify(&mut self) -> Result<FirmwareVersion> {
+        let text = self.version()?;
+        let v = FirmwareVersion::parse(&text)?;
+        self.proto = v.protocol_id();
+        self.firmware = Some(v.clone());
+        Ok(v)
+    }
+
+    /// The firmware version read by [`XArmClient::identify`].
+    pub fn firmware(&self) -> Option<&FirmwareVersion> {
+        self.firmware.as_ref()
+    }
+
+    /// The protocol id requests are sent with.
+    pub fn protocol_id(&self) -> u16 {
+        self.proto
     }
 
     /// Counters so far.
@@ -118,6 +149,10 @@ impl XArmClient {
                     Ok(r) => r,
                     Err(e) => return self.fail(e),
                 };
+                if reply.register == proto::FEEDBACK_REGISTER {
+                    self.stats.feedback_frames += 1;
+                    continue;
+                }
                 if reply.tid != tid {
                     self.stats.stale_replies += 1;
                     continue;
@@ -210,9 +245,18 @@ impl XArmClient {
     pub fn clean_error(&mut self) -> Result<u8> {
         Ok(self.request(reg::CLEAN_ERR, &[])?.status)
     }
-    /// Set the control mode (register 19).
+    /// Clear the controller warning (register 17).
+    pub fn clean_warning(&mut self) -> Result<u8> {
+        Ok(self.request(reg::CLEAN_WAR, &[])?.status)
+    }
+    /// Set the control mode (register 19): `[mode, 0]` on firmware ≥ 1.10.0, `[mode]` on
+    /// older firmware or before [`XArmClient::identify`].
     pub fn set_mode(&mut self, mode: u8) -> Result<u8> {
-        Ok(self.request(reg::SET_MODE, &[mode])?.status)
+        let params = match &self.firmware {
+            Some(v) => v.set_mode_params(mode),
+            None => vec![mode],
+        };
+        Ok(self.request(reg::SET_MODE, &params)?.status)
     }
     /// Servo-j to 6 joint targets in rad (register 29). Returns the reply status.
     pub fn servo_j(&mut self, joints: &[f32; 6]) -> Result<u8> {
@@ -226,6 +270,16 @@ impl XArmClient {
         let mut q = [0f32; 7];
         proto::read_fp32s_le(&r.data, &mut q)?;
         Ok(q)
+    }
+    /// Measured joint positions (rad) and efforts in one request: `GET_JOINT_POS [3]`
+    /// (firmware ≥ 1.9.110; see [`FirmwareVersion::has_joint_states`]).
+    pub fn joint_states(&mut self) -> Result<([f32; 7], [f32; 7])> {
+        let r = self.request_data(reg::GET_JOINT_POS, &[3], 84)?;
+        let mut q = [0f32; 7];
+        let mut e = [0f32; 7];
+        proto::read_fp32s_le(&r.data, &mut q)?;
+        proto::read_fp32s_le(&r.data[56..], &mut e)?;
+        Ok((q, e))
     }
     /// Joint torques (register 55).
     pub fn joint_torques(&mut self) -> Result<[f32; 7]> {
@@ -259,7 +313,7 @@ impl ReportReader {
         Ok(Self {
             stream,
             buf: ReportBuf::new(kind),
-            rx: vec![0; 1024],
+            rx: vec![0; 4096],
         })
     }
 

@@ -1,4 +1,16 @@
-//! UFACTORY xArm6 over TCP: protocol ([`proto`]), client ([`client`]) and the [`XArm6`] robot.
+//! UFACTORY xArm6 over TCP: protocol ([`proto`], the reference for the wire format),
+//! client ([`client`]) and the [`XArm6`] robot.
+//!
+//! # Connecting
+//!
+//! [`XArm6::connect`] reads the version string and refuses anything but a 6-axis arm on V1
+//! firmware, then speaks what that firmware expects (protocol id 3 from 1.8.6 on, the
+//! two-byte `SET_MODE` from 1.10.0 on). It reads the error and warning codes **before**
+//! touching anything: a latched controller error (a collision, an emergency stop, a servo
+//! fault) ends the connect with an error naming the code, and is cleared (`CLEAN_ERR`, and
+//! `CLEAN_WAR` for a warning) only when [`XArm6Config::clear_errors`] is set — the CLI's
+//! `--clear-errors`. Then it enables the motors, enters servo mode, sends `SET_STATE 0` and
+//! checks that the controller left state 4/5 (a pressed emergency stop keeps it there).
 //!
 //! # Streaming
 //!
@@ -38,7 +50,7 @@ use pir2_runtime::{Clock, Nanos};
 use crate::error::{Error, Result};
 use crate::robot::{Robot, StateLayout};
 pub use client::{ClientStats, ReportReader, XArmClient};
-use proto::{status, ReportKind};
+use proto::{status, FirmwareVersion, ReportKind};
 
 const DEVICE: &str = "xArm6";
 /// Consecutive servo-j replies with the not-ready bit before the stream gives up.
@@ -58,6 +70,10 @@ pub struct XArm6Config {
     pub action_period: Duration,
     /// Connect and request timeout.
     pub timeout: Duration,
+    /// Clear a latched controller error or warning at connect (`CLEAN_ERR` / `CLEAN_WAR`)
+    /// instead of refusing to connect. Off by default: clearing a collision or emergency-stop
+    /// error is the operator's decision.
+    pub clear_errors: bool,
 }
 
 impl XArm6Config {
@@ -69,6 +85,7 @@ impl XArm6Config {
             stream_hz: 200.0,
             action_period: Duration::from_millis(40),
             timeout: Duration::from_millis(500),
+            clear_errors: false,
         }
     }
     /// Check ranges.
@@ -150,6 +167,8 @@ pub struct XArm6 {
     halt: Arc<AtomicBool>,
     threads: Vec<JoinHandle<()>>,
     version: String,
+    firmware: FirmwareVersion,
+    cleared: Option<(u8, u8)>,
     stopped: bool,
 }
 
@@ -158,25 +177,57 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 impl XArm6 {
-    /// Connect, clear errors, enable motors, enter servo mode, start streaming (holding the
-    /// current position) and, if configured, reading the report stream.
+    /// Connect (see the module docs, "Connecting"), enable motors, enter servo mode, start
+    /// streaming (holding the current position) and, if configured, reading the report
+    /// stream.
     pub fn connect(cfg: XArm6Config, clock: Arc<dyn Clock>) -> Result<Self> {
         cfg.validate()?;
         let mut client = XArmClient::connect(cfg.cmd_addr, cfg.timeout, clock.clone())?;
-        let version = client.version()?;
-        client.clean_error()?;
-        let (err, _warn) = client.error_codes()?;
-        if err != 0 {
-            return Err(Error::XArmController {
-                error: err,
-                warning: _warn,
-            });
+        let firmware = client.identify()?;
+        if let Some(axis) = firmware.axis.filter(|&a| a != 6) {
+            return Err(Error::Config(format!(
+                "the controller at {} reports {axis} axes (version {:?}); this driver drives an \
+                 xArm6",
+                cfg.cmd_addr, firmware.text
+            )));
         }
-        client.motion_enable(true)?;
-        client.set_mode(proto::MODE_SERVO)?;
-        client.set_state(proto::state::GO)?;
-        let q7 = client.joint_positions()?;
-        let t7 = client.joint_torques()?;
+        let version = firmware.text.clone();
+        let (err, warn) = client.error_codes()?;
+        let mut cleared = None;
+        if err != 0 || warn != 0 {
+            if !cfg.clear_errors && err != 0 {
+                return Err(Error::Stopped {
+                    device: DEVICE,
+                    reason: format!(
+                        "the controller has a latched error code {err} (warning code {warn}); \
+                         it was not cleared. Check the arm (collision, emergency stop, servo \
+                         fault), then connect with clear_errors (`--clear-errors`)"
+                    ),
+                });
+            }
+            if cfg.clear_errors {
+                client.clean_error()?;
+                client.clean_warning()?;
+                let (e2, w2) = client.error_codes()?;
+                if e2 != 0 {
+                    return Err(Error::Stopped {
+                        device: DEVICE,
+                        reason: format!(
+                            "controller error code {err} did not clear (now {e2}, warning {w2})"
+                        ),
+                    });
+                }
+                cleared = Some((err, warn));
+            }
+        }
+        let st = client.motion_enable(true)?;
+        fail_on_error_bit(&mut client, st, "MOTION_EN")?;
+        let st = client.set_mode(proto::MODE_SERVO)?;
+        fail_on_error_bit(&mut client, st, "SET_MODE 1")?;
+        let st = client.set_state(proto::state::GO)?;
+        fail_on_error_bit(&mut client, st, "SET_STATE 0")?;
+        wait_ready(&mut client, clock.as_ref(), cfg.timeout)?;
+        let (q7, t7) = read_joints(&mut client, &firmware)?;
         let mut q = [0f32; 6];
         q.copy_from_slice(&q7[..6]);
         let mut tau = [0f32; 6];
@@ -207,7 +258,7 @@ impl XArm6 {
             let (client, shared, halt, clock) =
                 (client.clone(), shared.clone(), halt.clone(), clock.clone());
             let period_ns = (1e9 / cfg.stream_hz) as Nanos;
-            let poll_state = cfg.report_addr.is_none();
+            let poll_state = cfg.report_addr.is_none().then(|| firmware.clone());
             threads.push(
                 std::thread::Builder::new()
                     .name("xarm-servo".into())
@@ -223,8 +274,20 @@ impl XArm6 {
             halt,
             threads,
             version,
+            firmware,
+            cleared,
             stopped: false,
         })
+    }
+
+    /// The parsed firmware version.
+    pub fn firmware(&self) -> &FirmwareVersion {
+        &self.firmware
+    }
+    /// `(error, warning)` codes cleared at connect (only with
+    /// [`XArm6Config::clear_errors`]).
+    pub fn cleared_at_connect(&self) -> Option<(u8, u8)> {
+        self.cleared
     }
 
     /// Firmware version read at connect.
@@ -268,6 +331,50 @@ impl XArm6 {
     }
 }
 
+/// After a command whose reply has the error bit: fail with the controller's codes.
+fn fail_on_error_bit(client: &mut XArmClient, st: u8, what: &str) -> Result<()> {
+    if st & status::ERROR == 0 {
+        return Ok(());
+    }
+    let (error, warning) = client.error_codes()?;
+    Err(Error::Stopped {
+        device: DEVICE,
+        reason: format!("controller error code {error} (warning {warning}) after {what}"),
+    })
+}
+
+/// Wait (up to `timeout`) for the controller to leave states 4/5 after `SET_STATE 0`.
+fn wait_ready(client: &mut XArmClient, clock: &dyn Clock, timeout: Duration) -> Result<()> {
+    let t0 = clock.now();
+    loop {
+        let st = client.state()?;
+        if st != proto::state::STOP && st != proto::state::NOT_READY {
+            return Ok(());
+        }
+        if clock.now().saturating_sub(t0) >= timeout.as_nanos() as Nanos {
+            let (error, warning) = client.error_codes()?;
+            return Err(Error::Stopped {
+                device: DEVICE,
+                reason: format!(
+                    "the controller stays in state {st} after enable, servo mode and SET_STATE \
+                     0 (error code {error}, warning {warning}): emergency stop pressed?"
+                ),
+            });
+        }
+        clock.sleep_until(clock.now() + 10_000_000);
+    }
+}
+
+/// Measured joint positions and torques: one `GET_JOINT_POS [3]` where the firmware has it,
+/// else `GET_JOINT_POS` + `GET_JOINT_TAU`.
+fn read_joints(client: &mut XArmClient, fw: &FirmwareVersion) -> Result<([f32; 7], [f32; 7])> {
+    if fw.has_joint_states() {
+        client.joint_states()
+    } else {
+        Ok((client.joint_positions()?, client.joint_torques()?))
+    }
+}
+
 fn report_loop(
     mut reader: ReportReader,
     shared: Arc<Mutex<Shared>>,
@@ -307,7 +414,7 @@ fn stream_loop(
     halt: Arc<AtomicBool>,
     clock: Arc<dyn Clock>,
     period: Nanos,
-    poll_state: bool,
+    poll_state: Option<FirmwareVersion>,
 ) {
     let mut next = clock.now();
     let mut not_ready = 0u32;
@@ -340,9 +447,8 @@ fn stream_loop(
                 } else {
                     not_ready = 0;
                 }
-                if poll_state {
-                    let qp = c.joint_positions()?;
-                    let tp = c.joint_torques()?;
+                if let Some(fw) = &poll_state {
+                    let (qp, tp) = read_joints(&mut c, fw)?;
                     let now = clock.now();
                     let mut s = lock(&shared);
                     s.q.copy_from_slice(&qp[..6]);
