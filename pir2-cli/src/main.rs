@@ -558,7 +558,6 @@ fn main() -> Result<()> {
                 xhand,
                 clear_errors,
             } => commands::robot_check(xarm.as_deref(), xhand.as_deref(), clear_errors),
-            }
             RobotCmd::Emulate { robot, host, pty } => {
                 let which = if robot == "xarm" {
                     Emulated::XArm(host)
