@@ -101,7 +101,10 @@ fn reward_terms_at_known_states() {
     env.env_mut()
         .set_cube_pose([grasp[0] + 0.04, grasp[1], grasp[2]], tilted);
     let t = env.reward_terms(&zero);
-    assert!((t.orientation - (1.0 - 0.9 * 1.0 / PI)).abs() < 1e-6, "{t:?}");
+    assert!(
+        (t.orientation - (1.0 - 0.9 * 1.0 / PI)).abs() < 1e-6,
+        "{t:?}"
+    );
     assert!((t.orientation - tolerance_linear(1.2, 0.2, PI)).abs() < 1e-6);
     assert!((t.position - 0.64).abs() < 1e-6, "{t:?}");
     assert_eq!(t.success, 0.0);
@@ -118,7 +121,8 @@ fn reward_terms_at_known_states() {
     terms.termination = 0.0;
     terms.success = 1.0;
     let dt = 0.02;
-    let shaped = 5.0 * terms.orientation + 0.5 * terms.position - 0.5 * terms.hand_pose
+    let shaped = 5.0 * terms.orientation + 0.5 * terms.position
+        - 0.5 * terms.hand_pose
         - 0.001 * terms.action_rate
         - 0.001 * terms.energy;
     assert!((terms.total(dt) - (shaped * dt + 100.0)).abs() < 1e-9);

@@ -48,7 +48,11 @@ enum Mode {
 
 fn parse_list(s: &str) -> anyhow::Result<Vec<usize>> {
     s.split(',')
-        .map(|v| v.trim().parse::<usize>().context("hidden sizes: comma-separated integers"))
+        .map(|v| {
+            v.trim()
+                .parse::<usize>()
+                .context("hidden sizes: comma-separated integers")
+        })
         .collect()
 }
 
@@ -114,7 +118,10 @@ fn main() -> anyhow::Result<()> {
     match args.mode {
         Mode::Train => train(&model, &args),
         Mode::Eval => {
-            let w = args.weights.as_deref().context("--eval needs --weights FILE")?;
+            let w = args
+                .weights
+                .as_deref()
+                .context("--eval needs --weights FILE")?;
             let ex = PpoExpert::load(w)?;
             let t0 = Instant::now();
             let r = evaluate(&model, &ex, 0..args.episodes, args.eval_seed, args.threads)?;
@@ -228,7 +235,10 @@ fn truncate_log(path: &Path, iteration: u64) -> anyhow::Result<()> {
             Ok(v) => v,
             Err(_) => continue,
         };
-        if v.get("iteration").and_then(|i| i.as_u64()).is_some_and(|i| i < iteration) {
+        if v.get("iteration")
+            .and_then(|i| i.as_u64())
+            .is_some_and(|i| i < iteration)
+        {
             keep.push(line);
         }
     }
@@ -273,7 +283,10 @@ fn train(model: &LeapModel, args: &Args) -> anyhow::Result<()> {
         println!("config {}", serde_json::to_string(&args.cfg)?);
         Trainer::new(model, args.cfg.clone(), args.threads)?
     };
-    let mut log = OpenOptions::new().append(true).create(true).open(&log_path)?;
+    let mut log = OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(&log_path)?;
     let start = Instant::now();
     let mut last_ckpt = Instant::now();
     let mut window: Vec<IterStats> = Vec::new();

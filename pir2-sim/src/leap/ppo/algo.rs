@@ -195,14 +195,22 @@ mod tests {
             p[j] += h;
             m[j] -= h;
             let fd = (loss(&p, &ls) - loss(&m, &ls)) / (2.0 * f64::from(h));
-            assert!((fd - f64::from(dmu[j])).abs() < 2e-3, "mu {j}: {fd} vs {}", dmu[j]);
+            assert!(
+                (fd - f64::from(dmu[j])).abs() < 2e-3,
+                "mu {j}: {fd} vs {}",
+                dmu[j]
+            );
         }
         for j in 0..2 {
             let (mut p, mut m) = (ls, ls);
             p[j] += h;
             m[j] -= h;
             let fd = (loss(&mu, &p) - loss(&mu, &m)) / (2.0 * f64::from(h));
-            assert!((fd - f64::from(dls[j])).abs() < 2e-3, "ls {j}: {fd} vs {}", dls[j]);
+            assert!(
+                (fd - f64::from(dls[j])).abs() < 2e-3,
+                "ls {j}: {fd} vs {}",
+                dls[j]
+            );
         }
     }
 }

@@ -151,7 +151,11 @@ impl PpoExpert {
     /// clamped to `[−1, 1]`. With `prev_action`, the previous output is appended to the
     /// observation, so call [`reset`](Self::reset) at episode starts.
     pub fn act(&mut self, fast: &[f32], slow: &[f32]) -> [f32; NU] {
-        assert_eq!(fast.len() + slow.len(), BASE_OBS_DIM, "PpoExpert::act: widths");
+        assert_eq!(
+            fast.len() + slow.len(),
+            BASE_OBS_DIM,
+            "PpoExpert::act: widths"
+        );
         self.obs[..fast.len()].copy_from_slice(fast);
         self.obs[fast.len()..BASE_OBS_DIM].copy_from_slice(slow);
         if self.prev_action {
@@ -241,10 +245,7 @@ pub fn evaluate(
     } else {
         let run = &run;
         std::thread::scope(|s| {
-            let hs: Vec<_> = parts
-                .into_iter()
-                .map(|p| s.spawn(move || run(p)))
-                .collect();
+            let hs: Vec<_> = parts.into_iter().map(|p| s.spawn(move || run(p))).collect();
             let mut all = Vec::new();
             for h in hs {
                 all.extend(h.join().expect("evaluation thread panicked")?);

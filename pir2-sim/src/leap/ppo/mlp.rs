@@ -3,13 +3,72 @@
 //! Parameters live in one flat `f32` vector (per layer: the weight matrix `out × in`,
 //! row-major, then the bias), so that the optimiser, gradient clipping and serialisation
 //! treat a network as one slice. Activations are batched row-major (`batch × width`); the
-//! matrix products run on `faer` sequentially (`Par::Seq`), so one call's result depends
-//! only on its inputs — callers split batches into fixed chunks to use several threads
-//! without changing a bit of the result.
+//! matrix products run on the `gemm` crate's kernels (runtime-dispatched SIMD) on the
+//! calling thread, so one call's result depends only on its inputs — callers split batches
+//! into fixed chunks to use several threads without changing a bit of the result.
 
-use faer::linalg::matmul::matmul;
-use faer::{Accum, MatMut, MatRef, Par};
 use pir2_schedule::Rng;
+
+/// `dst (m × n, row-major) = [dst +] lhs · rhs`, where element `(i, p)` of `lhs` is
+/// `lhs[i·lhs_rs + p·lhs_cs]` and element `(p, j)` of `rhs` is `rhs[p·rhs_rs + j·rhs_cs]`.
+#[allow(clippy::too_many_arguments)]
+fn matmul(
+    m: usize,
+    n: usize,
+    k: usize,
+    dst: &mut [f32],
+    accumulate: bool,
+    lhs: &[f32],
+    (lhs_rs, lhs_cs): (usize, usize),
+    rhs: &[f32],
+    (rhs_rs, rhs_cs): (usize, usize),
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    assert!(dst.len() >= m * n, "matmul: dst too small");
+    if k == 0 {
+        if !accumulate {
+            dst[..m * n].fill(0.0);
+        }
+        return;
+    }
+    assert!(
+        (m - 1) * lhs_rs + (k - 1) * lhs_cs < lhs.len(),
+        "matmul: lhs out of bounds"
+    );
+    assert!(
+        (k - 1) * rhs_rs + (n - 1) * rhs_cs < rhs.len(),
+        "matmul: rhs out of bounds"
+    );
+    // SAFETY: the asserts above keep every index gemm reads (`lhs`, `rhs`) or writes
+    // (`dst`, m × n with row stride n) inside the slices; the slices do not alias (`dst` is
+    // the only mutable borrow). gemm computes `dst = 1·dst + 1·lhs·rhs` (or `lhs·rhs` when
+    // `accumulate` is false, without reading `dst`).
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            lhs.as_ptr(),
+            lhs_cs as isize,
+            lhs_rs as isize,
+            rhs.as_ptr(),
+            rhs_cs as isize,
+            rhs_rs as isize,
+            1.0f32,
+            1.0f32,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
 
 /// Hidden-layer non-linearity (the output layer is linear).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -152,7 +211,11 @@ impl Mlp {
     /// Forward pass over `batch` rows of `x` (`batch × input_dim`), keeping what
     /// [`backward`](Self::backward) needs in `cache`; returns the output (`batch × output_dim`).
     pub fn forward<'c>(&self, x: &[f32], batch: usize, cache: &'c mut MlpCache) -> &'c [f32] {
-        assert_eq!(x.len(), batch * self.input_dim(), "Mlp::forward: input size");
+        assert_eq!(
+            x.len(),
+            batch * self.input_dim(),
+            "Mlp::forward: input size"
+        );
         let layers = self.sizes.len() - 1;
         cache.batch = batch;
         cache.post.resize_with(layers + 1, Vec::new);
@@ -165,10 +228,9 @@ impl Mlp {
             let (inputs, outputs) = cache.post.split_at_mut(l + 1);
             let out = &mut outputs[0];
             out.resize(batch * fo, 0.0);
-            let xin = MatRef::from_row_major_slice(&inputs[l], batch, fi);
-            let w = MatRef::from_row_major_slice(&self.params[wo..bo], fo, fi);
-            let dst = MatMut::from_row_major_slice_mut(out, batch, fo);
-            matmul(dst, Accum::Replace, xin, w.transpose(), 1.0f32, Par::Seq);
+            // Y (B × fo) = X (B × fi) · Wᵀ (fi × fo)
+            let w = &self.params[wo..bo];
+            matmul(batch, fo, fi, out, false, &inputs[l], (fi, 1), w, (1, fi));
             let bias = &self.params[bo..bo + fo];
             for row in out.chunks_exact_mut(fo) {
                 for (v, b) in row.iter_mut().zip(bias) {
@@ -191,7 +253,11 @@ impl Mlp {
     /// `d_out = ∂L/∂output` (`batch × output_dim`), **adds** `∂L/∂params` to `grad`.
     pub fn backward(&self, cache: &mut MlpCache, d_out: &[f32], grad: &mut [f32]) {
         let batch = cache.batch;
-        assert_eq!(d_out.len(), batch * self.output_dim(), "Mlp::backward: d_out");
+        assert_eq!(
+            d_out.len(),
+            batch * self.output_dim(),
+            "Mlp::backward: d_out"
+        );
         assert_eq!(grad.len(), self.params.len(), "Mlp::backward: grad size");
         let layers = self.sizes.len() - 1;
         let mut dz = std::mem::take(&mut cache.d_a);
@@ -208,10 +274,17 @@ impl Mlp {
             }
             let (gw, gb) = grad[wo..bo + fo].split_at_mut(bo - wo);
             // dW (fo × fi) += dZᵀ (fo × B) · X (B × fi)
-            let dzm = MatRef::from_row_major_slice(&dz, batch, fo);
-            let xin = MatRef::from_row_major_slice(&cache.post[l], batch, fi);
-            let gwm = MatMut::from_row_major_slice_mut(gw, fo, fi);
-            matmul(gwm, Accum::Add, dzm.transpose(), xin, 1.0f32, Par::Seq);
+            matmul(
+                fo,
+                fi,
+                batch,
+                gw,
+                true,
+                &dz,
+                (1, fo),
+                &cache.post[l],
+                (fi, 1),
+            );
             for row in dz.chunks_exact(fo) {
                 for (g, d) in gb.iter_mut().zip(row) {
                     *g += d;
@@ -220,9 +293,8 @@ impl Mlp {
             if l > 0 {
                 // dX (B × fi) = dZ (B × fo) · W (fo × fi)
                 dx.resize(batch * fi, 0.0);
-                let w = MatRef::from_row_major_slice(&self.params[wo..bo], fo, fi);
-                let dxm = MatMut::from_row_major_slice_mut(&mut dx, batch, fi);
-                matmul(dxm, Accum::Replace, dzm, w, 1.0f32, Par::Seq);
+                let w = &self.params[wo..bo];
+                matmul(batch, fi, fo, &mut dx, false, &dz, (fo, 1), w, (fi, 1));
                 std::mem::swap(&mut dz, &mut dx);
             }
         }
@@ -336,7 +408,10 @@ mod tests {
             let err = (fd - f64::from(grad[i])).abs() / (1.0 + fd.abs());
             worst = worst.max(err);
         }
-        assert!(worst < 2e-3, "{act:?}: worst relative gradient error {worst}");
+        assert!(
+            worst < 2e-3,
+            "{act:?}: worst relative gradient error {worst}"
+        );
         // The gradient is not trivially zero.
         assert!(grad.iter().any(|g| g.abs() > 1e-2));
     }

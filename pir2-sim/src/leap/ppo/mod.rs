@@ -11,7 +11,7 @@
 //!   clamped policy mean), with its small weights file, and [`evaluate`] on the paper env.
 //!
 //! The networks are small multi-layer perceptrons with hand-written backpropagation
-//! ([`mlp`]); the matrix products run on `faer`.
+//! ([`mlp`]); the matrix products run on the `gemm` crate.
 //!
 //! Recipe (defaults of [`PpoConfig`]), after MuJoCo Playground's LeapCubeReorient PPO
 //! (`brax` PPO: 8192 environments, unroll 40, 32 minibatches, 4 epochs, learning rate

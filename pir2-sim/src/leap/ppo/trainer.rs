@@ -672,8 +672,7 @@ impl Trainer {
                             &b.obs_c[t * dc..(t + 1) * dc],
                             &mut ws.xc[r * dc..(r + 1) * dc],
                         );
-                        ws.act[r * NU..(r + 1) * NU]
-                            .copy_from_slice(&b.act[t * NU..(t + 1) * NU]);
+                        ws.act[r * NU..(r + 1) * NU].copy_from_slice(&b.act[t * NU..(t + 1) * NU]);
                         ws.logp[r] = b.logp[t];
                         ws.adv[r] = (b.adv[t] - adv_mean) * adv_inv;
                         ws.ret[r] = b.ret[t];
@@ -764,12 +763,7 @@ impl Trainer {
         st.value_loss /= n_rows;
         st.clip_frac /= n_rows;
         st.approx_kl /= n_rows;
-        st.mean_std = self
-            .log_std
-            .iter()
-            .map(|l| f64::from(l.exp()))
-            .sum::<f64>()
-            / NU as f64;
+        st.mean_std = self.log_std.iter().map(|l| f64::from(l.exp())).sum::<f64>() / NU as f64;
         st.explained_variance = ev;
         Ok(st)
     }
