@@ -10,6 +10,8 @@
 //! * [`MpcExpert`]: sampling-based predictive control over MuJoCo rollouts, on parallel
 //!   threads, with privileged state.
 //! * [`collect`]: roll the expert and record per-frame observations and actions.
+//! * [`ppo`]: PPO training of a learnable expert (a deterministic function of the noisy
+//!   observation) and its weights file.
 
 mod collect;
 mod env;
@@ -17,6 +19,7 @@ mod error;
 pub mod math;
 mod model;
 mod mpc;
+pub mod ppo;
 pub mod scene;
 
 pub use collect::{collect, episode_seeds, CollectConfig, Episode, Frame};
