@@ -503,18 +503,15 @@ impl<'a> Trainer<'a> {
 
         let out_dir = self.out_dir.clone();
         let names: Vec<String> = model.vars().iter().map(|(n, _)| n.clone()).collect();
+        let params = model.host_params()?;
         let mut st = State {
             step: 0,
-            params: model.host_params()?,
-            opt: AdamW::new(&cfg, &[]),
-            ema: None,
+            opt: AdamW::new(&cfg, &params),
+            ema: cfg.ema.map(|_| params.clone()),
+            params,
             best: None,
             report: TrainReport::default(),
         };
-        st.opt = AdamW::new(&cfg, &st.params);
-        if cfg.ema.is_some() {
-            st.ema = Some(st.params.clone());
-        }
         let mut batcher = Batcher::new(data, &spec, model.stats(), &cfg);
         if let Some(dir) = &resume_from {
             let rng = st.load(dir, &cfg, &names)?;
