@@ -156,14 +156,16 @@ def main():
 
     for _ in range(args.warmup):
         step()
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     for _ in range(args.steps):
         step()
     dt = (time.perf_counter() - t) / args.steps
+    dc = (time.process_time() - c) / args.steps
     n_params = sum(p.numel() for p in model.parameters())
     print(
         f"torch {torch.__version__} widths {widths} batch {b} threads {args.threads}: "
-        f"{dt:.3f} s/step ({1 / dt:.2f} steps/s, {n_params} parameters)"
+        f"{dt:.3f} s/step ({1 / dt:.2f} steps/s, {n_params} parameters); "
+        f"process CPU time {dc:.3f} s/step"
     )
 
 

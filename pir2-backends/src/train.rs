@@ -503,18 +503,15 @@ impl<'a> Trainer<'a> {
 
         let out_dir = self.out_dir.clone();
         let names: Vec<String> = model.vars().iter().map(|(n, _)| n.clone()).collect();
+        let params = model.host_params()?;
         let mut st = State {
             step: 0,
-            params: model.host_params()?,
-            opt: AdamW::new(&cfg, &[]),
-            ema: None,
+            opt: AdamW::new(&cfg, &params),
+            ema: cfg.ema.map(|_| params.clone()),
+            params,
             best: None,
             report: TrainReport::default(),
         };
-        st.opt = AdamW::new(&cfg, &st.params);
-        if cfg.ema.is_some() {
-            st.ema = Some(st.params.clone());
-        }
         let mut batcher = Batcher::new(data, &spec, model.stats(), &cfg);
         if let Some(dir) = &resume_from {
             let rng = st.load(dir, &cfg, &names)?;
@@ -531,6 +528,8 @@ impl<'a> Trainer<'a> {
         let mut fused_net = if self.fused { model.fast_unet()? } else { None };
         let par = kernels::parallelism(rayon::current_num_threads());
         let mut dv = Vec::new();
+        // The model's variables lag `st.params` (fused path only).
+        let mut stale = false;
         let vars: Vec<_> = model.vars().iter().map(|(_, v)| v.clone()).collect();
 
         for step in st.step..cfg.steps {
@@ -540,6 +539,10 @@ impl<'a> Trainer<'a> {
             let lr = cfg.lr_at(step);
             batcher.fill(data)?;
             if let Some(r) = cfg.self_rollout {
+                if stale {
+                    model.set_host_params(&st.params)?;
+                    stale = false;
+                }
                 batcher.self_roll(model, r)?;
             }
             for g in grads.iter_mut() {
@@ -604,7 +607,12 @@ impl<'a> Trainer<'a> {
                 None => clip_grads(&mut grads, cfg.grad_clip),
             };
             st.opt.step(&mut st.params, &grads, lr);
-            model.set_host_params(&st.params)?;
+            if fused_net.is_some() {
+                // The host kernels read `st.params`; the model's variables catch up when needed.
+                stale = true;
+            } else {
+                model.set_host_params(&st.params)?;
+            }
             if let (Some(e), Some(decay)) = (st.ema.as_mut(), cfg.ema) {
                 let d = decay.min((1 + step) as f64 / (10 + step) as f64);
                 let (df, cf) = (d as f32, (1.0 - d) as f32);
@@ -641,9 +649,12 @@ impl<'a> Trainer<'a> {
                 continue;
             }
             // Evaluate the EMA weights (swap in, evaluate, swap back).
-            if let Some(e) = &st.ema {
-                model.set_host_params(e)?;
+            match &st.ema {
+                Some(e) => model.set_host_params(e)?,
+                None if stale => model.set_host_params(&st.params)?,
+                None => {}
             }
+            stale = false;
             let score = self.validate.as_mut().map(|f| f(model, done));
             let step_dir = self
                 .out_dir
@@ -688,6 +699,9 @@ impl<'a> Trainer<'a> {
             } else if st.ema.is_some() {
                 model.set_host_params(&st.params)?;
             }
+        }
+        if stale {
+            model.set_host_params(&st.params)?;
         }
         log_line(None, &mut self)?;
         Ok(st.report)

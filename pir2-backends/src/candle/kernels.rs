@@ -94,7 +94,10 @@ fn small(par: Parallelism, m: usize) -> bool {
 pub(crate) fn fast_exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 88.0);
     // 2^n · e^r with n = round(x / ln 2), |r| ≤ ln2 / 2.
-    let n = (x * std::f32::consts::LOG2_E).round();
+    // Round to nearest with the 1.5·2²³ trick (|x·log2 e| < 2²²): `f32::round` is a libm
+    // call on baseline x86-64 and would stop the loops around this from vectorising.
+    const MAGIC: f32 = 12_582_912.0;
+    let n = (x * std::f32::consts::LOG2_E + MAGIC) - MAGIC;
     let r = x - n * 0.693_145_75 - n * 1.428_606_8e-6;
     let p = 1.987_569_1e-4;
     let p = p * r + 1.398_199_9e-3;
