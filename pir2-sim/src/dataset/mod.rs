@@ -3,11 +3,12 @@
 //!
 //! # In memory
 //!
-//! [`collect`] runs an [`Expert`] on an [`Environment`] and hands each finished [`Episode`]
-//! (fast and slow observations, clean expert actions, row-major `f32`) to a sink; the
-//! trainer can use [`collect_episodes`] and never touch parquet. Actions are *executed*
-//! with Gaussian noise ([`CollectConfig::action_noise`]) while the *labels* are the clean
-//! expert actions. The slow channel is stored undelayed; the trainer applies `d_vis`.
+//! [`collect`] runs an [`Expert`] on an [`Environment`](pir2_runtime::Environment) and hands
+//! each finished [`Episode`] (fast and slow observations, clean expert actions, row-major
+//! `f32`) to a sink; the trainer can use [`collect_episodes`] and never touch parquet.
+//! Actions are *executed* with Gaussian noise ([`CollectConfig::action_noise`]) while the
+//! *labels* are the clean expert actions. The slow channel is stored undelayed; the trainer
+//! applies `d_vis`.
 //!
 //! # On disk (LeRobotDataset v3.0, no videos)
 //!
