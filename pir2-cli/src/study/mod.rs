@@ -8,7 +8,7 @@
 //! `table.md`, `success.png`.
 //!
 //! Shipped tasks: [`ballplate`] (the embedded default, `pir2 demo`) and, with feature
-//! `mujoco`, [`leap_cube`]. A new task is one file: a type implementing [`Task`] (plus its
+//! `mujoco`, `leap_cube`. A new task is one file: a type implementing [`Task`] (plus its
 //! environment, an [`Environment`] of the runtime).
 
 pub mod ballplate;
