@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # CI fragment for the native backends of pir2-backends (features `ort`, `tch`).
 # Run by .ci/run after scripts/setup-native.sh, from the repository root.
-# PIR2_NATIVE_ENV overrides the env file (e.g. /work/main/.native/env.sh from a worktree).
+# PIR2_NATIVE_ENV overrides the env file (e.g. .native/env.sh (of the main checkout) from a worktree).
 # Sessions are single-threaded; libtorch needs LD_LIBRARY_PATH (set by env.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
