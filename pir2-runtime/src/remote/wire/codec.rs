@@ -1,7 +1,5 @@
 //! The message header, the tensor codec and the checks every message family shares.
 
-use crate::model::{ModelInput, SlowInput};
-
 /// Magic bytes at the start of every message.
 pub const MAGIC: [u8; 4] = *b"PIR2";
 /// The version this build speaks.

@@ -59,7 +59,7 @@ pub fn encode_error(sender: u64, seq: u64, text: &str) -> Vec<u8> {
     .finish()
 }
 
-fn error_text(msg: Message) -> Result<String, WireError> {
+pub(super) fn error_text(msg: Message) -> Result<String, WireError> {
     match msg.tensors.into_iter().next() {
         Some(Tensor::U8 { data, .. }) => Ok(String::from_utf8_lossy(&data).into_owned()),
         _ => Err(WireError::Malformed("error message without text".into())),

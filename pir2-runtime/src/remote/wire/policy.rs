@@ -1,6 +1,7 @@
 //! Kinds 2 and 3: action-head requests and replies.
 
 use super::codec::*;
+use super::control::error_text;
 use crate::model::{ModelInput, SlowInput};
 
 /// Slow input of a decoded request.

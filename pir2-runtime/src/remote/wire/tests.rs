@@ -1,6 +1,7 @@
 //! Round trips, typed errors and garbage inputs of every message family.
 
 use super::*;
+use crate::model::{ModelInput, SlowInput};
 use proptest::prelude::*;
 
 fn hdr(kind: Kind) -> Header {
