@@ -78,6 +78,8 @@ pub struct CollectOptions {
     pub per_seed: usize,
     /// Leap cube: the faster, weaker MPC expert.
     pub fast: bool,
+    /// Leap cube: trained expert weights (one for all seeds, or one per seed) instead of the MPC.
+    pub expert: Vec<PathBuf>,
     /// Ball-plate: episodes to keep.
     pub episodes: usize,
     /// Ball-plate: seed.
@@ -90,7 +92,12 @@ pub struct CollectOptions {
 pub fn collect(o: &CollectOptions) -> Result<()> {
     match o.task {
         TaskName::LeapCube => {
-            crate::leap_cmd::collect(&o.out, &o.seeds, o.per_seed, o.mode, o.fast)
+            let expert = if o.expert.is_empty() {
+                crate::leap_cmd::ExpertChoice::Mpc { fast: o.fast }
+            } else {
+                crate::leap_cmd::ExpertChoice::Weights(o.expert.clone())
+            };
+            crate::leap_cmd::collect(&o.out, &o.seeds, o.per_seed, o.mode, &expert)
         }
         TaskName::BallPlate => {
             let eps = ballplate::collect(o.episodes, o.seed, true)?;

@@ -2,7 +2,7 @@
 //! feature: without it each returns one error saying to rebuild with `--features mujoco`, so
 //! `main.rs` needs no feature gates. The work itself lives in `crate::leap` (feature `mujoco`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 
@@ -26,19 +26,32 @@ pub struct LeapArgs<'a> {
     pub episodes: Option<usize>,
 }
 
-/// `pir2 collect leap-cube`: `per_seed` MPC-expert episodes for each of `seeds` into the
+/// Who demonstrates in `pir2 collect leap-cube`.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExpertChoice {
+    /// The sampling MPC on the privileged state (`fast`: the cheaper recipe).
+    Mpc {
+        /// The faster, weaker recipe.
+        fast: bool,
+    },
+    /// Trained policy weights (`pir2-ppo-expert-v1`), used deterministically: one file for
+    /// every seed, or one per seed.
+    Weights(Vec<PathBuf>),
+}
+
+/// `pir2 collect leap-cube`: `per_seed` expert episodes for each of `seeds` into the
 /// LeRobotDataset v3.0 at `out` (resumable with [`WriteMode::Resume`]).
 pub fn collect(
     out: &Path,
     seeds: &[u64],
     per_seed: usize,
     mode: WriteMode,
-    fast_expert: bool,
+    expert: &ExpertChoice,
 ) -> Result<()> {
     #[cfg(feature = "mujoco")]
     {
         let t = std::time::Instant::now();
-        let s = crate::study::leap_cube::collect_leap(out, seeds, per_seed, mode, fast_expert)?;
+        let s = crate::study::leap_cube::collect_leap(out, seeds, per_seed, mode, expert)?;
         println!(
             "{}: {} episodes, {} frames ({} written now, {:.1} s)",
             out.display(),
@@ -51,7 +64,7 @@ pub fn collect(
     }
     #[cfg(not(feature = "mujoco"))]
     {
-        let _ = (out, seeds, per_seed, mode, fast_expert);
+        let _ = (out, seeds, per_seed, mode, expert);
         anyhow::bail!(NEEDS_MUJOCO)
     }
 }

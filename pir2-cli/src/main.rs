@@ -82,8 +82,13 @@ enum Cmd {
         #[arg(long, default_value_t = 50)]
         per_seed: usize,
         /// leap-cube: the faster, weaker MPC expert.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "expert")]
         fast: bool,
+        /// leap-cube: demonstrate with trained policy weights (`pir2-ppo-expert-v1`
+        /// safetensors, e.g. from `leap_ppo` or `scripts/playground-expert.py`) instead of
+        /// the MPC: one file for all seeds, or one per seed (in the order of `--seeds`).
+        #[arg(long, value_delimiter = ',')]
+        expert: Vec<PathBuf>,
         /// Episodes to keep.
         #[arg(long, default_value_t = 200)]
         episodes: usize,
@@ -481,12 +486,14 @@ fn main() -> Result<()> {
             seeds,
             per_seed,
             fast,
+            expert,
         } => commands::collect(&CollectOptions {
             task: task(&t),
             out,
             seeds,
             per_seed,
             fast,
+            expert,
             episodes,
             seed,
             mode: if resume {

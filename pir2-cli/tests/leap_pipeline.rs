@@ -2,6 +2,7 @@
 //! per cell; checks the dataset, the tables and the output files.
 #![cfg(feature = "mujoco")]
 
+use pir2_cli::leap_cmd::ExpertChoice;
 use pir2_cli::study::leap_cube::{collect_leap, study_deployment, study_horizon, LeapStudyConfig};
 use pir2_sim::dataset::{read_dataset, WriteMode};
 
@@ -11,10 +12,24 @@ fn leap_pipeline_runs_end_to_end() {
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("dataset");
     // Episode 0 of seed 0 fails with the smooth fast expert; episode 1 succeeds.
-    let s = collect_leap(&data, &[0], 2, WriteMode::New, true).expect("collect");
+    let s = collect_leap(
+        &data,
+        &[0],
+        2,
+        WriteMode::New,
+        &ExpertChoice::Mpc { fast: true },
+    )
+    .expect("collect");
     assert_eq!(s.total_episodes, 2);
     // Resuming a complete collection adds nothing.
-    let s2 = collect_leap(&data, &[0], 2, WriteMode::Resume, true).expect("resume");
+    let s2 = collect_leap(
+        &data,
+        &[0],
+        2,
+        WriteMode::Resume,
+        &ExpertChoice::Mpc { fast: true },
+    )
+    .expect("resume");
     assert_eq!(s2.total_episodes, 2);
     let ds = read_dataset(&data).expect("read");
     assert_eq!(ds.episodes.len(), 2);

@@ -219,3 +219,20 @@ fn expert_weights_round_trip_and_act_deterministically() {
     assert!(Trainer::load_checkpoint(m, &path, 1).is_err());
     std::fs::remove_dir_all(dir).ok();
 }
+
+#[test]
+fn environments_start_segments_from_different_states() {
+    let cfg = PpoConfig {
+        rollout_len: 1,
+        ..tiny()
+    };
+    let mut tr = Trainer::new(model(), cfg, 2).unwrap();
+    tr.iterate().unwrap();
+    let quats: Vec<Quat> = tr.envs().iter().map(|e| e.env().cube_pose().1).collect();
+    for i in 0..quats.len() {
+        for j in 0..i {
+            let d = math::orientation_error(&quats[i], &quats[j]);
+            assert!(d > 0.3, "envs {i} and {j} start {d} rad apart");
+        }
+    }
+}

@@ -17,7 +17,10 @@ use pir2_runtime::{LockstepTiming, Mode};
 use pir2_sim::dataset::{
     read_dataset, DatasetSpec, DatasetSummary, DatasetWriter, Episode, WriteMode,
 };
+use pir2_sim::leap::ppo::PpoExpert;
 use pir2_sim::leap::{CollectConfig, LeapConfig, LeapCubeEnv, LeapModel, MpcConfig, NU};
+
+use crate::leap_cmd::ExpertChoice;
 
 use super::pipeline::{self, bar, log_line};
 use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, Task};
@@ -348,16 +351,36 @@ fn to_dataset_episode(ep: &pir2_sim::leap::Episode) -> Episode {
 /// `seeds[k]`); with [`WriteMode::Resume`] the episodes already in the dataset are skipped,
 /// so an interrupted collection continues where it stopped (the writer is finished every
 /// 5 episodes). All episodes are written, failures included (`next.success` says which);
-/// training uses the successful ones. `fast_expert` selects [`MpcConfig::fast`]; either
-/// recipe runs with [`MpcConfig::pin_first_knot`] so the demonstrated actions are smooth.
+/// training uses the successful ones. The MPC expert ([`MpcConfig::fast`] when `fast`) runs
+/// with [`MpcConfig::pin_first_knot`] so the demonstrated actions are smooth; trained
+/// weights act deterministically on the recorded observation.
 pub fn collect_leap(
     out: &Path,
     seeds: &[u64],
     per_seed: usize,
     mode: WriteMode,
-    fast_expert: bool,
+    expert: &ExpertChoice,
 ) -> Result<DatasetSummary> {
     let model = load_model()?;
+    let mut policies = match expert {
+        ExpertChoice::Mpc { .. } => Vec::new(),
+        ExpertChoice::Weights(files) => {
+            if files.len() != 1 && files.len() != seeds.len() {
+                bail!(
+                    "{} expert files for {} seeds: give one file, or one per seed",
+                    files.len(),
+                    seeds.len()
+                );
+            }
+            files
+                .iter()
+                .map(|f| {
+                    PpoExpert::load(f)
+                        .with_context(|| format!("loading expert weights {}", f.display()))
+                })
+                .collect::<Result<Vec<_>>>()?
+        }
+    };
     let mut w = DatasetWriter::open(out, dataset_spec(), mode)
         .with_context(|| format!("opening dataset {}", out.display()))?;
     let total = seeds.len() * per_seed;
@@ -370,7 +393,7 @@ pub fn collect_leap(
     }
     let pb = bar(total as u64, "collecting Leap-cube demonstrations");
     pb.set_position(done as u64);
-    let base = if fast_expert {
+    let base = if matches!(expert, ExpertChoice::Mpc { fast: true }) {
         MpcConfig::fast()
     } else {
         MpcConfig::default()
@@ -388,12 +411,24 @@ pub fn collect_leap(
     while done < total {
         let (k, i) = (done / per_seed, done % per_seed);
         let end = (i + 5).min(per_seed);
-        let cfg = CollectConfig {
-            env: LeapConfig::paper(),
-            mpc,
-            seed: seeds[k],
+        let eps = if policies.is_empty() {
+            let cfg = CollectConfig {
+                env: LeapConfig::paper(),
+                mpc,
+                seed: seeds[k],
+            };
+            pir2_sim::leap::collect(&model, &cfg, i..end, |_| pb.inc(1))?
+        } else {
+            let which = k.min(policies.len() - 1);
+            pir2_sim::leap::collect_with(
+                &model,
+                LeapConfig::paper(),
+                seeds[k],
+                &mut policies[which],
+                i..end,
+                |_| pb.inc(1),
+            )?
         };
-        let eps = pir2_sim::leap::collect(&model, &cfg, i..end, |_| pb.inc(1))?;
         for ep in &eps {
             successes += ep.success as usize;
             w.append(&to_dataset_episode(ep))?;

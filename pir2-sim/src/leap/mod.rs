@@ -22,7 +22,7 @@ mod mpc;
 pub mod ppo;
 pub mod scene;
 
-pub use collect::{collect, episode_seeds, CollectConfig, Episode, Frame};
+pub use collect::{collect, collect_with, episode_seeds, CollectConfig, Episode, Expert, Frame};
 pub use env::{LeapConfig, LeapCubeEnv, LeapEnvState, NoiseConfig, Variant};
 pub use error::{LeapError, Result};
 pub use model::{LeapModel, NU};

@@ -7,6 +7,22 @@
 //! `log_std` (the exploration noise, informational); metadata `format`, `sizes` (layer
 //! widths, comma-separated, input first), `activation` (`silu` or `tanh`), `prev_action`
 //! (`true` if the observation ends with the previous action), `iteration`, `env_steps`.
+//!
+//! Optional metadata (absent = the first value, what the PPO trainer writes):
+//! - `squash` = `clamp` | `tanh`: the action is `clamp(μ, ±1)` or `tanh(μ)`;
+//! - `orientation` = `absolute` | `nearest_goal`: the cube-orientation input (observation
+//!   values 35..41, rows 2–3 of the rotation matrix `R` of the sensed cube quaternion) is fed
+//!   as is, or replaced by rows 2–3 of `R·Gᵀ`, the rotation from the nearest of the four
+//!   blue-side-up goals `G` (largest `tr(R·Gᵀ)`; row 1 of `R` is the cross product of rows 2
+//!   and 3) — the goal-relative feature of MuJoCo Playground's LeapCubeReorient policies,
+//!   computed from the paper's observation alone;
+//! - `obs_clip` = a positive number or `none`: the bound of the normalised observation
+//!   (default 10).
+//!
+//! The two options let a MuJoCo Playground LeapCubeReorient policy (a 512-256-128 swish MLP
+//! with a tanh head over the playground's 57-d observation, which is the paper's 41 values
+//! with a goal-relative orientation plus the previous action) run as an expert on the paper's
+//! environment; `scripts/playground-expert.py` converts its published ONNX export.
 
 use std::ops::Range;
 use std::path::Path;
@@ -20,6 +36,85 @@ use super::io::{format_err, TensorReader, TensorWriter};
 use super::mlp::{Activation, Mlp, MlpCache};
 use super::norm::FrozenNorm;
 use super::task::{actor_dim, BASE_OBS_DIM};
+use crate::leap::math::{blue_side_up_goals, rot_rows_23};
+
+/// How the actor's output becomes an action.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Squash {
+    /// `clamp(μ, −1, 1)` (the PPO trainer's Gaussian mean).
+    Clamp,
+    /// `tanh(μ)` (a tanh-squashed policy head).
+    Tanh,
+}
+
+impl Squash {
+    fn name(self) -> &'static str {
+        match self {
+            Squash::Clamp => "clamp",
+            Squash::Tanh => "tanh",
+        }
+    }
+}
+
+/// Which cube-orientation feature the actor sees (see the module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OrientationInput {
+    /// Rows 2–3 of the sensed cube rotation, as the environment observes them.
+    Absolute,
+    /// Rows 2–3 of the rotation from the nearest blue-side-up goal.
+    NearestGoal,
+}
+
+impl OrientationInput {
+    fn name(self) -> &'static str {
+        match self {
+            OrientationInput::Absolute => "absolute",
+            OrientationInput::NearestGoal => "nearest_goal",
+        }
+    }
+}
+
+/// Rows 2–3 of `R·Gᵀ` for the blue-side-up goal `G` with the largest `tr(R·Gᵀ)`, where `R`
+/// is the rotation whose rows 2–3 are `rows` (row 1 = row 2 × row 3).
+pub fn nearest_goal_rows(rows: &[f32; 6]) -> [f32; 6] {
+    let r1 = [rows[0] as f64, rows[1] as f64, rows[2] as f64];
+    let r2 = [rows[3] as f64, rows[4] as f64, rows[5] as f64];
+    let r0 = [
+        r1[1] * r2[2] - r1[2] * r2[1],
+        r1[2] * r2[0] - r1[0] * r2[2],
+        r1[0] * r2[1] - r1[1] * r2[0],
+    ];
+    let r = [r0, r1, r2];
+    let dot = |a: &[f64; 3], b: &[f64]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let mut best: Option<(f64, [f64; 9])> = None;
+    for g in blue_side_up_goals() {
+        let gr = rot_rows_23(&g);
+        let g1 = [gr[0], gr[1], gr[2]];
+        let g2 = [gr[3], gr[4], gr[5]];
+        let g0 = [
+            g1[1] * g2[2] - g1[2] * g2[1],
+            g1[2] * g2[0] - g1[0] * g2[2],
+            g1[0] * g2[1] - g1[1] * g2[0],
+        ];
+        let gm = [g0, g1, g2];
+        let trace: f64 = (0..3).map(|i| dot(&r[i], &gm[i])).sum();
+        if best.as_ref().is_none_or(|(t, _)| trace > *t) {
+            let mut rel = [0.0; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    rel[3 * i + j] = dot(&r[i], &gm[j]);
+                }
+            }
+            best = Some((trace, rel));
+        }
+    }
+    let rel = best.expect("four goals").1;
+    let mut out = [0.0f32; 6];
+    for k in 0..6 {
+        out[k] = rel[3 + k] as f32;
+    }
+    out
+}
 
 /// Format tag of expert weight files.
 pub const EXPERT_FORMAT: &str = "pir2-ppo-expert-v1";
@@ -31,6 +126,9 @@ pub struct PpoExpert {
     norm: FrozenNorm,
     log_std: Vec<f32>,
     prev_action: bool,
+    squash: Squash,
+    orientation: OrientationInput,
+    obs_clip: f32,
     last_act: [f32; NU],
     iteration: u64,
     env_steps: u64,
@@ -58,6 +156,9 @@ impl PpoExpert {
             norm,
             log_std,
             prev_action,
+            squash: Squash::Clamp,
+            orientation: OrientationInput::Absolute,
+            obs_clip: super::norm::CLIP,
             last_act: [0.0; NU],
             iteration,
             env_steps,
@@ -105,14 +206,59 @@ impl PpoExpert {
         {
             return Err(format_err(path, "non-finite or non-positive values".into()));
         }
-        Ok(Self::from_parts(
+        let mut ex = Self::from_parts(
             net,
             norm,
             f.f32("log_std", NU)?,
             prev_action,
             f.meta_parse("iteration")?,
             f.meta_parse("env_steps")?,
-        ))
+        );
+        ex.squash = match f.meta_opt("squash") {
+            None | Some("clamp") => Squash::Clamp,
+            Some("tanh") => Squash::Tanh,
+            Some(other) => {
+                return Err(format_err(
+                    path,
+                    format!("metadata `squash` = {other:?}, expected \"clamp\" or \"tanh\""),
+                ))
+            }
+        };
+        ex.orientation = match f.meta_opt("orientation") {
+            None | Some("absolute") => OrientationInput::Absolute,
+            Some("nearest_goal") => OrientationInput::NearestGoal,
+            Some(other) => return Err(format_err(
+                path,
+                format!(
+                    "metadata `orientation` = {other:?}, expected \"absolute\" or \"nearest_goal\""
+                ),
+            )),
+        };
+        ex.obs_clip =
+            match f.meta_opt("obs_clip") {
+                None => super::norm::CLIP,
+                Some("none") => f32::INFINITY,
+                Some(v) => match v.parse::<f32>() {
+                    Ok(c) if c > 0.0 && c.is_finite() => c,
+                    _ => return Err(format_err(
+                        path,
+                        format!(
+                            "metadata `obs_clip` = {v:?}, expected a positive number or \"none\""
+                        ),
+                    )),
+                },
+            };
+        Ok(ex)
+    }
+
+    /// The action squashing.
+    pub fn squash(&self) -> Squash {
+        self.squash
+    }
+
+    /// The cube-orientation input.
+    pub fn orientation_input(&self) -> OrientationInput {
+        self.orientation
     }
 
     /// Write the weights file (atomically).
@@ -129,6 +275,13 @@ impl PpoExpert {
         w.meta("prev_action", self.prev_action);
         w.meta("iteration", self.iteration);
         w.meta("env_steps", self.env_steps);
+        w.meta("squash", self.squash.name());
+        w.meta("orientation", self.orientation.name());
+        if self.obs_clip.is_finite() {
+            w.meta("obs_clip", self.obs_clip);
+        } else {
+            w.meta("obs_clip", "none");
+        }
         w.write(path)
     }
 
@@ -158,14 +311,29 @@ impl PpoExpert {
         );
         self.obs[..fast.len()].copy_from_slice(fast);
         self.obs[fast.len()..BASE_OBS_DIM].copy_from_slice(slow);
+        if self.orientation == OrientationInput::NearestGoal {
+            let rows: [f32; 6] = self.obs[35..41].try_into().expect("6 orientation values");
+            self.obs[35..41].copy_from_slice(&nearest_goal_rows(&rows));
+        }
         if self.prev_action {
             self.obs[BASE_OBS_DIM..].copy_from_slice(&self.last_act);
         }
-        self.norm.apply(&self.obs, &mut self.normed);
+        let clip = self.obs_clip;
+        for ((o, x), (m, s)) in self
+            .normed
+            .iter_mut()
+            .zip(&self.obs)
+            .zip(self.norm.mean.iter().zip(&self.norm.std))
+        {
+            *o = ((x - m) / s).clamp(-clip, clip);
+        }
         let mu = self.net.forward(&self.normed, 1, &mut self.cache);
         let mut a = [0.0f32; NU];
         for i in 0..NU {
-            a[i] = mu[i].clamp(-1.0, 1.0);
+            a[i] = match self.squash {
+                Squash::Clamp => mu[i].clamp(-1.0, 1.0),
+                Squash::Tanh => mu[i].tanh(),
+            };
         }
         self.last_act = a;
         a

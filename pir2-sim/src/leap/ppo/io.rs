@@ -125,6 +125,11 @@ impl TensorReader {
             .ok_or_else(|| format_err(&self.path, format!("metadata `{key}` is missing")))
     }
 
+    /// An optional metadata entry.
+    pub fn meta_opt(&self, key: &str) -> Option<&str> {
+        self.meta.get(key).map(String::as_str)
+    }
+
     pub fn meta_parse<T: std::str::FromStr>(&self, key: &str) -> Result<T> {
         let s = self.meta(key)?;
         s.parse()

@@ -97,9 +97,9 @@ pub struct PpoConfig {
 }
 
 impl Default for PpoConfig {
-    /// The CPU recipe: the playground's PPO settings (lr 3e-4, 4 epochs, entropy 1e-2,
-    /// γ 0.99, λ 0.95, swish, asymmetric critic) scaled from 8192 to 128 environments, with
-    /// 256-128-64 networks (see the module docs of [`super`]).
+    /// The CPU recipe: the playground's PPO settings (lr 3e-4, 4 epochs, γ 0.99, λ 0.95,
+    /// swish, asymmetric critic) scaled from 8192 to 128 environments, with 256-128-64
+    /// networks, entropy 1e-3 and initial σ 0.25 (see the module docs of [`super`]).
     fn default() -> Self {
         Self {
             seed: 0,
@@ -113,10 +113,10 @@ impl Default for PpoConfig {
             gamma: 0.99,
             gae_lambda: 0.95,
             clip_eps: 0.2,
-            entropy_coef: 1e-2,
+            entropy_coef: 1e-3,
             learning_rate: 3e-4,
             max_grad_norm: 1.0,
-            init_log_std: (0.5f32).ln(),
+            init_log_std: (0.25f32).ln(),
             actor_hidden: vec![256, 128, 64],
             critic_hidden: vec![256, 128, 64],
             activation: "silu".into(),
@@ -305,8 +305,10 @@ struct RolloutCtx<'a> {
     env_seed: u64,
 }
 
+/// Reset seed of episode `episode` (< 2³²) of environment `env` in a segment.
 fn reset_seed(env_seed: u64, env: usize, episode: u64) -> u64 {
-    Rng::derive(env_seed, ((env as u64) << 32) | episode).next_u64()
+    debug_assert!(episode < 1 << 32);
+    Rng::derive(env_seed, ((env as u64) << 32) | (episode & 0xFFFF_FFFF)).next_u64()
 }
 
 /// Roll one chunk of environments (global indices from `first`) and compute its values and
@@ -521,6 +523,11 @@ impl Trainer {
         self.iteration % self.cfg.segment_iters as u64 == 0
     }
 
+    /// The training environments (read-only; for tests and diagnostics).
+    pub fn envs(&self) -> &[PpoEnv] {
+        &self.envs
+    }
+
     /// Change the thread count (does not change results).
     pub fn set_threads(&mut self, threads: usize) {
         self.threads = threads.max(1);
@@ -545,9 +552,13 @@ impl Trainer {
         let segment = it / cfg.segment_iters as u64;
         let env_seed = Rng::derive(cfg.seed ^ SALT_ENV, segment).next_u64();
         if self.at_segment_boundary() {
+            // Episode 0 of every environment starts here; later resets count from 1.
             for (i, (e, s)) in self.envs.iter_mut().zip(&mut self.slots).enumerate() {
-                *s = Slot::default();
-                e.reset(reset_seed(env_seed, i, u64::MAX));
+                *s = Slot {
+                    episode: 1,
+                    ..Slot::default()
+                };
+                e.reset(reset_seed(env_seed, i, 0));
             }
         }
         let t0 = std::time::Instant::now();
