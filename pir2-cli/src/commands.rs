@@ -123,6 +123,8 @@ pub struct TrainOptions {
     pub config: Option<PathBuf>,
     /// Seed (ball-plate; the Leap cube trains the config's seeds).
     pub seed: u64,
+    /// Leap cube: continue an interrupted run in `out`.
+    pub resume: bool,
 }
 
 /// `pir2 train`: train a policy (ball-plate) or the study's policies (Leap cube).
@@ -135,9 +137,12 @@ pub fn train(o: &TrainOptions) -> Result<()> {
                 ..Default::default()
             };
             let policies: Vec<Policy> = o.policy.into_iter().collect();
-            crate::leap_cmd::train(&args, &policies, &o.out)
+            crate::leap_cmd::train(&args, &policies, &o.out, o.resume)
         }
         TaskName::BallPlate => {
+            if o.resume {
+                bail!("--resume is for leap-cube training; ballplate trains in minutes");
+            }
             let policy = o.policy.context("--policy is required for ballplate")?;
             let cfg = DemoConfig::load(o.config.as_deref(), false)?;
             let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out)?;

@@ -93,8 +93,13 @@ fn load_config(args: &LeapArgs) -> Result<crate::study::leap_cube::LeapStudyConf
 }
 
 /// `pir2 train leap-cube`: train `policies` (all four of the study when empty) × the
-/// config's seeds into `out`.
-pub fn train(args: &LeapArgs, policies: &[pir2_runtime::Policy], out: &Path) -> Result<()> {
+/// config's seeds into `out`; `resume` continues an interrupted run there.
+pub fn train(
+    args: &LeapArgs,
+    policies: &[pir2_runtime::Policy],
+    out: &Path,
+    resume: bool,
+) -> Result<()> {
     #[cfg(feature = "mujoco")]
     {
         use crate::study::leap_cube;
@@ -104,7 +109,7 @@ pub fn train(args: &LeapArgs, policies: &[pir2_runtime::Policy], out: &Path) -> 
         } else {
             policies.to_vec()
         };
-        let r = leap_cube::train_policies(&cfg, &ps, out)?;
+        let r = leap_cube::train_policies(&cfg, &ps, out, resume)?;
         for (p, s, scores) in r {
             println!("{p:?} seed {s}: closed-loop validation (step, success) {scores:?}");
         }
@@ -117,7 +122,7 @@ pub fn train(args: &LeapArgs, policies: &[pir2_runtime::Policy], out: &Path) -> 
     }
     #[cfg(not(feature = "mujoco"))]
     {
-        let _ = (args, policies, out);
+        let _ = (args, policies, out, resume);
         anyhow::bail!(NEEDS_MUJOCO)
     }
 }

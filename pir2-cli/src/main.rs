@@ -114,7 +114,7 @@ enum Cmd {
         /// Which policy (required for ballplate).
         #[arg(long, value_enum)]
         policy: Option<PolicyArg>,
-        /// Checkpoint directory (must not exist).
+        /// Checkpoint directory (must not exist, unless --resume).
         #[arg(long)]
         out: PathBuf,
         /// TOML config (fields of `DemoConfig`: steps, lr, nfe, ...; leap-cube:
@@ -124,6 +124,11 @@ enum Cmd {
         /// Seed.
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// leap-cube: continue an interrupted `pir2 train leap-cube --out DIR` with the same
+        /// config and data: finished policies are kept, unfinished ones continue from their
+        /// last step checkpoint (bit-identically to an uninterrupted run).
+        #[arg(long)]
+        resume: bool,
     },
     /// Evaluate a checkpoint in every mode that fits it, at each unit delay; leap-cube: run
     /// the deployment or horizon study (table, PNG, JSON).
@@ -511,6 +516,7 @@ fn main() -> Result<()> {
             out,
             config,
             seed,
+            resume,
         } => commands::train(&TrainOptions {
             task: task(&t),
             data,
@@ -518,6 +524,7 @@ fn main() -> Result<()> {
             out,
             config,
             seed,
+            resume,
         }),
         Cmd::Eval {
             task: t,

@@ -95,6 +95,49 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     for p in ["pir2", "pir2full", "rtc", "flow"] {
         assert!(trained.join(format!("{p}-seed0/best")).exists(), "{p}");
     }
+    // Training into it again needs --resume; --resume keeps finished policies and continues
+    // an unfinished one from its step checkpoints; another config is refused by name.
+    let train = [
+        "train",
+        "leap-cube",
+        "--data",
+        s(&data),
+        "--config",
+        s(&cfg),
+        "--out",
+        s(&trained),
+    ];
+    let again = pir2(&train);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("not empty"));
+    std::fs::remove_dir_all(trained.join("flow-seed0/best")).expect("remove best");
+    let mut resume = train.to_vec();
+    resume.push("--resume");
+    let o = pir2(&resume);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("Rtc seed 0 finished in an earlier run"),
+        "{err}"
+    );
+    assert!(trained.join("flow-seed0/best").exists());
+    let other = dir.join("other.toml");
+    std::fs::write(
+        &other,
+        std::fs::read_to_string(&cfg)
+            .unwrap()
+            .replace("train_steps = 3", "train_steps = 4"),
+    )
+    .unwrap();
+    let mut differs = resume.clone();
+    differs[5] = s(&other);
+    let o = pir2(&differs);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("the config differs"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     for (study, row, col) in [
         ("deployment", "| πR² async (n=2) |", "d0=2"),
         ("horizon", "| sync flow |", "h=8"),

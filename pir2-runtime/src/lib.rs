@@ -45,5 +45,5 @@ pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};
 pub use mode::{EffectiveDelays, Mode};
 pub use model::{ModelInput, SlowInput, SlowSpec, VelocityModel};
-pub use policy::{Deployment, Policy, Recipe};
+pub use policy::{DelayLaw, Deployment, Policy, Recipe};
 pub use window::LatencyWindow;

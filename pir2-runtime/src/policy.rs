@@ -31,15 +31,42 @@ pub enum Policy {
     /// Standard chunked flow matching (deployed sync, naive async, or with ensembling).
     Flow,
     /// πR², small `n`, trained for zero delay only (`d_max = 0`: every staircase draw has
-    /// `d = 0`, the streaming ramp). This is the policy of the zero-latency horizon study.
-    /// It is declared here as data (its schedule); the runtime does not deploy `d = 0` yet,
-    /// so [`Policy::deployments`] lists no mode for it.
+    /// `d = 0`, the streaming ramp). This is the policy of the zero-latency horizon study:
+    /// deployed with a head whose `d_max` is 0, it acts on the newest observation within the
+    /// tick (lock-step with zero-tick calls only).
     PiR2ZeroDelay,
 }
 
-/// The knobs shared by a study's policies: `n` of the πR² policies, the baselines' Euler
-/// steps, the sync-flow execution horizon and the ensembling decay.
+/// The law of the per-batch delay draws of πR² and train-time RTC.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "law", rename_all = "snake_case")]
+pub enum DelayLaw {
+    /// `d ~ U{1..d_max}`.
+    Uniform,
+    /// `p(d = k) ∝ e^{−rate·k}` over `{0..d_max}` (small delays more likely).
+    Exponential {
+        /// Decay rate `α_d`.
+        rate: f64,
+    },
+}
+
+impl DelayLaw {
+    /// The distribution over delays up to `d_max`.
+    pub fn dist(self, d_max: usize) -> DelayDist {
+        match self {
+            DelayLaw::Uniform => DelayDist::Uniform { max: d_max },
+            DelayLaw::Exponential { rate } => DelayDist::Exponential { max: d_max, rate },
+        }
+    }
+}
+
+/// The knobs shared by a study's policies: `n` of the πR² policies, the baselines' Euler
+/// steps, the sync-flow execution horizon, the ensembling decay, and the training delays
+/// (law, `d_max` of πR² and of train-time RTC, `τ` jitter). [`Recipe::default`] is the
+/// recipe of the embedded studies (uniform delays, πR² `d_max` 5, RTC 6, no jitter);
+/// [`Recipe::paper_sim`] is the paper's simulation protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct Recipe {
     /// NFEs per action of the small-`n` πR² policies (training and inference).
     pub nfe: usize,
@@ -49,6 +76,15 @@ pub struct Recipe {
     pub sync_h: usize,
     /// Decay `m` of ACT temporal ensembling in the "naive async + TE" row.
     pub ensemble: f32,
+    /// Law of the training delay draws (πR² and train-time RTC).
+    pub delays: DelayLaw,
+    /// Largest training delay of the πR² policies (and their head's latency window).
+    pub pir2_d_max: usize,
+    /// Largest training delay of train-time RTC (and the latency window of the flow
+    /// baselines' heads).
+    pub rtc_d_max: usize,
+    /// Half-width `j` of the symmetric `τ` jitter of the πR² staircase draws.
+    pub jitter: f32,
 }
 
 impl Default for Recipe {
@@ -58,6 +94,27 @@ impl Default for Recipe {
             flow_steps: 10,
             sync_h: 8,
             ensemble: 0.1,
+            delays: DelayLaw::Uniform,
+            pir2_d_max: 5,
+            rtc_d_max: 6,
+            jitter: 0.0,
+        }
+    }
+}
+
+impl Recipe {
+    /// The paper's simulation protocol (its appendix): delays `p(d) ∝ e^{−d}` over
+    /// `{0..d_max}`, πR² `d_max` 5, train-time RTC `d_max` 10, `K = 15` Euler steps for the
+    /// flow baselines, no jitter (the paper names a jitter `j` but gives no value for the
+    /// simulation). `n` of the small-`n` πR² rows as the default recipe.
+    pub fn paper_sim() -> Self {
+        Self {
+            flow_steps: 15,
+            delays: DelayLaw::Exponential { rate: 1.0 },
+            pir2_d_max: 5,
+            rtc_d_max: 10,
+            jitter: 0.0,
+            ..Self::default()
         }
     }
 }
@@ -85,22 +142,25 @@ impl Policy {
     ];
 
     /// The largest delay the policy must handle (the trained `d_max`; the head's latency
-    /// window is capped there).
-    pub fn d_max(self) -> usize {
+    /// window is capped there): the recipe's πR² or RTC `d_max` (the flow baselines share
+    /// RTC's window), 0 for the zero-delay policy.
+    pub fn d_max(self, r: &Recipe) -> usize {
         match self {
-            Policy::Rtc | Policy::Flow => 6,
+            Policy::Rtc | Policy::Flow => r.rtc_d_max,
             Policy::PiR2ZeroDelay => 0,
-            Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full => 5,
+            Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full => r.pir2_d_max,
         }
     }
 
-    /// The training schedule: the same staircase family and `n` as deployment
-    /// (α = 0.2, `d ~ U{1..5}` for πR²; `d ~ U{1..6}` for train-time RTC).
-    pub fn schedule(self, nfe: usize) -> TrainSchedule {
+    /// The training schedule: the same staircase family and `n` as deployment, α = 0.2,
+    /// delays from the recipe's law up to [`d_max`](Self::d_max), the recipe's jitter on
+    /// the πR² staircases.
+    pub fn schedule(self, r: &Recipe) -> TrainSchedule {
         let base = PiR2Draws {
             alpha: 0.2,
-            delay: DelayDist::Uniform { max: 5 },
-            n: Some(nfe),
+            delay: r.delays.dist(r.pir2_d_max),
+            n: Some(r.nfe),
+            jitter: r.jitter,
             ..Default::default()
         };
         match self {
@@ -115,7 +175,7 @@ impl Policy {
                 ..base
             }),
             Policy::Rtc => TrainSchedule::TrainTimeRtc {
-                delay: DelayDist::Uniform { max: 6 },
+                delay: r.delays.dist(r.rtc_d_max),
             },
             Policy::Flow => TrainSchedule::StandardFlow,
             // The exponential law over {0..0} draws d = 0 every time.
@@ -185,7 +245,10 @@ impl Policy {
                     front: FrontMode::Visible,
                 },
             )],
-            Policy::PiR2ZeroDelay => Vec::new(),
+            Policy::PiR2ZeroDelay => vec![(
+                format!("πR² zero delay (n={})", r.nfe),
+                fresh(FrontMode::Visible),
+            )],
         };
         rows.into_iter()
             .map(|(label, mode)| Deployment {
@@ -205,7 +268,7 @@ mod tests {
     fn deployments_match_the_training_schedule() {
         let r = Recipe::default();
         for p in Policy::ALL {
-            let s = p.schedule(r.nfe);
+            let s = p.schedule(&r);
             for d in p.deployments(&r) {
                 assert_eq!(d.policy, p);
                 match (s, d.mode) {
@@ -229,10 +292,10 @@ mod tests {
                         assert_eq!(draws.alignment, alignment, "{p:?}");
                         let hidden = draws.front == FrontVisibility::Hidden;
                         assert_eq!(hidden, front == FrontMode::Hidden, "{p:?}");
-                        assert!(draws.delay.max() <= p.d_max());
+                        assert!(draws.delay.max() <= p.d_max(&r));
                     }
                     (TrainSchedule::TrainTimeRtc { delay }, Mode::TrainTimeRtc { .. }) => {
-                        assert_eq!(delay.max(), p.d_max());
+                        assert_eq!(delay.max(), p.d_max(&r));
                     }
                     (
                         TrainSchedule::StandardFlow,
@@ -245,16 +308,48 @@ mod tests {
     }
 
     #[test]
-    fn the_zero_delay_policy_draws_only_zero_delays_and_is_not_deployed() {
-        let TrainSchedule::PiR2(draws) = Policy::PiR2ZeroDelay.schedule(2) else {
+    fn the_zero_delay_policy_draws_only_zero_delays() {
+        for r in [Recipe::default(), Recipe::paper_sim()] {
+            let TrainSchedule::PiR2(draws) = Policy::PiR2ZeroDelay.schedule(&r) else {
+                panic!("a πR² schedule");
+            };
+            draws.delay.validate().unwrap();
+            let mut rng = pir2_schedule::Rng::new(3);
+            assert!((0..100).all(|_| draws.delay.sample(&mut rng) == 0));
+            assert_eq!(Policy::PiR2ZeroDelay.d_max(&r), 0);
+            let d = Policy::PiR2ZeroDelay.deployments(&r);
+            assert_eq!(d.len(), 1);
+            assert!(matches!(d[0].mode, Mode::PiR2Async { nfe: Some(2), .. }));
+        }
+    }
+
+    #[test]
+    fn the_paper_recipe_draws_the_appendix_delays() {
+        let r = Recipe::paper_sim();
+        let TrainSchedule::PiR2(draws) = Policy::PiR2.schedule(&r) else {
             panic!("a πR² schedule");
         };
-        draws.delay.validate().unwrap();
-        let mut rng = pir2_schedule::Rng::new(3);
-        assert!((0..100).all(|_| draws.delay.sample(&mut rng) == 0));
-        assert_eq!(Policy::PiR2ZeroDelay.d_max(), 0);
-        assert!(Policy::PiR2ZeroDelay
-            .deployments(&Recipe::default())
-            .is_empty());
+        assert_eq!(draws.delay, DelayDist::Exponential { max: 5, rate: 1.0 });
+        assert_eq!(
+            Policy::Rtc.schedule(&r),
+            TrainSchedule::TrainTimeRtc {
+                delay: DelayDist::Exponential { max: 10, rate: 1.0 }
+            }
+        );
+        assert_eq!(Policy::Flow.d_max(&r), 10);
+        assert_eq!(r.flow_steps, 15);
+        // The default recipe is what the embedded studies were measured with.
+        let d = Recipe::default();
+        let TrainSchedule::PiR2(draws) = Policy::PiR2.schedule(&d) else {
+            panic!("a πR² schedule");
+        };
+        assert_eq!(draws.delay, DelayDist::Uniform { max: 5 });
+        assert_eq!(
+            Policy::Rtc.schedule(&d),
+            TrainSchedule::TrainTimeRtc {
+                delay: DelayDist::Uniform { max: 6 }
+            }
+        );
+        assert_eq!((Policy::Flow.d_max(&d), d.flow_steps), (6, 10));
     }
 }

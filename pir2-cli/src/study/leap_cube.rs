@@ -2,8 +2,14 @@
 //! LeRobotDataset v3.0, Conditional U-Net 1D policies, the deployment study (modes × unit
 //! delay) and the zero-delay horizon study (sync flow `h ∈ {1, 2, 4, 8}` vs πR²).
 //!
-//! Defaults of [`LeapStudyConfig`] are a reduced scale that fits a shared 2-core machine in
-//! minutes; the paper's scale is noted on every field.
+//! Defaults of [`LeapStudyConfig`]: the paper's simulation protocol (its appendix, which
+//! wins where the paper's main text differs: exponential training delays `p(d) ∝ e^{−d}`
+//! over `{0..d_max}` with πR² `d_max` 5 and train-time RTC `d_max` 10, `K = 15` Euler steps
+//! for the flow baselines, naive async as a plain swap with `h = d`, no staleness training
+//! and no delay embedding, `n_obs = 2`), at a reduced training and evaluation scale that
+//! fits a shared 2-core machine (the paper's scale is noted on every field). Deliberate
+//! deviations are separate, labelled rows (temporal ensembling: `te_row`), never the
+//! default.
 
 use std::path::Path;
 use std::time::Instant;
@@ -13,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use pir2_backends::config::{FilmMode, ModelConfig, SlowSpec, Spec, UNetConfig};
 use pir2_backends::train::TrainConfig;
-use pir2_runtime::{LockstepTiming, Mode};
+use pir2_runtime::{DelayLaw, LockstepTiming, Mode, Recipe};
 use pir2_sim::dataset::{
     read_dataset, DatasetSpec, DatasetSummary, DatasetWriter, Episode, WriteMode,
 };
@@ -25,8 +31,19 @@ use crate::leap_cmd::ExpertChoice;
 use super::pipeline::{self, bar, log_line};
 use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, Task};
 
-/// The policies of the Leap study.
+/// The policies of the Leap study trained by default.
 pub const POLICIES: [Policy; 4] = [Policy::PiR2, Policy::PiR2Full, Policy::Rtc, Policy::Flow];
+
+/// Every policy the Leap study can train (the default four, the front-hidden πR² and the
+/// zero-delay πR² of the horizon study).
+pub const ALL_POLICIES: [Policy; 6] = [
+    Policy::PiR2,
+    Policy::PiR2Hidden,
+    Policy::PiR2Full,
+    Policy::Rtc,
+    Policy::Flow,
+    Policy::PiR2ZeroDelay,
+];
 
 /// The study's scale. Defaults: the reduced scale run on this machine (paper values in the
 /// field docs).
@@ -72,7 +89,25 @@ pub struct LeapStudyConfig {
     /// policies found there are loaded instead of trained.
     pub pretrained: Option<String>,
     /// Policies whose rows are run (all four by default; rows of the others are skipped).
+    /// Add `pir2_zero_delay` to train the `d_max = 0` πR² variant of the horizon study.
     pub policies: Vec<Policy>,
+    /// Law of the training delay draws (paper: exponential, rate 1, over `{0..d_max}`;
+    /// `{ law = "uniform" }` draws `U{1..d_max}`).
+    pub delays: DelayLaw,
+    /// Training `d_max` of the πR² policies (paper 5).
+    pub pir2_d_max: usize,
+    /// Training `d_max` of train-time RTC (paper 10).
+    pub rtc_d_max: usize,
+    /// Half-width `j` of the `τ` jitter of the πR² staircase draws (the paper names it but
+    /// gives no value for the simulation: 0).
+    pub jitter: f32,
+    /// Staleness of the slow (cube) features seen in training, `d_vis ~ U{0..d_vis_max}`,
+    /// and the size of the delay embedding (paper's simulation: neither, 0; at deployment
+    /// the slow features are still delayed by the mode's `d_vis`).
+    pub d_vis_max: usize,
+    /// Add the "naive async + TE" row (ACT temporal ensembling, which the paper uses only on
+    /// the real robot) next to the paper's plain-swap naive async.
+    pub te_row: bool,
 }
 
 impl Default for LeapStudyConfig {
@@ -92,11 +127,17 @@ impl Default for LeapStudyConfig {
             d0s: vec![1, 2, 3],
             hs: vec![1, 2, 4, 8],
             nfe: 2,
-            flow_steps: 10,
+            flow_steps: 15,
             max_steps: 300,
             threads: 2,
             pretrained: None,
             policies: POLICIES.to_vec(),
+            delays: DelayLaw::Exponential { rate: 1.0 },
+            pir2_d_max: 5,
+            rtc_d_max: 10,
+            jitter: 0.0,
+            d_vis_max: 0,
+            te_row: true,
         }
     }
 }
@@ -139,15 +180,16 @@ pub fn dataset_spec() -> DatasetSpec {
     }
 }
 
-/// The model spec: H = 16, 16-d action, n_obs = 2, 32 fast, 9 slow, d_vis ≤ 3.
-pub fn spec() -> Spec {
+/// The model spec: H = 16, 16-d action, n_obs = 2, 32 fast, 9 slow, staleness training and
+/// delay embedding up to `d_vis_max` (the paper's simulation: 0).
+pub fn spec(d_vis_max: usize) -> Spec {
     Spec {
         horizon: 16,
         action_dim: NU,
         n_obs: 2,
         fast_dim: 32,
         slow: SlowSpec::Vector { dim: 9 },
-        d_vis_max: 3,
+        d_vis_max,
     }
 }
 
@@ -180,8 +222,9 @@ impl LeapCubeTask {
     }
 
     /// The horizon study at zero delay (`call_ticks = 0`, no slow delay): sync flow with
-    /// each `h ∈ hs` vs πR² (n = `nfe`, and the full ramp), which acts every tick. πR² does
-    /// not depend on `h`: it is evaluated once and its cell repeated in every column.
+    /// each `h ∈ hs` vs πR² (n = `nfe`; the `d_max = 0` policy when `policies` holds
+    /// `pir2_zero_delay`, the paper's variant; and the full ramp), which acts every tick. πR²
+    /// does not depend on `h`: it is evaluated once and its cell repeated in every column.
     pub fn horizon_study(&self) -> Study {
         let c = &self.cfg;
         let zero = LockstepTiming::zero_latency();
@@ -206,6 +249,18 @@ impl LeapCubeTask {
             out.push(StudyRow {
                 row: Row {
                     label: format!("πR² (n={})", c.nfe),
+                    ..r
+                },
+                sweep: Sweep::Once(zero),
+            });
+        }
+        if c.policies.contains(&Policy::PiR2ZeroDelay) {
+            let r = Policy::PiR2ZeroDelay
+                .deployments(&self.settings().recipe)
+                .remove(0);
+            out.push(StudyRow {
+                row: Row {
+                    label: format!("πR² zero-delay policy, d_max = 0 (n={})", c.nfe),
                     ..r
                 },
                 sweep: Sweep::Once(zero),
@@ -241,22 +296,30 @@ impl Task for LeapCubeTask {
 
     fn settings(&self) -> Settings {
         let c = &self.cfg;
+        let base = Settings::from_config(
+            c.nfe,
+            c.flow_steps,
+            &c.seeds,
+            c.episodes,
+            c.checkpoints,
+            c.val_episodes,
+            c.threads,
+        );
         Settings {
             pretrained: c.pretrained.as_ref().map(Into::into),
-            ..Settings::from_config(
-                c.nfe,
-                c.flow_steps,
-                &c.seeds,
-                c.episodes,
-                c.checkpoints,
-                c.val_episodes,
-                c.threads,
-            )
+            recipe: Recipe {
+                delays: c.delays,
+                pir2_d_max: c.pir2_d_max,
+                rtc_d_max: c.rtc_d_max,
+                jitter: c.jitter,
+                ..base.recipe
+            },
+            ..base
         }
     }
 
     fn spec(&self) -> Spec {
-        spec()
+        spec(self.cfg.d_vis_max)
     }
 
     fn period_ns(&self) -> u64 {
@@ -306,20 +369,53 @@ impl Task for LeapCubeTask {
         }
     }
 
-    /// Naive async with ensembling, train-time RTC, πR² without and with async, πR² full
-    /// ramp (rows of policies outside the config's `policies` are left out).
+    /// Naive async (plain swap, `h = d`), naive async + TE (only with `te_row`, labelled as
+    /// outside the paper's protocol), train-time RTC, πR² without and with async, πR² with
+    /// the front hidden, πR² full ramp (rows of policies outside the config's `policies` are
+    /// left out; the zero-delay policy has its row in the horizon study only).
     fn rows(&self) -> Vec<Row> {
         let r = self.settings().recipe;
-        [Policy::Flow, Policy::Rtc, Policy::PiR2, Policy::PiR2Full]
-            .iter()
-            .filter(|p| self.cfg.policies.contains(p))
-            .flat_map(|p| p.deployments(&r))
-            .filter(|d| match d.mode {
-                Mode::SyncFlow { .. } => false,
-                Mode::NaiveAsync { ensemble, .. } => ensemble.is_some(),
-                _ => true,
-            })
-            .collect()
+        [
+            Policy::Flow,
+            Policy::Rtc,
+            Policy::PiR2,
+            Policy::PiR2Hidden,
+            Policy::PiR2Full,
+        ]
+        .iter()
+        .filter(|p| self.cfg.policies.contains(p))
+        .flat_map(|p| p.deployments(&r))
+        .filter(|d| match d.mode {
+            Mode::SyncFlow { .. } => false,
+            Mode::NaiveAsync { ensemble, .. } => ensemble.is_none() || self.cfg.te_row,
+            _ => true,
+        })
+        .map(|mut d| {
+            if matches!(
+                d.mode,
+                Mode::NaiveAsync {
+                    ensemble: Some(_),
+                    ..
+                }
+            ) {
+                d.label = "naive async + TE (not in the paper's sim)".into();
+            }
+            d
+        })
+        .collect()
+    }
+
+    /// The zero-delay policy is validated at zero latency (it cannot run with a delay);
+    /// every other policy in its first row's mode.
+    fn validation(&self, policy: Policy) -> (Mode, LockstepTiming) {
+        if policy == Policy::PiR2ZeroDelay {
+            let r = self.settings().recipe;
+            let mode = policy.deployments(&r).remove(0).mode;
+            return (mode, LockstepTiming::zero_latency());
+        }
+        let mode = self.validation_mode(policy);
+        let t = LockstepTiming::for_mode(&mode, self.settings().val_d0);
+        (mode, t)
     }
 
     /// The successful episodes of the config's dataset.
@@ -469,19 +565,21 @@ pub type LeapStudyResult = StudyResult<LeapStudyConfig>;
 /// Train `policies` × `cfg.seeds` on the dataset `cfg.dataset` into `out` (a new directory):
 /// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the chosen
 /// checkpoint `best/`. Point [`LeapStudyConfig::pretrained`] at `out` to evaluate them.
+/// With `resume`, `out` is an earlier run of the same config ([`pipeline::train_into`]).
 pub fn train_policies(
     cfg: &LeapStudyConfig,
     policies: &[Policy],
     out: &Path,
+    resume: bool,
 ) -> Result<Vec<(Policy, u64, Scores)>> {
-    if let Some(p) = policies.iter().find(|p| !POLICIES.contains(p)) {
-        bail!("policy {p:?} is not part of the leap-cube study ({POLICIES:?})");
+    if let Some(p) = policies.iter().find(|p| !ALL_POLICIES.contains(p)) {
+        bail!("policy {p:?} is not part of the leap-cube study ({ALL_POLICIES:?})");
     }
     let task = LeapCubeTask::new(LeapStudyConfig {
         pretrained: None,
         ..cfg.clone()
     })?;
-    pipeline::train_into(&task, policies, out)
+    pipeline::train_into(&task, policies, out, resume)
 }
 
 /// Deployment study: every row × `d0s` × seeds through the lock-step runtime with

@@ -113,6 +113,13 @@ pub trait Task: Sync {
             .map(|r| r.mode)
             .unwrap_or_else(|| panic!("{policy:?} has no row in this task"))
     }
+    /// The mode and timing a checkpoint of `policy` is validated in (default:
+    /// [`validation_mode`](Self::validation_mode) at the settings' unit delay `val_d0`).
+    fn validation(&self, policy: Policy) -> (Mode, LockstepTiming) {
+        let mode = self.validation_mode(policy);
+        let t = LockstepTiming::for_mode(&mode, self.settings().val_d0);
+        (mode, t)
+    }
     /// The demonstrations to train on; `out` is the study's output directory (a task that
     /// collects them writes its dataset there).
     fn demonstrations(&self, out: &Path) -> Result<Vec<Episode>>;

@@ -57,6 +57,14 @@ pub fn prepare_out(out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
 }
 
+/// Write `bytes` to `path` through a temporary file and a rename, so an interrupted write
+/// never leaves a truncated file.
+fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
 /// Sim episodes as a training dataset.
 #[derive(Debug)]
 pub struct Episodes<'a>(pub &'a [Episode]);
@@ -137,7 +145,7 @@ pub fn head_spec<T: Task>(task: &T, policy: Policy) -> HeadSpec {
         fast_dim: s.fast_dim,
         slow_dim: s.slow.len(),
         period: task.period_ns(),
-        d_max: policy.d_max(),
+        d_max: policy.d_max(&task.settings().recipe),
         d_vis_max: s.d_vis_max,
     }
 }
@@ -176,7 +184,7 @@ pub fn closed_loop<T: Task>(
 }
 
 /// Train `policy` on `demos` (seeded); the checkpoint is chosen by closed-loop validation
-/// ([`Task::validation_mode`] at the settings' `val_d0`). With `out_dir`, step checkpoints,
+/// ([`Task::validation`]). With `out_dir`, step checkpoints,
 /// `loss.jsonl` and `best.json` are written there. `on_step` sees the optimiser step.
 pub fn train_policy<T: Task>(
     task: &T,
@@ -184,6 +192,20 @@ pub fn train_policy<T: Task>(
     policy: Policy,
     seed: u64,
     out_dir: Option<&Path>,
+    on_step: &dyn Fn(usize),
+) -> Result<(CandleModel, Scores)> {
+    train_policy_resumable(task, demos, policy, seed, out_dir, false, on_step)
+}
+
+/// [`train_policy`], continuing from the last step checkpoint in `out_dir` when `resume`
+/// (the validation scores returned are those of this run's checkpoints).
+pub fn train_policy_resumable<T: Task>(
+    task: &T,
+    demos: &[Episode],
+    policy: Policy,
+    seed: u64,
+    out_dir: Option<&Path>,
+    resume: bool,
     on_step: &dyn Fn(usize),
 ) -> Result<(CandleModel, Scores)> {
     let spec = task.spec();
@@ -197,12 +219,11 @@ pub fn train_policy<T: Task>(
     let base = task.optimiser();
     let tc = TrainConfig {
         seed,
-        schedule: policy.schedule(s.recipe.nfe),
+        schedule: policy.schedule(&s.recipe),
         checkpoint_every: Some((base.steps / s.checkpoints.max(1)).max(1)),
         ..base
     };
-    let val_mode = task.validation_mode(policy);
-    let val_timing = LockstepTiming::for_mode(&val_mode, s.val_d0);
+    let (val_mode, val_timing) = task.validation(policy);
     let val_seed = 1_000_000 + seed;
     let t0 = Instant::now();
     let mut loss_sum = 0.0f64;
@@ -249,7 +270,7 @@ pub fn train_policy<T: Task>(
             rate
         });
     if let Some(d) = out_dir {
-        trainer = trainer.out_dir(d);
+        trainer = trainer.out_dir(d).resume(resume);
     }
     trainer.run(&mut model, &Episodes(demos))?;
     Ok((model, scores))
@@ -323,6 +344,7 @@ pub fn train_all<T: Task>(
     demos: &[Episode],
     policies: &[Policy],
     ckpt_root: &Path,
+    resume: bool,
 ) -> Result<Vec<Trained>> {
     let s = task.settings();
     let steps = task.optimiser().steps;
@@ -351,8 +373,20 @@ pub fn train_all<T: Task>(
         }
         let t = Instant::now();
         let ckpt = ckpt_root.join(policy_dir(policy, seed));
-        let (model, scores) = train_policy(task, demos, policy, seed, Some(&ckpt), &|_| {})?;
-        model.save(&ckpt.join("best"))?;
+        let best = ckpt.join("best");
+        if resume && best.exists() {
+            let model = CandleModel::load_expect(&best, &task.spec())
+                .with_context(|| format!("loading {}", best.display()))?;
+            log_line(&format!(
+                "{policy:?} seed {seed} finished in an earlier run: kept {}",
+                best.display()
+            ));
+            pb.set_position((done.fetch_add(1, Ordering::SeqCst) + 1) as u64 * steps as u64);
+            return Ok((model, Vec::new()));
+        }
+        let (model, scores) =
+            train_policy_resumable(task, demos, policy, seed, Some(&ckpt), resume, &|_| {})?;
+        model.save(&best)?;
         pb.set_position((done.fetch_add(1, Ordering::SeqCst) + 1) as u64 * steps as u64);
         log_line(&format!(
             "trained {policy:?} seed {seed} ({}/{}) in {:.0} s; closed-loop validation (step, success): {scores:?}",
@@ -473,7 +507,13 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
     timings.push(("collect".to_string(), t0.elapsed().as_secs_f64()));
 
     let t1 = Instant::now();
-    let trained = train_all(task, &demos, &study.policies(), &out.join("checkpoints"))?;
+    let trained = train_all(
+        task,
+        &demos,
+        &study.policies(),
+        &out.join("checkpoints"),
+        false,
+    )?;
     timings.push(("train".to_string(), t1.elapsed().as_secs_f64()));
 
     let t2 = Instant::now();
@@ -525,14 +565,31 @@ pub fn train_into<T: Task>(
     task: &T,
     policies: &[Policy],
     out: &Path,
+    resume: bool,
 ) -> Result<Vec<(Policy, u64, Scores)>> {
-    prepare_out(out)?;
+    let config = toml::to_string(task.config()).context("serialising the config")?;
+    let config_file = out.join("config.toml");
+    if resume {
+        let before = std::fs::read_to_string(&config_file).with_context(|| {
+            format!(
+                "--resume: {} is not a training run to continue (no readable config.toml)",
+                out.display()
+            )
+        })?;
+        if before != config {
+            bail!(
+                "--resume: the config differs from the one {} was trained with ({}); \
+                 resume with that config or train into a new directory",
+                out.display(),
+                config_file.display()
+            );
+        }
+    } else {
+        prepare_out(out)?;
+        write_atomically(&config_file, config.as_bytes())?;
+    }
     let demos = task.demonstrations(out)?;
-    let trained = train_all(task, &demos, policies, out)?;
-    std::fs::write(
-        out.join("config.toml"),
-        toml::to_string(task.config()).context("serialising the config")?,
-    )?;
+    let trained = train_all(task, &demos, policies, out, resume)?;
     Ok(trained
         .into_iter()
         .map(|t| (t.policy, t.seed, t.scores))

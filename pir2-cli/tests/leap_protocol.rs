@@ -1,0 +1,100 @@
+//! The Leap study's defaults are the paper's simulation protocol (feature `mujoco`: the task
+//! loads the scene; nothing is trained).
+#![cfg(feature = "mujoco")]
+
+use pir2_cli::study::leap_cube::{LeapCubeTask, LeapStudyConfig};
+use pir2_cli::study::{Sweep, Task};
+use pir2_runtime::{DelayLaw, LockstepTiming, Mode, Policy};
+use pir2_schedule::train::{DelayDist, TrainSchedule};
+
+fn task(cfg: LeapStudyConfig) -> LeapCubeTask {
+    LeapCubeTask::new(cfg).expect("Leap-cube scene: source .native/env.sh")
+}
+
+#[test]
+fn defaults_are_the_papers_simulation_protocol() {
+    let t = task(LeapStudyConfig::default());
+    let r = t.settings().recipe;
+    assert_eq!(r.flow_steps, 15);
+    assert_eq!(r.delays, DelayLaw::Exponential { rate: 1.0 });
+    let TrainSchedule::PiR2(draws) = Policy::PiR2.schedule(&r) else {
+        panic!("πR² draws a staircase");
+    };
+    assert_eq!(draws.delay, DelayDist::Exponential { max: 5, rate: 1.0 });
+    assert_eq!(
+        Policy::Rtc.schedule(&r),
+        TrainSchedule::TrainTimeRtc {
+            delay: DelayDist::Exponential { max: 10, rate: 1.0 }
+        }
+    );
+    // No staleness training, no delay embedding; two observation frames.
+    let spec = t.spec();
+    assert_eq!((spec.d_vis_max, spec.n_obs), (0, 2));
+    // Naive async is the plain swap; temporal ensembling is a separate, labelled row.
+    let rows = t.rows();
+    let labels: Vec<&str> = rows.iter().map(|r| r.label.as_str()).collect();
+    let plain = rows
+        .iter()
+        .find(|r| r.label == "naive async")
+        .unwrap_or_else(|| panic!("no plain naive async row in {labels:?}"));
+    assert!(matches!(
+        plain.mode,
+        Mode::NaiveAsync {
+            steps: 15,
+            ensemble: None
+        }
+    ));
+    let te: Vec<_> = rows
+        .iter()
+        .filter(|r| {
+            matches!(
+                r.mode,
+                Mode::NaiveAsync {
+                    ensemble: Some(_),
+                    ..
+                }
+            )
+        })
+        .collect();
+    assert_eq!(te.len(), 1);
+    assert!(te[0].label.contains("not in the paper"), "{}", te[0].label);
+    assert!(rows.iter().any(|r| r.label == "train-time RTC"));
+    let no_te = task(LeapStudyConfig {
+        te_row: false,
+        ..LeapStudyConfig::default()
+    });
+    assert!(!no_te.rows().iter().any(|r| matches!(
+        r.mode,
+        Mode::NaiveAsync {
+            ensemble: Some(_),
+            ..
+        }
+    )));
+}
+
+#[test]
+fn the_zero_delay_policy_is_the_horizon_studys_and_validates_at_zero_latency() {
+    let t = task(LeapStudyConfig {
+        policies: vec![Policy::Flow, Policy::PiR2, Policy::PiR2ZeroDelay],
+        ..LeapStudyConfig::default()
+    });
+    // Not a deployment-study row (it cannot run with a delay) ...
+    assert!(!t.rows().iter().any(|r| r.policy == Policy::PiR2ZeroDelay));
+    // ... but a horizon-study row, at zero latency.
+    let h = t.horizon_study();
+    let zd = h
+        .rows
+        .iter()
+        .find(|r| r.row.policy == Policy::PiR2ZeroDelay)
+        .expect("a zero-delay row");
+    assert_eq!(zd.sweep, Sweep::Once(LockstepTiming::zero_latency()));
+    assert!(h.policies().contains(&Policy::PiR2ZeroDelay));
+    let (mode, timing) = t.validation(Policy::PiR2ZeroDelay);
+    assert!(matches!(mode, Mode::PiR2Async { .. }));
+    assert_eq!(timing, LockstepTiming::zero_latency());
+    // Others validate at the settings' unit delay.
+    let (mode, timing) = t.validation(Policy::PiR2);
+    assert_eq!(mode, t.validation_mode(Policy::PiR2));
+    assert_eq!(timing, LockstepTiming::for_mode(&mode, t.settings().val_d0));
+    assert_ne!(timing, LockstepTiming::zero_latency());
+}
