@@ -227,27 +227,30 @@ impl PpoExpert {
         ex.orientation = match f.meta_opt("orientation") {
             None | Some("absolute") => OrientationInput::Absolute,
             Some("nearest_goal") => OrientationInput::NearestGoal,
-            Some(other) => return Err(format_err(
-                path,
-                format!(
+            Some(other) => {
+                return Err(format_err(
+                    path,
+                    format!(
                     "metadata `orientation` = {other:?}, expected \"absolute\" or \"nearest_goal\""
                 ),
-            )),
+                ))
+            }
         };
-        ex.obs_clip =
-            match f.meta_opt("obs_clip") {
-                None => super::norm::CLIP,
-                Some("none") => f32::INFINITY,
-                Some(v) => match v.parse::<f32>() {
-                    Ok(c) if c > 0.0 && c.is_finite() => c,
-                    _ => return Err(format_err(
+        ex.obs_clip = match f.meta_opt("obs_clip") {
+            None => super::norm::CLIP,
+            Some("none") => f32::INFINITY,
+            Some(v) => match v.parse::<f32>() {
+                Ok(c) if c > 0.0 && c.is_finite() => c,
+                _ => {
+                    return Err(format_err(
                         path,
                         format!(
                             "metadata `obs_clip` = {v:?}, expected a positive number or \"none\""
                         ),
-                    )),
-                },
-            };
+                    ))
+                }
+            },
+        };
         Ok(ex)
     }
 
