@@ -456,8 +456,8 @@ mod tests {
 
     #[test]
     fn clip_global_norm_scales_to_the_bound() {
-        let mut a = vec![3.0f32];
-        let mut b = vec![4.0f32];
+        let mut a = [3.0f32];
+        let mut b = [4.0f32];
         let n = clip_global_norm(&mut [&mut a[..], &mut b[..]], 1.0);
         assert!((n - 5.0).abs() < 1e-6);
         assert!((a[0] - 0.6).abs() < 1e-6 && (b[0] - 0.8).abs() < 1e-6);
