@@ -164,7 +164,9 @@ impl SafetyConfig {
             return Err(Error::Config("safety period must be > 0".into()));
         }
         if self.tracking_stop_reads == 0 {
-            return Err(Error::Config("safety tracking_stop_reads must be >= 1".into()));
+            return Err(Error::Config(
+                "safety tracking_stop_reads must be >= 1".into(),
+            ));
         }
         for i in 0..dim {
             if self.lower[i].is_nan() || self.upper[i].is_nan() || self.lower[i] > self.upper[i] {
@@ -348,10 +350,18 @@ impl<R: Robot> Inner<R> {
         Ok(())
     }
 
-    /// Count a driver error; enough in a row stop the robot.
+    /// Count a driver error; a fault the driver reports with it, or enough errors in a row,
+    /// stop the robot.
     fn robot_error(&mut self, e: Error) -> Error {
         self.stats.robot_errors += 1;
         self.error_run += 1;
+        if let Some(fault) = self.robot.fault() {
+            self.stats.faults += 1;
+            return self.halt(format!(
+                "{} reports a fault: {fault} (driver error: {e})",
+                self.robot.name()
+            ));
+        }
         if self.cfg.error_stop > 0 && self.error_run >= self.cfg.error_stop {
             let n = self.error_run;
             return self.halt(format!("{n} driver errors in a row, the last: {e}"));
@@ -403,8 +413,8 @@ impl<R: Robot> Inner<R> {
         }
         let pos = &out[self.layout.positions.clone()];
         if let Some(target) = &self.last_target {
-            let over = (0..pos.len())
-                .find(|&i| (target[i] - pos[i]).abs() > self.cfg.tracking_error[i]);
+            let over =
+                (0..pos.len()).find(|&i| (target[i] - pos[i]).abs() > self.cfg.tracking_error[i]);
             match over {
                 Some(i) => {
                     self.stats.tracking_over += 1;
@@ -516,7 +526,9 @@ impl<R: Robot> Inner<R> {
                 self.error_run = 0;
                 if let Some(fault) = self.robot.fault() {
                     self.stats.faults += 1;
-                    return Err(self.halt(format!("{} reports a fault: {fault}", self.robot.name())));
+                    return Err(
+                        self.halt(format!("{} reports a fault: {fault}", self.robot.name()))
+                    );
                 }
                 Ok(())
             }

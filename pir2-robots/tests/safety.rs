@@ -362,8 +362,7 @@ fn arm_speed_is_bounded_in_rad_per_s_at_any_control_rate() {
         q: [0.0; 18],
         sent: sent.clone(),
     };
-    let mut l =
-        SafetyLayer::new(r, SafetyConfig::xarm6_xhand(), Arc::new(clock.clone())).unwrap();
+    let mut l = SafetyLayer::new(r, SafetyConfig::xarm6_xhand(), Arc::new(clock.clone())).unwrap();
     let mut s = [0f32; 45];
     let mut target = [0f32; 18];
     target[0] = 1.5;

@@ -271,11 +271,7 @@ fn slow_worker(shared: &Shared, source: Box<dyn SlowSource>, encoder: Box<dyn Sl
     }
 }
 
-fn slow_loop(
-    shared: &Shared,
-    mut source: Box<dyn SlowSource>,
-    mut encoder: Box<dyn SlowEncoder>,
-) {
+fn slow_loop(shared: &Shared, mut source: Box<dyn SlowSource>, mut encoder: Box<dyn SlowEncoder>) {
     while !shared.stop.load(Ordering::Acquire) {
         let r = block_on(async {
             let frame = source.capture().await?;
@@ -543,9 +539,8 @@ where
                 let snap_ref = &snap;
                 let mut interrupted = false;
                 std::thread::scope(|ws| -> Result<()> {
-                    let h = ws.spawn(move || {
-                        head_ref.warm_start(snap_ref, cfg.initial_delay, first_ref)
-                    });
+                    let h = ws
+                        .spawn(move || head_ref.warm_start(snap_ref, cfg.initial_delay, first_ref));
                     let mut kept = Ok(());
                     while !h.is_finished() {
                         if !interrupted && requested() {
