@@ -49,5 +49,5 @@ pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
 pub use run::{
     load_action_head, run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport,
-    HeadChoice,
+    HeadChoice, DEFAULT_SLOW_GRACE,
 };
