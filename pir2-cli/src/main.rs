@@ -275,7 +275,8 @@ struct RunArgs {
     #[arg(long, default_value_t = 60.0)]
     slow_timeout: f64,
     /// Stale-slow stop: stop the robot once the backbone features are older than the
-    /// checkpoint's d_vis_max ticks for longer than this, ms (default 200).
+    /// checkpoint's d_vis_max ticks for longer than this, ms (default: the embodiment's
+    /// `safety.slow_grace_ms`, 200 if unset).
     #[arg(long)]
     slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here.

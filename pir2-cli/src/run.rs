@@ -65,8 +65,8 @@ pub struct RunOptions {
     /// Seconds to wait for the first backbone features.
     pub slow_timeout: f64,
     /// Stale-slow stop: stop the robot once the backbone features are older than the
-    /// checkpoint's `d_vis_max` ticks for longer than this, ms (`None`: 200 ms,
-    /// `pir2_backends::gr00t::DEFAULT_SLOW_GRACE`).
+    /// checkpoint's `d_vis_max` ticks for longer than this, ms (`None`: the embodiment's
+    /// `safety.slow_grace_ms`, 200 ms if its `[safety]` table does not set it).
     pub slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here.
     pub json: Option<PathBuf>,
@@ -219,7 +219,7 @@ mod imp {
     };
     use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
     use pir2_robots::robot::SharedRobot;
-    use pir2_robots::{split, Robot, SafetyConfig, XArm6Config, XHandConfig};
+    use pir2_robots::{split, Robot, SafetyConfig, XArm6Config, XHandConfig, ARM_DOF, HAND_DOF};
     use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
 
     use super::{RunOptions, RunSummary};
@@ -263,6 +263,30 @@ mod imp {
             "unknown task {task:?}: known tasks are {}; pass --free-prompt to send it verbatim",
             list.join(", ")
         )
+    }
+
+    /// The safety limits of the run: the xArm6 + XHand defaults at the embodiment's control
+    /// rate, overridden by its `[safety.limits]`; its action groups must be the robot's, by
+    /// name, width and order.
+    fn safety_config(cfg: &EmbodimentConfig) -> Result<SafetyConfig> {
+        cfg.check_action_groups(&[("arm_joints", ARM_DOF), ("hand_joints", HAND_DOF)])?;
+        let mut c = SafetyConfig::xarm6_xhand_at(cfg.control_hz);
+        let l = cfg.action_limits();
+        let set = |dst: &mut Vec<f32>, src: &[Option<f32>]| {
+            for (d, s) in dst.iter_mut().zip(src) {
+                if let Some(s) = s {
+                    *d = *s;
+                }
+            }
+        };
+        set(&mut c.lower, &l.lower);
+        set(&mut c.upper, &l.upper);
+        set(&mut c.max_velocity, &l.max_velocity);
+        set(&mut c.max_accel, &l.max_accel);
+        set(&mut c.tracking_error, &l.tracking_error);
+        c.validate(c.lower.len())
+            .context("the embodiment's [safety.limits]")?;
+        Ok(c)
     }
 
     fn xarm_config(addr: &str, clock_hz: f64) -> Result<XArm6Config> {
@@ -381,7 +405,7 @@ mod imp {
         }
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
-        let safety = SafetyConfig::xarm6_xhand_at(cfg.control_hz);
+        let safety = safety_config(&cfg)?;
         if let Some(g) = args.slow_grace_ms {
             if !(g.is_finite() && g > 0.0) {
                 bail!("--slow-grace-ms must be > 0, got {g}");

@@ -157,12 +157,10 @@ pub struct Gr00tRunOptions {
     pub slow_timeout: Duration,
     /// Stale-slow stop (always on): once the backbone features are older than `d_vis_max`
     /// ticks for longer than this grace, the robot stops with a safety stop
-    /// (`ActionHead::set_slow_grace`). `None`: [`DEFAULT_SLOW_GRACE`].
+    /// (`ActionHead::set_slow_grace`). `None`: the embodiment's `safety.slow_grace_ms`
+    /// (200 ms when its `[safety]` table does not set it).
     pub slow_grace: Option<Duration>,
 }
-
-/// The stale-slow grace of a run that sets none: 200 ms (5 ticks at 25 Hz).
-pub const DEFAULT_SLOW_GRACE: Duration = Duration::from_millis(200);
 
 impl Default for Gr00tRunOptions {
     fn default() -> Self {
@@ -394,7 +392,7 @@ where
         source: Box::new(camera),
         encoder,
     };
-    let slow_grace = opts.slow_grace.unwrap_or(DEFAULT_SLOW_GRACE);
+    let slow_grace = opts.slow_grace.unwrap_or(cfg.slow_grace());
     if slow_grace.is_zero() {
         return Err(Gr00tError::Config(
             "the stale-slow grace must be > 0".into(),
