@@ -406,6 +406,92 @@ fn custom_backbone_seam_drives_the_head_on_a_fake_robot() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A camera that delivers `frames` frames, then stalls (a dead camera or slow server).
+struct StallingCamera {
+    inner: pir2_runtime::testing::CameraStub,
+    frames: u32,
+}
+
+#[async_trait::async_trait]
+impl pir2_runtime::SlowSource for StallingCamera {
+    async fn capture(&mut self) -> pir2_runtime::Result<SlowFrame> {
+        if self.frames == 0 {
+            std::thread::sleep(Duration::from_secs(30));
+        }
+        self.frames -= 1;
+        self.inner.capture().await
+    }
+}
+
+/// The stale-slow stop is on by default in `run_gr00t`: when the camera stalls, the robot is
+/// stopped with a safety stop within `(d_vis_max + ½)·T + grace` instead of acting on the
+/// last image until the end of the run (before: the grace was never set, `d_vis` was clamped
+/// to `d_vis_max` and the run went on for all its ticks). A longer grace lets it run longer.
+#[test]
+fn a_stalled_camera_stops_the_robot_within_the_stale_slow_grace() {
+    use pir2_backends::gr00t::{run_gr00t, BackboneChoice, VlLayout};
+    use pir2_runtime::testing::{CameraStub, FakeRobot};
+
+    let dir = fixture("stale", "");
+    let go = |grace: Option<Duration>| {
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let robot = FakeRobot::new(18, clock.clone());
+        let (sent, stops) = (robot.sent.clone(), robot.stops.clone());
+        let opts = Gr00tRunOptions {
+            // 1000 ticks at 25 Hz: 40 s if nothing stops the run.
+            max_ticks: Some(1000),
+            clock: clock.clone(),
+            warm_start_steps: 2,
+            slow_grace: grace,
+            backbone: BackboneChoice::Custom {
+                encoder: Box::new(TokenEncoder {
+                    encoded: Arc::new(AtomicU64::new(0)),
+                }),
+                layout: VlLayout {
+                    image_mask: (0..8).map(|i| i < 4).collect(),
+                    attention_mask: vec![true; 8],
+                },
+            },
+            ..Default::default()
+        };
+        let camera = StallingCamera {
+            inner: CameraStub::new(clock.clone(), Duration::from_millis(40), 1),
+            frames: 5,
+        };
+        let t0 = std::time::Instant::now();
+        let r = run_gr00t(
+            &dir,
+            "catch_book",
+            State45(robot.clone(), [0.0; 36]),
+            robot,
+            camera,
+            opts,
+        );
+        (
+            r,
+            t0.elapsed(),
+            sent.load(Ordering::Relaxed),
+            stops.load(Ordering::Relaxed),
+        )
+    };
+    let (r, took, sent, stops) = go(None);
+    let e = format!("{:#}", r.expect_err("a stalled camera must stop the run"));
+    assert!(e.contains("slow features are"), "{e}");
+    assert!(stops >= 1, "the robot was not stopped");
+    // 5 frames (~0.2 s), then (d_vis_max + ½)·40 ms + 200 ms; well under the run's 40 s.
+    assert!(took < Duration::from_secs(5), "stopped after {took:?}");
+    assert!(sent < 125, "sent {sent} commands");
+
+    let (r, took_long, _, _) = go(Some(Duration::from_millis(1500)));
+    let e = format!("{:#}", r.expect_err("a stalled camera must stop the run"));
+    assert!(e.contains("1500.0 ms grace"), "{e}");
+    assert!(
+        took_long > took + Duration::from_millis(1000),
+        "{took_long:?} vs {took:?}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// Counts the calls it forwards (a stand-in for a remote action-head client).
 struct Forward<M> {
     inner: M,

@@ -11,4 +11,5 @@ pub mod leap_cmd;
 pub mod plot;
 pub mod run;
 pub mod serve;
+pub mod signals;
 pub mod study;

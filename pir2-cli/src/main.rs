@@ -3,7 +3,7 @@
 
 use std::net::IpAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -284,6 +284,11 @@ struct RunArgs {
     /// Seconds to wait for the first backbone features.
     #[arg(long, default_value_t = 60.0)]
     slow_timeout: f64,
+    /// Stale-slow stop: stop the robot once the backbone features are older than the
+    /// checkpoint's d_vis_max ticks for longer than this, ms (default: the embodiment's
+    /// `safety.slow_grace_ms`, 200 if unset).
+    #[arg(long)]
+    slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -309,6 +314,7 @@ impl From<RunArgs> for RunOptions {
             ticks: a.ticks,
             seconds: a.seconds,
             slow_timeout: a.slow_timeout,
+            slow_grace_ms: a.slow_grace_ms,
             json: a.json,
         }
     }
@@ -436,28 +442,10 @@ enum RobotCmd {
     },
 }
 
-static INTERRUPTED: AtomicBool = AtomicBool::new(false);
-
-extern "C" fn on_sigint(_: libc::c_int) {
-    INTERRUPTED.store(true, Ordering::SeqCst);
-}
-
-/// A stop flag set by Ctrl-C (SIGINT), so emulators shut down and release their ports.
+/// The stop flag of SIGINT and SIGTERM (a second signal runs the registered emergency stop
+/// and exits at once; see `pir2_cli::signals`).
 fn ctrl_c_flag() -> Arc<AtomicBool> {
-    let stop = Arc::new(AtomicBool::new(false));
-    // SAFETY: installs an async-signal-safe handler that only stores to an atomic.
-    unsafe {
-        libc::signal(libc::SIGINT, on_sigint as *const () as libc::sighandler_t);
-    }
-    let s = stop.clone();
-    std::thread::spawn(move || loop {
-        if INTERRUPTED.load(Ordering::SeqCst) {
-            s.store(true, Ordering::SeqCst);
-            return;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    });
-    stop
+    pir2_cli::signals::stop_flag()
 }
 
 fn task(name: &str) -> TaskName {

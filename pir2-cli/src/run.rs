@@ -64,6 +64,10 @@ pub struct RunOptions {
     pub seconds: Option<f64>,
     /// Seconds to wait for the first backbone features.
     pub slow_timeout: f64,
+    /// Stale-slow stop: stop the robot once the backbone features are older than the
+    /// checkpoint's `d_vis_max` ticks for longer than this, ms (`None`: the embodiment's
+    /// `safety.slow_grace_ms`, 200 ms if its `[safety]` table does not set it).
+    pub slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here.
     pub json: Option<PathBuf>,
 }
@@ -83,6 +87,10 @@ pub struct RunSummary {
     pub d_vis_counts: Vec<u64>,
     /// Commands the emulated hand received (emulated runs).
     pub hand_commands: Option<u64>,
+    /// Motion state of the emulated arm at the end (emulated runs; 4 = stopped, as the run's
+    /// `SET_STATE 4` leaves it).
+    #[serde(default)]
+    pub arm_state: Option<u8>,
     /// Frames the synthetic camera produced (local camera runs).
     pub camera_frames: Option<u64>,
     /// Remote slow-channel counters (`--remote-slow` runs).
@@ -128,6 +136,9 @@ impl std::fmt::Display for RunSummary {
         }
         if let Some(n) = self.hand_commands {
             writeln!(f, "hand commands (emulator): {n}")?;
+        }
+        if let Some(n) = self.arm_state {
+            writeln!(f, "arm state at the end (emulator): {n}")?;
         }
         #[cfg(feature = "remote")]
         if let Some(c) = &self.remote_slow {
@@ -196,7 +207,7 @@ pub fn run(_args: &RunOptions, _stop: Arc<AtomicBool>) -> Result<RunSummary> {
 mod imp {
     use std::net::{IpAddr, SocketAddr};
     use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::Arc;
+    use std::sync::{Arc, TryLockError};
     use std::time::Duration;
 
     use anyhow::{bail, Context, Result};
@@ -207,7 +218,8 @@ mod imp {
         Gr00tRunOptions, HeadChoice,
     };
     use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
-    use pir2_robots::{split, SafetyConfig, XArm6Config, XHandConfig};
+    use pir2_robots::robot::SharedRobot;
+    use pir2_robots::{split, Robot, SafetyConfig, XArm6Config, XHandConfig, ARM_DOF, HAND_DOF};
     use pir2_runtime::{Actuator, Clock, FastSource, SystemClock};
 
     use super::{RunOptions, RunSummary};
@@ -251,6 +263,30 @@ mod imp {
             "unknown task {task:?}: known tasks are {}; pass --free-prompt to send it verbatim",
             list.join(", ")
         )
+    }
+
+    /// The safety limits of the run: the xArm6 + XHand defaults at the embodiment's control
+    /// rate, overridden by its `[safety.limits]`; its action groups must be the robot's, by
+    /// name, width and order.
+    fn safety_config(cfg: &EmbodimentConfig) -> Result<SafetyConfig> {
+        cfg.check_action_groups(&[("arm_joints", ARM_DOF), ("hand_joints", HAND_DOF)])?;
+        let mut c = SafetyConfig::xarm6_xhand_at(cfg.control_hz);
+        let l = cfg.action_limits();
+        let set = |dst: &mut Vec<f32>, src: &[Option<f32>]| {
+            for (d, s) in dst.iter_mut().zip(src) {
+                if let Some(s) = s {
+                    *d = *s;
+                }
+            }
+        };
+        set(&mut c.lower, &l.lower);
+        set(&mut c.upper, &l.upper);
+        set(&mut c.max_velocity, &l.max_velocity);
+        set(&mut c.max_accel, &l.max_accel);
+        set(&mut c.tracking_error, &l.tracking_error);
+        c.validate(c.lower.len())
+            .context("the embodiment's [safety.limits]")?;
+        Ok(c)
     }
 
     fn xarm_config(addr: &str, clock_hz: f64) -> Result<XArm6Config> {
@@ -369,18 +405,26 @@ mod imp {
         }
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
+        let safety = safety_config(&cfg)?;
+        if let Some(g) = args.slow_grace_ms {
+            if !(g.is_finite() && g > 0.0) {
+                bail!("--slow-grace-ms must be > 0, got {g}");
+            }
+        }
 
         if args.emulate {
             let (rig, layer) = EmulatedArmHand::start(
                 &EmulatedArmHandConfig {
                     action_period: Some(Duration::from_secs_f64(1.0 / cfg.control_hz)),
                     clear_errors: args.clear_errors,
+                    safety: safety.clone(),
                     ..Default::default()
                 },
                 clock.clone(),
             )
             .context("starting the xArm6 + XHand emulators")?;
             let (source, actuator) = split(layer);
+            emergency_stop_on_second_signal(source.robot().clone());
             let r = drive(
                 args,
                 head,
@@ -392,10 +436,13 @@ mod imp {
                 stop,
                 "emulated xArm6 + XHand (in-process)",
             );
+            crate::signals::clear_second_signal();
             let commands = rig.hand_commands();
+            let arm_state = rig.arm.handle().sim().state;
             drop(rig);
             let mut s = r?;
             s.hand_commands = Some(commands);
+            s.arm_state = Some(arm_state);
             return Ok(s);
         }
 
@@ -409,7 +456,7 @@ mod imp {
             acfg,
             xhand,
             XHandConfig::default(),
-            SafetyConfig::xarm6_xhand(),
+            safety,
             clock.clone(),
         )
         .with_context(|| {
@@ -421,8 +468,9 @@ mod imp {
             )
         })?;
         let (source, actuator) = split(layer);
+        emergency_stop_on_second_signal(source.robot().clone());
         let robot = format!("xArm6 at {cmd} + XHand on {}", xhand.display());
-        drive(
+        let r = drive(
             args,
             head,
             max_ticks,
@@ -432,7 +480,31 @@ mod imp {
             clock,
             stop,
             &robot,
-        )
+        );
+        crate::signals::clear_second_signal();
+        r
+    }
+
+    /// What a second SIGINT/SIGTERM runs before the process exits: the robot's `stop`, if
+    /// its lock comes free within 300 ms (a driver call in progress holds it).
+    fn emergency_stop_on_second_signal<R: Robot + Send + 'static>(robot: SharedRobot<R>) {
+        crate::signals::on_second_signal(move || {
+            let t0 = std::time::Instant::now();
+            while t0.elapsed() < Duration::from_millis(300) {
+                match robot.try_lock() {
+                    Ok(mut r) => {
+                        let _ = r.stop();
+                        return;
+                    }
+                    Err(TryLockError::Poisoned(p)) => {
+                        let _ = p.into_inner().stop();
+                        return;
+                    }
+                    Err(TryLockError::WouldBlock) => std::thread::sleep(Duration::from_millis(1)),
+                }
+            }
+            eprintln!("emergency stop: the robot stayed busy for 300 ms; exiting without it");
+        });
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -456,6 +528,7 @@ mod imp {
             clock: clock.clone(),
             stop,
             slow_timeout,
+            slow_grace: args.slow_grace_ms.map(|g| Duration::from_secs_f64(g / 1e3)),
             ..Default::default()
         };
         let ctx = || {
@@ -490,6 +563,7 @@ mod imp {
                 head: String::new(),
                 d_vis_counts: report.d_vis_counts,
                 hand_commands: None,
+                arm_state: None,
                 camera_frames: Some(frames.load(Ordering::Relaxed)),
                 #[cfg(feature = "remote")]
                 remote_slow: None,
@@ -546,6 +620,7 @@ mod imp {
         };
         let src = RemoteSlowSource::connect(rcfg, clock)
             .with_context(|| format!("connecting to the slow server at {endpoint}"))?;
+        eprintln!("connected to the slow server at {endpoint}; waiting for the first features");
         let stats = src.stats();
         opts.backbone = BackboneChoice::Custom {
             encoder: Box::new(src.encoder()),
@@ -567,6 +642,7 @@ mod imp {
             head: String::new(),
             d_vis_counts: report.d_vis_counts,
             hand_commands: None,
+            arm_state: None,
             camera_frames: None,
             remote_slow: Some(counters),
             remote_policy: None,

@@ -137,3 +137,58 @@ fn run_gr00t_errors_name_the_problem() {
     std::fs::remove_dir_all(&bad).ok();
     std::fs::remove_dir_all(&good).ok();
 }
+
+/// The embodiment's `[safety]` table reaches `pir2 run`: a bad value is one error naming the
+/// field, before any robot is connected; a valid table (tighter arm limits, a shorter grace)
+/// runs (before: there was no such table, and `pir2 run` used fixed 25 Hz limits).
+#[test]
+fn run_gr00t_takes_the_embodiments_safety_table() {
+    let ck = checkpoint("safety-table", "");
+    let toml_path = ck.join("embodiment.toml");
+    let original = std::fs::read_to_string(&toml_path).unwrap();
+    assert!(original.contains("slow_grace_ms = 200.0"), "{original}");
+    let args = ["--task", "catch_book", "--emulate", "--ticks", "25"];
+
+    std::fs::write(
+        &toml_path,
+        original.replace("slow_grace_ms = 200.0", "slow_grace_ms = 0.0"),
+    )
+    .unwrap();
+    let (out, text) = run(&ck, &args);
+    assert!(!out.status.success());
+    assert!(text.contains("safety.slow_grace_ms"), "{text}");
+
+    std::fs::write(
+        &toml_path,
+        format!("{original}\n[safety.limits.hand_joints]\nmax_velocity = -1.0\n"),
+    )
+    .unwrap();
+    let (out, text) = run(&ck, &args);
+    assert!(!out.status.success());
+    assert!(
+        text.contains("safety.limits.hand_joints.max_velocity"),
+        "{text}"
+    );
+
+    std::fs::write(
+        &toml_path,
+        format!("{original}\n[safety.limits.wrist]\nmax_velocity = 1.0\n"),
+    )
+    .unwrap();
+    let (out, text) = run(&ck, &args);
+    assert!(!out.status.success());
+    assert!(text.contains("safety.limits.wrist"), "{text}");
+
+    std::fs::write(
+        &toml_path,
+        format!(
+            "{}\n[safety.limits.arm_joints]\nmax_velocity = 0.5\ntracking_error = 0.3\n",
+            original.replace("slow_grace_ms = 200.0", "slow_grace_ms = 150.0")
+        ),
+    )
+    .unwrap();
+    let (out, text) = run(&ck, &args);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("ticks 25"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}

@@ -536,3 +536,135 @@ mod remote_head {
         );
     }
 }
+/// `pir2 run --emulate --remote-slow` with its stderr piped; returns once the run has opened
+/// its slow-channel session.
+#[cfg(feature = "gr00t")]
+#[allow(clippy::zombie_processes)]
+fn start_slow_run(
+    ck: &str,
+    endpoint: &str,
+    extra: &[&str],
+) -> (Child, BufReader<std::process::ChildStderr>) {
+    let mut run = pir2()
+        .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck])
+        .args(["--task", "catch the book", "--emulate"])
+        .args(["--remote-slow", endpoint])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(run.stderr.take().unwrap());
+    let mut lines = Vec::new();
+    loop {
+        let mut l = String::new();
+        if err.read_line(&mut l).unwrap() == 0 {
+            let _ = run.wait();
+            panic!("run exited: {lines:?}");
+        }
+        let connected = l.contains("connected to the slow server");
+        lines.push(l);
+        if connected {
+            return (run, err);
+        }
+    }
+}
+
+/// Killing `pir2 serve slow` mid-run ends `pir2 run` in a safety stop within the stale-slow
+/// grace (before: `pir2 run` never enabled the stale-slow check and the slow source re-served
+/// the last features forever, so the run went on to its end on a frozen image).
+#[cfg(feature = "gr00t")]
+#[test]
+fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
+    use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+
+    let s = Scratch::new("gr00t-slow-dies");
+    let ck = s.path().join("ck");
+    write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
+    let ck_s = ck.to_str().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let server = serve(&[
+        "slow",
+        "--gr00t-checkpoint",
+        ck_s,
+        "--task",
+        "catch_book",
+        "--listen",
+        &endpoint,
+    ]);
+    // 2000 ticks at 25 Hz: 80 s if nothing stops it.
+    let (mut run, mut err) = start_slow_run(
+        ck_s,
+        &endpoint,
+        &[
+            "--ticks",
+            "2000",
+            "--slow-timeout",
+            "20",
+            "--slow-grace-ms",
+            "200",
+        ],
+    );
+    // Long enough for the control phase to run, short enough that a loaded machine does
+    // not trip another safety stop (state watchdog, slow grace) before the kill.
+    std::thread::sleep(Duration::from_secs(2));
+    let alive = run.try_wait().unwrap().is_none();
+    drop(server);
+    let t_kill = Instant::now();
+    let status = run.wait().unwrap();
+    let took = t_kill.elapsed();
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+    eprintln!("run ended {took:?} after the kill: {rest}");
+    assert!(alive, "the run ended before the server was killed: {rest}");
+    assert!(!status.success(), "{rest}");
+    assert!(
+        rest.contains("safety stop") && rest.contains("slow features are"),
+        "{rest}"
+    );
+    // (d_vis_max + ½)·T + grace = 220 + 200 ms, plus the process's own wind-down.
+    assert!(
+        took < Duration::from_secs(5),
+        "stopped {took:?} after the kill"
+    );
+}
+
+/// SIGTERM while `pir2 run` waits for its first backbone features (warm-up) stops the
+/// emulated arm (`SET_STATE 4`) and ends the run at once (before: SIGTERM killed the process
+/// without stopping the arm, and SIGINT was ignored until the warm-up ended).
+#[cfg(feature = "gr00t")]
+#[test]
+fn sigterm_during_warm_up_stops_the_emulated_arm() {
+    use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+
+    let s = Scratch::new("gr00t-sigterm");
+    let ck = s.path().join("ck");
+    write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
+    let ck_s = ck.to_str().unwrap();
+    // Nobody serves this endpoint: the run waits for its first features (60 s).
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let (mut run, mut err) = start_slow_run(ck_s, &endpoint, &["--slow-timeout", "60"]);
+    std::thread::sleep(Duration::from_millis(500));
+    // SAFETY: plain kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGTERM) }, 0);
+    let t0 = Instant::now();
+    let status = run.wait().unwrap();
+    let took = t0.elapsed();
+    let mut out = String::new();
+    std::io::Read::read_to_string(run.stdout.as_mut().unwrap(), &mut out).unwrap();
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+    assert!(status.success(), "{out}{rest}");
+    assert!(
+        took < Duration::from_secs(5),
+        "exited {took:?} after SIGTERM"
+    );
+    assert!(
+        out.contains("stop requested during the warm-up"),
+        "{out}{rest}"
+    );
+    assert!(
+        out.contains("arm state at the end (emulator): 4"),
+        "{out}{rest}"
+    );
+}

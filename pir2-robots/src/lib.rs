@@ -34,7 +34,10 @@ pub use check::{check, check_with, CheckOptions, CheckReport};
 pub use emu::run_xhand_emulator_pty;
 pub use emu::{run_xarm_emulator, XArmPorts};
 pub use error::{Error, Result};
-pub use robot::{split, ArmHand, Robot, RobotActuator, RobotSource, StateLayout};
+pub use robot::{
+    split, ArmHand, Robot, RobotActuator, RobotSource, StateLayout, ARM_DOF, ARM_HAND_ACTION_DIM,
+    HAND_DOF,
+};
 pub use safety::{SafetyConfig, SafetyLayer, SafetyStats};
 pub use xarm::{XArm6, XArm6Config};
 pub use xhand::{XHand, XHandConfig};

@@ -46,8 +46,15 @@ pub trait Robot: Send {
     fn read_state(&mut self, out: &mut [f32]) -> Result<Nanos>;
     /// Command absolute joint targets (`targets.len() == action_dim()`).
     fn send_targets(&mut self, targets: &[f32]) -> Result<()>;
-    /// Stop safely: stop streaming and hold / disable motion. Idempotent.
+    /// Stop safely: stop streaming and hold / disable motion. Idempotent. The stop command
+    /// is always finite: a joint whose measured position is not finite holds its last
+    /// finite target instead.
     fn stop(&mut self) -> Result<()>;
+    /// A fault the device reported with its newest state (a finger's error word, a
+    /// controller error code), if any. The safety layer stops the robot on one.
+    fn fault(&self) -> Option<String> {
+        None
+    }
 }
 
 impl<R: Robot + ?Sized> Robot for Box<R> {
@@ -71,6 +78,9 @@ impl<R: Robot + ?Sized> Robot for Box<R> {
     }
     fn stop(&mut self) -> Result<()> {
         (**self).stop()
+    }
+    fn fault(&self) -> Option<String> {
+        (**self).fault()
     }
 }
 
@@ -169,6 +179,14 @@ impl<A: Robot, H: Robot> Robot for ArmHand<A, H> {
         let ra = self.arm.stop();
         let rh = self.hand.stop();
         ra.and(rh)
+    }
+    fn fault(&self) -> Option<String> {
+        match (self.arm.fault(), self.hand.fault()) {
+            (Some(a), Some(h)) => Some(format!("arm: {a}; hand: {h}")),
+            (Some(a), None) => Some(format!("arm: {a}")),
+            (None, Some(h)) => Some(format!("hand: {h}")),
+            (None, None) => None,
+        }
     }
 }
 

@@ -7,11 +7,19 @@
 //!    [`SafetyConfig::torque_limit`], targets are not advanced (the last safe target is held);
 //!    after [`SafetyConfig::torque_stop_reads`] consecutive over-limit reads the robot stops.
 //! 3. **Joint limits**: each joint is clamped to `[lower, upper]`.
-//! 4. **Rate limit**: each joint moves at most `max_step` from the last safe target (from the
-//!    measured position for the first target).
+//! 4. **Velocity and acceleration limits**, in rad/s and rad/s², converted by the time since
+//!    the last target (`dt`, capped at the nominal [`SafetyConfig::period`]; the first target
+//!    uses the period): each joint moves at most `max_velocity · dt` from the last safe target
+//!    (from the measured position for the first target), and its velocity changes by at most
+//!    `max_accel · dt` per target. Targets sent faster than the nominal rate move less per
+//!    target; a target after a pause moves one period's worth, never a catch-up jump.
 //!
-//! Per state read ([`Robot::read_state`]): a state with a non-finite value is rejected, and a
-//! state older than [`SafetyConfig::state_timeout`] stops the robot.
+//! Per state read ([`Robot::read_state`]): a state with a non-finite value is rejected; a
+//! state older than [`SafetyConfig::state_timeout`] stops the robot; a fault the driver
+//! reports ([`Robot::fault`]: an XHand finger error word, an arm controller error) stops the
+//! robot; a tracking error `|last target − measured|` above [`SafetyConfig::tracking_error`]
+//! for [`SafetyConfig::tracking_stop_reads`] consecutive reads stops the robot; and
+//! [`SafetyConfig::error_stop`] consecutive driver errors (reads or sends) stop the robot.
 //!
 //! **Watchdog** ([`SafetyLayer::check_watchdog`], run by a thread from
 //! [`SafetyLayer::spawn_watchdog`]): stops the robot when no target arrived for
@@ -41,8 +49,19 @@ pub struct SafetyConfig {
     pub lower: Vec<f32>,
     /// Upper joint limits.
     pub upper: Vec<f32>,
-    /// Largest change of a target per send.
-    pub max_step: Vec<f32>,
+    /// Largest joint speed, rad/s.
+    pub max_velocity: Vec<f32>,
+    /// Largest change of joint speed, rad/s² (`f32::INFINITY`: no limit).
+    pub max_accel: Vec<f32>,
+    /// Nominal control period: the `dt` of the first target, and the cap on `dt` after a
+    /// pause or an overrun.
+    pub period: Duration,
+    /// Largest `|last target − measured position|` per joint, rad (`f32::INFINITY`: none).
+    pub tracking_error: Vec<f32>,
+    /// Consecutive reads over [`tracking_error`](Self::tracking_error) before a stop.
+    pub tracking_stop_reads: u32,
+    /// Consecutive errors of the wrapped robot (reads or sends) before a stop (0: never).
+    pub error_stop: u32,
     /// Largest allowed |torque| in the state's torque entries.
     pub torque_limit: f32,
     /// Consecutive over-limit reads before a stop (0 = hold only, never stop for torque).
@@ -59,18 +78,37 @@ pub struct SafetyConfig {
 pub const XARM6_LOWER: [f32; 6] = [-TAU, -2.059, -3.927, -TAU, -1.692, -TAU];
 /// xArm6 upper joint limits, rad.
 pub const XARM6_UPPER: [f32; 6] = [TAU, 2.094, 0.191, TAU, PI, TAU];
-/// Conservative XHand joint envelope, rad. Placeholder, not vendor limits: set per hand.
+/// Conservative default XHand joint envelope, rad (not vendor limits: set the hand's own in
+/// the embodiment's `[safety]` table).
 pub const XHAND_LOWER: f32 = -0.5;
-/// Conservative XHand joint envelope, rad.
+/// Conservative default XHand joint envelope, rad.
 pub const XHAND_UPPER: f32 = 2.0;
+/// Default arm joint speed limit, rad/s.
+pub const ARM_MAX_VELOCITY: f32 = 1.25;
+/// Default arm joint acceleration limit, rad/s².
+pub const ARM_MAX_ACCEL: f32 = 20.0;
+/// Default hand joint speed limit, rad/s.
+pub const HAND_MAX_VELOCITY: f32 = 5.0;
+/// Default hand joint acceleration limit, rad/s².
+pub const HAND_MAX_ACCEL: f32 = 100.0;
+/// Default arm tracking-error bound, rad.
+pub const ARM_TRACKING_ERROR: f32 = 0.5;
+/// Default hand tracking-error bound, rad.
+pub const HAND_TRACKING_ERROR: f32 = 1.0;
 
 impl SafetyConfig {
-    /// The same limits on every one of `dim` joints.
-    pub fn uniform(dim: usize, lower: f32, upper: f32, max_step: f32) -> Self {
+    /// The same limits on every one of `dim` joints at a 25 Hz nominal rate, no acceleration
+    /// or tracking bound, no torque limit, stop after 3 driver errors in a row.
+    pub fn uniform(dim: usize, lower: f32, upper: f32, max_velocity: f32) -> Self {
         Self {
             lower: vec![lower; dim],
             upper: vec![upper; dim],
-            max_step: vec![max_step; dim],
+            max_velocity: vec![max_velocity; dim],
+            max_accel: vec![f32::INFINITY; dim],
+            period: Duration::from_millis(40),
+            tracking_error: vec![f32::INFINITY; dim],
+            tracking_stop_reads: 1,
+            error_stop: 3,
             torque_limit: f32::INFINITY,
             torque_stop_reads: 0,
             state_timeout: Duration::from_millis(200),
@@ -78,25 +116,58 @@ impl SafetyConfig {
         }
     }
 
-    /// Defaults for the xArm6 + XHand composite at 25 Hz: xArm6 limits, 0.05 rad/tick on the
-    /// arm (1.25 rad/s), the conservative hand envelope with 0.2 rad/tick, hand torque limit
-    /// 300 (the paper's), state and command timeouts of 5 ticks (200 ms).
-    pub fn xarm6_xhand() -> Self {
-        let mut c = Self::uniform(ARM_HAND_ACTION_DIM, XHAND_LOWER, XHAND_UPPER, 0.2);
+    /// Defaults for the xArm6 + XHand composite at `control_hz`: xArm6 joint limits, arm
+    /// 1.25 rad/s and 20 rad/s², the conservative hand envelope with 5 rad/s and 100 rad/s²,
+    /// tracking errors of 0.5 rad (arm) and 1 rad (hand) for 0.5 s, hand torque limit 300
+    /// (the paper's) for 1 s, state and command timeouts of 200 ms.
+    pub fn xarm6_xhand_at(control_hz: f64) -> Self {
+        let mut c = Self::uniform(
+            ARM_HAND_ACTION_DIM,
+            XHAND_LOWER,
+            XHAND_UPPER,
+            HAND_MAX_VELOCITY,
+        );
         c.lower[..ARM_DOF].copy_from_slice(&XARM6_LOWER);
         c.upper[..ARM_DOF].copy_from_slice(&XARM6_UPPER);
-        c.max_step[..ARM_DOF].fill(0.05);
+        c.max_velocity[..ARM_DOF].fill(ARM_MAX_VELOCITY);
+        c.max_accel[..ARM_DOF].fill(ARM_MAX_ACCEL);
+        c.max_accel[ARM_DOF..].fill(HAND_MAX_ACCEL);
+        c.tracking_error[..ARM_DOF].fill(ARM_TRACKING_ERROR);
+        c.tracking_error[ARM_DOF..].fill(HAND_TRACKING_ERROR);
         debug_assert_eq!(c.lower.len(), ARM_DOF + HAND_DOF);
+        let hz = if control_hz.is_finite() && control_hz > 0.0 {
+            control_hz
+        } else {
+            25.0
+        };
+        c.period = Duration::from_secs_f64(1.0 / hz);
+        let reads = |secs: f64| ((secs * hz).round() as u32).max(1);
+        c.tracking_stop_reads = reads(0.5);
         c.torque_limit = 300.0;
-        c.torque_stop_reads = 25;
+        c.torque_stop_reads = reads(1.0);
         c
+    }
+
+    /// [`xarm6_xhand_at`](Self::xarm6_xhand_at) 25 Hz, the paper's rate.
+    pub fn xarm6_xhand() -> Self {
+        Self::xarm6_xhand_at(25.0)
     }
 
     /// Check sizes and ranges against an action dimension.
     pub fn validate(&self, dim: usize) -> Result<()> {
         Error::check_dim("safety lower limits", dim, self.lower.len())?;
         Error::check_dim("safety upper limits", dim, self.upper.len())?;
-        Error::check_dim("safety max_step", dim, self.max_step.len())?;
+        Error::check_dim("safety max_velocity", dim, self.max_velocity.len())?;
+        Error::check_dim("safety max_accel", dim, self.max_accel.len())?;
+        Error::check_dim("safety tracking_error", dim, self.tracking_error.len())?;
+        if self.period.is_zero() {
+            return Err(Error::Config("safety period must be > 0".into()));
+        }
+        if self.tracking_stop_reads == 0 {
+            return Err(Error::Config(
+                "safety tracking_stop_reads must be >= 1".into(),
+            ));
+        }
         for i in 0..dim {
             if self.lower[i].is_nan() || self.upper[i].is_nan() || self.lower[i] > self.upper[i] {
                 return Err(Error::Config(format!(
@@ -104,11 +175,27 @@ impl SafetyConfig {
                     self.lower[i], self.upper[i]
                 )));
             }
-            if self.max_step[i].is_nan() || self.max_step[i] < 0.0 {
+            if !self.lower[i].is_finite() || !self.upper[i].is_finite() {
                 return Err(Error::Config(format!(
-                    "safety joint {i}: max_step {} must be >= 0",
-                    self.max_step[i]
+                    "safety joint {i}: limits [{}, {}] must be finite",
+                    self.lower[i], self.upper[i]
                 )));
+            }
+            if !self.max_velocity[i].is_finite() || self.max_velocity[i] < 0.0 {
+                return Err(Error::Config(format!(
+                    "safety joint {i}: max_velocity {} rad/s must be finite and >= 0",
+                    self.max_velocity[i]
+                )));
+            }
+            for (what, v) in [
+                ("max_accel", self.max_accel[i]),
+                ("tracking_error", self.tracking_error[i]),
+            ] {
+                if v.is_nan() || v <= 0.0 {
+                    return Err(Error::Config(format!(
+                        "safety joint {i}: {what} {v} must be > 0"
+                    )));
+                }
             }
         }
         if self.torque_limit.is_nan() || self.torque_limit <= 0.0 {
@@ -149,6 +236,10 @@ pub struct SafetyStats {
     pub command_timeouts: u64,
     /// Errors returned by the wrapped robot.
     pub robot_errors: u64,
+    /// Reads with a tracking error over the bound.
+    pub tracking_over: u64,
+    /// Faults reported by the wrapped robot (finger error words, controller errors).
+    pub faults: u64,
     /// Stops issued by the layer (including explicit `stop()` calls).
     pub stops: u64,
 }
@@ -163,6 +254,8 @@ impl SafetyStats {
             + self.torque_holds
             + self.stale_states
             + self.command_timeouts
+            + self.tracking_over
+            + self.faults
             + self.stops
     }
 }
@@ -172,7 +265,8 @@ impl std::fmt::Display for SafetyStats {
         write!(
             f,
             "targets {} reads {} | limit clamps {} rate clamps {} non-finite targets {} non-finite states {} \
-             torque over {} torque holds {} stale states {} command timeouts {} robot errors {} stops {}",
+             torque over {} torque holds {} stale states {} command timeouts {} robot errors {} \
+             tracking over {} faults {} stops {}",
             self.targets,
             self.reads,
             self.limit_clamps,
@@ -184,6 +278,8 @@ impl std::fmt::Display for SafetyStats {
             self.stale_states,
             self.command_timeouts,
             self.robot_errors,
+            self.tracking_over,
+            self.faults,
             self.stops
         )
     }
@@ -200,9 +296,12 @@ struct Inner<R> {
     state_buf: Vec<f32>,
     target_buf: Vec<f32>,
     ref_buf: Vec<f32>,
+    last_vel: Vec<f32>,
     t_send: Option<Nanos>,
     t_state: Option<Nanos>,
     torque_run: u32,
+    tracking_run: u32,
+    error_run: u32,
     stopped: Option<String>,
     stats: SafetyStats,
 }
@@ -251,17 +350,38 @@ impl<R: Robot> Inner<R> {
         Ok(())
     }
 
+    /// Count a driver error; a fault the driver reports with it, or enough errors in a row,
+    /// stop the robot.
+    fn robot_error(&mut self, e: Error) -> Error {
+        self.stats.robot_errors += 1;
+        self.error_run += 1;
+        if let Some(fault) = self.robot.fault() {
+            self.stats.faults += 1;
+            return self.halt(format!(
+                "{} reports a fault: {fault} (driver error: {e})",
+                self.robot.name()
+            ));
+        }
+        if self.cfg.error_stop > 0 && self.error_run >= self.cfg.error_stop {
+            let n = self.error_run;
+            return self.halt(format!("{n} driver errors in a row, the last: {e}"));
+        }
+        e
+    }
+
     fn read(&mut self, out: &mut [f32]) -> Result<Nanos> {
         self.check_stopped()?;
         Error::check_dim("safety state", self.robot.state_dim(), out.len())?;
         let t = match self.robot.read_state(out) {
             Ok(t) => t,
-            Err(e) => {
-                self.stats.robot_errors += 1;
-                return Err(e);
-            }
+            Err(e) => return Err(self.robot_error(e)),
         };
+        self.error_run = 0;
         self.stats.reads += 1;
+        if let Some(fault) = self.robot.fault() {
+            self.stats.faults += 1;
+            return Err(self.halt(format!("{} reports a fault: {fault}", self.robot.name())));
+        }
         if let Some(i) = out.iter().position(|x| !x.is_finite()) {
             self.stats.non_finite_states += 1;
             return Err(Error::Stopped {
@@ -292,6 +412,25 @@ impl<R: Robot> Inner<R> {
             }
         }
         let pos = &out[self.layout.positions.clone()];
+        if let Some(target) = &self.last_target {
+            let over =
+                (0..pos.len()).find(|&i| (target[i] - pos[i]).abs() > self.cfg.tracking_error[i]);
+            match over {
+                Some(i) => {
+                    self.stats.tracking_over += 1;
+                    self.tracking_run += 1;
+                    if self.tracking_run >= self.cfg.tracking_stop_reads {
+                        let (n, err) = (self.tracking_run, (target[i] - pos[i]).abs());
+                        return Err(self.halt(format!(
+                            "joint {i} is {err:.3} rad from its target (bound {}) for {n} \
+                             consecutive reads",
+                            self.cfg.tracking_error[i]
+                        )));
+                    }
+                }
+                None => self.tracking_run = 0,
+            }
+        }
         match &mut self.last_pos {
             Some(p) => p.copy_from_slice(pos),
             None => self.last_pos = Some(pos.to_vec()),
@@ -304,7 +443,14 @@ impl<R: Robot> Inner<R> {
         let dim = self.robot.action_dim();
         Error::check_dim("safety targets", dim, action.len())?;
         self.stats.targets += 1;
-        self.t_send = Some(self.clock.now());
+        let now = self.clock.now();
+        let period = self.cfg.period.as_secs_f64();
+        // Seconds since the last target, capped at the nominal period (first: the period).
+        let dt = self
+            .t_send
+            .map_or(period, |t| (now.saturating_sub(t) as f64 / 1e9).min(period))
+            as f32;
+        self.t_send = Some(now);
         if self.last_target.is_none() && self.last_pos.is_none() {
             let mut buf = std::mem::take(&mut self.state_buf);
             let r = self.read(&mut buf);
@@ -328,37 +474,66 @@ impl<R: Robot> Inner<R> {
         if action.iter().any(|x| !x.is_finite()) {
             self.stats.non_finite_targets += 1;
             target.extend_from_slice(&reference);
+            self.last_vel.fill(0.0);
         } else if self.torque_run > 0 {
             self.stats.torque_holds += 1;
             target.extend_from_slice(&reference);
+            self.last_vel.fill(0.0);
         } else {
             let (mut lim, mut rate) = (false, false);
             for i in 0..dim {
-                let mut x = action[i];
-                let c = x.clamp(self.cfg.lower[i], self.cfg.upper[i]);
-                lim |= c != x;
-                x = c;
-                // The reference itself may sit outside the limits (first target from a
-                // measured position): rate-limit toward the clamped value, then clamp again.
-                let s = self.cfg.max_step[i];
-                let r = x.clamp(reference[i] - s, reference[i] + s);
-                rate |= r != x;
-                target.push(r);
+                let (lo, hi) = (self.cfg.lower[i], self.cfg.upper[i]);
+                let x = action[i].clamp(lo, hi);
+                lim |= x != action[i];
+                // Speed window: the speed limit, narrowed by the acceleration limit around
+                // the last speed but always containing 0 (braking is never limited), so the
+                // target moves from the reference toward `x` and never past it. The reference
+                // may sit outside the joint limits (first target from a measured position).
+                let r = reference[i];
+                let y = if dt > 0.0 {
+                    let vmax = self.cfg.max_velocity[i];
+                    let dv = self.cfg.max_accel[i] * dt;
+                    let v_prev = self.last_vel[i];
+                    let v_lo = (v_prev - dv).min(0.0).max(-vmax);
+                    let v_hi = (v_prev + dv).max(0.0).min(vmax);
+                    let want = (x - r) / dt;
+                    let v = want.clamp(v_lo, v_hi);
+                    self.last_vel[i] = v;
+                    if v == want {
+                        x
+                    } else {
+                        r + v * dt
+                    }
+                } else {
+                    self.last_vel[i] = 0.0;
+                    r
+                };
+                rate |= y != x;
+                target.push(y);
             }
             self.stats.limit_clamps += lim as u64;
             self.stats.rate_clamps += rate as u64;
         }
         let res = self.robot.send_targets(&target);
-        if res.is_err() {
-            self.stats.robot_errors += 1;
-        }
         match &mut self.last_target {
             Some(t) => t.copy_from_slice(&target),
             None => self.last_target = Some(target.clone()),
         }
         self.target_buf = target;
         self.ref_buf = reference;
-        res
+        match res {
+            Ok(()) => {
+                self.error_run = 0;
+                if let Some(fault) = self.robot.fault() {
+                    self.stats.faults += 1;
+                    return Err(
+                        self.halt(format!("{} reports a fault: {fault}", self.robot.name()))
+                    );
+                }
+                Ok(())
+            }
+            Err(e) => Err(self.robot_error(e)),
+        }
     }
 }
 
@@ -393,9 +568,12 @@ impl<R: Robot + 'static> SafetyLayer<R> {
             clock,
             last_target: None,
             last_pos: None,
+            last_vel: vec![0.0; dim],
             t_send: None,
             t_state: None,
             torque_run: 0,
+            tracking_run: 0,
+            error_run: 0,
             stopped: None,
             stats: SafetyStats::default(),
         };
@@ -454,6 +632,9 @@ impl<R: Robot + 'static> SafetyLayer<R> {
         i.t_send = None;
         i.t_state = None;
         i.torque_run = 0;
+        i.tracking_run = 0;
+        i.error_run = 0;
+        i.last_vel.fill(0.0);
     }
 
     /// Run `f` on the wrapped robot.

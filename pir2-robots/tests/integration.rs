@@ -4,7 +4,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot};
+use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot, XArmFault};
 use pir2_robots::robot::{ARM_HAND_ACTION_DIM, ARM_HAND_STATE_DIM};
 use pir2_robots::xarm::proto::state;
 use pir2_robots::{split, SafetyConfig};
@@ -167,4 +167,49 @@ fn wild_policy_is_clamped_not_executed() {
     assert_eq!(stats.non_finite_targets, 1);
     assert_eq!(stats.limit_clamps, 1);
     assert!(stats.rate_clamps >= 1);
+}
+
+/// A controller error on the arm (a collision, code 31) stops arm and hand at the first
+/// call that sees it, through `Robot::fault`, not after several driver errors (before: the
+/// arm's fault was a plain driver error, counted; the hand kept being driven meanwhile).
+#[test]
+fn arm_controller_error_stops_the_whole_robot_at_once() {
+    let Rig { emu, clock, layer } = rig(SafetyConfig::xarm6_xhand());
+    let (mut source, mut actuator) = split(layer);
+    let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
+    source.read(&mut obs).unwrap();
+    let home = obs[..6].to_vec();
+    let mut next = clock.now();
+    for k in 0..10 {
+        source.read(&mut obs).unwrap();
+        actuator.send(&reference(k, &home)).unwrap();
+        next += PERIOD_NS;
+        clock.sleep_until(next);
+    }
+    emu.arm.handle().inject(XArmFault::ErrorCode(31));
+    let mut first_err = None;
+    for k in 10..60 {
+        let r = source
+            .read(&mut obs)
+            .map(|_| ())
+            .and_then(|()| actuator.send(&reference(k, &home)));
+        if let Err(e) = r {
+            first_err = Some(e);
+            break;
+        }
+        next += PERIOD_NS;
+        clock.sleep_until(next);
+    }
+    let err = first_err.expect("the controller error was never noticed");
+    assert!(
+        matches!(err, pir2_runtime::Error::SafetyStop(ref m)
+            if m.contains("reports a fault: arm:")),
+        "{err}"
+    );
+    let stats = source.robot().lock().unwrap().stats();
+    assert_eq!(stats.faults, 1, "{stats}");
+    assert!(stats.robot_errors <= 1, "{stats}");
+    assert_eq!(stats.stops, 1, "{stats}");
+    assert!(actuator.send(&reference(0, &home)).is_err());
+    let _ = emu;
 }

@@ -20,6 +20,8 @@ struct Scripted {
     state: [f32; 4],
     /// Age of the state when read, ns.
     lag: Nanos,
+    /// Fail this many of the next reads.
+    fail_reads: u32,
     log: Arc<Mutex<Log>>,
 }
 
@@ -40,6 +42,14 @@ impl Robot for Scripted {
         }
     }
     fn read_state(&mut self, out: &mut [f32]) -> pir2_robots::Result<Nanos> {
+        if self.fail_reads > 0 {
+            self.fail_reads -= 1;
+            return Err(Error::Timeout {
+                channel: "scripted",
+                what: "state".into(),
+                waited_ms: 10,
+            });
+        }
         out.copy_from_slice(&self.state);
         Ok(self.clock.now().saturating_sub(self.lag))
     }
@@ -53,8 +63,12 @@ impl Robot for Scripted {
     }
 }
 
+/// Nominal period of the tests' safety layer.
+const PERIOD: Nanos = 40_000_000;
+
 fn cfg() -> SafetyConfig {
-    let mut c = SafetyConfig::uniform(2, -1.0, 1.0, 0.1);
+    // 2.5 rad/s at 40 ms: 0.1 rad per target.
+    let mut c = SafetyConfig::uniform(2, -1.0, 1.0, 2.5);
     c.torque_limit = 10.0;
     c.torque_stop_reads = 3;
     c.state_timeout = Duration::from_millis(100);
@@ -70,6 +84,7 @@ fn layer(state: [f32; 4]) -> (SafetyLayer<Scripted>, MockClock, Arc<Mutex<Log>>)
         clock: clock.clone(),
         state,
         lag: 0,
+        fail_reads: 0,
         log: log.clone(),
     };
     let l = SafetyLayer::new(r, cfg(), Arc::new(clock.clone())).unwrap();
@@ -80,11 +95,19 @@ fn last(log: &Arc<Mutex<Log>>) -> Vec<f32> {
     log.lock().unwrap().sent.last().cloned().unwrap()
 }
 
+#[track_caller]
+fn assert_near(got: Vec<f32>, want: &[f32]) {
+    assert!(
+        got.len() == want.len() && got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-5),
+        "{got:?} != {want:?}"
+    );
+}
+
 #[test]
 fn first_target_is_rate_limited_from_the_measured_position() {
     let (mut l, _c, log) = layer([0.5, -0.5, 0.0, 0.0]);
     l.send_targets(&[0.9, -0.5]).unwrap();
-    assert_eq!(last(&log), vec![0.6, -0.5]);
+    assert_near(last(&log), &[0.6, -0.5]);
     assert_eq!(l.stats().rate_clamps, 1);
     assert_eq!(l.stats().limit_clamps, 0);
 }
@@ -95,12 +118,13 @@ fn joint_limits_clamp_and_rate_limit_follows() {
     let mut s = [0f32; 4];
     l.read_state(&mut s).unwrap();
     l.send_targets(&[5.0, 0.05]).unwrap();
-    assert_eq!(last(&log), vec![1.0, 0.05]);
+    assert_near(last(&log), &[1.0, 0.05]);
     let st = l.stats();
     assert_eq!((st.limit_clamps, st.rate_clamps), (1, 0));
     // A target within limits and within one step passes untouched.
+    _c.advance(PERIOD);
     l.send_targets(&[0.95, 0.1]).unwrap();
-    assert_eq!(last(&log), vec![0.95, 0.1]);
+    assert_near(last(&log), &[0.95, 0.1]);
     assert_eq!(l.stats().interventions(), 1);
 }
 
@@ -108,15 +132,16 @@ fn joint_limits_clamp_and_rate_limit_follows() {
 fn nan_and_inf_targets_hold_the_last_safe_target() {
     let (mut l, _c, log) = layer([0.0, 0.0, 0.0, 0.0]);
     l.send_targets(&[0.05, 0.05]).unwrap();
+    _c.advance(PERIOD);
     l.send_targets(&[f32::NAN, 0.0]).unwrap();
-    assert_eq!(last(&log), vec![0.05, 0.05]);
+    assert_near(last(&log), &[0.05, 0.05]);
     l.send_targets(&[0.0, f32::INFINITY]).unwrap();
-    assert_eq!(last(&log), vec![0.05, 0.05]);
+    assert_near(last(&log), &[0.05, 0.05]);
     assert_eq!(l.stats().non_finite_targets, 2);
     // A NaN as the very first target holds the measured position.
     let (mut l2, _c2, log2) = layer([0.3, 0.2, 0.0, 0.0]);
     l2.send_targets(&[f32::NAN, f32::NAN]).unwrap();
-    assert_eq!(last(&log2), vec![0.3, 0.2]);
+    assert_near(last(&log2), &[0.3, 0.2]);
 }
 
 #[test]
@@ -135,11 +160,7 @@ fn torque_over_limit_holds_then_stops() {
     l.with_robot(|r| r.state[3] = -11.0);
     l.read_state(&mut s).unwrap();
     l.send_targets(&[0.2, 0.2]).unwrap();
-    assert_eq!(
-        last(&log),
-        vec![0.1, 0.1],
-        "held while over the torque limit"
-    );
+    assert_near(last(&log), &[0.1, 0.1]);
     assert_eq!(l.stats().torque_holds, 1);
     l.read_state(&mut s).unwrap();
     let e = l.read_state(&mut s).unwrap_err();
@@ -162,11 +183,12 @@ fn torque_back_under_the_limit_releases_the_hold() {
     let mut s = [0f32; 4];
     l.read_state(&mut s).unwrap();
     l.send_targets(&[0.1, 0.1]).unwrap();
-    assert_eq!(last(&log), vec![0.0, 0.0]);
+    assert_near(last(&log), &[0.0, 0.0]);
     l.with_robot(|r| r.state[2] = 1.0);
     l.read_state(&mut s).unwrap();
+    _c.advance(PERIOD);
     l.send_targets(&[0.1, 0.1]).unwrap();
-    assert_eq!(last(&log), vec![0.1, 0.1]);
+    assert_near(last(&log), &[0.1, 0.1]);
 }
 
 #[test]
@@ -236,6 +258,7 @@ fn watchdog_thread_stops_a_silent_policy() {
         clock: MockClock::new(),
         state: [0.0; 4],
         lag: 0,
+        fail_reads: 0,
         log: log.clone(),
     };
     let mut c = cfg();
@@ -273,6 +296,7 @@ fn config_is_checked_against_the_robot() {
         clock: clock.clone(),
         state: [0.0; 4],
         lag: 0,
+        fail_reads: 0,
         log: Arc::default(),
     };
     let bad = SafetyConfig::uniform(3, -1.0, 1.0, 0.1);
@@ -284,4 +308,170 @@ fn config_is_checked_against_the_robot() {
     assert!(inverted.validate(2).is_err());
     inverted = SafetyConfig::xarm6_xhand();
     assert!(inverted.validate(18).is_ok());
+}
+
+/// The xArm6 + XHand composite's shape with perfect tracking: the measured positions are the
+/// last targets sent.
+#[derive(Debug)]
+struct Follower {
+    clock: MockClock,
+    q: [f32; 18],
+    sent: Arc<Mutex<Vec<Vec<f32>>>>,
+}
+
+impl Robot for Follower {
+    fn name(&self) -> &'static str {
+        "follower"
+    }
+    fn state_dim(&self) -> usize {
+        45
+    }
+    fn action_dim(&self) -> usize {
+        18
+    }
+    fn layout(&self) -> StateLayout {
+        StateLayout {
+            positions: 0..18,
+            torques: Some(18..30),
+        }
+    }
+    fn read_state(&mut self, out: &mut [f32]) -> pir2_robots::Result<Nanos> {
+        out.fill(0.0);
+        out[..18].copy_from_slice(&self.q);
+        Ok(self.clock.now())
+    }
+    fn send_targets(&mut self, t: &[f32]) -> pir2_robots::Result<()> {
+        self.q.copy_from_slice(t);
+        self.sent.lock().unwrap().push(t.to_vec());
+        Ok(())
+    }
+    fn stop(&mut self) -> pir2_robots::Result<()> {
+        Ok(())
+    }
+}
+
+/// The default xArm6 + XHand limits are speeds: at 100 Hz (4× the nominal rate) the arm
+/// still moves at most 1.25 rad/s (before: 0.05 rad per target whatever the rate, 5 rad/s).
+#[test]
+fn arm_speed_is_bounded_in_rad_per_s_at_any_control_rate() {
+    let clock = MockClock::new();
+    clock.set(1_000_000_000);
+    let sent = Arc::new(Mutex::new(Vec::new()));
+    let r = Follower {
+        clock: clock.clone(),
+        q: [0.0; 18],
+        sent: sent.clone(),
+    };
+    let mut l = SafetyLayer::new(r, SafetyConfig::xarm6_xhand(), Arc::new(clock.clone())).unwrap();
+    let mut s = [0f32; 45];
+    let mut target = [0f32; 18];
+    target[0] = 1.5;
+    let dt = 0.01;
+    for _ in 0..100 {
+        clock.advance(10_000_000);
+        l.read_state(&mut s).unwrap();
+        l.send_targets(&target).unwrap();
+    }
+    let sent = sent.lock().unwrap();
+    let top = sent
+        .windows(2)
+        .map(|w| (w[1][0] - w[0][0]).abs() / dt)
+        .fold(0.0f32, f32::max);
+    assert!(top <= 1.25 + 1e-3, "arm joint moved at {top} rad/s");
+    // ... and it did get going: 1 s at up to 1.25 rad/s (20 rad/s² ramp) covers > 1 rad.
+    assert!(sent.last().unwrap()[0] > 1.0, "{:?}", sent.last());
+}
+
+/// From rest a joint's speed ramps at most `max_accel`; braking is not limited.
+#[test]
+fn acceleration_is_bounded_from_rest() {
+    let (mut l, c, log) = layer([0.0; 4]);
+    drop(l);
+    let mut cfg = cfg();
+    cfg.max_accel = vec![10.0; 2];
+    let r = Scripted {
+        clock: c.clone(),
+        state: [0.0; 4],
+        lag: 0,
+        fail_reads: 0,
+        log: log.clone(),
+    };
+    l = SafetyLayer::new(r, cfg, Arc::new(c.clone())).unwrap();
+    let mut prev = 0.0f32;
+    let mut speeds = Vec::new();
+    for _ in 0..8 {
+        c.advance(PERIOD);
+        l.send_targets(&[1.0, 0.0]).unwrap();
+        let x = last(&log)[0];
+        speeds.push((x - prev) / 0.04);
+        prev = x;
+    }
+    // 10 rad/s² · 40 ms = 0.4 rad/s more per target, up to 2.5 rad/s.
+    for (k, v) in speeds.iter().enumerate() {
+        let cap = (0.4 * (k + 1) as f32).min(2.5);
+        assert!(*v <= cap + 1e-3, "target {k}: {v} rad/s > {cap}");
+    }
+    assert!(speeds[7] > 2.4, "{speeds:?}");
+    // Braking to a hold is immediate: a target at the current position is sent as is.
+    c.advance(PERIOD);
+    l.send_targets(&[prev, 0.0]).unwrap();
+    assert_near(last(&log), &[prev, 0.0]);
+}
+
+/// A joint that does not follow its target stops the robot after the configured reads
+/// (before: the tracking error was unbounded).
+#[test]
+fn tracking_error_stops_the_robot() {
+    let (l0, c, log) = layer([0.0; 4]);
+    drop(l0);
+    let mut cfg = cfg();
+    cfg.tracking_error = vec![0.15; 2];
+    cfg.tracking_stop_reads = 3;
+    let r = Scripted {
+        clock: c.clone(),
+        state: [0.0; 4],
+        lag: 0,
+        fail_reads: 0,
+        log: log.clone(),
+    };
+    let mut l = SafetyLayer::new(r, cfg, Arc::new(c.clone())).unwrap();
+    let mut s = [0f32; 4];
+    let mut stopped = None;
+    for k in 0..10 {
+        c.advance(PERIOD);
+        if let Err(e) = l.read_state(&mut s) {
+            stopped = Some((k, e));
+            break;
+        }
+        l.send_targets(&[1.0, 0.0]).unwrap();
+    }
+    // Targets 0.1, 0.2, 0.3, …; the stuck joint is over 0.15 from the 2nd target on.
+    let (k, e) = stopped.expect("a stuck joint must stop the robot");
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("from its target")),
+        "{e}"
+    );
+    assert_eq!(k, 4);
+    assert_eq!(l.stats().tracking_over, 3);
+    assert_eq!(log.lock().unwrap().stops, 1);
+}
+
+/// Driver errors in a row stop the robot; one transient error does not.
+#[test]
+fn consecutive_driver_errors_stop_the_robot() {
+    let (mut l, _c, log) = layer([0.0; 4]);
+    let mut s = [0f32; 4];
+    l.with_robot(|r| r.fail_reads = 1);
+    assert!(matches!(l.read_state(&mut s), Err(Error::Timeout { .. })));
+    l.read_state(&mut s).unwrap();
+    l.with_robot(|r| r.fail_reads = 3);
+    assert!(matches!(l.read_state(&mut s), Err(Error::Timeout { .. })));
+    assert!(matches!(l.read_state(&mut s), Err(Error::Timeout { .. })));
+    let e = l.read_state(&mut s).unwrap_err();
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("3 driver errors")),
+        "{e}"
+    );
+    assert_eq!(log.lock().unwrap().stops, 1);
+    assert_eq!(l.stats().robot_errors, 4);
 }

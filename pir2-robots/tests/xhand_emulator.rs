@@ -267,3 +267,49 @@ fn run_xhand_emulator_pty_serves_until_stopped() {
     assert!(report.to_string().contains("XHand at"));
     stop.store(true, Ordering::SeqCst);
 }
+
+/// A finger error word stops the hand through the safety layer (before: it was counted and
+/// the hand kept being driven).
+#[test]
+fn finger_error_word_stops_the_hand_through_the_safety_layer() {
+    use pir2_robots::{SafetyConfig, SafetyLayer};
+    let (hand, emu) = setup();
+    let mut cfg = SafetyConfig::uniform(12, -0.5, 2.0, 5.0);
+    cfg.state_timeout = Duration::from_secs(1);
+    let mut l = SafetyLayer::new(hand, cfg, clock()).unwrap();
+    let mut s = [0f32; 39];
+    l.read_state(&mut s).unwrap();
+    l.send_targets(&[0.1; 12]).unwrap();
+    emu.handle().inject(XHandFault::FingerError(0x0004));
+    let e = l.send_targets(&[0.1; 12]).unwrap_err();
+    assert!(
+        matches!(e, Error::SafetyStop(ref m) if m.contains("joint 0 error words 0004")),
+        "{e}"
+    );
+    assert_eq!(l.stats().faults, 1);
+    assert!(matches!(l.read_state(&mut s), Err(Error::SafetyStop(_))));
+}
+
+/// `stop()` never commands a non-finite position: a joint whose measured position is NaN
+/// holds its last commanded target (before: the NaN was sent as the hold position).
+#[test]
+fn stop_is_finite_when_the_measured_position_is_nan() {
+    let (mut hand, emu) = setup();
+    let mut s = [0f32; 39];
+    hand.read_state(&mut s).unwrap();
+    let target: Vec<f32> = (0..12).map(|i| 0.05 * i as f32 + 0.3).collect();
+    hand.send_targets(&target).unwrap();
+    emu.handle().inject(XHandFault::NonFinitePosition(true));
+    hand.send_targets(&target).unwrap();
+    let (state, _) = hand.last_state().unwrap();
+    assert!(state.fingers[0].position.is_nan());
+    hand.stop().unwrap();
+    let cmds = emu.handle().last_commands();
+    assert!(
+        cmds.iter().all(|c| c.position.is_finite()),
+        "{:?}",
+        cmds.iter().map(|c| c.position).collect::<Vec<_>>()
+    );
+    assert_eq!(cmds[0].position, target[0]);
+    assert!(cmds.iter().all(|c| c.mode == consts::MODE_POSITION));
+}

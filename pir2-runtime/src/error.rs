@@ -54,6 +54,15 @@ pub enum Error {
     /// A worker thread stopped unexpectedly.
     #[error("worker `{0}` stopped")]
     WorkerStopped(&'static str),
+    /// A thread of the run panicked (a worker, or a user's model, source or actuator called
+    /// on it). The robot was stopped; `message` is the panic's payload.
+    #[error("thread `{thread}` panicked: {message}")]
+    Panicked {
+        /// The thread: `action worker`, `slow worker`, `warm start` or `control thread`.
+        thread: &'static str,
+        /// The panic message.
+        message: String,
+    },
     /// Safety stop: the runtime stopped the robot.
     #[error("safety stop: {0}")]
     SafetyStop(String),
@@ -74,6 +83,17 @@ impl Error {
             expected: format!("{expected:?}"),
             got: format!("{got:?}"),
         }
+    }
+    /// [`Error::Panicked`] from a caught panic payload.
+    pub fn panicked(thread: &'static str, payload: &(dyn std::any::Any + Send)) -> Self {
+        let message = if let Some(s) = payload.downcast_ref::<&str>() {
+            (*s).to_string()
+        } else if let Some(s) = payload.downcast_ref::<String>() {
+            s.clone()
+        } else {
+            "non-string panic payload".to_string()
+        };
+        Error::Panicked { thread, message }
     }
     /// Convenience constructor for [`Error::Io`].
     pub fn io(device: impl Into<String>, message: impl std::fmt::Display) -> Self {

@@ -145,6 +145,9 @@ pub struct RunMetrics {
     pub holds: u64,
     /// Chunk swaps.
     pub swaps: u64,
+    /// Ticks that started more than one period late. The missed deadlines are skipped, not
+    /// caught up: the late tick sends one action and the schedule restarts from it.
+    pub late_ticks: u64,
     /// Tick jitter: lateness of each tick's start past its deadline.
     pub tick_jitter: Histogram,
     /// Time spent inside the control step (runtime overhead, excludes the model).
@@ -170,6 +173,9 @@ pub struct RunTrace {
     pub holds: u64,
     /// Swaps.
     pub swaps: u64,
+    /// Ticks more than one period late (missed deadlines skipped, never caught up).
+    #[serde(default)]
+    pub late_ticks: u64,
     /// Tick jitter percentiles.
     pub tick_jitter: Percentiles,
     /// Control-step overhead percentiles.
@@ -191,6 +197,7 @@ impl RunMetrics {
             overruns: self.overruns,
             holds: self.holds,
             swaps: self.swaps,
+            late_ticks: self.late_ticks,
             tick_jitter: self.tick_jitter.summary(),
             tick_overhead: self.tick_overhead.summary(),
             call_latency: self.call_latency.summary(),

@@ -12,13 +12,22 @@
 //! The control step neither allocates nor blocks: the observation is published with
 //! `try_lock` (if the worker is copying, this tick's frame is skipped; the worker reads the
 //! next one), and chunks are handed over by swapping preallocated storage.
+//!
+//! Fail closed: a panic on any thread (a worker, or a user's [`VelocityModel`],
+//! [`FastSource`], [`Actuator`], [`SlowSource`] or [`SlowEncoder`] running on it) stops the
+//! robot and ends the run with [`Error::Panicked`] naming the thread. The stop flag is
+//! honoured in every phase, the warm-up included: the actuator's `stop` is called as soon as
+//! it is seen, before the workers are wound down. A tick that starts more than one period
+//! late sends one action and restarts the schedule from there (counted in
+//! [`RunMetrics::late_ticks`]): missed deadlines are skipped, never fired back to back.
 
 use std::future::Future;
+use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::pin::pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::task::{Context, Poll, Wake, Waker};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use crate::chunk::Chunk;
 use crate::clock::{Clock, Nanos};
@@ -252,11 +261,17 @@ impl ControlLoop {
     }
 }
 
-fn slow_worker(
-    shared: &Shared,
-    mut source: Box<dyn SlowSource>,
-    mut encoder: Box<dyn SlowEncoder>,
-) {
+/// How long the end of a run waits for the slow worker to finish its current capture or
+/// encode before leaving it behind (it exits on its own once that returns).
+const SLOW_JOIN_WAIT: Duration = Duration::from_millis(500);
+
+fn slow_worker(shared: &Shared, source: Box<dyn SlowSource>, encoder: Box<dyn SlowEncoder>) {
+    if let Err(p) = catch_unwind(AssertUnwindSafe(|| slow_loop(shared, source, encoder))) {
+        shared.fail(Error::panicked("slow worker", &*p));
+    }
+}
+
+fn slow_loop(shared: &Shared, mut source: Box<dyn SlowSource>, mut encoder: Box<dyn SlowEncoder>) {
     while !shared.stop.load(Ordering::Acquire) {
         let r = block_on(async {
             let frame = source.capture().await?;
@@ -368,9 +383,21 @@ pub fn set_fifo_priority(prio: i32) -> std::io::Result<()> {
     }
 }
 
+/// Call the actuator's `stop` once (later calls are no-ops), catching a panic in it.
+fn stop_once<A: Actuator + ?Sized>(act: &mut A, done: &mut Option<Result<()>>) {
+    if done.is_none() {
+        *done = Some(match catch_unwind(AssertUnwindSafe(|| act.stop())) {
+            Ok(r) => r,
+            Err(p) => Err(Error::panicked("control thread", &*p)),
+        });
+    }
+}
+
 /// Run the real-time driver until `max_ticks` or until `stop` is set. The robot is stopped
-/// (actuator `stop`) on every exit path. Returns the run's metrics; the first error of any
-/// thread is returned instead (after the safe stop).
+/// (actuator `stop`) on every exit path, panics included, before the workers are joined.
+/// Returns the run's metrics; the first error of any thread is returned instead (after the
+/// safe stop). A stop requested during the warm-up ends the run before the robot moves,
+/// with an event saying so.
 #[allow(clippy::too_many_arguments)]
 pub fn run<M, F, A>(
     mut head: ActionHead<M>,
@@ -425,143 +452,210 @@ where
         )));
     }
 
+    // The slow worker owns its source and encoder and may sit in a long capture (a camera,
+    // a network read): it is not scoped, so the end of a run never waits on it for long.
+    let slow_handle = match slow_async {
+        Some((src, enc)) => {
+            let sh = shared.clone();
+            Some(
+                std::thread::Builder::new()
+                    .name("pir2-slow".into())
+                    .spawn(move || slow_worker(&sh, src, enc))
+                    .map_err(|e| Error::io("slow worker thread", e))?,
+            )
+        }
+        None => None,
+    };
+    let mut stopped: Option<Result<()>> = None;
     let result = std::thread::scope(|s| -> Result<RunMetrics> {
-        let slow_handle = slow_async.map(|(src, enc)| {
-            let sh = &shared;
-            s.spawn(move || slow_worker(sh, src, enc))
-        });
-        // Warm start (before the robot moves): the first slow features, then the first
-        // observation, then the warm-start chunk. Both waits can last far longer than a tick
-        // (a backbone's first frame, a warm start over the network), so the robot's state is
-        // read once per period meanwhile: a robot driver or safety layer with a stale-state
-        // watchdog must not trip before the run has begun. Those reads are discarded.
-        let mut scratch = vec![0.0; spec.fast_dim];
-        let mut last_read = clock.now();
-        let mut keepalive = |fast: &mut F| -> Result<()> {
-            if clock.now().saturating_sub(last_read) >= cfg.period {
-                fast.read(&mut scratch)?;
-                last_read = clock.now();
-            }
-            Ok(())
-        };
-        let warm = (|| -> Result<Chunk> {
-            let mut snap = Snapshot::new(&spec);
-            if spec.slow_dim > 0 {
-                if let Some((source, encoder)) = slow_inline.as_mut() {
-                    let feats = block_on(async {
-                        let frame = source.capture().await?;
-                        encoder.encode(frame).await
-                    })?;
-                    copy_slow(&mut snap, &feats, spec.slow_dim)?;
-                } else {
-                    let t_wait = clock.now();
-                    while !shared.slow_seen.load(Ordering::Acquire) {
-                        if shared.stop.load(Ordering::Acquire) {
-                            return Err(shared
-                                .error
-                                .lock()
-                                .unwrap()
-                                .take()
-                                .unwrap_or(Error::WorkerStopped("slow")));
+        let mut worker = None;
+        let body = catch_unwind(AssertUnwindSafe(|| -> Result<RunMetrics> {
+            // Warm start (before the robot moves): the first slow features, then the first
+            // observation, then the warm-start chunk. Both waits can last far longer than a
+            // tick (a backbone's first frame, a warm start over the network), so the robot's
+            // state is read once per period meanwhile: a robot driver or safety layer with a
+            // stale-state watchdog must not trip before the run has begun. Those reads are
+            // discarded. The stop flag is checked throughout.
+            let mut scratch = vec![0.0; spec.fast_dim];
+            let mut last_read = clock.now();
+            let mut keepalive = |fast: &mut F| -> Result<()> {
+                if clock.now().saturating_sub(last_read) >= cfg.period {
+                    fast.read(&mut scratch)?;
+                    last_read = clock.now();
+                }
+                Ok(())
+            };
+            let requested = || stop.load(Ordering::Acquire);
+            let warm = (|| -> Result<Option<Chunk>> {
+                let mut snap = Snapshot::new(&spec);
+                if spec.slow_dim > 0 {
+                    if let Some((source, encoder)) = slow_inline.as_mut() {
+                        let feats = block_on(async {
+                            let frame = source.capture().await?;
+                            encoder.encode(frame).await
+                        })?;
+                        copy_slow(&mut snap, &feats, spec.slow_dim)?;
+                    } else {
+                        let t_wait = clock.now();
+                        while !shared.slow_seen.load(Ordering::Acquire) {
+                            if requested() {
+                                return Ok(None);
+                            }
+                            if shared.stop.load(Ordering::Acquire) {
+                                return Err(shared
+                                    .error
+                                    .lock()
+                                    .unwrap_or_else(|p| p.into_inner())
+                                    .take()
+                                    .unwrap_or(Error::WorkerStopped("slow")));
+                            }
+                            if clock.now() - t_wait > cfg.slow_timeout.as_nanos() as Nanos {
+                                return Err(Error::io(
+                                    "slow channel",
+                                    "no features before the timeout",
+                                ));
+                            }
+                            keepalive(&mut fast)?;
+                            std::thread::sleep(Duration::from_millis(1));
                         }
-                        if clock.now() - t_wait > cfg.slow_timeout.as_nanos() as Nanos {
-                            return Err(Error::io(
-                                "slow channel",
-                                "no features before the timeout",
-                            ));
+                        copy_slow(
+                            &mut snap,
+                            &shared.slow.lock().unwrap_or_else(|p| p.into_inner()),
+                            spec.slow_dim,
+                        )?;
+                    }
+                }
+                if requested() {
+                    return Ok(None);
+                }
+                let mut obs = vec![0.0; spec.fast_dim];
+                let t_state = fast.read(&mut obs)?;
+                lp.prime(&obs);
+                snap.fast.copy_from_slice(lp.history());
+                snap.t_state = t_state;
+                let mut first = Chunk::new(spec.horizon, spec.action_dim);
+                let head_ref = &mut head;
+                let first_ref = &mut first;
+                let snap_ref = &snap;
+                let mut interrupted = false;
+                std::thread::scope(|ws| -> Result<()> {
+                    let h = ws
+                        .spawn(move || head_ref.warm_start(snap_ref, cfg.initial_delay, first_ref));
+                    let mut kept = Ok(());
+                    while !h.is_finished() {
+                        if !interrupted && requested() {
+                            // The warm start cannot be cut short; the robot is told to stop
+                            // now rather than when it returns.
+                            interrupted = true;
+                            stop_once(&mut actuator, &mut stopped);
                         }
-                        keepalive(&mut fast)?;
+                        if kept.is_ok() {
+                            kept = keepalive(&mut fast);
+                        }
                         std::thread::sleep(Duration::from_millis(1));
                     }
-                    copy_slow(&mut snap, &shared.slow.lock().unwrap(), spec.slow_dim)?;
+                    h.join().map_err(|p| Error::panicked("warm start", &*p))??;
+                    kept
+                })?;
+                Ok((!interrupted && !requested()).then_some(first))
+            })();
+            let mut first = match warm {
+                Ok(Some(c)) => c,
+                Ok(None) => {
+                    lp.control
+                        .metrics
+                        .events
+                        .push("stop requested during the warm-up; the robot never moved".into());
+                    return Ok(std::mem::take(&mut lp.control.metrics));
                 }
-            }
-            let mut obs = vec![0.0; spec.fast_dim];
-            let t_state = fast.read(&mut obs)?;
-            lp.prime(&obs);
-            snap.fast.copy_from_slice(lp.history());
-            snap.t_state = t_state;
-            let mut first = Chunk::new(spec.horizon, spec.action_dim);
+                Err(e) => return Err(e),
+            };
+            lp.control.deliver(&mut first);
             let head_ref = &mut head;
-            let first_ref = &mut first;
-            let snap_ref = &snap;
-            std::thread::scope(|ws| -> Result<()> {
-                let h =
-                    ws.spawn(move || head_ref.warm_start(snap_ref, cfg.initial_delay, first_ref));
-                let mut kept = Ok(());
-                while !h.is_finished() {
-                    if kept.is_ok() {
-                        kept = keepalive(&mut fast);
-                    }
-                    std::thread::sleep(Duration::from_millis(1));
+            let clock_ref: &dyn Clock = &*clock;
+            let sh = &*shared;
+            worker = Some(s.spawn(move || {
+                let r = catch_unwind(AssertUnwindSafe(|| {
+                    action_worker(sh, head_ref, clock_ref, slow_inline)
+                }));
+                match r {
+                    Ok(Ok(())) => {}
+                    Ok(Err(e)) => sh.fail(e),
+                    Err(p) => sh.fail(Error::panicked("action worker", &*p)),
                 }
-                h.join()
-                    .map_err(|_| Error::WorkerStopped("warm start (panicked)"))??;
-                kept
-            })?;
-            Ok(first)
-        })();
-        let mut first = match warm {
-            Ok(c) => c,
-            Err(e) => {
-                shared.stop.store(true, Ordering::SeqCst);
-                return Err(e);
-            }
-        };
-        lp.control.deliver(&mut first);
-        let head_ref = &mut head;
-        let clock_ref: &dyn Clock = &*clock;
-        let sh = &shared;
-        let worker = s.spawn(move || {
-            if let Err(e) = action_worker(sh, head_ref, clock_ref, slow_inline) {
-                sh.fail(e);
-            }
-        });
+            }));
 
-        if let Some(prio) = cfg.rt_priority {
-            if let Err(e) = set_fifo_priority(prio) {
+            if let Some(prio) = cfg.rt_priority {
+                if let Err(e) = set_fifo_priority(prio) {
+                    lp.control
+                        .metrics
+                        .events
+                        .push(format!("SCHED_FIFO priority {prio} refused: {e}"));
+                }
+            }
+            // Deadlines run from `anchor`; a tick more than a period late moves the anchor to
+            // itself, so missed deadlines are dropped instead of fired back to back.
+            let mut anchor = clock.now();
+            let mut k = 0u64;
+            let mut tick = 0u64;
+            loop {
+                if stop.load(Ordering::Acquire) || shared.stop.load(Ordering::Acquire) {
+                    break;
+                }
+                if cfg.max_ticks.is_some_and(|m| tick >= m) {
+                    break;
+                }
+                let deadline = anchor + k * cfg.period;
+                clock.sleep_until(deadline);
+                let now = clock.now();
+                let late = now.saturating_sub(deadline);
+                lp.control.metrics.tick_jitter.record(late);
+                if late >= cfg.period {
+                    lp.control.metrics.late_ticks += 1;
+                    anchor = now;
+                    k = 0;
+                }
+                if let Err(e) = lp.tick(&shared, &mut fast, &mut actuator) {
+                    shared.fail(e);
+                    break;
+                }
                 lp.control
                     .metrics
-                    .events
-                    .push(format!("SCHED_FIFO priority {prio} refused: {e}"));
+                    .tick_overhead
+                    .record(clock.now().saturating_sub(now));
+                k += 1;
+                tick += 1;
             }
-        }
-        let start = clock.now();
-        let mut tick = 0u64;
-        loop {
-            if stop.load(Ordering::Acquire) || shared.stop.load(Ordering::Acquire) {
-                break;
-            }
-            if cfg.max_ticks.is_some_and(|m| tick >= m) {
-                break;
-            }
-            let deadline = start + tick * cfg.period;
-            clock.sleep_until(deadline);
-            let now = clock.now();
-            lp.control
-                .metrics
-                .tick_jitter
-                .record(now.saturating_sub(deadline));
-            if let Err(e) = lp.tick(&shared, &mut fast, &mut actuator) {
-                shared.fail(e);
-                break;
-            }
-            lp.control
-                .metrics
-                .tick_overhead
-                .record(clock.now().saturating_sub(now));
-            tick += 1;
-        }
+            Ok(std::mem::take(&mut lp.control.metrics))
+        }));
+        // Stop the robot first, then wind the workers down (a worker may be inside a long
+        // model call or capture).
+        stop_once(&mut actuator, &mut stopped);
         shared.stop.store(true, Ordering::SeqCst);
         shared.fast_cv.notify_all();
-        let _ = worker.join();
-        if let Some(h) = slow_handle {
-            let _ = h.join();
+        if let Some(w) = worker {
+            if let Err(p) = w.join() {
+                shared.fail(Error::panicked("action worker", &*p));
+            }
         }
-        Ok(std::mem::take(&mut lp.control.metrics))
+        body.unwrap_or_else(|p| Err(Error::panicked("control thread", &*p)))
     });
-    let stop_result = actuator.stop();
-    let metrics = result?;
+    stop_once(&mut actuator, &mut stopped);
+    let mut left_behind = false;
+    if let Some(h) = slow_handle {
+        let t0 = Instant::now();
+        while !h.is_finished() && t0.elapsed() < SLOW_JOIN_WAIT {
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        if h.is_finished() {
+            if let Err(p) = h.join() {
+                shared.fail(Error::panicked("slow worker", &*p));
+            }
+        } else {
+            left_behind = true;
+        }
+    }
+    let mut metrics = result?;
     if let Some(e) = shared
         .error
         .lock()
@@ -570,6 +664,11 @@ where
     {
         return Err(e);
     }
-    stop_result?;
+    stopped.unwrap_or(Ok(()))?;
+    if left_behind {
+        metrics
+            .events
+            .push("the slow worker was still capturing at the end; left to finish".into());
+    }
     Ok((metrics, head))
 }

@@ -20,6 +20,8 @@ pub struct FakeRobot {
     clock: Arc<dyn Clock>,
     /// Commands received.
     pub sent: Arc<AtomicU64>,
+    /// `stop()` calls received.
+    pub stops: Arc<AtomicU64>,
 }
 
 impl FakeRobot {
@@ -30,6 +32,7 @@ impl FakeRobot {
             cmd: vec![0.0; dof],
             clock,
             sent: Arc::new(AtomicU64::new(0)),
+            stops: Arc::new(AtomicU64::new(0)),
         }
     }
 }
@@ -62,6 +65,7 @@ impl Actuator for FakeRobot {
     }
     fn stop(&mut self) -> Result<()> {
         self.cmd.copy_from_slice(&self.q);
+        self.stops.fetch_add(1, Ordering::Relaxed);
         Ok(())
     }
 }

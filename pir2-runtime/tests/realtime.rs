@@ -228,3 +228,329 @@ fn state_is_read_every_tick_while_warming_up() {
         max_gap / 1_000_000
     );
 }
+
+// ---- fail closed -------------------------------------------------------------------------
+
+fn small_spec(slow_dim: usize) -> HeadSpec {
+    HeadSpec {
+        horizon: 16,
+        action_dim: 3,
+        n_obs: 2,
+        fast_dim: 6,
+        slow_dim,
+        period: PERIOD,
+        d_max: 5,
+        d_vis_max: 5,
+    }
+}
+
+fn small_head<M: VelocityModel>(model: M, spec: HeadSpec) -> ActionHead<M> {
+    let mode = HeadMode::PiR2 {
+        nfe: Some(2),
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+        warm_start_steps: 2,
+    };
+    ActionHead::new(
+        model,
+        spec,
+        mode,
+        LatencyWindow::new(20, 2, PERIOD, spec.d_max),
+        0,
+    )
+    .unwrap()
+}
+
+fn small_control() -> ControlConfig {
+    ControlConfig {
+        horizon: 16,
+        action_dim: 3,
+        policy: CallPolicy::Async,
+        ensemble: None,
+        output: Default::default(),
+    }
+}
+
+/// Run `f` on a thread; `None` if it has not returned within `limit` (the run hangs).
+fn bounded<T: Send + 'static>(
+    limit: Duration,
+    f: impl FnOnce() -> T + Send + 'static,
+) -> Option<T> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(limit).ok()
+}
+
+/// A model that panics on its `n`-th call.
+struct PanicsAt {
+    n: u32,
+    calls: u32,
+}
+
+impl VelocityModel for PanicsAt {
+    fn backend(&self) -> &'static str {
+        "panics"
+    }
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        self.calls += 1;
+        if self.calls == self.n {
+            panic!("model exploded at call {}", self.calls);
+        }
+        std::thread::sleep(Duration::from_millis(2));
+        for (o, x) in out.iter_mut().zip(input.x) {
+            *o = -x;
+        }
+        Ok(())
+    }
+}
+
+/// A panic in the user's model on the action worker stops the robot and ends the run with an
+/// error naming the worker (before: the panic was swallowed, the control thread kept
+/// replaying the last chunk to the end, and the run returned Ok).
+#[test]
+fn a_panicking_model_stops_the_robot_and_names_the_action_worker() {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let spec = small_spec(0);
+    // Warm start makes 2 calls; the 6th call is on the action worker.
+    let head = small_head(PanicsAt { n: 6, calls: 0 }, spec);
+    let robot = FakeRobot::new(3, clock.clone());
+    let (sent, stops) = (robot.sent.clone(), robot.stops.clone());
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(100),
+        ..Default::default()
+    };
+    let r = bounded(Duration::from_secs(20), move || {
+        run(
+            head,
+            small_control(),
+            robot.clone(),
+            robot,
+            SlowChannel::None,
+            clock,
+            cfg,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .map(|_| ())
+    })
+    .expect("the run hung");
+    let e = r.expect_err("a panicking model must end the run with an error");
+    assert!(
+        matches!(&e, Error::Panicked { thread: "action worker", message } if message.contains("model exploded")),
+        "{e}"
+    );
+    assert_eq!(stops.load(std::sync::atomic::Ordering::Relaxed), 1);
+    assert!(
+        sent.load(std::sync::atomic::Ordering::Relaxed) < 100,
+        "the robot kept moving after the panic"
+    );
+}
+
+/// An actuator that panics on its `n`-th send.
+#[derive(Clone)]
+struct PanickyArm {
+    inner: FakeRobot,
+    n: u64,
+}
+
+impl Actuator for PanickyArm {
+    fn dim(&self) -> usize {
+        Actuator::dim(&self.inner)
+    }
+    fn send(&mut self, action: &[f32]) -> Result<()> {
+        if self.inner.sent.load(std::sync::atomic::Ordering::Relaxed) + 1 == self.n {
+            panic!("actuator driver bug");
+        }
+        self.inner.send(action)
+    }
+    fn stop(&mut self) -> Result<()> {
+        self.inner.stop()
+    }
+}
+
+/// A panic in the user's actuator on the control thread stops the robot and returns an error
+/// naming the control thread (before: the panic left the action worker waiting forever and
+/// the process hung).
+#[test]
+fn a_panicking_actuator_ends_the_run_instead_of_hanging() {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let head = small_head(
+        SleepyModel {
+            latency: Duration::from_millis(2),
+        },
+        small_spec(0),
+    );
+    let robot = FakeRobot::new(3, clock.clone());
+    let stops = robot.stops.clone();
+    let arm = PanickyArm {
+        inner: robot.clone(),
+        n: 5,
+    };
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(50),
+        ..Default::default()
+    };
+    let r = bounded(Duration::from_secs(20), move || {
+        run(
+            head,
+            small_control(),
+            robot,
+            arm,
+            SlowChannel::None,
+            clock,
+            cfg,
+            Arc::new(AtomicBool::new(false)),
+        )
+        .map(|_| ())
+    })
+    .expect("the run hung after a panic on the control thread");
+    let e = r.expect_err("a panicking actuator must end the run with an error");
+    assert!(
+        matches!(&e, Error::Panicked { thread: "control thread", message } if message.contains("actuator driver bug")),
+        "{e}"
+    );
+    assert_eq!(stops.load(std::sync::atomic::Ordering::Relaxed), 1);
+}
+
+/// A camera whose first frame takes 5 s.
+struct SlowFirstFrame(Arc<dyn Clock>);
+
+#[async_trait::async_trait]
+impl SlowSource for SlowFirstFrame {
+    async fn capture(&mut self) -> Result<SlowFrame> {
+        std::thread::sleep(Duration::from_secs(5));
+        Ok(SlowFrame {
+            t_capture: self.0.now(),
+            values: vec![0.0; 4],
+            ..Default::default()
+        })
+    }
+}
+
+/// The stop flag is honoured while waiting for the first slow features: the robot is stopped
+/// and the run returns at once (before: the flag was ignored until the warm-up ended, here
+/// 5 s, up to the 60 s slow timeout of `pir2 run`).
+#[test]
+fn stop_during_warm_up_stops_the_robot_at_once() {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let head = small_head(
+        SleepyModel {
+            latency: Duration::from_millis(1),
+        },
+        small_spec(4),
+    );
+    let robot = FakeRobot::new(3, clock.clone());
+    let (sent, stops) = (robot.sent.clone(), robot.stops.clone());
+    let slow = SlowChannel::Async {
+        source: Box::new(SlowFirstFrame(clock.clone())),
+        encoder: Box::new(PassThroughEncoder {
+            latency: Duration::ZERO,
+        }),
+    };
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(50),
+        slow_timeout: Duration::from_secs(60),
+        ..Default::default()
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(100));
+        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+    let t0 = std::time::Instant::now();
+    let (m, _) = run(
+        head,
+        small_control(),
+        robot.clone(),
+        robot,
+        slow,
+        clock,
+        cfg,
+        stop,
+    )
+    .unwrap();
+    let took = t0.elapsed();
+    assert!(took < Duration::from_secs(3), "returned after {took:?}");
+    assert_eq!(stops.load(std::sync::atomic::Ordering::Relaxed), 1);
+    assert_eq!(sent.load(std::sync::atomic::Ordering::Relaxed), 0);
+    assert_eq!(m.ticks, 0);
+    assert!(
+        m.events.iter().any(|e| e.contains("warm-up")),
+        "{:?}",
+        m.events
+    );
+}
+
+/// An actuator that records the (mock) time of each send and stalls the clock by 3.5
+/// periods after its `stall_at`-th send (the control thread was descheduled).
+struct Timed {
+    inner: FakeRobot,
+    clock: MockClock,
+    at: Arc<std::sync::Mutex<Vec<Nanos>>>,
+    stall_at: usize,
+}
+
+impl Actuator for Timed {
+    fn dim(&self) -> usize {
+        Actuator::dim(&self.inner)
+    }
+    fn send(&mut self, action: &[f32]) -> Result<()> {
+        let mut at = self.at.lock().unwrap();
+        at.push(self.clock.now());
+        if at.len() == self.stall_at {
+            self.clock.advance(7 * PERIOD / 2);
+        }
+        self.inner.send(action)
+    }
+    fn stop(&mut self) -> Result<()> {
+        self.inner.stop()
+    }
+}
+
+/// After a late tick the missed deadlines are skipped: no two sends closer than a period
+/// (before: the three missed ticks fired back to back at the same instant).
+#[test]
+fn an_overrun_is_not_caught_up_in_a_burst() {
+    let mock = MockClock::new();
+    let clock: Arc<dyn Clock> = Arc::new(mock.clone());
+    let head = small_head(
+        SleepyModel {
+            latency: Duration::ZERO,
+        },
+        small_spec(0),
+    );
+    let robot = FakeRobot::new(3, clock.clone());
+    let at = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let act = Timed {
+        inner: robot.clone(),
+        clock: mock,
+        at: at.clone(),
+        stall_at: 10,
+    };
+    let cfg = RealtimeConfig {
+        period: PERIOD,
+        max_ticks: Some(30),
+        ..Default::default()
+    };
+    let (m, _) = run(
+        head,
+        small_control(),
+        robot,
+        act,
+        SlowChannel::None,
+        clock,
+        cfg,
+        Arc::new(AtomicBool::new(false)),
+    )
+    .unwrap();
+    let at = at.lock().unwrap();
+    assert_eq!(at.len(), 30);
+    let min_gap = at.windows(2).map(|w| w[1] - w[0]).min().unwrap();
+    assert!(min_gap >= PERIOD, "sends {} ns apart", min_gap);
+    assert_eq!(m.late_ticks, 1);
+}

@@ -383,3 +383,49 @@ fn slow_server_gone_stops_the_robot_once_d_vis_exceeds_its_max() {
     // Stopped within (d_vis_max + ½)·T + grace ≈ 0.21 s of the outage, long before 500 ticks.
     assert!(r.sent < 500, "sent {}", r.sent);
 }
+
+/// With no stale-slow grace on the head, a dead slow server still ends the run: the source
+/// stops handing out the last features after `max_stale` (before: it re-served them forever
+/// and the run went to its end on frozen features).
+#[test]
+fn slow_server_gone_ends_the_run_even_without_a_grace() {
+    let (pp, sp) = (free_port(), free_port());
+    let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let slow = slow_server(sp, robot_clock.clone());
+    let model = remote_model(pp, 500, 10);
+    let (slow_ch, stats) = remote_slow_channel(
+        RemoteSlowConfig {
+            link: Link {
+                retry: Duration::from_millis(20),
+                ..Link::connect(ep(sp))
+            },
+            key: "test/slow".into(),
+            stale_poll: Duration::from_millis(100),
+            first_timeout: Duration::from_secs(5),
+            max_stale: Duration::from_millis(300),
+            ..Default::default()
+        },
+        robot_clock.clone(),
+    )
+    .unwrap();
+    let rc = robot_clock.clone();
+    let runner = std::thread::spawn(move || go(model, Some(slow_ch), rc, 500, None));
+    std::thread::sleep(Duration::from_millis(500));
+    slow.kill();
+    let t_kill = std::time::Instant::now();
+    let r = runner.join().unwrap();
+    let took = t_kill.elapsed();
+    policy.kill();
+    let Err(e) = r.result else {
+        panic!("a dead slow server must end the run");
+    };
+    assert!(e.to_string().contains("fresh slow features"), "{e}");
+    let c = stats.counters();
+    assert!(c.frames >= 1 && c.stale_polls >= 1, "{c:?}");
+    assert!(r.sent < 500, "sent {}", r.sent);
+    assert!(
+        took < Duration::from_secs(3),
+        "ended {took:?} after the kill"
+    );
+}

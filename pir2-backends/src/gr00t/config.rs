@@ -150,6 +150,80 @@ pub struct EmbodimentConfig {
     /// Prompt layout.
     #[serde(default)]
     pub prompt: PromptConfig,
+    /// Robot-side safety settings (the stale-slow grace, per action group limits).
+    #[serde(default)]
+    pub safety: SafetySection,
+}
+
+/// Default stale-slow grace, ms (see [`SafetySection::slow_grace_ms`]).
+pub const DEFAULT_SLOW_GRACE_MS: f64 = 200.0;
+
+fn default_slow_grace_ms() -> f64 {
+    DEFAULT_SLOW_GRACE_MS
+}
+
+/// The `[safety]` table of an embodiment: what the robot side enforces around the policy.
+///
+/// ```toml
+/// [safety]
+/// slow_grace_ms = 200
+/// [safety.limits.hand_joints]
+/// lower = [-0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+/// upper = [1.8, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6, 1.6]
+/// max_velocity = 4.0     # rad/s
+/// max_accel = 80.0       # rad/s²
+/// tracking_error = 0.8   # rad, |target − measured|
+/// ```
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SafetySection {
+    /// Stale-slow stop: a call whose slow features are older than `d_vis_max` ticks (plus
+    /// half a tick) for longer than this stops the robot, ms.
+    #[serde(default = "default_slow_grace_ms")]
+    pub slow_grace_ms: f64,
+    /// Per action group (keyed by the group's name), limits overriding the robot's defaults.
+    #[serde(default)]
+    pub limits: BTreeMap<String, GroupLimits>,
+}
+
+impl Default for SafetySection {
+    fn default() -> Self {
+        SafetySection {
+            slow_grace_ms: DEFAULT_SLOW_GRACE_MS,
+            limits: BTreeMap::new(),
+        }
+    }
+}
+
+/// Safety limits of one action group; absent fields keep the robot's defaults.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GroupLimits {
+    /// Lower joint limits, rad (one per joint of the group).
+    pub lower: Option<Vec<f32>>,
+    /// Upper joint limits, rad.
+    pub upper: Option<Vec<f32>>,
+    /// Largest joint speed, rad/s.
+    pub max_velocity: Option<f32>,
+    /// Largest change of joint speed, rad/s².
+    pub max_accel: Option<f32>,
+    /// Largest `|target − measured position|`, rad.
+    pub tracking_error: Option<f32>,
+}
+
+/// [`GroupLimits`] flattened over the action vector: `None` keeps the robot's default.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ActionLimits {
+    /// Lower joint limit per action dimension.
+    pub lower: Vec<Option<f32>>,
+    /// Upper joint limit per action dimension.
+    pub upper: Vec<Option<f32>>,
+    /// Speed limit per action dimension, rad/s.
+    pub max_velocity: Vec<Option<f32>>,
+    /// Acceleration limit per action dimension, rad/s².
+    pub max_accel: Vec<Option<f32>>,
+    /// Tracking-error bound per action dimension, rad.
+    pub tracking_error: Vec<Option<f32>>,
 }
 
 impl EmbodimentConfig {
@@ -179,7 +253,62 @@ impl EmbodimentConfig {
                 .collect(),
             image: ImageConfig::default(),
             prompt: PromptConfig::default(),
+            safety: SafetySection::default(),
         }
+    }
+
+    /// The stale-slow grace in nanoseconds.
+    pub fn slow_grace_ns(&self) -> u64 {
+        (self.safety.slow_grace_ms * 1e6).round() as u64
+    }
+
+    /// The stale-slow grace.
+    pub fn slow_grace(&self) -> std::time::Duration {
+        std::time::Duration::from_nanos(self.slow_grace_ns())
+    }
+
+    /// The `[safety.limits]` over the action vector (see [`ActionLimits`]).
+    pub fn action_limits(&self) -> ActionLimits {
+        let n = self.action_dim();
+        let mut out = ActionLimits {
+            lower: vec![None; n],
+            upper: vec![None; n],
+            max_velocity: vec![None; n],
+            max_accel: vec![None; n],
+            tracking_error: vec![None; n],
+        };
+        let mut at = 0;
+        for g in &self.action {
+            if let Some(l) = self.safety.limits.get(&g.name) {
+                for j in 0..g.dim {
+                    out.lower[at + j] = l.lower.as_ref().map(|v| v[j]);
+                    out.upper[at + j] = l.upper.as_ref().map(|v| v[j]);
+                    out.max_velocity[at + j] = l.max_velocity;
+                    out.max_accel[at + j] = l.max_accel;
+                    out.tracking_error[at + j] = l.tracking_error;
+                }
+            }
+            at += g.dim;
+        }
+        out
+    }
+
+    /// Check the action groups against what a robot takes, by name, width and order (a
+    /// checkpoint trained on `[hand, arm]` must not drive an `[arm, hand]` robot even though
+    /// the widths add up).
+    pub fn check_action_groups(&self, robot: &[(&str, usize)]) -> Result<()> {
+        let ours: Vec<(&str, usize)> = self
+            .action
+            .iter()
+            .map(|g| (g.name.as_str(), g.dim))
+            .collect();
+        if ours != robot {
+            return Err(Gr00tError::Config(format!(
+                "the checkpoint's action groups {ours:?} do not match the robot's {robot:?} \
+                 (names, widths and order must agree)"
+            )));
+        }
+        Ok(())
     }
 
     /// Read a TOML (`.toml`) or JSON (anything else) file and validate it.
@@ -284,6 +413,51 @@ impl EmbodimentConfig {
         }
         if self.prompt.text_tokens == 0 {
             return bad("prompt.text_tokens must be positive".to_string());
+        }
+        let sg = self.safety.slow_grace_ms;
+        if !(sg.is_finite() && sg > 0.0) {
+            return bad(format!("safety.slow_grace_ms must be > 0, got {sg}"));
+        }
+        for (name, l) in &self.safety.limits {
+            let Some(g) = self.action.iter().find(|g| &g.name == name) else {
+                return bad(format!(
+                    "safety.limits.{name}: no action group `{name}` (groups: {:?})",
+                    self.action.iter().map(|g| &g.name).collect::<Vec<_>>()
+                ));
+            };
+            for (what, v) in [("lower", &l.lower), ("upper", &l.upper)] {
+                if let Some(v) = v {
+                    if v.len() != g.dim {
+                        return bad(format!(
+                            "safety.limits.{name}.{what} has {} values, the group has dim {}",
+                            v.len(),
+                            g.dim
+                        ));
+                    }
+                    if v.iter().any(|x| !x.is_finite()) {
+                        return bad(format!("safety.limits.{name}.{what} must be finite"));
+                    }
+                }
+            }
+            if let (Some(lo), Some(hi)) = (&l.lower, &l.upper) {
+                if let Some(j) = (0..g.dim).find(|&j| lo[j] > hi[j]) {
+                    return bad(format!(
+                        "safety.limits.{name}: joint {j} lower {} > upper {}",
+                        lo[j], hi[j]
+                    ));
+                }
+            }
+            for (what, v) in [
+                ("max_velocity", l.max_velocity),
+                ("max_accel", l.max_accel),
+                ("tracking_error", l.tracking_error),
+            ] {
+                if let Some(v) = v {
+                    if !(v.is_finite() && v > 0.0) {
+                        return bad(format!("safety.limits.{name}.{what} must be > 0, got {v}"));
+                    }
+                }
+            }
         }
         Ok(())
     }
@@ -535,6 +709,95 @@ mod tests {
         assert_eq!(c.tasks.len(), 4);
         let back: EmbodimentConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
         assert_eq!(back, c);
+    }
+
+    /// `[safety]` in embodiment.toml: grace and per-group limits are read, flattened over
+    /// the action vector, and bad values are one error naming the field (before: hand limits
+    /// and tracking bounds were placeholders in code, not configurable).
+    #[test]
+    fn safety_section_is_parsed_flattened_and_checked() {
+        let text = "slow_grace_ms = 150.0\n\n[limits.hand_joints]\n\
+                    lower = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -0.2]\n\
+                    upper = [1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.0]\n\
+                    max_velocity = 3.0\ntracking_error = 0.4\n";
+        let mut c = EmbodimentConfig::xarm6_xhand();
+        c.safety = toml::from_str(text).unwrap();
+        // The whole file round-trips with the table in it.
+        let c: EmbodimentConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
+        c.validate().unwrap();
+        assert_eq!(c.slow_grace_ns(), 150_000_000);
+        let l = c.action_limits();
+        assert_eq!(l.lower.len(), 18);
+        assert_eq!(
+            (l.lower[0], l.lower[6], l.lower[17]),
+            (None, Some(0.0), Some(-0.2))
+        );
+        assert_eq!(
+            (l.upper[17], l.max_velocity[6], l.max_velocity[5]),
+            (Some(1.0), Some(3.0), None)
+        );
+        assert_eq!((l.tracking_error[10], l.max_accel[10]), (Some(0.4), None));
+        // Defaults when the table is absent.
+        let d = EmbodimentConfig::xarm6_xhand();
+        assert_eq!(d.slow_grace_ns(), 200_000_000);
+        assert!(d.action_limits().lower.iter().all(Option::is_none));
+        // Errors name the field.
+        let bad = |edit: &dyn Fn(&mut EmbodimentConfig), want: &str| {
+            let mut c = EmbodimentConfig::xarm6_xhand();
+            edit(&mut c);
+            let e = c.validate().unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+        };
+        bad(&|c| c.safety.slow_grace_ms = 0.0, "slow_grace_ms");
+        bad(
+            &|c| {
+                c.safety
+                    .limits
+                    .insert("wrist".into(), GroupLimits::default());
+            },
+            "safety.limits.wrist",
+        );
+        bad(
+            &|c| {
+                c.safety.limits.insert(
+                    "hand_joints".into(),
+                    GroupLimits {
+                        lower: Some(vec![0.0; 5]),
+                        ..Default::default()
+                    },
+                );
+            },
+            "hand_joints.lower has 5 values",
+        );
+        bad(
+            &|c| {
+                c.safety.limits.insert(
+                    "arm_joints".into(),
+                    GroupLimits {
+                        max_velocity: Some(-1.0),
+                        ..Default::default()
+                    },
+                );
+            },
+            "arm_joints.max_velocity",
+        );
+        assert!(toml::from_str::<SafetySection>("grace = 1").is_err());
+    }
+
+    /// The action groups must be the robot's by name and order, not only by total width.
+    #[test]
+    fn action_groups_are_checked_by_name_and_order() {
+        let robot = [("arm_joints", 6), ("hand_joints", 12)];
+        let c = EmbodimentConfig::xarm6_xhand();
+        c.check_action_groups(&robot).unwrap();
+        let mut swapped = c.clone();
+        swapped.action.reverse();
+        assert_eq!(swapped.action_dim(), 18);
+        let e = swapped.check_action_groups(&robot).unwrap_err().to_string();
+        assert!(e.contains("do not match"), "{e}");
+        let mut renamed = c;
+        renamed.action[1].name = "gripper".into();
+        assert!(renamed.check_action_groups(&robot).is_err());
     }
 
     fn stats_json(drop: Option<&str>) -> String {

@@ -44,7 +44,10 @@ pub mod weights;
 pub use backbone::{
     build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
 };
-pub use config::{CheckpointFiles, EmbodimentConfig, Group, Norm, Normalizer, PAPER_TASKS};
+pub use config::{
+    ActionLimits, CheckpointFiles, EmbodimentConfig, Group, GroupLimits, Norm, Normalizer,
+    SafetySection, DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
+};
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
 pub use run::{

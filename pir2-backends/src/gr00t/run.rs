@@ -25,7 +25,8 @@ use std::time::Duration;
 use pir2_runtime::realtime::{run, RealtimeConfig, SlowChannel};
 use pir2_runtime::{
     ActionHead, Actuator, CallPolicy, Clock, ControlConfig, FastSource, HeadMode, HeadSpec,
-    LatencyWindow, ModelInput, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
+    LatencyWindow, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock,
+    VelocityModel,
 };
 use pir2_schedule::{Alignment, FrontMode};
 
@@ -154,6 +155,11 @@ pub struct Gr00tRunOptions {
     pub seed: u64,
     /// How long to wait for the first backbone features.
     pub slow_timeout: Duration,
+    /// Stale-slow stop (always on): once the backbone features are older than `d_vis_max`
+    /// ticks for longer than this grace, the robot stops with a safety stop
+    /// (`ActionHead::set_slow_grace`). `None`: the embodiment's `safety.slow_grace_ms`
+    /// (200 ms when its `[safety]` table does not set it).
+    pub slow_grace: Option<Duration>,
 }
 
 impl Default for Gr00tRunOptions {
@@ -173,6 +179,7 @@ impl Default for Gr00tRunOptions {
             clock: Arc::new(SystemClock::new()),
             seed: 0,
             slow_timeout: Duration::from_secs(60),
+            slow_grace: None,
         }
     }
 }
@@ -385,7 +392,14 @@ where
         source: Box::new(camera),
         encoder,
     };
+    let slow_grace = opts.slow_grace.unwrap_or(cfg.slow_grace());
+    if slow_grace.is_zero() {
+        return Err(Gr00tError::Config(
+            "the stale-slow grace must be > 0".into(),
+        ));
+    }
     let setup = Setup {
+        slow_grace: u64::try_from(slow_grace.as_nanos()).unwrap_or(u64::MAX),
         spec,
         mode,
         window: LatencyWindow::new(opts.window.max(1), 2, period, cfg.d_max),
@@ -420,6 +434,7 @@ where
 
 /// Everything of a run but the model and the robot.
 struct Setup {
+    slow_grace: Nanos,
     spec: HeadSpec,
     mode: HeadMode,
     window: LatencyWindow,
@@ -437,7 +452,8 @@ fn drive<M: VelocityModel + 'static, F: FastSource, A: Actuator>(
     fast: F,
     actuator: A,
 ) -> Result<(RunMetrics, M)> {
-    let head = ActionHead::new(model, s.spec, s.mode, s.window, s.seed)?;
+    let mut head = ActionHead::new(model, s.spec, s.mode, s.window, s.seed)?;
+    head.set_slow_grace(Some(s.slow_grace));
     let (metrics, head) = run(
         head, s.control, fast, actuator, s.slow, s.clock, s.rt, s.stop,
     )?;

@@ -45,6 +45,8 @@ pub enum XHandFault {
     Disconnect,
     /// Set this error word on joint 0 of every following state (0 clears it).
     FingerError(u16),
+    /// Report joint 0's position as NaN in every following state (`false` clears it).
+    NonFinitePosition(bool),
 }
 
 #[derive(Debug)]
@@ -53,6 +55,7 @@ struct Sim {
     cmd: [FingerCommand; consts::JOINTS],
     t: Option<Nanos>,
     finger_error: u16,
+    nan_position: bool,
     commands: u64,
     requests: u64,
 }
@@ -73,6 +76,7 @@ impl Sim {
             cmd,
             t: None,
             finger_error: 0,
+            nan_position: false,
             commands: 0,
             requests: 0,
         }
@@ -100,7 +104,11 @@ impl Sim {
             s.fingers[i] = proto::FingerState {
                 id: i as u16,
                 sensor_id: (i / 3) as u16,
-                position: self.q[i],
+                position: if i == 0 && self.nan_position {
+                    f32::NAN
+                } else {
+                    self.q[i]
+                },
                 torque,
                 raw_position: (self.q[i] * 10_000.0) as i32,
                 temperature: 30,
@@ -274,6 +282,7 @@ fn serve<T: Transport>(mut port: T, hand_id: u8, h: XHandEmuHandle, clock: Arc<d
                 Some(XHandFault::Stall(d)) => std::thread::sleep(*d),
                 Some(XHandFault::Disconnect) => return,
                 Some(XHandFault::FingerError(code)) => lock(&h.sim).finger_error = *code,
+                Some(XHandFault::NonFinitePosition(on)) => lock(&h.sim).nan_position = *on,
                 Some(XHandFault::WrongId) => src = hand_id.wrapping_add(1),
                 _ => {}
             }

@@ -525,6 +525,12 @@ impl Robot for XArm6 {
         }
         c.set_state(proto::state::STOP).map(|_| ())
     }
+    /// The fault that ended streaming (a controller error code, a stop from the controller
+    /// side, a broken connection), if any: the safety layer stops the whole robot on it at
+    /// once instead of counting driver errors.
+    fn fault(&self) -> Option<String> {
+        lock(&self.shared).fault.clone()
+    }
 }
 
 impl Drop for XArm6 {

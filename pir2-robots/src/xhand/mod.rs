@@ -16,7 +16,10 @@
 //!
 //! [`Robot::stop`] sends one last command that holds every joint at its last measured
 //! position (or, with [`XHandConfig::release_on_stop`], puts every joint in powerless mode),
-//! then refuses further targets. A CRC error, a reply from the wrong id or a timeout fails
+//! then refuses further targets. The command is always finite: a joint whose measured
+//! position is not finite holds its last commanded target, and a joint with neither is made
+//! powerless. A finger state with a non-zero error word is reported by [`Robot::fault`]
+//! (the safety layer stops on it). A CRC error, a reply from the wrong id or a timeout fails
 //! the request with an error naming it; the driver stays usable (the next request resyncs on
 //! `55 AA`), so the safety layer decides whether to stop.
 
@@ -101,6 +104,7 @@ pub struct XHand<T> {
     parser: FrameParser,
     state: Option<(HandState, Nanos)>,
     last_cmd: Option<[f32; consts::JOINTS]>,
+    fault: Option<String>,
     stopped: bool,
     stats: XHandStats,
     tx: Vec<u8>,
@@ -118,6 +122,7 @@ impl<T: Transport> XHand<T> {
             parser: FrameParser::new(),
             state: None,
             last_cmd: None,
+            fault: None,
             stopped: false,
             stats: XHandStats::default(),
             tx: Vec::with_capacity(
@@ -213,7 +218,18 @@ impl<T: Transport> XHand<T> {
 
     fn accept_state(&mut self, f: Frame) -> Result<&HandState> {
         let s = HandState::decode(&f.payload)?;
-        if s.fingers.iter().any(|f| f.errors.iter().any(|&e| e != 0)) {
+        self.fault = s
+            .fingers
+            .iter()
+            .enumerate()
+            .find(|(_, f)| f.errors.iter().any(|&e| e != 0))
+            .map(|(j, f)| {
+                format!(
+                    "joint {j} error words {:04x} {:04x} {:04x}",
+                    f.errors[0], f.errors[1], f.errors[2]
+                )
+            });
+        if self.fault.is_some() {
             self.stats.finger_errors += 1;
         }
         let t = self.clock.now();
@@ -341,26 +357,37 @@ impl<T: Transport> Robot for XHand<T> {
             return Ok(());
         }
         self.stopped = true;
-        let hold = match &self.state {
-            Some((s, _)) => {
-                let mut q = [0f32; consts::JOINTS];
-                for (qi, f) in q.iter_mut().zip(s.fingers.iter()) {
-                    *qi = f.position;
-                }
-                Some(q)
-            }
-            None => self.last_cmd,
-        };
-        let Some(q) = hold else {
+        // Per joint: the measured position, else the last commanded target, else powerless
+        // (no finite value to hold).
+        let measured = self.state.as_ref().map(|(s, _)| s);
+        if measured.is_none() && self.last_cmd.is_none() {
             // Never commanded and never read: the hand is in whatever mode it booted in.
             return Ok(());
-        };
+        }
+        let mut q = [0f32; consts::JOINTS];
+        let mut hold = [false; consts::JOINTS];
+        for j in 0..consts::JOINTS {
+            let m = measured.map(|s| s.fingers[j].position);
+            let c = self.last_cmd.map(|c| c[j]);
+            if let Some(x) = [m, c].into_iter().flatten().find(|x| x.is_finite()) {
+                q[j] = x;
+                hold[j] = true;
+            }
+        }
         let mode = if self.cfg.release_on_stop {
             consts::MODE_POWERLESS
         } else {
             consts::MODE_POSITION
         };
-        let cmds = self.position_commands(&q, mode);
+        let mut cmds = self.position_commands(&q, mode);
+        for (c, h) in cmds.iter_mut().zip(hold) {
+            if !h {
+                c.mode = consts::MODE_POWERLESS;
+            }
+        }
         self.send_fingers(&cmds).map(|_| ())
+    }
+    fn fault(&self) -> Option<String> {
+        self.fault.clone()
     }
 }

@@ -135,6 +135,11 @@ pub struct RemoteSlowConfig {
     pub stale_poll: Duration,
     /// How long the first features may take before `capture` fails.
     pub first_timeout: Duration,
+    /// Without a fresh message for this long, `capture` fails instead of handing the last
+    /// features again: a dead slow server ends the run (fail closed) even where no
+    /// stale-slow grace is set on the action head.
+    #[serde(default = "default_max_stale")]
+    pub max_stale: Duration,
     /// Pings per clock-offset estimate.
     pub sync_samples: usize,
     /// Timeout of one ping.
@@ -150,11 +155,16 @@ impl Default for RemoteSlowConfig {
             key: "pir2/slow".into(),
             stale_poll: Duration::from_millis(250),
             first_timeout: Duration::from_secs(10),
+            max_stale: default_max_stale(),
             sync_samples: 16,
             ping_timeout: Duration::from_millis(200),
             resync_every: Duration::from_secs(10),
         }
     }
+}
+
+fn default_max_stale() -> Duration {
+    Duration::from_secs(2)
 }
 
 struct Sync {
@@ -175,6 +185,7 @@ pub struct RemoteSlowSource {
     me: u64,
     sync: Option<Sync>,
     last: Option<SlowFrame>,
+    last_fresh: Option<Instant>,
     stale: bool,
     shape: Arc<Mutex<(usize, usize)>>,
     stats: Arc<RemoteStats>,
@@ -193,9 +204,9 @@ impl RemoteSlowSource {
     /// Open a session and subscribe. `clock` is the runtime's clock (capture times are
     /// converted into it).
     pub fn connect(cfg: RemoteSlowConfig, clock: Arc<dyn Clock>) -> Result<Self> {
-        if cfg.stale_poll.is_zero() || cfg.sync_samples == 0 {
+        if cfg.stale_poll.is_zero() || cfg.max_stale.is_zero() || cfg.sync_samples == 0 {
             return Err(Error::Config(
-                "stale_poll and sync_samples must be positive".into(),
+                "stale_poll, max_stale and sync_samples must be positive".into(),
             ));
         }
         let data_key = key(&cfg.key)?;
@@ -215,6 +226,7 @@ impl RemoteSlowSource {
             me: instance_id(),
             sync: None,
             last: None,
+            last_fresh: None,
             stale: false,
             shape: Arc::new(Mutex::new((0, 0))),
             stats: Arc::new(RemoteStats::default()),
@@ -325,6 +337,7 @@ impl RemoteSlowSource {
             *self.shape.lock().unwrap_or_else(|p| p.into_inner()) = (msg.tokens, msg.dim);
             bump(&self.stats.frames);
             self.stale = false;
+            self.last_fresh = Some(Instant::now());
             let frame = SlowFrame {
                 t_capture,
                 values: msg.data,
@@ -338,6 +351,16 @@ impl RemoteSlowSource {
                 what: "first slow features",
                 after: wait,
             }),
+            Some(_)
+                if self
+                    .last_fresh
+                    .is_some_and(|t| t.elapsed() > self.cfg.max_stale) =>
+            {
+                Err(Error::Timeout {
+                    what: "fresh slow features (the slow server stopped sending)",
+                    after: self.cfg.max_stale,
+                })
+            }
             Some(last) => {
                 bump(&self.stats.stale_polls);
                 if !self.stale {
@@ -353,7 +376,8 @@ impl RemoteSlowSource {
 #[async_trait::async_trait]
 impl SlowSource for RemoteSlowSource {
     /// The next fresh features (capture time in the robot's clock), or the last ones again
-    /// after [`RemoteSlowConfig::stale_poll`] without a message. Blocks the slow worker.
+    /// after [`RemoteSlowConfig::stale_poll`] without a message; an error once no fresh
+    /// message came for [`RemoteSlowConfig::max_stale`]. Blocks the slow worker.
     async fn capture(&mut self) -> crate::Result<SlowFrame> {
         self.next().map_err(Into::into)
     }
