@@ -68,7 +68,11 @@ fn leap_pipeline_runs_end_to_end() {
     // Rows: naive async (plain swap), naive async + TE (labelled extra), train-time RTC, πR²
     // w/o async, πR² async, πR² full ramp.
     assert_eq!(r.labels.len(), 6, "{:?}", r.labels);
-    assert!(r.labels.iter().any(|l| l == "naive async"), "{:?}", r.labels);
+    assert!(
+        r.labels.iter().any(|l| l == "naive async"),
+        "{:?}",
+        r.labels
+    );
     assert_eq!(r.cells.len(), 6 * 2);
     assert!(r.cells.iter().all(|c| c.episodes == 1 && c.successes <= 1));
     let t = std::fs::read_to_string(dir.join("deployment/table.md")).expect("table");
