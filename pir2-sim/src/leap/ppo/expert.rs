@@ -74,29 +74,36 @@ impl OrientationInput {
     }
 }
 
+fn cross(a: &[f64; 3], b: &[f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// Rotation matrices (rows) of the four blue-side-up goals, computed once.
+fn goal_matrices() -> &'static [[[f64; 3]; 3]; 4] {
+    static M: std::sync::OnceLock<[[[f64; 3]; 3]; 4]> = std::sync::OnceLock::new();
+    M.get_or_init(|| {
+        blue_side_up_goals().map(|g| {
+            let gr = rot_rows_23(&g);
+            let g1 = [gr[0], gr[1], gr[2]];
+            let g2 = [gr[3], gr[4], gr[5]];
+            [cross(&g1, &g2), g1, g2]
+        })
+    })
+}
+
 /// Rows 2–3 of `R·Gᵀ` for the blue-side-up goal `G` with the largest `tr(R·Gᵀ)`, where `R`
 /// is the rotation whose rows 2–3 are `rows` (row 1 = row 2 × row 3).
 pub fn nearest_goal_rows(rows: &[f32; 6]) -> [f32; 6] {
     let r1 = [rows[0] as f64, rows[1] as f64, rows[2] as f64];
     let r2 = [rows[3] as f64, rows[4] as f64, rows[5] as f64];
-    let r0 = [
-        r1[1] * r2[2] - r1[2] * r2[1],
-        r1[2] * r2[0] - r1[0] * r2[2],
-        r1[0] * r2[1] - r1[1] * r2[0],
-    ];
-    let r = [r0, r1, r2];
-    let dot = |a: &[f64; 3], b: &[f64]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let r = [cross(&r1, &r2), r1, r2];
+    let dot = |a: &[f64; 3], b: &[f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let mut best: Option<(f64, [f64; 9])> = None;
-    for g in blue_side_up_goals() {
-        let gr = rot_rows_23(&g);
-        let g1 = [gr[0], gr[1], gr[2]];
-        let g2 = [gr[3], gr[4], gr[5]];
-        let g0 = [
-            g1[1] * g2[2] - g1[2] * g2[1],
-            g1[2] * g2[0] - g1[0] * g2[2],
-            g1[0] * g2[1] - g1[1] * g2[0],
-        ];
-        let gm = [g0, g1, g2];
+    for gm in goal_matrices() {
         let trace: f64 = (0..3).map(|i| dot(&r[i], &gm[i])).sum();
         if best.as_ref().is_none_or(|(t, _)| trace > *t) {
             let mut rel = [0.0; 9];
@@ -321,15 +328,8 @@ impl PpoExpert {
         if self.prev_action {
             self.obs[BASE_OBS_DIM..].copy_from_slice(&self.last_act);
         }
-        let clip = self.obs_clip;
-        for ((o, x), (m, s)) in self
-            .normed
-            .iter_mut()
-            .zip(&self.obs)
-            .zip(self.norm.mean.iter().zip(&self.norm.std))
-        {
-            *o = ((x - m) / s).clamp(-clip, clip);
-        }
+        self.norm
+            .apply_clipped(&self.obs, &mut self.normed, self.obs_clip);
         let mu = self.net.forward(&self.normed, 1, &mut self.cache);
         let mut a = [0.0f32; NU];
         for i in 0..NU {

@@ -94,11 +94,17 @@ pub struct FrozenNorm {
 impl FrozenNorm {
     /// Normalise `x` (any number of rows) into `out`.
     pub fn apply(&self, x: &[f32], out: &mut [f32]) {
+        self.apply_clipped(x, out, CLIP);
+    }
+
+    /// [`apply`](Self::apply) with the bound `±clip` instead of `±CLIP` (`f32::INFINITY`:
+    /// no bound).
+    pub fn apply_clipped(&self, x: &[f32], out: &mut [f32], clip: f32) {
         let d = self.mean.len();
         assert_eq!(x.len(), out.len(), "FrozenNorm::apply: sizes");
         for (xr, or) in x.chunks_exact(d).zip(out.chunks_exact_mut(d)) {
             for k in 0..d {
-                or[k] = ((xr[k] - self.mean[k]) / self.std[k]).clamp(-CLIP, CLIP);
+                or[k] = ((xr[k] - self.mean[k]) / self.std[k]).clamp(-clip, clip);
             }
         }
     }
