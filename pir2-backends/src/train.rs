@@ -360,6 +360,7 @@ pub struct Trainer<'a> {
     resume: bool,
     fused: bool,
     stop_after: Option<usize>,
+    later_ties: bool,
 }
 
 impl std::fmt::Debug for Trainer<'_> {
@@ -385,6 +386,7 @@ impl<'a> Trainer<'a> {
             resume: false,
             fused: true,
             stop_after: None,
+            later_ties: false,
         }
     }
     /// Called after every step.
@@ -395,6 +397,15 @@ impl<'a> Trainer<'a> {
     /// Closed-loop validation: returns a score, higher is better (e.g. success rate).
     pub fn validate(mut self, f: impl FnMut(&mut CandleModel, usize) -> f64 + 'a) -> Self {
         self.validate = Some(Box::new(f));
+        self
+    }
+    /// How a validation score equal to the best so far is treated: `false` (default) keeps
+    /// the earlier checkpoint, `true` moves the pick to the later one. With a noisy score
+    /// (few closed-loop episodes, coarse success rates) ties are common, and keeping the
+    /// first tie tends to deploy under-trained weights; the later checkpoint has seen more
+    /// data for the same measured quality.
+    pub fn later_ties(mut self, on: bool) -> Self {
+        self.later_ties = on;
         self
     }
     /// Save checkpoints to `dir/step-NNNNNN/`, the loss log to `dir/loss.jsonl`, and the
@@ -662,7 +673,12 @@ impl<'a> Trainer<'a> {
                 .map(|d| d.join(format!("step-{done:06}")));
             if let Some(s) = score {
                 log_line(Some(format!(r#"{{"step":{done},"val":{s}}}"#)), &mut self)?;
-                if st.best.as_ref().is_none_or(|(b, _)| s > *b) {
+                let later_ties = self.later_ties;
+                if st
+                    .best
+                    .as_ref()
+                    .is_none_or(|(b, _)| s > *b || (later_ties && s == *b))
+                {
                     st.best = Some((s, st.ema.as_ref().unwrap_or(&st.params).clone()));
                     st.report.best = Some(CheckpointRecord {
                         step: done,

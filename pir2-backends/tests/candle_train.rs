@@ -304,6 +304,37 @@ fn validation_callback_picks_the_best_checkpoint() {
 }
 
 #[test]
+fn tied_validation_scores_go_to_the_earlier_step_by_default_and_the_later_on_request() {
+    let cfg = mlp_config(8);
+    let data = dataset(8, 12, 4);
+    let stats = compute_stats(data.as_slice(), &cfg.spec).unwrap();
+    let tc = TrainConfig {
+        checkpoint_every: Some(5),
+        batch_size: 8,
+        ..quick(20, 1e-3, TrainSchedule::StandardFlow)
+    };
+    // Steps 5, 10, 15, 20: the best score 0.5 is reached at 10 and tied at 15.
+    let scores = [0.1, 0.5, 0.5, 0.3];
+    let best_step = |later: bool| {
+        let mut m = CandleModel::new(cfg.clone(), stats.clone(), 0).unwrap();
+        let mut calls = 0;
+        let report = Trainer::new(tc.clone())
+            .later_ties(later)
+            .validate(|_m: &mut CandleModel, _step| {
+                calls += 1;
+                scores[calls - 1]
+            })
+            .run(&mut m, data.as_slice())
+            .unwrap();
+        let best = report.best.unwrap();
+        assert_eq!(best.score, Some(0.5));
+        best.step
+    };
+    assert_eq!(best_step(false), 10);
+    assert_eq!(best_step(true), 15);
+}
+
+#[test]
 fn self_rollout_training_runs_and_stays_finite() {
     use pir2_backends::train::SelfRollout;
     let cfg = mlp_config(8);

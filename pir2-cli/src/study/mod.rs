@@ -49,12 +49,15 @@ pub struct Settings {
     pub threads: usize,
     /// Directory of trained policies (`<policy>-seed<s>/best`) loaded instead of trained.
     pub pretrained: Option<PathBuf>,
+    /// A checkpoint whose validation score ties the best so far replaces it (the later step
+    /// wins); `false` keeps the first.
+    pub later_ties: bool,
 }
 
 impl Settings {
     /// The settings of a task config: πR² at `nfe`, the baselines at `flow_steps` Euler
     /// steps (other recipe knobs at their defaults), checkpoints validated at unit delay 2,
-    /// nothing pretrained.
+    /// nothing pretrained, ties of validation scores keep the earlier checkpoint.
     pub fn from_config(
         nfe: usize,
         flow_steps: usize,
@@ -77,6 +80,7 @@ impl Settings {
             val_d0: 2,
             threads,
             pretrained: None,
+            later_ties: false,
         }
     }
 }

@@ -269,6 +269,7 @@ pub fn train_policy_resumable<T: Task>(
             scores.push((step, rate));
             rate
         });
+    trainer = trainer.later_ties(s.later_ties);
     if let Some(d) = out_dir {
         trainer = trainer.out_dir(d).resume(resume);
     }
