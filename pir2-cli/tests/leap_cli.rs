@@ -77,7 +77,7 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     std::fs::write(
         &cfg,
         "train_steps = 3\nbatch_size = 8\nwarmup = 1\nwidths = [8, 16]\ngroups = 4\n\
-         checkpoints = 1\nval_episodes = 1\nepisodes = 1\nseeds = [0]\nd0s = [2]\nhs = [1, 8]\n\
+         checkpoints = 2\nval_episodes = 1\nepisodes = 1\nseeds = [0]\nd0s = [2]\nhs = [1, 8]\n\
          flow_steps = 2\nmax_steps = 10\nthreads = 1\n",
     )
     .expect("config");
@@ -111,6 +111,12 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("not empty"));
     std::fs::remove_dir_all(trained.join("flow-seed0/best")).expect("remove best");
+    // A run written before a config field existed (here: `best_of_last`, at its default)
+    // still resumes: the configs are compared as values, not as text.
+    let written = trained.join("config.toml");
+    let text = std::fs::read_to_string(&written).expect("config.toml");
+    assert!(text.contains("best_of_last = 0\n"), "{text}");
+    std::fs::write(&written, text.replace("best_of_last = 0\n", "")).expect("older config");
     let mut resume = train.to_vec();
     resume.push("--resume");
     let o = pir2(&resume);
@@ -138,6 +144,13 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         "{}",
         String::from_utf8_lossy(&o.stderr)
     );
+    // The evaluation also reports the best checkpoint per cell over one more step checkpoint.
+    let eval_cfg = dir.join("eval.toml");
+    std::fs::write(
+        &eval_cfg,
+        std::fs::read_to_string(&cfg).unwrap() + "best_of_last = 1\n",
+    )
+    .unwrap();
     for (study, row, col) in [
         ("deployment", "| πR² async (n=2) |", "d0=2"),
         ("horizon", "| sync flow |", "h=8"),
@@ -149,7 +162,7 @@ fn leap_cube_collect_train_eval_through_the_binary() {
             "--study",
             study,
             "--config",
-            s(&cfg),
+            s(&eval_cfg),
             "--data",
             s(&data),
             "--checkpoint",
@@ -158,8 +171,27 @@ fn leap_cube_collect_train_eval_through_the_binary() {
             s(&out_dir),
         ]);
         assert!(out.contains(row) && out.contains(col), "{out}");
-        for f in ["result.json", "table.md", "success.png"] {
+        for f in [
+            "result.json",
+            "table.md",
+            "success.png",
+            "success-best-per-cell.png",
+        ] {
             assert!(out_dir.join(f).exists(), "{study}/{f}");
+        }
+        assert!(out.contains("Best checkpoint per cell"), "{out}");
+        // Per cell, the best checkpoint is at least the chosen one.
+        let result: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out_dir.join("result.json")).unwrap())
+                .unwrap();
+        let (cells, best) = (
+            result["cells"].as_array().unwrap(),
+            result["best_per_cell"].as_array().unwrap(),
+        );
+        assert_eq!(cells.len(), best.len());
+        for (c, b) in cells.iter().zip(best) {
+            assert_eq!((&c["label"], &c["d0"]), (&b["label"], &b["d0"]));
+            assert!(b["successes"].as_u64() >= c["successes"].as_u64());
         }
         // The trained policies were loaded, not trained again.
         assert!(!out_dir.join("checkpoints").exists(), "{study}");

@@ -108,6 +108,12 @@ pub struct LeapStudyConfig {
     /// Add the "naive async + TE" row (ACT temporal ensembling, which the paper uses only on
     /// the real robot) next to the paper's plain-swap naive async.
     pub te_row: bool,
+    /// The paper picks "the best epoch per seed" for each cell. With `best_of_last` = k > 0
+    /// the study also evaluates every cell with the last k step checkpoints of each training
+    /// run besides the chosen one and reports the best per cell as a second, labelled table
+    /// (optimistic: it selects on the evaluation episodes). Costs k times the evaluation.
+    /// 0: off.
+    pub best_of_last: usize,
 }
 
 impl Default for LeapStudyConfig {
@@ -138,6 +144,7 @@ impl Default for LeapStudyConfig {
             jitter: 0.0,
             d_vis_max: 0,
             te_row: true,
+            best_of_last: 0,
         }
     }
 }
@@ -309,6 +316,7 @@ impl Task for LeapCubeTask {
             pretrained: c.pretrained.as_ref().map(Into::into),
             // Success rates over 20 episodes tie often; the later checkpoint wins a tie.
             later_ties: true,
+            best_of_last: c.best_of_last,
             recipe: Recipe {
                 delays: c.delays,
                 pir2_d_max: c.pir2_d_max,

@@ -52,6 +52,9 @@ pub struct Settings {
     /// A checkpoint whose validation score ties the best so far replaces it (the later step
     /// wins); `false` keeps the first.
     pub later_ties: bool,
+    /// Also report the best checkpoint per cell over the chosen checkpoint and the last
+    /// `best_of_last` other step checkpoints of each run (0: off).
+    pub best_of_last: usize,
 }
 
 impl Settings {
@@ -81,6 +84,7 @@ impl Settings {
             threads,
             pretrained: None,
             later_ties: false,
+            best_of_last: 0,
         }
     }
 }
@@ -89,8 +93,8 @@ impl Settings {
 pub trait Task: Sync {
     /// The environment the lock-step runtime steps.
     type Env: Environment;
-    /// The task's TOML config, written into results.
-    type Config: Serialize + Clone;
+    /// The task's TOML config, written into results (and read back by `--resume`).
+    type Config: Serialize + serde::de::DeserializeOwned + PartialEq + Clone;
 
     /// The config.
     fn config(&self) -> &Self::Config;
@@ -216,6 +220,14 @@ pub struct StudyResult<C> {
     pub columns: Vec<usize>,
     /// All cells (`d0` holds the column value).
     pub cells: Vec<Cell>,
+    /// How many step checkpoints besides the chosen one each best-per-cell cell considered
+    /// (0: not measured).
+    #[serde(default)]
+    pub best_of_last: usize,
+    /// The cells under the paper's optimistic protocol, the best checkpoint per row × column ×
+    /// seed (empty when not measured).
+    #[serde(default)]
+    pub best_per_cell: Vec<Cell>,
     /// Closed-loop validation scores per (policy, seed).
     pub validation: Vec<(Policy, u64, Scores)>,
     /// Wall time of each stage, seconds.
@@ -224,7 +236,18 @@ pub struct StudyResult<C> {
 
 impl<C> StudyResult<C> {
     /// The Markdown table (columns named by the study's key).
+    /// With best-per-cell cells, a second, labelled table follows.
     pub fn table(&self) -> String {
-        cells::table_keyed(&self.cells, &self.labels, &self.columns, &self.key)
+        let mut t = cells::table_keyed(&self.cells, &self.labels, &self.columns, &self.key);
+        if !self.best_per_cell.is_empty() {
+            t += &format!(
+                "\nBest checkpoint per cell (the paper's protocol; optimistic: per seed, the best of \
+                 the chosen checkpoint and the last {} other step checkpoints, selected on the \
+                 evaluation episodes):\n\n",
+                self.best_of_last
+            );
+            t += &cells::table_keyed(&self.best_per_cell, &self.labels, &self.columns, &self.key);
+        }
+        t
     }
 }

@@ -5,7 +5,7 @@
 //! There is one closed loop ([`closed_loop`]); what runs the action head comes from a
 //! [`Models`] factory: a local candle model, or a remote one (`pir2 eval --remote`).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
@@ -288,6 +288,9 @@ pub struct Trained {
     pub model: CandleModel,
     /// Its closed-loop validation scores (empty when loaded).
     pub scores: Scores,
+    /// The training run's directory (`<root>/<policy>-seed<s>/`: `step-*` checkpoints and
+    /// `best/`).
+    pub dir: PathBuf,
 }
 
 /// Directory name of a trained policy under a checkpoints directory.
@@ -369,7 +372,7 @@ pub fn train_all<T: Task>(
                     "loaded {policy:?} seed {seed} from {}",
                     best.display()
                 ));
-                return Ok((model, Vec::new()));
+                return Ok((model, Vec::new(), dir.join(policy_dir(policy, seed))));
             }
         }
         let t = Instant::now();
@@ -383,7 +386,7 @@ pub fn train_all<T: Task>(
                 best.display()
             ));
             pb.set_position((done.fetch_add(1, Ordering::SeqCst) + 1) as u64 * steps as u64);
-            return Ok((model, Vec::new()));
+            return Ok((model, Vec::new(), ckpt));
         }
         let (model, scores) =
             train_policy_resumable(task, demos, policy, seed, Some(&ckpt), resume, &|_| {})?;
@@ -395,17 +398,18 @@ pub fn train_all<T: Task>(
             jobs.len(),
             t.elapsed().as_secs_f64()
         ));
-        Ok((model, scores))
+        Ok((model, scores, ckpt))
     })?;
     pb.finish();
     Ok(jobs
         .into_iter()
         .zip(models)
-        .map(|((policy, seed), (model, scores))| Trained {
+        .map(|((policy, seed), (model, scores, dir))| Trained {
             policy,
             seed,
             model,
             scores,
+            dir,
         })
         .collect())
 }
@@ -484,6 +488,105 @@ pub fn evaluate<'m, T: Task>(
     Ok(cells)
 }
 
+/// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`,
+/// leaving out the chosen one (the step named by `dir/best.json`), whose cells are measured
+/// anyway. Fewer when the run has fewer.
+pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
+    let chosen = std::fs::read_to_string(dir.join("best.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
+    let mut steps = Vec::new();
+    let entries = std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))?;
+    for e in entries {
+        let e = e.with_context(|| format!("reading {}", dir.display()))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let Some(step) = name
+            .strip_prefix("step-")
+            .and_then(|n| n.parse::<u64>().ok())
+        {
+            if Some(step) != chosen && e.path().is_dir() {
+                steps.push((step, e.path()));
+            }
+        }
+    }
+    steps.sort_by_key(|s| std::cmp::Reverse(s.0));
+    Ok(steps.into_iter().take(k).map(|s| s.1).collect())
+}
+
+/// The paper's optimistic checkpoint protocol ("for each cell we pick the best epoch per
+/// seed"): every cell of `study` is evaluated again with each of the last `k` step
+/// checkpoints of its training run ([`last_step_checkpoints`]), and per row × column × seed
+/// the best success count of those and of `chosen` (the cells of the chosen checkpoints) is
+/// kept. It selects on the evaluation episodes themselves, so it is optimistic; the study
+/// reports it next to, never instead of, the chosen-checkpoint cells.
+pub fn evaluate_best_per_cell<T: Task>(
+    task: &T,
+    study: &Study,
+    trained: &[Trained],
+    k: usize,
+    chosen: &[Cell],
+    pb: &ProgressBar,
+) -> Result<Vec<Cell>> {
+    let mut best = chosen.to_vec();
+    let ckpts = trained
+        .iter()
+        .map(|t| last_step_checkpoints(&t.dir, k))
+        .collect::<Result<Vec<_>>>()?;
+    for j in 0..k {
+        // The j-th latest other checkpoint of every run that has one; the rest keep their
+        // chosen model, and rows none of whose runs have a j-th checkpoint are skipped.
+        let models = trained
+            .iter()
+            .zip(&ckpts)
+            .map(|(t, c)| match c.get(j) {
+                Some(dir) => {
+                    let m = CandleModel::load_expect(dir, &task.spec())
+                        .with_context(|| format!("loading {}", dir.display()))?;
+                    Ok((t.policy, t.seed, Models::local(&m)?, true))
+                }
+                None => Ok((t.policy, t.seed, Models::local(&t.model)?, false)),
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let rows: Vec<_> = study
+            .rows
+            .iter()
+            .filter(|r| models.iter().any(|m| m.0 == r.row.policy && m.3))
+            .cloned()
+            .collect();
+        if rows.is_empty() {
+            break;
+        }
+        let sub = Study {
+            rows,
+            ..study.clone()
+        };
+        let cells = evaluate(
+            task,
+            &sub,
+            &|p, s| {
+                &models
+                    .iter()
+                    .find(|m| m.0 == p && m.1 == s)
+                    .expect("every policy of the study was trained")
+                    .2
+            },
+            pb,
+        )?;
+        for c in cells {
+            if let Some(b) = best
+                .iter_mut()
+                .find(|b| b.label == c.label && b.d0 == c.d0 && b.seed == c.seed)
+            {
+                if c.successes > b.successes {
+                    *b = c;
+                }
+            }
+        }
+    }
+    Ok(best)
+}
+
 /// Episodes `study` runs in total (for a progress bar).
 pub fn total_episodes<T: Task>(task: &T, study: &Study) -> usize {
     let s = task.settings();
@@ -499,7 +602,9 @@ pub fn total_episodes<T: Task>(task: &T, study: &Study) -> usize {
 }
 
 /// Run `study` on `task` into `out` (a new directory): demonstrations, training (checkpoints
-/// under `out/checkpoints/`), evaluation; writes `result.json`, `table.md`, `success.png`.
+/// under `out/checkpoints/`), evaluation; writes `result.json`, `table.md`, `success.png`
+/// (and, with the settings' `best_of_last` > 0, the best-checkpoint-per-cell cells, their
+/// table in `table.md` and `success-best-per-cell.png`).
 pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T::Config>> {
     prepare_out(out)?;
     let t0 = Instant::now();
@@ -540,6 +645,20 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
     )?;
     pb.finish();
     timings.push(("evaluate".to_string(), t2.elapsed().as_secs_f64()));
+    let k = task.settings().best_of_last;
+    let best_per_cell = if k > 0 {
+        let t3 = Instant::now();
+        let pb = bar(
+            (k * total_episodes(task, study)) as u64,
+            &format!("best checkpoint per cell (last {k})"),
+        );
+        let best = evaluate_best_per_cell(task, study, &trained, k, &cells, &pb)?;
+        pb.finish();
+        timings.push(("best per cell".to_string(), t3.elapsed().as_secs_f64()));
+        best
+    } else {
+        Vec::new()
+    };
     timings.push(("total".to_string(), t0.elapsed().as_secs_f64()));
     let result = StudyResult {
         study: study.name.clone(),
@@ -549,6 +668,8 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
         key: study.key.clone(),
         columns: study.columns.clone(),
         cells,
+        best_of_last: k,
+        best_per_cell,
         validation: trained
             .iter()
             .map(|t| (t.policy, t.seed, t.scores.clone()))
@@ -577,7 +698,11 @@ pub fn train_into<T: Task>(
                 out.display()
             )
         })?;
-        if before != config {
+        // Compared as configs, not as text: a field added later with its default does not
+        // make an earlier run's config differ.
+        let same = before == config
+            || toml::from_str::<T::Config>(&before).is_ok_and(|b| &b == task.config());
+        if !same {
             bail!(
                 "--resume: the config differs from the one {} was trained with ({}); \
                  resume with that config or train into a new directory",
@@ -616,5 +741,44 @@ pub fn write_outputs<T: Task>(
         "success rate",
         &series,
     )?;
+    if !result.best_per_cell.is_empty() {
+        let series = super::to_series(&result.best_per_cell, &result.labels, &result.columns);
+        plot_series(
+            &out.join("success-best-per-cell.png"),
+            &format!("{} (best checkpoint per cell)", task.title(&result.study)),
+            x_label,
+            "success rate",
+            &series,
+        )?;
+    }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn last_step_checkpoints_are_latest_first_without_the_chosen_one() {
+        let dir = std::env::temp_dir().join(format!("pir2-last-steps-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        for step in [100, 200, 300, 400] {
+            std::fs::create_dir_all(dir.join(format!("step-{step:06}"))).unwrap();
+        }
+        std::fs::create_dir_all(dir.join("best")).unwrap();
+        std::fs::write(dir.join("step-000500"), "a file, not a checkpoint").unwrap();
+        let names = |k| -> Vec<String> {
+            last_step_checkpoints(&dir, k)
+                .unwrap()
+                .iter()
+                .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+                .collect()
+        };
+        assert_eq!(names(2), ["step-000400", "step-000300"]);
+        std::fs::write(dir.join("best.json"), r#"{"step": 400, "score": 0.5}"#).unwrap();
+        assert_eq!(names(2), ["step-000300", "step-000200"]);
+        assert_eq!(names(9), ["step-000300", "step-000200", "step-000100"]);
+        assert!(names(0).is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
