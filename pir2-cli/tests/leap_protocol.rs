@@ -33,6 +33,8 @@ fn defaults_are_the_papers_simulation_protocol() {
     // No staleness training, no delay embedding; two observation frames.
     let spec = t.spec();
     assert_eq!((spec.d_vis_max, spec.n_obs), (0, 2));
+    // Two frames on the slow (cube) channel too: 2 × 9 values.
+    assert_eq!(spec.slow, pir2_runtime::SlowSpec::Vector { dim: 18 });
     // Naive async is the plain swap; temporal ensembling is a separate, labelled row.
     let rows = t.rows();
     let labels: Vec<&str> = rows.iter().map(|r| r.label.as_str()).collect();
@@ -100,4 +102,64 @@ fn the_zero_delay_policy_is_the_horizon_studys_and_validates_at_zero_latency() {
     assert_eq!(mode, t.validation_mode(Policy::PiR2));
     assert_eq!(timing, LockstepTiming::for_mode(&mode, t.settings().val_d0));
     assert_ne!(timing, LockstepTiming::zero_latency());
+}
+
+/// The evaluation environment stacks the slow frames exactly as training stacks the recorded
+/// ones: same seed, same actions, same values (sensing noise included).
+#[test]
+fn evaluation_stacks_slow_frames_as_training_does() {
+    use pir2_runtime::Environment;
+    use pir2_sim::dataset::Episode;
+    use pir2_sim::leap::{LeapConfig, LeapCubeEnv, LeapModel, NU};
+
+    let t = task(LeapStudyConfig {
+        max_steps: 40,
+        ..LeapStudyConfig::default()
+    });
+    let scene = LeapModel::load(None).expect("scene");
+    let mut bare = LeapCubeEnv::new(
+        &scene,
+        LeapConfig {
+            max_steps: 40,
+            ..LeapConfig::paper()
+        },
+    )
+    .expect("env");
+    let mut stacked = t.make_env().expect("env");
+    let (f, s) = (bare.spec().fast_dim, bare.spec().slow_dim);
+    assert_eq!(stacked.spec().slow_dim, 2 * s);
+    let mut recorded = Episode::new(f, s, NU);
+    let mut seen = Vec::new();
+    let (mut fast, mut slow, mut slow2) = (vec![0.0; f], vec![0.0; s], vec![0.0; 2 * s]);
+    let mut fast2 = vec![0.0; f];
+    bare.reset(7);
+    stacked.reset(7);
+    for k in 0..12 {
+        bare.observe(&mut fast, &mut slow);
+        stacked.observe(&mut fast2, &mut slow2);
+        assert_eq!(fast, fast2, "tick {k}");
+        let action: Vec<f32> = (0..NU)
+            .map(|i| 0.05 * ((i + k) % 3) as f32 - 0.05)
+            .collect();
+        recorded.push(&fast, &slow, &action);
+        seen.push(slow2.clone());
+        bare.step(&action);
+        stacked.step(&action);
+    }
+    let two = recorded.with_slow_frames(2);
+    for (k, s2) in seen.iter().enumerate() {
+        assert_eq!(two.slow(k), &s2[..], "tick {k}");
+    }
+    // The frames differ from tick to tick (the test would pass vacuously on a frozen cube).
+    assert_ne!(two.slow(11)[..s], two.slow(11)[s..]);
+}
+
+#[test]
+fn zero_slow_frames_is_refused_by_name() {
+    let e = LeapCubeTask::new(LeapStudyConfig {
+        slow_frames: 0,
+        ..LeapStudyConfig::default()
+    })
+    .unwrap_err();
+    assert!(e.to_string().contains("slow_frames"), "{e}");
 }

@@ -108,3 +108,146 @@ pub trait Environment: Send {
     /// Apply one action for one control period.
     fn step(&mut self, action: &[f32]) -> EnvStep;
 }
+
+/// An [`Environment`] whose slow observation is the last `frames` slow observations of the
+/// inner one, oldest first (`frames × slow_dim` values): `n_obs` for the slow channel. The
+/// first observation of an episode fills every frame (the history is padded by repeating
+/// it, as the fast history is). A new frame enters on the first [`Environment::observe`]
+/// after each [`Environment::step`]; observing again before the next step replaces the
+/// newest frame, so a driver that observes every tick (as the lock-step driver does) gets one
+/// frame per tick.
+///
+/// The lock-step driver delays the whole stacked observation, so a slow input `d` ticks old
+/// is the frames `t − d − frames + 1 ..= t − d`, the layout a dataset's episodes get from
+/// stacking their slow observations the same way.
+#[derive(Debug, Clone)]
+pub struct SlowFrames<E> {
+    inner: E,
+    frames: usize,
+    hist: Vec<f32>,
+    scratch: Vec<f32>,
+    /// Whether `hist` holds this episode's frames (false right after a reset).
+    filled: bool,
+    stepped: bool,
+}
+
+impl<E: Environment> SlowFrames<E> {
+    /// Wrap `inner`, stacking `frames` (≥ 1) slow observations.
+    ///
+    /// # Panics
+    /// If `frames` is 0.
+    pub fn new(inner: E, frames: usize) -> Self {
+        assert!(frames >= 1, "at least one slow frame");
+        let s = inner.spec().slow_dim;
+        Self {
+            inner,
+            frames,
+            hist: vec![0.0; frames * s],
+            scratch: vec![0.0; s],
+            filled: false,
+            stepped: false,
+        }
+    }
+    /// The wrapped environment.
+    pub fn inner(&self) -> &E {
+        &self.inner
+    }
+    /// The wrapped environment, mutably.
+    pub fn inner_mut(&mut self) -> &mut E {
+        &mut self.inner
+    }
+}
+
+impl<E: Environment> Environment for SlowFrames<E> {
+    fn spec(&self) -> EnvSpec {
+        let s = self.inner.spec();
+        EnvSpec {
+            slow_dim: s.slow_dim * self.frames,
+            ..s
+        }
+    }
+    fn reset(&mut self, seed: u64) {
+        self.inner.reset(seed);
+        self.filled = false;
+        self.stepped = false;
+    }
+    fn observe(&mut self, fast: &mut [f32], slow: &mut [f32]) {
+        let s = self.scratch.len();
+        self.inner.observe(fast, &mut self.scratch);
+        if !self.filled {
+            for k in 0..self.frames {
+                self.hist[k * s..(k + 1) * s].copy_from_slice(&self.scratch);
+            }
+            self.filled = true;
+        } else {
+            if self.stepped {
+                self.hist.copy_within(s.., 0);
+            }
+            let last = (self.frames - 1) * s;
+            self.hist[last..].copy_from_slice(&self.scratch);
+        }
+        self.stepped = false;
+        slow.copy_from_slice(&self.hist);
+    }
+    fn step(&mut self, action: &[f32]) -> EnvStep {
+        self.stepped = true;
+        self.inner.step(action)
+    }
+}
+
+#[cfg(test)]
+mod slow_frames_tests {
+    use super::*;
+
+    /// Slow observation = [tick, 10·tick]; fast = [tick].
+    struct Counter {
+        tick: u64,
+    }
+    impl Environment for Counter {
+        fn spec(&self) -> EnvSpec {
+            EnvSpec {
+                fast_dim: 1,
+                slow_dim: 2,
+                action_dim: 1,
+                control_period: 1,
+                max_steps: 10,
+            }
+        }
+        fn reset(&mut self, seed: u64) {
+            self.tick = seed;
+        }
+        fn observe(&mut self, fast: &mut [f32], slow: &mut [f32]) {
+            fast[0] = self.tick as f32;
+            slow.copy_from_slice(&[self.tick as f32, 10.0 * self.tick as f32]);
+        }
+        fn step(&mut self, _action: &[f32]) -> EnvStep {
+            self.tick += 1;
+            EnvStep::default()
+        }
+    }
+
+    #[test]
+    fn stacks_one_frame_per_tick_oldest_first_padded_at_the_start() {
+        let mut env = SlowFrames::new(Counter { tick: 0 }, 3);
+        assert_eq!(env.spec().slow_dim, 6);
+        let (mut f, mut s) = ([0.0], [0.0; 6]);
+        env.reset(5);
+        env.observe(&mut f, &mut s);
+        assert_eq!(s, [5.0, 50.0, 5.0, 50.0, 5.0, 50.0]);
+        // Observing twice in one tick does not shift the history.
+        env.observe(&mut f, &mut s);
+        assert_eq!(s, [5.0, 50.0, 5.0, 50.0, 5.0, 50.0]);
+        env.step(&[0.0]);
+        env.observe(&mut f, &mut s);
+        assert_eq!(s, [5.0, 50.0, 5.0, 50.0, 6.0, 60.0]);
+        env.step(&[0.0]);
+        env.step(&[0.0]); // a tick not observed is not in the history
+        env.observe(&mut f, &mut s);
+        assert_eq!(s, [5.0, 50.0, 6.0, 60.0, 8.0, 80.0]);
+        assert_eq!(f, [8.0]);
+        // A reset starts a new padded history.
+        env.reset(1);
+        env.observe(&mut f, &mut s);
+        assert_eq!(s, [1.0, 10.0, 1.0, 10.0, 1.0, 10.0]);
+    }
+}

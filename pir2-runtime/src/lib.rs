@@ -39,7 +39,7 @@ pub use error::{Error, Result};
 pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
 pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,
-    SlowSource,
+    SlowFrames, SlowSource,
 };
 pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use pir2_backends::config::{FilmMode, ModelConfig, SlowSpec, Spec, UNetConfig};
 use pir2_backends::train::TrainConfig;
-use pir2_runtime::{DelayLaw, LockstepTiming, Mode, Recipe};
+use pir2_runtime::{DelayLaw, LockstepTiming, Mode, Recipe, SlowFrames};
 use pir2_sim::dataset::{
     read_dataset, DatasetSpec, DatasetSummary, DatasetWriter, Episode, WriteMode,
 };
@@ -105,6 +105,11 @@ pub struct LeapStudyConfig {
     /// and the size of the delay embedding (paper's simulation: neither, 0; at deployment
     /// the slow features are still delayed by the mode's `d_vis`).
     pub d_vis_max: usize,
+    /// Slow (cube) frames the policies see, oldest first (the paper: `n_obs = 2` for both
+    /// channels; 1 gives the single-frame input of earlier runs). The frames are stacked from
+    /// the recorded per-tick observations in training and by [`SlowFrames`] in evaluation,
+    /// so a delayed slow input is delayed as a whole.
+    pub slow_frames: usize,
     /// Add the "naive async + TE" row (ACT temporal ensembling, which the paper uses only on
     /// the real robot) next to the paper's plain-swap naive async.
     pub te_row: bool,
@@ -143,6 +148,7 @@ impl Default for LeapStudyConfig {
             rtc_d_max: 10,
             jitter: 0.0,
             d_vis_max: 0,
+            slow_frames: 2,
             te_row: true,
             best_of_last: 0,
         }
@@ -187,15 +193,18 @@ pub fn dataset_spec() -> DatasetSpec {
     }
 }
 
-/// The model spec: H = 16, 16-d action, n_obs = 2, 32 fast, 9 slow, staleness training and
-/// delay embedding up to `d_vis_max` (the paper's simulation: 0).
-pub fn spec(d_vis_max: usize) -> Spec {
+/// The model spec: H = 16, 16-d action, n_obs = 2 fast frames of 32, `slow_frames` slow
+/// (cube) frames of 9 (the paper: 2), staleness training and delay embedding up to
+/// `d_vis_max` (the paper's simulation: 0).
+pub fn spec(d_vis_max: usize, slow_frames: usize) -> Spec {
     Spec {
         horizon: 16,
         action_dim: NU,
         n_obs: 2,
         fast_dim: 32,
-        slow: SlowSpec::Vector { dim: 9 },
+        slow: SlowSpec::Vector {
+            dim: 9 * slow_frames,
+        },
         d_vis_max,
     }
 }
@@ -220,8 +229,11 @@ impl std::fmt::Debug for LeapCubeTask {
 }
 
 impl LeapCubeTask {
-    /// Load the scene.
+    /// Load the scene. A config with `slow_frames = 0` is refused.
     pub fn new(cfg: LeapStudyConfig) -> Result<Self> {
+        if cfg.slow_frames == 0 {
+            bail!("config: slow_frames must be >= 1 (the paper uses 2)");
+        }
         Ok(Self {
             cfg,
             scene: load_model()?,
@@ -294,7 +306,7 @@ impl LeapCubeTask {
 }
 
 impl Task for LeapCubeTask {
-    type Env = LeapCubeEnv;
+    type Env = SlowFrames<LeapCubeEnv>;
     type Config = LeapStudyConfig;
 
     fn config(&self) -> &LeapStudyConfig {
@@ -329,19 +341,22 @@ impl Task for LeapCubeTask {
     }
 
     fn spec(&self) -> Spec {
-        spec(self.cfg.d_vis_max)
+        spec(self.cfg.d_vis_max, self.cfg.slow_frames)
     }
 
     fn period_ns(&self) -> u64 {
         20_000_000
     }
 
-    fn make_env(&self) -> Result<LeapCubeEnv> {
+    fn make_env(&self) -> Result<SlowFrames<LeapCubeEnv>> {
         let cfg = LeapConfig {
             max_steps: self.cfg.max_steps,
             ..LeapConfig::paper()
         };
-        Ok(LeapCubeEnv::new(&self.scene, cfg)?)
+        Ok(SlowFrames::new(
+            LeapCubeEnv::new(&self.scene, cfg)?,
+            self.cfg.slow_frames,
+        ))
     }
 
     /// U-Net with per-position FiLM for the πR² policies, shared FiLM for the baselines.
@@ -430,7 +445,11 @@ impl Task for LeapCubeTask {
 
     /// The successful episodes of the config's dataset.
     fn demonstrations(&self, _out: &Path) -> Result<Vec<Episode>> {
-        load_demos(Path::new(&self.cfg.dataset))
+        let demos = load_demos(Path::new(&self.cfg.dataset))?;
+        Ok(demos
+            .iter()
+            .map(|e| e.with_slow_frames(self.cfg.slow_frames))
+            .collect())
     }
 
     fn title(&self, study: &str) -> String {

@@ -139,6 +139,32 @@ impl Episode {
         self.action.extend_from_slice(action);
     }
 
+    /// The episode with `frames` slow observations per frame, oldest first: frame `t` holds
+    /// the slow observations of frames `t − frames + 1 ..= t`, the first frame repeated
+    /// before the episode start (as the fast history is padded). This is what
+    /// [`pir2_runtime::io::SlowFrames`] produces at deployment from one frame per tick, so a
+    /// policy trained on it sees the same layout, delays included (a slow input `d` ticks
+    /// old is frames `t − d − frames + 1 ..= t − d`). `frames = 1` returns a copy.
+    ///
+    /// # Panics
+    /// If `frames` is 0.
+    pub fn with_slow_frames(&self, frames: usize) -> Episode {
+        assert!(frames >= 1, "at least one slow frame");
+        let s = self.slow_dim;
+        let mut slow = Vec::with_capacity(self.len() * s * frames);
+        for t in 0..self.len() {
+            for j in 0..frames {
+                let tt = (t + j + 1).saturating_sub(frames);
+                slow.extend_from_slice(&self.slow[tt * s..(tt + 1) * s]);
+            }
+        }
+        Episode {
+            slow,
+            slow_dim: s * frames,
+            ..self.clone()
+        }
+    }
+
     /// Fast observation of frame `t`.
     pub fn fast(&self, t: usize) -> &[f32] {
         &self.fast[t * self.fast_dim..(t + 1) * self.fast_dim]

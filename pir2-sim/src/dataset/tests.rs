@@ -487,3 +487,20 @@ fn rejects_misshapen_episodes() {
     ));
     let _ = fs::remove_dir_all(&root);
 }
+
+#[test]
+fn slow_frames_stack_oldest_first_padded_with_the_first_frame() {
+    let mut e = Episode::new(1, 2, 1);
+    for t in 0..4 {
+        let t = t as f32;
+        e.push(&[t], &[t, -t], &[0.5 * t]);
+    }
+    let two = e.with_slow_frames(2);
+    assert_eq!(two.slow_dim, 4);
+    assert_eq!(two.slow(0), [0.0, -0.0, 0.0, -0.0]);
+    assert_eq!(two.slow(1), [0.0, -0.0, 1.0, -1.0]);
+    assert_eq!(two.slow(3), [2.0, -2.0, 3.0, -3.0]);
+    // Everything else is kept.
+    assert_eq!((two.fast, two.action), (e.fast.clone(), e.action.clone()));
+    assert_eq!(e.with_slow_frames(1), e);
+}
