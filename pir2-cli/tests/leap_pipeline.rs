@@ -65,15 +65,16 @@ fn leap_pipeline_runs_end_to_end() {
         ..LeapStudyConfig::default()
     };
     let r = study_deployment(&cfg, &dir.join("deployment")).expect("deployment study");
-    // Rows: naive async (plain swap), naive async + TE (labelled extra), train-time RTC, πR²
-    // w/o async, πR² async, πR² full ramp.
-    assert_eq!(r.labels.len(), 6, "{:?}", r.labels);
+    // Rows: sync flow (h = d), naive async (plain swap), naive async + TE (labelled extra),
+    // train-time RTC, πR² w/o async, πR² async, πR² full ramp.
+    assert_eq!(r.labels.len(), 7, "{:?}", r.labels);
+    assert!(r.labels[0].starts_with("sync flow"), "{:?}", r.labels);
     assert!(
         r.labels.iter().any(|l| l == "naive async"),
         "{:?}",
         r.labels
     );
-    assert_eq!(r.cells.len(), 6 * 2);
+    assert_eq!(r.cells.len(), 7 * 2);
     assert!(r.cells.iter().all(|c| c.episodes == 1 && c.successes <= 1));
     let t = std::fs::read_to_string(dir.join("deployment/table.md")).expect("table");
     assert!(t.contains("πR² async (n=2)") && t.contains("d0=3"), "{t}");

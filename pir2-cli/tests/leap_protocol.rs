@@ -35,6 +35,12 @@ fn defaults_are_the_papers_simulation_protocol() {
     assert_eq!((spec.d_vis_max, spec.n_obs), (0, 2));
     // Two frames on the slow (cube) channel too: 2 × 9 values.
     assert_eq!(spec.slow, pir2_runtime::SlowSpec::Vector { dim: 18 });
+    // The deployment study starts with sync flow acting h = d (the paper: "h = d for all
+    // methods"), then the rows.
+    let study = t.deployment_study();
+    assert_eq!(study.rows[0].sweep, Sweep::UnitDelaySync);
+    assert!(matches!(study.rows[0].row.mode, Mode::SyncFlow { steps: 15, .. }));
+    assert_eq!(study.rows.len(), t.rows().len() + 1);
     // Naive async is the plain swap; temporal ensembling is a separate, labelled row.
     let rows = t.rows();
     let labels: Vec<&str> = rows.iter().map(|r| r.label.as_str()).collect();

@@ -240,6 +240,30 @@ impl LeapCubeTask {
         })
     }
 
+    /// The deployment study: every row of [`Task::rows`] at each unit delay of `d0s`, after a
+    /// sync-flow row (when `flow` is trained) that acts with `h = d` and holds the robot while
+    /// each call runs.
+    pub fn deployment_study(&self) -> Study {
+        let mut study = Study::deployment(self.rows(), &self.cfg.d0s);
+        if self.cfg.policies.contains(&Policy::Flow) {
+            study.rows.insert(
+                0,
+                StudyRow {
+                    row: Row {
+                        label: "sync flow (h = d, waits during inference)".into(),
+                        policy: Policy::Flow,
+                        mode: Mode::SyncFlow {
+                            steps: self.cfg.flow_steps,
+                            h: 1,
+                        },
+                    },
+                    sweep: Sweep::UnitDelaySync,
+                },
+            );
+        }
+        study
+    }
+
     /// The horizon study at zero delay (`call_ticks = 0`, no slow delay): sync flow with
     /// each `h ∈ hs` vs πR² (n = `nfe`; the `d_max = 0` policy when `policies` holds
     /// `pir2_zero_delay`, the paper's variant; and the full ramp), which acts every tick. πR²
@@ -616,8 +640,7 @@ pub fn train_policies(
 /// `result.json`, `table.md`, `success.png` into `out` (a new directory).
 pub fn study_deployment(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResult> {
     let task = LeapCubeTask::new(cfg.clone())?;
-    let study = Study::deployment(task.rows(), &cfg.d0s);
-    pipeline::run(&task, &study, out)
+    pipeline::run(&task, &task.deployment_study(), out)
 }
 
 /// Horizon study ([`LeapCubeTask::horizon_study`]) into `out` (a new directory).

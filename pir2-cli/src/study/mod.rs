@@ -142,6 +142,10 @@ pub enum Sweep {
     UnitDelay,
     /// Columns are execution horizons `h` of a sync-flow row, at zero latency.
     Horizon,
+    /// Columns are unit delays `d0` of a sync-flow row with the paper's timing at `d0` and the
+    /// execution horizon `h = d` (the paper's "h = d for all methods"); the robot holds its
+    /// last action while a call runs.
+    UnitDelaySync,
     /// One evaluation per seed with this timing, repeated in every column.
     Once(LockstepTiming),
 }

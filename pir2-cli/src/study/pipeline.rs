@@ -464,6 +464,19 @@ pub fn evaluate<'m, T: Task>(
                         ));
                         res
                     }
+                    (Sweep::UnitDelaySync, None) => {
+                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
+                            bail!("row {label}: a sync unit-delay sweep needs a sync-flow mode");
+                        };
+                        let timing = LockstepTiming::for_mode(&r.row.mode, col);
+                        let h = timing.call_ticks.max(1);
+                        let res = run(&Mode::SyncFlow { steps, h }, timing)?;
+                        log_line(&format!(
+                            "{label} d0={col} (h={h}) seed {seed}: {}/{}",
+                            res.0, s.episodes
+                        ));
+                        res
+                    }
                     _ => {
                         let mode = &r.row.mode;
                         let res = run(mode, LockstepTiming::for_mode(mode, col))?;
