@@ -169,3 +169,31 @@ fn zero_slow_frames_is_refused_by_name() {
     .unwrap_err();
     assert!(e.to_string().contains("slow_frames"), "{e}");
 }
+
+/// The committed study config parses and is the paper's protocol at the stated scale.
+#[test]
+fn the_committed_study_config_is_the_papers_protocol() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../studies/leap-cube/study.toml");
+    let text = std::fs::read_to_string(path).expect("studies/leap-cube/study.toml");
+    let cfg: LeapStudyConfig = toml::from_str(&text).expect("a valid study config");
+    let paper = LeapStudyConfig::default();
+    assert_eq!((cfg.episodes, cfg.seeds.len(), cfg.d0s.clone()), (100, 3, vec![1, 2, 3]));
+    assert_eq!((cfg.hs.clone(), cfg.max_steps), (vec![1, 2, 4, 8], 600));
+    assert_eq!((cfg.batch_size, cfg.lr, cfg.warmup), (256, 1e-4, 500));
+    assert!(cfg.val_episodes >= 20);
+    assert_eq!(
+        (cfg.delays, cfg.pir2_d_max, cfg.rtc_d_max, cfg.flow_steps),
+        (paper.delays, 5, 10, 15)
+    );
+    assert_eq!((cfg.d_vis_max, cfg.slow_frames), (0, 2));
+    for p in [
+        Policy::Flow,
+        Policy::Rtc,
+        Policy::PiR2,
+        Policy::PiR2Hidden,
+        Policy::PiR2Full,
+        Policy::PiR2ZeroDelay,
+    ] {
+        assert!(cfg.policies.contains(&p), "{p:?}");
+    }
+}
