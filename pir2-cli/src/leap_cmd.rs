@@ -92,7 +92,7 @@ fn load_config(args: &LeapArgs) -> Result<crate::study::leap_cube::LeapStudyConf
     Ok(cfg)
 }
 
-/// `pir2 train leap-cube`: train `policies` (all four of the study when empty) × the
+/// `pir2 train leap-cube`: train `policies` (the config's `policies` when empty) × the
 /// config's seeds into `out`; `resume` continues an interrupted run there.
 pub fn train(
     args: &LeapArgs,
@@ -105,7 +105,7 @@ pub fn train(
         use crate::study::leap_cube;
         let cfg = load_config(args)?;
         let ps = if policies.is_empty() {
-            leap_cube::POLICIES.to_vec()
+            cfg.policies.clone()
         } else {
             policies.to_vec()
         };

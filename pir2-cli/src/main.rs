@@ -102,7 +102,7 @@ enum Cmd {
         #[arg(long)]
         overwrite: bool,
     },
-    /// Train one policy (candle MLP; leap-cube: U-Nets, all four study policies unless
+    /// Train one policy (candle MLP; leap-cube: U-Nets, the config's `policies` unless
     /// --policy) on a dataset; the checkpoint is picked in closed loop.
     Train {
         /// The task (leap-cube needs a build with `--features mujoco`).

@@ -39,7 +39,10 @@ fn defaults_are_the_papers_simulation_protocol() {
     // methods"), then the rows.
     let study = t.deployment_study();
     assert_eq!(study.rows[0].sweep, Sweep::UnitDelaySync);
-    assert!(matches!(study.rows[0].row.mode, Mode::SyncFlow { steps: 15, .. }));
+    assert!(matches!(
+        study.rows[0].row.mode,
+        Mode::SyncFlow { steps: 15, .. }
+    ));
     assert_eq!(study.rows.len(), t.rows().len() + 1);
     // Naive async is the plain swap; temporal ensembling is a separate, labelled row.
     let rows = t.rows();
@@ -173,11 +176,17 @@ fn zero_slow_frames_is_refused_by_name() {
 /// The committed study config parses and is the paper's protocol at the stated scale.
 #[test]
 fn the_committed_study_config_is_the_papers_protocol() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../studies/leap-cube/study.toml");
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../studies/leap-cube/study.toml"
+    );
     let text = std::fs::read_to_string(path).expect("studies/leap-cube/study.toml");
     let cfg: LeapStudyConfig = toml::from_str(&text).expect("a valid study config");
     let paper = LeapStudyConfig::default();
-    assert_eq!((cfg.episodes, cfg.seeds.len(), cfg.d0s.clone()), (100, 3, vec![1, 2, 3]));
+    assert_eq!(
+        (cfg.episodes, cfg.seeds.len(), cfg.d0s.clone()),
+        (100, 3, vec![1, 2, 3])
+    );
     assert_eq!((cfg.hs.clone(), cfg.max_steps), (vec![1, 2, 4, 8], 600));
     assert_eq!((cfg.batch_size, cfg.lr, cfg.warmup), (256, 1e-4, 500));
     assert!(cfg.val_episodes >= 20);
