@@ -292,6 +292,25 @@ struct RunArgs {
     /// Write the run summary (and the per-call trace) as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Deployment (default: the checkpoint's `[policy] mode`, else pir2_async). A mode the
+    /// action head was not trained for (`[policy] trained`) is refused.
+    #[arg(long, value_parser = ["pir2_async", "pir2_sync", "sync_flow", "naive_async", "rtc"])]
+    mode: Option<String>,
+    /// πR²: NFEs per action (must equal the checkpoint's `[policy] nfe`).
+    #[arg(long)]
+    nfe: Option<usize>,
+    /// Flow baselines and train-time RTC: Euler steps K per chunk.
+    #[arg(long)]
+    flow_steps: Option<usize>,
+    /// Sync flow: actions executed per chunk.
+    #[arg(long)]
+    h: Option<usize>,
+    /// Naive async: ACT temporal ensembling with this decay m.
+    #[arg(long, conflicts_with = "no_ensemble")]
+    ensemble: Option<f32>,
+    /// Naive async: plain swap even if the checkpoint's `[policy] ensemble` is set.
+    #[arg(long)]
+    no_ensemble: bool,
 }
 
 impl From<RunArgs> for RunOptions {
@@ -316,6 +335,12 @@ impl From<RunArgs> for RunOptions {
             slow_timeout: a.slow_timeout,
             slow_grace_ms: a.slow_grace_ms,
             json: a.json,
+            mode: a.mode,
+            nfe: a.nfe,
+            flow_steps: a.flow_steps,
+            h: a.h,
+            ensemble: a.ensemble,
+            no_ensemble: a.no_ensemble,
         }
     }
 }

@@ -70,6 +70,19 @@ pub struct RunOptions {
     pub slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here.
     pub json: Option<PathBuf>,
+    /// Deployment: `pir2_async`, `pir2_sync`, `sync_flow`, `naive_async` or `rtc` (`None`:
+    /// the checkpoint's `[policy] mode`).
+    pub mode: Option<String>,
+    /// πR² NFEs per action (`None`: the checkpoint's; another value is refused).
+    pub nfe: Option<usize>,
+    /// Euler steps `K` of the flow baselines (`None`: the checkpoint's).
+    pub flow_steps: Option<usize>,
+    /// Sync flow's `h` (`None`: the checkpoint's).
+    pub h: Option<usize>,
+    /// Naive async: temporal ensembling decay (`None`: the checkpoint's).
+    pub ensemble: Option<f32>,
+    /// Naive async: plain swap whatever the checkpoint says.
+    pub no_ensemble: bool,
 }
 
 /// What a run reports (printed, and written by `--json`).
@@ -77,6 +90,8 @@ pub struct RunOptions {
 pub struct RunSummary {
     /// The prompt sent to the backbone.
     pub prompt: String,
+    /// The deployment mode and its schedule.
+    pub mode: pir2_runtime::Mode,
     /// Where the robot was (`emulated` or the devices).
     pub robot: String,
     /// Where the backbone features came from.
@@ -108,6 +123,7 @@ impl std::fmt::Display for RunSummary {
         let t = &self.trace;
         let us = |n: u64| n as f64 / 1e3;
         writeln!(f, "prompt: {:?}", self.prompt)?;
+        writeln!(f, "mode: {}", self.mode.describe())?;
         writeln!(f, "robot: {}; slow features: {}", self.robot, self.slow)?;
         writeln!(f, "action head: {}", self.head)?;
         writeln!(
@@ -214,8 +230,8 @@ mod imp {
 
     use pir2_backends::gr00t::testing::SyntheticCamera;
     use pir2_backends::gr00t::{
-        load_action_head, run_gr00t_report, CheckpointFiles, EmbodimentConfig, Gr00tActionHead,
-        Gr00tRunOptions, HeadChoice,
+        load_action_head, run_gr00t_report, CheckpointFiles, DeployKind, EmbodimentConfig,
+        Gr00tActionHead, Gr00tRunOptions, HeadChoice, ModeOverrides,
     };
     use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
     use pir2_robots::robot::SharedRobot;
@@ -319,6 +335,28 @@ mod imp {
         Ok(head)
     }
 
+    /// The run's overrides of the checkpoint's `[policy]` table.
+    pub(super) fn mode_overrides(args: &RunOptions) -> Result<ModeOverrides> {
+        let mode = match &args.mode {
+            Some(m) => Some(DeployKind::parse(m).with_context(|| {
+                let names: Vec<&str> = DeployKind::ALL.iter().map(|k| k.name()).collect();
+                format!("--mode {m}: not one of {}", names.join(", "))
+            })?),
+            None => None,
+        };
+        Ok(ModeOverrides {
+            mode,
+            nfe: args.nfe,
+            flow_steps: args.flow_steps,
+            h: args.h,
+            ensemble: if args.no_ensemble {
+                Some(None)
+            } else {
+                args.ensemble.map(Some)
+            },
+        })
+    }
+
     /// The action head of the run and how to report it.
     struct Head {
         choice: HeadChoice,
@@ -389,6 +427,10 @@ mod imp {
     pub(super) fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
         let cfg = embodiment(args)?;
         check_task(&cfg, &args.task, args.free_prompt)?;
+        // The deployment against what the head was trained as, before anything is loaded.
+        cfg.policy
+            .mode(&mode_overrides(args)?)
+            .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
         let head = head(args, preflight(args)?)?;
         let max_ticks = match (args.ticks, args.seconds) {
             (Some(t), _) => Some(t),
@@ -523,6 +565,7 @@ mod imp {
         let head_stats = head.stats.clone();
         let what = head.what.clone();
         let opts = Gr00tRunOptions {
+            mode: mode_overrides(args)?,
             head: head.choice,
             max_ticks,
             clock: clock.clone(),
@@ -558,6 +601,7 @@ mod imp {
             let period = (1e9 / report.embodiment.control_hz).round() as u64;
             RunSummary {
                 prompt: report.prompt,
+                mode: report.mode,
                 robot: robot.to_string(),
                 slow: "backbone.onnx on a synthetic camera (local slow worker)".into(),
                 head: String::new(),
@@ -637,6 +681,7 @@ mod imp {
         let period = (1e9 / report.embodiment.control_hz).round() as u64;
         Ok(RunSummary {
             prompt: report.prompt,
+            mode: report.mode,
             robot: robot.to_string(),
             slow: format!("pir2 serve slow at {endpoint}"),
             head: String::new(),

@@ -72,6 +72,44 @@ impl Mode {
         }
     }
 
+    /// The mode with its schedule, for logs and run summaries, e.g. `πR² async (n = 2, fresh
+    /// alignment, front visible)` or `sync flow (K = 4, h = 10)`.
+    pub fn describe(&self) -> String {
+        let pir2 = |nfe: &Option<usize>, alignment: &Alignment, front: &FrontMode| {
+            let n = match nfe {
+                Some(n) => format!("n = {n}"),
+                None => "full ramp".to_string(),
+            };
+            let a = match alignment {
+                Alignment::Fresh => "fresh alignment",
+                Alignment::Paper => "paper alignment",
+            };
+            let f = match front {
+                FrontMode::Visible => "front visible",
+                FrontMode::Hidden => "front hidden",
+            };
+            format!("{} ({n}, {a}, {f})", self.name())
+        };
+        match self {
+            Mode::SyncFlow { steps, h } => format!("sync flow (K = {steps}, h = {h})"),
+            Mode::NaiveAsync { steps, ensemble } => match ensemble {
+                Some(m) => format!("naive async (K = {steps}, temporal ensembling m = {m})"),
+                None => format!("naive async (K = {steps}, plain swap)"),
+            },
+            Mode::TrainTimeRtc { steps } => format!("train-time RTC (K = {steps})"),
+            Mode::PiR2Sync {
+                nfe,
+                alignment,
+                front,
+            }
+            | Mode::PiR2Async {
+                nfe,
+                alignment,
+                front,
+            } => pir2(nfe, alignment, front),
+        }
+    }
+
     /// The paper's effective delays for unit delay `d0` (docs/method.md §4): `⌈1.75·d0⌉` for the
     /// `K`-step baselines, `d0` for πR² without async (action head + slow encoder in one
     /// call), and `1` for πR² with async plus `d_vis = d0` on the slow subset.

@@ -45,8 +45,9 @@ pub use backbone::{
     build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
 };
 pub use config::{
-    ActionLimits, CheckpointFiles, EmbodimentConfig, Group, GroupLimits, Norm, Normalizer,
-    SafetySection, DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
+    policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupLimits,
+    ModeOverrides, Norm, Normalizer, PolicySection, SafetySection, DEFAULT_SLOW_GRACE_MS,
+    PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

@@ -2,9 +2,13 @@
 //!
 //! Loads a checkpoint directory (layout in [`CheckpointFiles::in_dir`] and
 //! `docs/gr00t-contract.md`), builds the [`Gr00tActionHead`] and the backbone, and runs the
-//! runtime's real-time driver: the action head makes one πR² call per tick on the action
-//! worker, the backbone runs on the slow worker (`SlowChannel::Async`) and its features are
-//! cached with the frame's capture time, so each call sees `d_vis = round((t_state − t_image)/T)`.
+//! runtime's real-time driver in the deployment the embodiment's `[policy]` table names
+//! ([`PolicySection`](super::config::PolicySection), overridable per run): in πR² async (the
+//! default) the action head makes one πR² call per tick on the action worker, the backbone
+//! runs on the slow worker (`SlowChannel::Async`) and its features are cached with the frame's
+//! capture time, so each call sees `d_vis = round((t_state − t_image)/T)`; the other rows of
+//! the paper's robot table (sync flow with `h`, naive async ± temporal ensembling, train-time
+//! RTC, πR² without async) run the backbone inside each call (`SlowChannel::Inline`).
 //!
 //! Wiring for `pir2 run gr00t-xarm-xhand --checkpoint DIR --task "catch the book"` (the robot
 //! from `pir2-robots`, any camera implementing [`SlowSource`] on the same clock):
@@ -24,14 +28,14 @@ use std::time::Duration;
 
 use pir2_runtime::realtime::{run, RealtimeConfig, SlowChannel};
 use pir2_runtime::{
-    ActionHead, Actuator, CallPolicy, Clock, ControlConfig, FastSource, HeadMode, HeadSpec,
-    LatencyWindow, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock,
-    VelocityModel,
+    ActionHead, Actuator, Clock, ControlConfig, FastSource, HeadMode, HeadSpec, LatencyWindow,
+    Mode, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
 };
-use pir2_schedule::{Alignment, FrontMode};
 
 use super::backbone::{Gr00tBackbone, PromptTokenizer, VocabTokenizer};
-use super::config::{read_embodiment_id, CheckpointFiles, EmbodimentConfig, Normalizer};
+use super::config::{
+    read_embodiment_id, CheckpointFiles, EmbodimentConfig, ModeOverrides, Normalizer,
+};
 use super::error::{Gr00tError, Result};
 use super::head::{Gr00tActionHead, VlLayout};
 use crate::ort::OrtOptions;
@@ -135,13 +139,11 @@ pub struct Gr00tRunOptions {
     pub backbone: BackboneChoice,
     /// The action head.
     pub head: HeadChoice,
-    /// NFEs per action (`None` = full ramp; docs/method.md §1 recommends a short ramp).
-    pub nfe: Option<usize>,
-    /// Staircase alignment.
-    pub alignment: Alignment,
-    /// Front visibility.
-    pub front: FrontMode,
-    /// Euler steps of the warm start.
+    /// The deployment: the embodiment's `[policy]` table (what the head was trained as, and
+    /// its default mode) with these overrides. A mode the head was not trained for is an
+    /// error before anything is loaded onto the robot.
+    pub mode: ModeOverrides,
+    /// Euler steps of the warm start (πR² modes).
     pub warm_start_steps: usize,
     /// Latency window length `W` (calls).
     pub window: usize,
@@ -169,9 +171,7 @@ impl Default for Gr00tRunOptions {
             ort: OrtOptions::default(),
             backbone: BackboneChoice::Onnx { tokenizer: None },
             head: HeadChoice::Local,
-            nfe: Some(2),
-            alignment: Alignment::Fresh,
-            front: FrontMode::Visible,
+            mode: ModeOverrides::default(),
             warm_start_steps: 4,
             window: 20,
             max_ticks: None,
@@ -195,6 +195,8 @@ pub struct Gr00tRunReport {
     pub prompt: String,
     /// The embodiment used.
     pub embodiment: EmbodimentConfig,
+    /// The deployment mode run (mode and schedule).
+    pub mode: Mode,
 }
 
 /// Run the GR00T-N1.7 xArm6 + XHand stack on `fast`/`actuator` (the robot's proprioception
@@ -286,6 +288,7 @@ where
         None => EmbodimentConfig::xarm6_xhand(),
     };
     cfg.validate()?;
+    let run_mode = cfg.policy.mode(&opts.mode)?;
     let prompt = cfg.prompt_for(task).to_string();
     if prompt.trim().is_empty() {
         return Err(Gr00tError::Config("empty task prompt".to_string()));
@@ -368,17 +371,12 @@ where
         d_max: cfg.d_max,
         d_vis_max: cfg.d_vis_max,
     };
-    let mode = HeadMode::PiR2 {
-        nfe: opts.nfe,
-        alignment: opts.alignment,
-        front: opts.front,
-        warm_start_steps: opts.warm_start_steps,
-    };
+    let mode = run_mode.head_mode(opts.warm_start_steps);
     let control = ControlConfig {
         horizon: cfg.horizon,
         action_dim: cfg.action_dim(),
-        policy: CallPolicy::Async,
-        ensemble: None,
+        policy: run_mode.call_policy(),
+        ensemble: run_mode.ensemble(),
         output: norm.action_output_map(),
     };
     let rt = RealtimeConfig {
@@ -388,9 +386,18 @@ where
         slow_timeout: opts.slow_timeout,
         rt_priority: None,
     };
-    let slow = SlowChannel::Async {
-        source: Box::new(camera),
-        encoder,
+    // Only πR² async runs the backbone on its own worker; every other row of the paper's
+    // table runs it inside each call, so its time counts in the call's `d`.
+    let slow = if matches!(run_mode, Mode::PiR2Async { .. }) {
+        SlowChannel::Async {
+            source: Box::new(camera),
+            encoder,
+        }
+    } else {
+        SlowChannel::Inline {
+            source: Box::new(camera),
+            encoder,
+        }
     };
     let slow_grace = opts.slow_grace.unwrap_or(cfg.slow_grace());
     if slow_grace.is_zero() {
@@ -429,6 +436,7 @@ where
         d_vis_counts,
         prompt,
         embodiment: cfg,
+        mode: run_mode,
     })
 }
 
