@@ -101,12 +101,21 @@ fn apply(bytes: &[u8], edits: &[Edit]) -> Vec<u8> {
     b
 }
 
+/// Puts a file's original bytes back when dropped (also when the case panicked, so the
+/// next case and the shrinking start from the valid dataset).
+struct Restore(PathBuf, Vec<u8>);
+impl Drop for Restore {
+    fn drop(&mut self) {
+        let _ = fs::write(&self.0, &self.1);
+    }
+}
+
 /// Write `bytes` to `rel` under `root`, read the dataset (must not panic), restore the file.
 fn read_with(root: &Path, rel: &str, original: &[u8], bytes: &[u8]) {
     let path = root.join(rel);
+    let _restore = Restore(path.clone(), original.to_vec());
     fs::write(&path, bytes).unwrap();
     let _ = read_dataset(root);
-    fs::write(&path, original).unwrap();
 }
 
 const FILES: [&str; 4] = [
