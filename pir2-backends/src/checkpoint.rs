@@ -46,7 +46,42 @@ fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<()> {
         path: path.to_owned(),
         message: e.to_string(),
     })?;
-    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+    write_durable(path, text.as_bytes())
+}
+
+/// Write `bytes` to a new file `path` and fsync it.
+fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    f.write_all(bytes).map_err(|e| Error::io(path, e))?;
+    f.sync_all().map_err(|e| Error::io(path, e))
+}
+
+/// fsync a directory (its entries: the files created or renamed in it).
+fn sync_dir(path: &Path) -> Result<()> {
+    std::fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+/// A temporary sibling of `dir` no other writer uses: `.<name>.tmp-<pid>-<nanos>-<n>`, `n`
+/// counting the saves of this process.
+fn unique_temp(dir: &Path) -> PathBuf {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static SAVES: AtomicU64 = AtomicU64::new(0);
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    let leaf = dir
+        .file_name()
+        .map(|f| f.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    dir.with_file_name(format!(
+        ".{leaf}.tmp-{}-{nanos}-{}",
+        std::process::id(),
+        SAVES.fetch_add(1, Ordering::Relaxed)
+    ))
 }
 
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
@@ -58,7 +93,8 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
 }
 
 /// Write a checkpoint into a new directory `dir` (its parent is created if needed).
-/// Fails with [`Error::CheckpointExists`] if `dir` exists.
+/// Fails with [`Error::CheckpointExists`] if `dir` exists. The files are written into a
+/// uniquely named temporary sibling, fsynced, and renamed into place.
 pub fn save<'a>(
     dir: &Path,
     config: &Config,
@@ -68,12 +104,36 @@ pub fn save<'a>(
     if dir.exists() {
         return Err(Error::CheckpointExists(dir.to_owned()));
     }
-    // Write into a sibling temp dir, then rename: a crash never leaves a half checkpoint.
-    let tmp = dir.with_extension("partial");
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    // Write into a temp sibling of our own (never another writer's), fsync every file and
+    // the directory, then rename into place and fsync the parent: a crash leaves either no
+    // checkpoint or a whole one, and two saves never share a temp directory.
+    let parent = match dir.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&parent).map_err(|e| Error::io(&parent, e))?;
+    let tmp = unique_temp(dir);
+    std::fs::create_dir(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    let written = write_files(&tmp, config, stats, tensors).and_then(|()| sync_dir(&tmp));
+    let renamed = written.and_then(|()| {
+        if dir.exists() {
+            return Err(Error::CheckpointExists(dir.to_owned()));
+        }
+        std::fs::rename(&tmp, dir).map_err(|e| Error::io(dir, e))
+    });
+    if let Err(e) = renamed {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
     }
-    std::fs::create_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    sync_dir(&parent)
+}
+
+fn write_files<'a>(
+    tmp: &Path,
+    config: &Config,
+    stats: &Stats,
+    tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
+) -> Result<()> {
     write_json(&tmp.join(CONFIG_FILE), config)?;
     write_json(&tmp.join(STATS_FILE), stats)?;
     let wpath = tmp.join(WEIGHTS_FILE);
@@ -93,8 +153,7 @@ pub fn save<'a>(
         ));
     }
     let bytes = safetensors::serialize(views, None).map_err(st_err)?;
-    std::fs::write(&wpath, bytes).map_err(|e| Error::io(&wpath, e))?;
-    std::fs::rename(&tmp, dir).map_err(|e| Error::io(dir, e))
+    write_durable(&wpath, &bytes)
 }
 
 impl Checkpoint {

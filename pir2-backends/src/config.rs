@@ -42,9 +42,31 @@ pub struct Spec {
     pub d_vis_max: usize,
 }
 
+/// Bound on every size a [`Config`] declares (widths, lengths, depths, counts): configs
+/// come from files, and a larger size is refused by name before any shape arithmetic
+/// could overflow or any buffer be sized from it.
+pub const MAX_SIZE: usize = 1 << 16;
+
+fn bounded(field: &'static str, v: usize) -> Result<()> {
+    if v > MAX_SIZE {
+        return Err(Error::config(
+            field,
+            format!("{v} is above the limit {MAX_SIZE}"),
+        ));
+    }
+    Ok(())
+}
+
 impl Spec {
     /// Validate sizes.
     pub fn validate(&self) -> Result<()> {
+        bounded("spec.horizon", self.horizon)?;
+        bounded("spec.action_dim", self.action_dim)?;
+        bounded("spec.n_obs", self.n_obs)?;
+        bounded("spec.fast_dim", self.fast_dim)?;
+        bounded("spec.slow", self.slow.width())?;
+        bounded("spec.slow", self.slow.tokens())?;
+        bounded("spec.d_vis_max", self.d_vis_max)?;
         if self.horizon == 0 {
             return Err(Error::config("spec.horizon", "must be >= 1"));
         }
@@ -218,6 +240,10 @@ impl Config {
         self.spec.validate()?;
         match &self.model {
             ModelConfig::Mlp(m) => {
+                bounded("mlp.width", m.width)?;
+                bounded("mlp.depth", m.depth)?;
+                bounded("mlp.tau_freqs", m.tau_freqs)?;
+                bounded("mlp.dvis_dim", m.dvis_dim)?;
                 if m.width == 0 || m.depth == 0 {
                     return Err(Error::config("mlp.width/depth", "must be >= 1"));
                 }
@@ -226,6 +252,15 @@ impl Config {
                 if u.widths.is_empty() {
                     return Err(Error::config("unet.widths", "needs at least one level"));
                 }
+                if u.widths.len() > 16 {
+                    return Err(Error::config("unet.widths", "at most 16 levels"));
+                }
+                for &w in &u.widths {
+                    bounded("unet.widths", w)?;
+                }
+                bounded("unet.kernel", u.kernel)?;
+                bounded("unet.tau_dim", u.tau_dim)?;
+                bounded("unet.dvis_dim", u.dvis_dim)?;
                 if u.kernel % 2 == 0 {
                     return Err(Error::config(
                         "unet.kernel",
@@ -242,7 +277,11 @@ impl Config {
                     return Err(Error::config("unet.tau_dim", "must be even and >= 2"));
                 }
                 let levels = u.widths.len() - 1;
-                if self.spec.horizon % (1 << levels) != 0 {
+                let halvings = u32::try_from(levels)
+                    .ok()
+                    .and_then(|l| 1usize.checked_shl(l))
+                    .filter(|h| *h <= self.spec.horizon);
+                if halvings.is_none_or(|h| self.spec.horizon % h != 0) {
                     return Err(Error::config(
                         "unet.widths",
                         format!(
@@ -253,6 +292,11 @@ impl Config {
                 }
             }
             ModelConfig::Dit(d) => {
+                bounded("dit.width", d.width)?;
+                bounded("dit.depth", d.depth)?;
+                bounded("dit.heads", d.heads)?;
+                bounded("dit.mlp_ratio", d.mlp_ratio)?;
+                bounded("dit.tau_dim", d.tau_dim)?;
                 if d.heads == 0 || d.width % d.heads != 0 {
                     return Err(Error::config(
                         "dit.heads",

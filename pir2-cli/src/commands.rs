@@ -86,6 +86,8 @@ pub struct CollectOptions {
     pub seed: u64,
     /// New, resume or overwrite.
     pub mode: WriteMode,
+    /// Ctrl-C: finish the episode in progress, write what was kept, and return.
+    pub stop: Arc<AtomicBool>,
 }
 
 /// `pir2 collect`: expert demonstrations into a LeRobotDataset v3.0 directory.
@@ -97,12 +99,27 @@ pub fn collect(o: &CollectOptions) -> Result<()> {
             } else {
                 crate::leap_cmd::ExpertChoice::Weights(o.expert.clone())
             };
-            crate::leap_cmd::collect(&o.out, &o.seeds, o.per_seed, o.mode, &expert)
+            crate::leap_cmd::collect(&o.out, &o.seeds, o.per_seed, o.mode, &expert, &o.stop)
         }
         TaskName::BallPlate => {
-            let eps = ballplate::collect(o.episodes, o.seed, true)?;
-            ballplate::write_dataset(&o.out, &eps, o.mode)?;
-            println!("wrote {} episodes to {}", eps.len(), o.out.display());
+            let (stats, summary) =
+                ballplate::collect_into(&o.out, o.episodes, o.seed, o.mode, &o.stop)?;
+            if stats.stopped {
+                println!(
+                    "interrupted: {} holds {} of {} episodes ({} written now); \
+                     `pir2 collect --resume` adds the rest",
+                    o.out.display(),
+                    summary.total_episodes,
+                    o.episodes,
+                    summary.written_episodes
+                );
+            } else {
+                println!(
+                    "wrote {} episodes to {}",
+                    summary.written_episodes,
+                    o.out.display()
+                );
+            }
             Ok(())
         }
     }

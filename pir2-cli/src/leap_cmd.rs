@@ -47,11 +47,12 @@ pub fn collect(
     per_seed: usize,
     mode: WriteMode,
     expert: &ExpertChoice,
+    stop: &std::sync::atomic::AtomicBool,
 ) -> Result<()> {
     #[cfg(feature = "mujoco")]
     {
         let t = std::time::Instant::now();
-        let s = crate::study::leap_cube::collect_leap(out, seeds, per_seed, mode, expert)?;
+        let s = crate::study::leap_cube::collect_leap(out, seeds, per_seed, mode, expert, stop)?;
         println!(
             "{}: {} episodes, {} frames ({} written now, {:.1} s)",
             out.display(),
@@ -64,7 +65,7 @@ pub fn collect(
     }
     #[cfg(not(feature = "mujoco"))]
     {
-        let _ = (out, seeds, per_seed, mode, expert);
+        let _ = (out, seeds, per_seed, mode, expert, stop);
         anyhow::bail!(NEEDS_MUJOCO)
     }
 }

@@ -289,7 +289,8 @@ struct RunArgs {
     /// `safety.slow_grace_ms`, 200 if unset).
     #[arg(long)]
     slow_grace_ms: Option<f64>,
-    /// Write the run summary (and the per-call trace) as JSON here.
+    /// Write the run summary (and the per-call trace) as JSON here; a failed run writes its
+    /// error instead. The file must not exist (a report is never replaced).
     #[arg(long)]
     json: Option<PathBuf>,
     /// Deployment (default: the checkpoint's `[policy] mode`, else pir2_async). A mode the
@@ -521,6 +522,7 @@ fn main() -> Result<()> {
             } else {
                 WriteMode::New
             },
+            stop: ctrl_c_flag(),
         }),
         Cmd::Train {
             task: t,

@@ -68,7 +68,8 @@ pub struct RunOptions {
     /// checkpoint's `d_vis_max` ticks for longer than this, ms (`None`: the embodiment's
     /// `safety.slow_grace_ms`, 200 ms if its `[safety]` table does not set it).
     pub slow_grace_ms: Option<f64>,
-    /// Write the run summary (and the per-call trace) as JSON here.
+    /// Write the run summary (and the per-call trace) as JSON here; a failed run writes its
+    /// error instead. The file must not exist (a report is never replaced).
     pub json: Option<PathBuf>,
     /// Deployment: `pir2_async`, `pir2_sync`, `sync_flow`, `naive_async` or `rtc` (`None`:
     /// the checkpoint's `[policy] mode`).
@@ -197,16 +198,65 @@ pub fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
     imp::run(args, stop)
 }
 
-/// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set.
+/// What `--json` holds when a run fails: the error (its whole chain) and what was run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunFailure {
+    /// The error that ended the run, with its causes (`anyhow`'s `{:#}`).
+    pub error: String,
+    /// The stack that was run.
+    pub stack: String,
+    /// The checkpoint directory.
+    pub checkpoint: PathBuf,
+    /// The task.
+    pub task: String,
+}
+
+/// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set: the
+/// [`RunSummary`] after a run that ended normally, a [`RunFailure`] (with the error) after
+/// one that failed. An existing `--json` file is never replaced: the run refuses to start.
 pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
     use anyhow::Context;
-    let summary = run(args, stop)?;
-    print!("{summary}");
-    if let Some(p) = &args.json {
-        std::fs::write(p, serde_json::to_string_pretty(&summary)?)
-            .with_context(|| format!("writing {}", p.display()))?;
+    if let Some(p) = args.json.as_ref().filter(|p| p.exists()) {
+        anyhow::bail!(
+            "--json {} already exists; choose another path (a run report is never replaced)",
+            p.display()
+        );
     }
-    Ok(())
+    let result = run(args, stop);
+    if let Ok(summary) = &result {
+        print!("{summary}");
+    }
+    if let Some(p) = &args.json {
+        let text = match &result {
+            Ok(summary) => serde_json::to_string_pretty(summary)?,
+            Err(e) => serde_json::to_string_pretty(&RunFailure {
+                error: format!("{e:#}"),
+                stack: args.stack.clone(),
+                checkpoint: args.checkpoint.clone(),
+                task: args.task.clone(),
+            })?,
+        };
+        let written = write_new(p, &text).with_context(|| format!("writing {}", p.display()));
+        match (&result, written) {
+            (Ok(_), w) => w?,
+            // The run's own error is returned below; say that its report is missing too.
+            (Err(_), Err(w)) => eprintln!("error: {w:#}"),
+            (Err(_), Ok(())) => eprintln!("the failure is recorded in {}", p.display()),
+        }
+    }
+    result.map(|_| ())
+}
+
+/// Write `text` to a file that must not exist yet (created exclusively) and fsync it.
+fn write_new(path: &std::path::Path, text: &str) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(path)?;
+    f.write_all(text.as_bytes())?;
+    f.write_all(b"\n")?;
+    f.sync_all()
 }
 
 /// Without feature `gr00t` there is no stack to run.

@@ -18,6 +18,7 @@ fn leap_pipeline_runs_end_to_end() {
         2,
         WriteMode::New,
         &ExpertChoice::Mpc { fast: true },
+        &Default::default(),
     )
     .expect("collect");
     assert_eq!(s.total_episodes, 2);
@@ -28,6 +29,7 @@ fn leap_pipeline_runs_end_to_end() {
         2,
         WriteMode::Resume,
         &ExpertChoice::Mpc { fast: true },
+        &Default::default(),
     )
     .expect("resume");
     assert_eq!(s2.total_episodes, 2);

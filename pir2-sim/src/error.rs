@@ -109,6 +109,30 @@ pub enum Error {
         /// What does not match.
         reason: String,
     },
+    /// The parquet/arrow decoder gave up on malformed bytes by panicking; the panic was
+    /// caught at the reader's boundary and is reported here instead.
+    #[error("{path}: malformed parquet file (the decoder failed: {message})")]
+    Malformed {
+        /// The parquet file.
+        path: PathBuf,
+        /// The decoder's message.
+        message: String,
+    },
+    /// A path template of `meta/info.json` (`data_path`, `video_path`) is unusable: it is
+    /// absolute or climbs out of the dataset root (`..`), asks for a zero-padding width above
+    /// [`MAX_TEMPLATE_WIDTH`](crate::dataset::MAX_TEMPLATE_WIDTH), or has a malformed or
+    /// unknown placeholder.
+    #[error("{path}: `{field}` = {template:?} is not a usable path template: {reason}")]
+    PathTemplate {
+        /// The `info.json` file.
+        path: PathBuf,
+        /// The field (`data_path` or `video_path`).
+        field: String,
+        /// The template as found (cut to 200 characters).
+        template: String,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// Episodes handed to the writer do not fit the dataset's features.
     #[error("episode {episode} does not fit the dataset: {reason}")]
     EpisodeShape {

@@ -23,6 +23,10 @@ pub(crate) struct ParamStore {
     pub(crate) vars: Vec<(String, Var)>,
     rng: Rng,
     dev: Device,
+    /// Most weight values the store may create (a checkpoint being loaded holds this many):
+    /// a configuration claiming more is refused before anything that size is allocated.
+    budget: Option<usize>,
+    used: usize,
 }
 
 impl ParamStore {
@@ -31,11 +35,33 @@ impl ParamStore {
             vars: Vec::new(),
             rng: Rng::new(seed),
             dev: Device::Cpu,
+            budget: None,
+            used: 0,
+        }
+    }
+
+    /// A store that refuses to create more than `values` weight values in total.
+    pub(crate) fn with_budget(seed: u64, values: usize) -> Self {
+        Self {
+            budget: Some(values),
+            ..Self::new(seed)
         }
     }
 
     pub(crate) fn param(&mut self, name: &str, shape: &[usize], init: Init) -> CResult<Tensor> {
-        let n: usize = shape.iter().product();
+        let n = shape
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .ok_or_else(|| {
+                candle_core::Error::Msg(format!("weight `{name}`: shape {shape:?} overflows"))
+            })?;
+        self.used = self.used.saturating_add(n);
+        if let Some(budget) = self.budget.filter(|b| self.used > *b) {
+            return Err(candle_core::Error::Msg(format!(
+                "the configuration needs more weight values than the checkpoint holds \
+                 ({budget}); exceeded at `{name}` {shape:?}"
+            )));
+        }
         let data: Vec<f32> = match init {
             Init::Zeros => vec![0.0; n],
             Init::Ones => vec![1.0; n],

@@ -104,9 +104,12 @@ pub struct CandleModel {
 impl CandleModel {
     /// Build a freshly initialised model (deterministic in `seed`).
     pub fn new(config: Config, stats: Stats, seed: u64) -> Result<Self> {
+        Self::build(config, stats, ParamStore::new(seed))
+    }
+
+    fn build(config: Config, stats: Stats, mut ps: ParamStore) -> Result<Self> {
         config.validate()?;
         stats.validate(&config.spec)?;
-        let mut ps = ParamStore::new(seed);
         let spec = config.spec;
         let net = match &config.model {
             ModelConfig::Mlp(c) => Arch::Mlp(mlp::Mlp::new(&mut ps, &spec, c)?),
@@ -267,7 +270,20 @@ impl CandleModel {
     /// no extra tensors may be present (errors name the tensor).
     pub fn load(dir: &Path) -> Result<Self> {
         let mut ck = Checkpoint::load(dir)?;
-        let model = Self::new(ck.config.clone(), ck.stats.clone(), 0)?;
+        // Every tensor must match the file exactly (below), so a model needing far more
+        // weights than the file holds is a bad config.json: refused before its layers are
+        // allocated. The slack (4× the file, at least 2^24 values) lets a checkpoint that
+        // merely lacks a tensor build and fail below with the tensor's name.
+        let held = ck
+            .tensors
+            .values()
+            .fold(0usize, |a, t| a.saturating_add(t.data.len()));
+        let budget = held.saturating_mul(4).max(1 << 24);
+        let model = Self::build(
+            ck.config.clone(),
+            ck.stats.clone(),
+            ParamStore::with_budget(0, budget),
+        )?;
         for (name, var) in &model.vars {
             let t = ck.take(name, var.dims())?;
             var.set(&Tensor::from_vec(t.data, t.shape, &Device::Cpu)?)?;

@@ -389,6 +389,11 @@ pub fn policy_name(p: pir2_runtime::Policy) -> String {
 /// Default stale-slow grace, ms (see [`SafetySection::slow_grace_ms`]).
 pub const DEFAULT_SLOW_GRACE_MS: f64 = 200.0;
 
+/// Bound on every size an embodiment file declares (groups, values per group, horizon,
+/// `n_obs`, image side, prompt tokens): a larger one is refused by name instead of being
+/// allocated.
+pub const MAX_SIZE: usize = 8192;
+
 fn default_slow_grace_ms() -> f64 {
     DEFAULT_SLOW_GRACE_MS
 }
@@ -632,6 +637,21 @@ impl EmbodimentConfig {
                 if g.dim == 0 {
                     return bad(format!("{what} group `{}` has dim 0", g.name));
                 }
+            }
+            if groups.len() > MAX_SIZE || groups.iter().any(|g| g.dim > MAX_SIZE) {
+                return bad(format!(
+                    "{what} groups: at most {MAX_SIZE} groups of at most {MAX_SIZE} values"
+                ));
+            }
+        }
+        for (what, v) in [
+            ("horizon", self.horizon),
+            ("n_obs", self.n_obs),
+            ("image.resize", self.image.resize),
+            ("prompt.text_tokens", self.prompt.text_tokens),
+        ] {
+            if v > MAX_SIZE {
+                return bad(format!("{what} = {v} is above the limit {MAX_SIZE}"));
             }
         }
         if self.image.crop == 0 || self.image.crop > self.image.resize {

@@ -256,6 +256,44 @@ pub fn collect(n: usize, seed: u64, show: bool) -> Result<Vec<Episode>> {
     Ok(eps)
 }
 
+/// `pir2 collect ballplate`: collect `n` expert episodes (seed `seed`) straight into the
+/// dataset at `root`. Once `stop` is set (Ctrl-C) the episode in progress is finished and
+/// the episodes kept so far are written; `--resume` adds the rest later.
+pub fn collect_into(
+    root: &Path,
+    n: usize,
+    seed: u64,
+    mode: WriteMode,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Result<(
+    pir2_sim::dataset::CollectStats,
+    pir2_sim::dataset::DatasetSummary,
+)> {
+    let task = BallPlateConfig::default();
+    let mut env = BallPlate::new(task.clone())?;
+    let mut expert = LqrExpert::new(&task, LqrConfig::default())?;
+    let pb = bar(n as u64, "collecting demonstrations");
+    let cfg = CollectConfig {
+        episodes: n,
+        seed,
+        ..CollectConfig::default()
+    };
+    let fps = task.control_hz.round() as u32;
+    let r = pir2_sim::dataset::collect_to_dataset_until(
+        &mut env,
+        &mut expert,
+        &cfg,
+        root,
+        &DatasetSpec::ballplate(fps),
+        mode,
+        stop,
+        &mut |p| pb.set_position(p.kept as u64),
+    )
+    .with_context(|| format!("collecting into {}", root.display()))?;
+    pb.finish();
+    Ok(r)
+}
+
 /// Write episodes as a LeRobotDataset v3.0 (the same writer as every other stack).
 pub fn write_dataset(root: &Path, episodes: &[Episode], mode: WriteMode) -> Result<()> {
     let fps = BallPlateConfig::default().control_hz.round() as u32;

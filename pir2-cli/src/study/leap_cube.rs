@@ -502,13 +502,16 @@ fn to_dataset_episode(ep: &pir2_sim::leap::Episode) -> Episode {
 /// 5 episodes). All episodes are written, failures included (`next.success` says which);
 /// training uses the successful ones. The MPC expert ([`MpcConfig::fast`] when `fast`) runs
 /// with [`MpcConfig::pin_first_knot`] so the demonstrated actions are smooth; trained
-/// weights act deterministically on the recorded observation.
+/// weights act deterministically on the recorded observation. Episodes are written in
+/// batches of up to 5; once `stop` is set (Ctrl-C) the batch in progress is finished and
+/// written, and collection ends (resume with [`WriteMode::Resume`]).
 pub fn collect_leap(
     out: &Path,
     seeds: &[u64],
     per_seed: usize,
     mode: WriteMode,
     expert: &ExpertChoice,
+    stop: &std::sync::atomic::AtomicBool,
 ) -> Result<DatasetSummary> {
     let model = load_model()?;
     let mut policies = match expert {
@@ -558,6 +561,14 @@ pub fn collect_leap(
     let mut summary = None;
     let t0 = Instant::now();
     while done < total {
+        // Ctrl-C: the batch in progress was finished and written; stop here (`--resume`
+        // continues).
+        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+            log_line(&format!(
+                "interrupted: {done}/{total} episodes written; `--resume` continues"
+            ));
+            break;
+        }
         let (k, i) = (done / per_seed, done % per_seed);
         let end = (i + 5).min(per_seed);
         let eps = if policies.is_empty() {

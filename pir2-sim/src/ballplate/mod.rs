@@ -169,6 +169,13 @@ impl Default for BallPlateConfig {
     }
 }
 
+/// Longest episode a configuration may ask for, in control steps.
+const MAX_STEPS: usize = 10_000_000;
+/// Most physics substeps per control step.
+const MAX_SUBSTEPS: usize = 100_000;
+/// Largest mean number of pushes per episode (`push_rate × (push_end − push_start)`).
+const MAX_MEAN_PUSHES: f64 = 10_000.0;
+
 impl BallPlateConfig {
     /// Parse a (partial) TOML table; missing fields keep their defaults.
     pub fn from_toml_str(s: &str) -> Result<Self> {
@@ -193,8 +200,29 @@ impl BallPlateConfig {
         if self.substeps == 0 {
             return bad("substeps", "must be ≥ 1");
         }
-        if self.max_steps() == 0 {
+        if !positive(self.episode_s) || self.max_steps() == 0 {
             return bad("episode_s", "must last at least one control period");
+        }
+        if self.episode_s * self.control_hz > MAX_STEPS as f64 {
+            return bad(
+                "episode_s",
+                "episode_s × control_hz must be at most 10^7 steps",
+            );
+        }
+        if self.substeps > MAX_SUBSTEPS {
+            return bad("substeps", "must be at most 100000");
+        }
+        if !non_negative(self.push_start)
+            || !non_negative(self.push_end)
+            || self.push_start > self.push_end
+        {
+            return bad("push_start", "must be ≥ 0 and ≤ push_end (both finite)");
+        }
+        if self.push_rate * (self.push_end - self.push_start) > MAX_MEAN_PUSHES {
+            return bad(
+                "push_rate",
+                "push_rate × (push_end − push_start) must be at most 10000 pushes per episode",
+            );
         }
         if !non_negative(self.push_rate) {
             return bad("push_rate", "must be ≥ 0");
@@ -417,7 +445,8 @@ impl BallPlate {
             return;
         }
         let mut t = cfg.push_start;
-        loop {
+        // Validation bounds the mean count (≤ 10^4); the cap is a backstop, never reached.
+        while out.len() < 10 * MAX_MEAN_PUSHES as usize {
             // Exponential inter-arrival times: a Poisson process of rate `push_rate`.
             let u = 1.0 - rng.uniform_f64(); // (0, 1]
             t += -u.ln() / cfg.push_rate;

@@ -5,6 +5,7 @@ use pir2_runtime::Environment;
 use pir2_schedule::Rng;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::*;
 
@@ -69,6 +70,8 @@ pub struct CollectStats {
     pub failures: usize,
     /// Index of the next attempt (to resume from).
     pub next_attempt: u64,
+    /// The session ended early on its stop flag (after finishing the episode it was in).
+    pub stopped: bool,
 }
 
 /// Run one demonstration episode: observe, ask the expert, execute the label plus noise.
@@ -124,6 +127,36 @@ where
     E: Environment,
     X: Expert<E> + ?Sized,
 {
+    let never = AtomicBool::new(false);
+    collect_until(
+        env,
+        expert,
+        cfg,
+        already,
+        first_attempt,
+        &never,
+        progress,
+        sink,
+    )
+}
+
+/// [`collect`] that ends early once `stop` is set (e.g. by Ctrl-C): the episode being run
+/// is finished and handed to `sink` first, then the session returns with
+/// [`CollectStats::stopped`] set.
+pub fn collect_until<E, X>(
+    env: &mut E,
+    expert: &mut X,
+    cfg: &CollectConfig,
+    already: usize,
+    first_attempt: u64,
+    stop: &AtomicBool,
+    progress: &mut dyn FnMut(&Progress),
+    sink: &mut dyn FnMut(Episode, u64) -> Result<()>,
+) -> Result<CollectStats>
+where
+    E: Environment,
+    X: Expert<E> + ?Sized,
+{
     let mut p = Progress {
         kept: already,
         total: cfg.episodes,
@@ -140,6 +173,10 @@ where
         .saturating_mul(cfg.max_attempts_per_episode.max(1));
     progress(&p);
     while p.kept < cfg.episodes {
+        if stop.load(Ordering::SeqCst) {
+            stats.stopped = true;
+            break;
+        }
         if p.attempts >= budget {
             return Err(Error::ConfigValue {
                 field: "max_attempts_per_episode",
@@ -203,15 +240,37 @@ where
     E: Environment,
     X: Expert<E> + ?Sized,
 {
+    let never = AtomicBool::new(false);
+    collect_to_dataset_until(env, expert, cfg, root, spec, mode, &never, progress)
+}
+
+/// [`collect_to_dataset`] that ends early once `stop` is set: the episode being run is
+/// finished, and the episodes kept so far are written (a [`WriteMode::Resume`] session
+/// adds the rest later).
+pub fn collect_to_dataset_until<E, X>(
+    env: &mut E,
+    expert: &mut X,
+    cfg: &CollectConfig,
+    root: &Path,
+    spec: &DatasetSpec,
+    mode: WriteMode,
+    stop: &AtomicBool,
+    progress: &mut dyn FnMut(&Progress),
+) -> Result<(CollectStats, DatasetSummary)>
+where
+    E: Environment,
+    X: Expert<E> + ?Sized,
+{
     let mut writer = DatasetWriter::open(root, spec.clone(), mode)?;
     let already = writer.num_episodes();
     let first_attempt = writer.next_attempt();
-    let stats = collect(
+    let stats = collect_until(
         env,
         expert,
         cfg,
         already,
         first_attempt,
+        stop,
         progress,
         &mut |ep, attempt| writer.append_attempt(&ep, attempt),
     )?;

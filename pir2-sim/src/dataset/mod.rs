@@ -31,8 +31,10 @@
 //!
 //! Writing never replaces an existing dataset silently: [`WriteMode::New`] refuses a
 //! non-empty directory, [`WriteMode::Resume`] appends episodes in new data/episode files
-//! (one pair per writing session), [`WriteMode::Overwrite`] deletes `data/` and `meta/`
-//! first. Files are written under a temporary name and renamed; `meta/info.json` is written
+//! (one pair per writing session), [`WriteMode::Overwrite`] writes the new dataset into a
+//! staging directory and swaps it for the old `data/` and `meta/` only when
+//! [`DatasetWriter::finish`] has written at least one episode (until then the old dataset
+//! stays readable). Files are written under a temporary name and renamed; `meta/info.json` is written
 //! last, so an interrupted session leaves the previous dataset readable.
 
 mod collect;
@@ -61,6 +63,10 @@ pub const DATA_PATH: &str = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.
 /// Episodes metadata path template (LeRobot's `DEFAULT_EPISODES_PATH`).
 pub const EPISODES_PATH: &str =
     "meta/episodes/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet";
+/// Largest zero-padding width a path template may ask for (`{file_index:0Nd}`, N ≤ this).
+pub const MAX_TEMPLATE_WIDTH: usize = 32;
+/// Longest path template accepted from `meta/info.json`, in bytes.
+pub const MAX_TEMPLATE_LEN: usize = 4096;
 /// `meta/info.json`.
 pub const INFO_PATH: &str = "meta/info.json";
 /// `meta/stats.json`.

@@ -55,6 +55,85 @@ pub(super) fn read_info(root: &Path) -> Result<Value> {
     serde_json::from_str(&text).map_err(|e| Error::json(path, e))
 }
 
+/// Check a path template of `meta/info.json` before any path is built from it: relative, no
+/// `..` segment, at most [`MAX_TEMPLATE_LEN`] bytes, and every `{name}` / `{name:0Nd}`
+/// placeholder one of `names` with a width of at most [`MAX_TEMPLATE_WIDTH`].
+pub(super) fn check_template(
+    info_path: &Path,
+    field: &str,
+    template: &str,
+    names: &[&str],
+) -> Result<()> {
+    let bad = |reason: String| {
+        Err(Error::PathTemplate {
+            path: info_path.into(),
+            field: field.into(),
+            template: template.chars().take(200).collect(),
+            reason,
+        })
+    };
+    if template.is_empty() {
+        return bad("it is empty".into());
+    }
+    if template.len() > MAX_TEMPLATE_LEN {
+        return bad(format!(
+            "it is {} bytes long (at most {MAX_TEMPLATE_LEN})",
+            template.len()
+        ));
+    }
+    if template.contains('\0') {
+        return bad("it contains a NUL byte".into());
+    }
+    if template.starts_with(['/', '\\']) || Path::new(template).has_root() {
+        return bad("it is absolute; it must be relative to the dataset root".into());
+    }
+    if template.split(['/', '\\']).any(|seg| seg == "..") {
+        return bad("a `..` segment leaves the dataset root".into());
+    }
+    let mut rest = template;
+    while let Some(open) = rest.find(['{', '}']) {
+        if rest[open..].starts_with('}') {
+            return bad("unmatched `}`".into());
+        }
+        let Some(close) = rest[open + 1..].find(['{', '}']) else {
+            return bad("unclosed `{`".into());
+        };
+        let close = open + 1 + close;
+        if rest[close..].starts_with('{') {
+            return bad("nested `{`".into());
+        }
+        let inner = &rest[open + 1..close];
+        let (name, fmt) = inner.split_once(':').unwrap_or((inner, ""));
+        if !names.contains(&name) {
+            return bad(format!(
+                "unknown placeholder `{{{name}}}` (known: {})",
+                names.join(", ")
+            ));
+        }
+        if !fmt.is_empty() {
+            let width = fmt
+                .strip_suffix('d')
+                .filter(|w| !w.is_empty() && w.bytes().all(|b| b.is_ascii_digit()))
+                .map(|w| w.trim_start_matches('0'));
+            match width {
+                None => {
+                    return bad(format!(
+                        "placeholder `{{{inner}}}`: format must be `0Nd` (zero-padded decimal)"
+                    ))
+                }
+                Some(w) if w.len() > 3 || w.parse::<usize>().unwrap_or(0) > MAX_TEMPLATE_WIDTH => {
+                    return bad(format!(
+                        "placeholder `{{{inner}}}`: width above {MAX_TEMPLATE_WIDTH}"
+                    ))
+                }
+                Some(_) => {}
+            }
+        }
+        rest = &rest[close + 1..];
+    }
+    Ok(())
+}
+
 pub(super) fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
     let file = match File::open(path) {
         Ok(f) => f,
@@ -63,16 +142,33 @@ pub(super) fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
         }
         Err(e) => return Err(Error::io(path, e)),
     };
-    let reader = ParquetRecordBatchReaderBuilder::try_new(file)
-        .map_err(|e| Error::parquet(path, e))?
-        .build()
-        .map_err(|e| Error::parquet(path, e))?;
-    reader
-        .collect::<std::result::Result<Vec<_>, _>>()
-        .map_err(|source| Error::Arrow {
+    // The parquet and arrow crates still panic on some malformed inputs (e.g. an embedded
+    // arrow schema with an impossible integer width): a bad file must be an error naming
+    // it, so the decoding runs behind `catch_unwind` (the panic hook still prints the
+    // decoder's message).
+    let decode = || -> Result<Vec<RecordBatch>> {
+        let reader = ParquetRecordBatchReaderBuilder::try_new(file)
+            .map_err(|e| Error::parquet(path, e))?
+            .build()
+            .map_err(|e| Error::parquet(path, e))?;
+        reader
+            .collect::<std::result::Result<Vec<_>, _>>()
+            .map_err(|source| Error::Arrow {
+                path: path.into(),
+                source,
+            })
+    };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)).unwrap_or_else(|payload| {
+        let message = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "panic without a message".into());
+        Err(Error::Malformed {
             path: path.into(),
-            source,
+            message,
         })
+    })
 }
 
 pub(super) fn column<'a>(batch: &'a RecordBatch, path: &Path, name: &str) -> Result<&'a ArrayRef> {
@@ -194,6 +290,9 @@ pub(super) fn bool_column(
     }
 }
 
+/// Bound on global frame indices read from `meta/episodes` (2^48 frames).
+const MAX_GLOBAL_INDEX: i64 = 1 << 48;
+
 pub(super) fn read_episode_rows(root: &Path) -> Result<Vec<EpisodeRow>> {
     let dir = root.join("meta/episodes");
     let mut files = Vec::new();
@@ -276,11 +375,38 @@ pub(super) fn read_episode_rows(root: &Path) -> Result<Vec<EpisodeRow>> {
     }
     rows.sort_by_key(|r| r.episode_index);
     // Fill in missing global indices (older writers) from the lengths.
-    let mut acc = 0;
+    let mut acc: i64 = 0;
     for r in &mut rows {
+        let bad = |column: &str, value: i64| Error::Inconsistent {
+            path: dir.clone(),
+            reason: format!(
+                "episode {}: `{column}` is {value}; it must be in 0..{}",
+                r.episode_index,
+                i64::from(u32::MAX)
+            ),
+        };
+        for (column, value) in [
+            ("episode_index", r.episode_index),
+            ("length", r.length),
+            ("data/chunk_index", r.data_chunk),
+            ("data/file_index", r.data_file),
+        ] {
+            if !(0..i64::from(u32::MAX)).contains(&value) {
+                return Err(bad(column, value));
+            }
+        }
         if r.from < 0 || r.to < 0 {
             r.from = acc;
-            r.to = acc + r.length;
+            r.to = acc.saturating_add(r.length);
+        }
+        if r.from > r.to || r.to >= MAX_GLOBAL_INDEX {
+            return Err(Error::Inconsistent {
+                path: dir.clone(),
+                reason: format!(
+                    "episode {}: dataset_from_index {} .. dataset_to_index {} is not a range within 0..{MAX_GLOBAL_INDEX}",
+                    r.episode_index, r.from, r.to
+                ),
+            });
         }
         acc = r.to;
     }
@@ -325,6 +451,9 @@ pub(super) fn read_frames_with(
         files.insert((r.data_chunk, r.data_file), ());
     }
     let mut by_ep: BTreeMap<i64, (Episode, Vec<i64>)> = BTreeMap::new();
+    // Widths of the fast / slow / action columns, fixed by the first rows read: every row
+    // group of every file must agree (one error naming the column otherwise).
+    let mut widths: [Option<usize>; 3] = [None; 3];
     for &(chunk, file) in files.keys() {
         let path = root.join(fill_template(data_tmpl, chunk as usize, file as usize));
         for b in read_parquet(&path)? {
@@ -335,6 +464,24 @@ pub(super) fn read_frames_with(
                 (Vec::new(), 0)
             };
             let (action, ad) = vec_column(&b, &path, &opts.action_key)?;
+            for (seen, (name, w)) in widths.iter_mut().zip([
+                (&opts.fast_key, fd),
+                (&opts.slow_key, sd),
+                (&opts.action_key, ad),
+            ]) {
+                match *seen {
+                    None => *seen = Some(w),
+                    Some(first) if first != w => {
+                        return Err(Error::ColumnType {
+                            path: path.clone(),
+                            column: name.clone(),
+                            expected: format!("rows of width {first} (as the rows read before)"),
+                            found: format!("rows of width {w}"),
+                        })
+                    }
+                    Some(_) => {}
+                }
+            }
             let ep_idx = int_column(&b, &path, "episode_index")?;
             let frame = int_column(&b, &path, "frame_index")?;
             let task = if b.column_by_name("task_index").is_some() {
@@ -433,11 +580,31 @@ pub fn read_dataset_with(root: &Path, opts: &ReadOptions) -> Result<Dataset> {
             path: info_path.clone(),
             reason: "no numeric `fps`".into(),
         })?;
-    let data_tmpl = info
-        .get("data_path")
-        .and_then(Value::as_str)
-        .unwrap_or(DATA_PATH)
-        .to_string();
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::Inconsistent {
+            path: info_path,
+            reason: format!("`fps` is {fps}; it must be positive"),
+        });
+    }
+    let template = |field: &str, names: &[&str]| -> Result<Option<String>> {
+        match info.get(field) {
+            None | Some(Value::Null) => Ok(None),
+            Some(Value::String(t)) => {
+                check_template(&info_path, field, t, names)?;
+                Ok(Some(t.clone()))
+            }
+            Some(v) => Err(Error::PathTemplate {
+                path: info_path.clone(),
+                field: field.into(),
+                template: v.to_string().chars().take(200).collect(),
+                reason: "not a string".into(),
+            }),
+        }
+    };
+    let data_tmpl =
+        template("data_path", &["chunk_index", "file_index"])?.unwrap_or(DATA_PATH.into());
+    // State-only reader: videos are not read, but a bad template is still refused.
+    template("video_path", &["video_key", "chunk_index", "file_index"])?;
     let rows = read_episode_rows(root)?;
     let mut loaded = read_frames_with(root, &data_tmpl, &rows, opts)?;
     // Done/success flags from the `next.*` frame columns when present.

@@ -77,7 +77,8 @@ pub enum WriteMode {
     New,
     /// Append to an existing dataset (or start one if absent/empty).
     Resume,
-    /// Delete `data/` and `meta/` of an existing dataset, then write anew.
+    /// Replace `data/` and `meta/` of an existing dataset: the new dataset is written into a
+    /// staging directory and swapped in when the session finishes with at least one episode.
     Overwrite,
 }
 

@@ -504,3 +504,318 @@ fn slow_frames_stack_oldest_first_padded_with_the_first_frame() {
     assert_eq!((two.fast, two.action), (e.fast.clone(), e.action.clone()));
     assert_eq!(e.with_slow_frames(1), e);
 }
+
+/// A two-episode dataset of widths (2, 1, 1) written by our writer (no simulation).
+fn tiny_dataset(name: &str) -> PathBuf {
+    let root = tmpdir(name);
+    let spec = DatasetSpec {
+        fps: 10,
+        robot_type: None,
+        tasks: vec!["t".into()],
+        fast_names: vec!["a".into(), "b".into()],
+        slow_names: vec!["s".into()],
+        action_names: vec!["u".into()],
+    };
+    let mut w = DatasetWriter::open(&root, spec, WriteMode::New).unwrap();
+    for n in [3, 4] {
+        let mut e = Episode::new(2, 1, 1);
+        for t in 0..n {
+            let t = t as f32;
+            e.push(&[t, -t], &[0.5 * t], &[0.1 * t]);
+        }
+        e.done = true;
+        w.append(&e).unwrap();
+    }
+    w.finish().unwrap();
+    root
+}
+
+fn set_info(root: &std::path::Path, key: &str, value: Value) {
+    let path = root.join(INFO_PATH);
+    let mut info: Value = serde_json::from_str(&fs::read_to_string(&path).unwrap()).unwrap();
+    info[key] = value;
+    write_json_file(&path, &info).unwrap();
+}
+
+#[test]
+fn bad_path_templates_are_one_error_naming_the_field() {
+    let root = tiny_dataset("templates");
+    assert_eq!(read_dataset(&root).unwrap().episodes.len(), 2);
+    let cases: &[(&str, Value, &str)] = &[
+        // Width 2^40: formatting it would try to allocate a terabyte.
+        (
+            "data_path",
+            json!("data/chunk-{chunk_index:01099511627776d}/file-{file_index:03d}.parquet"),
+            "width above",
+        ),
+        (
+            "data_path",
+            json!("data/{chunk_index:33d}/file-{file_index:03d}.parquet"),
+            "width above",
+        ),
+        (
+            "data_path",
+            json!("../outside/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"),
+            "`..`",
+        ),
+        (
+            "data_path",
+            json!("data/../../file-{file_index:03d}.parquet"),
+            "`..`",
+        ),
+        (
+            "data_path",
+            json!("/etc/chunk-{chunk_index}/file-{file_index}.parquet"),
+            "absolute",
+        ),
+        (
+            "data_path",
+            json!("data/{episode_index}.parquet"),
+            "unknown",
+        ),
+        ("data_path", json!("data/{chunk_index"), "unclosed"),
+        ("data_path", json!("data/{chunk_index:3x}"), "format"),
+        ("data_path", json!(""), "empty"),
+        ("data_path", json!(7), "not a string"),
+        (
+            "video_path",
+            json!("../videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"),
+            "`..`",
+        ),
+        (
+            "video_path",
+            json!("v/{file_index:99999999999d}.mp4"),
+            "width",
+        ),
+    ];
+    for (field, value, why) in cases {
+        let dir = tiny_dataset(&format!("templates-{field}-{why}"));
+        set_info(&dir, field, value.clone());
+        let err = read_dataset(&dir).unwrap_err();
+        match &err {
+            Error::PathTemplate {
+                field: f, reason, ..
+            } => {
+                assert_eq!(f, field, "{err}");
+                assert!(reason.contains(why), "{value}: {err}");
+            }
+            e => panic!("{field} = {value}: expected a PathTemplate error, got {e}"),
+        }
+        assert!(err.to_string().contains(field), "{err}");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+    // LeRobot's own templates pass.
+    set_info(
+        &root,
+        "video_path",
+        json!("videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"),
+    );
+    set_info(&root, "data_path", json!(DATA_PATH));
+    assert_eq!(read_dataset(&root).unwrap().episodes.len(), 2);
+    fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn episode_rows_out_of_range_are_an_error() {
+    let root = tiny_dataset("rows");
+    let eps = RecordBatch::try_from_iter(vec![
+        (
+            "episode_index",
+            Arc::new(Int64Array::from(vec![0, 1])) as ArrayRef,
+        ),
+        (
+            "length",
+            Arc::new(Int64Array::from(vec![3, i64::MAX])) as ArrayRef,
+        ),
+        (
+            "data/chunk_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+        (
+            "data/file_index",
+            Arc::new(Int64Array::from(vec![0, 0])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&root.join("meta/episodes/chunk-000/file-000.parquet"), &eps).unwrap();
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::Inconsistent { reason, .. } if reason.contains("`length`")),
+        "{err}"
+    );
+    fs::remove_dir_all(&root).unwrap();
+}
+
+/// One episode whose `observation.state` rows are 2 wide for the first 1024 rows (the
+/// reader's first batch) and 3 wide after: each batch is uniform, the episode is not.
+#[test]
+fn mixed_list_widths_across_row_groups_are_an_error_naming_the_column() {
+    let root = tmpdir("mixed-widths");
+    let n = 1100usize;
+    let width = |t: usize| if t < 1024 { 2 } else { 3 };
+    let state = ListArray::from_iter_primitive::<Float64Type, _, _>(
+        (0..n).map(|t| Some(vec![Some(t as f64); width(t)])),
+    );
+    let action = ListArray::from_iter_primitive::<Float64Type, _, _>(
+        (0..n).map(|t| Some(vec![Some(0.5 * t as f64)])),
+    );
+    let batch = RecordBatch::try_from_iter(vec![
+        ("observation.state", Arc::new(state) as ArrayRef),
+        ("action", Arc::new(action) as ArrayRef),
+        (
+            "episode_index",
+            Arc::new(Int64Array::from(vec![0; n])) as ArrayRef,
+        ),
+        (
+            "frame_index",
+            Arc::new(Int64Array::from_iter_values(0..n as i64)) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    // Two row groups (1024 + 76 rows), each of one width.
+    let data = root.join("data/chunk-000/file-000.parquet");
+    fs::create_dir_all(data.parent().unwrap()).unwrap();
+    let props = parquet::file::properties::WriterProperties::builder()
+        .set_max_row_group_row_count(Some(1024))
+        .build();
+    let mut w = parquet::arrow::ArrowWriter::try_new(
+        fs::File::create(&data).unwrap(),
+        batch.schema(),
+        Some(props),
+    )
+    .unwrap();
+    w.write(&batch).unwrap();
+    w.close().unwrap();
+    let eps = RecordBatch::try_from_iter(vec![
+        (
+            "episode_index",
+            Arc::new(Int64Array::from(vec![0])) as ArrayRef,
+        ),
+        (
+            "length",
+            Arc::new(Int64Array::from(vec![n as i64])) as ArrayRef,
+        ),
+        (
+            "data/chunk_index",
+            Arc::new(Int64Array::from(vec![0])) as ArrayRef,
+        ),
+        (
+            "data/file_index",
+            Arc::new(Int64Array::from(vec![0])) as ArrayRef,
+        ),
+    ])
+    .unwrap();
+    write_batch_file(&root.join("meta/episodes/chunk-000/file-000.parquet"), &eps).unwrap();
+    write_json_file(
+        &root.join(INFO_PATH),
+        &json!({"codebase_version": "v3.0", "fps": 10, "data_path": DATA_PATH, "features": {}}),
+    )
+    .unwrap();
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::ColumnType { column, found, .. }
+            if column == "observation.state" && found.contains("width 3")),
+        "{err}"
+    );
+    fs::remove_dir_all(&root).unwrap();
+}
+
+/// `WriteMode::Overwrite` keeps the old dataset until the new one has an episode: a session
+/// dropped (crashed, failed) or finished before its first episode leaves it readable and
+/// unchanged; a finished one replaces it, leaving no staging directory behind.
+#[test]
+fn overwrite_swaps_only_when_the_first_episode_is_written() {
+    let root = tiny_dataset("overwrite-swap");
+    let before = read_dataset(&root).unwrap();
+    let spec = || DatasetSpec {
+        fps: 10,
+        robot_type: None,
+        tasks: vec!["t".into()],
+        fast_names: vec!["a".into(), "b".into()],
+        slow_names: vec!["s".into()],
+        action_names: vec!["u".into()],
+    };
+    let entries = |root: &std::path::Path| {
+        let mut v: Vec<String> = fs::read_dir(root)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    // Opened, an episode buffered, then dropped (an error or a crash before `finish`).
+    let mut w = DatasetWriter::open(&root, spec(), WriteMode::Overwrite).unwrap();
+    let mut e = Episode::new(2, 1, 1);
+    e.push(&[9.0, 9.0], &[9.0], &[9.0]);
+    w.append(&e).unwrap();
+    assert_eq!(
+        read_dataset(&root).unwrap(),
+        before,
+        "old dataset intact while writing"
+    );
+    drop(w);
+    assert_eq!(read_dataset(&root).unwrap(), before);
+    assert_eq!(entries(&root), ["data", "meta"], "staging removed");
+    // Finished without an episode (e.g. Ctrl-C before the first one ended): unchanged.
+    let w = DatasetWriter::open(&root, spec(), WriteMode::Overwrite).unwrap();
+    let s = w.finish().unwrap();
+    assert_eq!((s.total_episodes, s.written_episodes), (2, 0));
+    assert_eq!(read_dataset(&root).unwrap(), before);
+    // Finished with one episode: replaced.
+    let mut w = DatasetWriter::open(&root, spec(), WriteMode::Overwrite).unwrap();
+    w.append(&e).unwrap();
+    let s = w.finish().unwrap();
+    assert_eq!((s.total_episodes, s.written_episodes), (1, 1));
+    assert_eq!(
+        s.data_file.as_deref(),
+        Some(root.join("data/chunk-000/file-000.parquet").as_path())
+    );
+    let after = read_dataset(&root).unwrap();
+    assert_eq!(after.episodes.len(), 1);
+    assert_eq!(after.episodes[0].fast, vec![9.0, 9.0]);
+    assert_eq!(entries(&root), ["data", "meta"]);
+    fs::remove_dir_all(&root).unwrap();
+}
+
+/// A set stop flag ends a collection after the episode in progress, and what was kept is
+/// written.
+#[test]
+fn a_stopped_collection_writes_the_episodes_it_finished() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let root = tmpdir("stop");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    let stop = AtomicBool::new(false);
+    let (stats, summary) = collect_to_dataset_until(
+        &mut env,
+        &mut ex,
+        &short(10),
+        &root,
+        &spec,
+        WriteMode::New,
+        &stop,
+        &mut |p| {
+            if p.kept == 2 {
+                stop.store(true, Ordering::SeqCst);
+            }
+        },
+    )
+    .unwrap();
+    assert!(stats.stopped);
+    assert_eq!((stats.kept, summary.total_episodes), (2, 2));
+    assert_eq!(read_dataset(&root).unwrap().episodes.len(), 2);
+    // Resume adds the rest, continuing the attempt sequence.
+    let (stats, summary) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &short(3),
+        &root,
+        &spec,
+        WriteMode::Resume,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert!(!stats.stopped);
+    assert_eq!((stats.kept, summary.total_episodes), (1, 3));
+    fs::remove_dir_all(&root).unwrap();
+}

@@ -38,7 +38,8 @@ pub(super) fn fill_template(template: &str, chunk: usize, file: usize) -> String
                     .trim_start_matches('0')
                     .trim_end_matches('d')
                     .parse::<usize>()
-                    .unwrap_or(0);
+                    .unwrap_or(0)
+                    .min(MAX_TEMPLATE_WIDTH);
                 out.push_str(&format!("{v:0width$}"));
             }
             None => out.push_str(&rest[open..open + close + 1]),
@@ -168,6 +169,10 @@ pub struct DatasetWriter {
     pub(super) file_no: usize,
     pub(super) total_frames: i64,
     pub(super) next_attempt: u64,
+    /// [`WriteMode::Overwrite`] of an existing dataset: the dataset root to replace.
+    /// `root` is then a staging directory inside it, swapped in by [`DatasetWriter::finish`]
+    /// once at least one episode is written (and removed if the writer is dropped first).
+    pub(super) replace: Option<PathBuf>,
 }
 
 impl DatasetWriter {
@@ -220,16 +225,18 @@ impl DatasetWriter {
                     }
                 }
             }
-            WriteMode::Overwrite => {
-                for sub in ["data", "meta"] {
-                    let p = root.join(sub);
-                    if p.exists() {
-                        fs::remove_dir_all(&p).map_err(|e| Error::io(&p, e))?;
-                    }
-                }
-            }
             _ => {}
         }
+        // Overwrite of an existing directory: write the new dataset into a staging directory
+        // inside it; the old `data/` and `meta/` stay until `finish` swaps them out.
+        let (root, replace) = if mode == WriteMode::Overwrite && non_empty {
+            let staging = root.join(unique_name(".pir2-overwrite"));
+            fs::create_dir(&staging).map_err(|e| Error::io(&staging, e))?;
+            (staging, Some(root.to_path_buf()))
+        } else {
+            (root.to_path_buf(), None)
+        };
+        let root = root.as_path();
         // Never reuse a file number that is on disk (even an orphan from an interrupted run).
         let mut file_no = 0;
         for dir in ["data", "meta/episodes"] {
@@ -248,6 +255,7 @@ impl DatasetWriter {
             file_no,
             total_frames,
             next_attempt,
+            replace,
         })
     }
 
@@ -341,7 +349,32 @@ impl DatasetWriter {
 
     /// Write the data and episodes files of this session, then `tasks.parquet`,
     /// `stats.json` (recomputed over the whole dataset) and `info.json`.
+    ///
+    /// A [`WriteMode::Overwrite`] session of an existing dataset replaces its `data/` and
+    /// `meta/` only here, and only if it wrote at least one episode; with none, the old
+    /// dataset is left as it was and its summary returned.
     pub fn finish(mut self) -> Result<DatasetSummary> {
+        if self.replace.is_some() && self.new_rows.is_empty() {
+            let old = self.replace.clone().unwrap_or_default();
+            let rows = read_episode_rows(&old).unwrap_or_default();
+            return Ok(DatasetSummary {
+                total_episodes: rows.len(),
+                total_frames: rows.iter().map(|r| r.length).sum::<i64>() as usize,
+                written_episodes: 0,
+                data_file: None,
+            });
+        }
+        let mut summary = self.write_all()?;
+        if let Some(old_root) = self.replace.take() {
+            swap_in(&self.root, &old_root)?;
+            summary.data_file = summary
+                .data_file
+                .and_then(|p| p.strip_prefix(&self.root).ok().map(|r| old_root.join(r)));
+        }
+        Ok(summary)
+    }
+
+    fn write_all(&mut self) -> Result<DatasetSummary> {
         let (chunk, file) = chunk_file(self.file_no);
         let mut data_file = None;
         if !self.new_rows.is_empty() {
@@ -391,6 +424,47 @@ impl DatasetWriter {
             data_file,
         })
     }
+}
+
+impl Drop for DatasetWriter {
+    /// An overwrite session that never finished leaves the old dataset as it was: remove
+    /// its staging directory.
+    fn drop(&mut self) {
+        if self.replace.is_some() {
+            let _ = fs::remove_dir_all(&self.root);
+        }
+    }
+}
+
+/// `<prefix>-<pid>-<nanos>`: a name no other writer uses.
+fn unique_name(prefix: &str) -> String {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    format!("{prefix}-{}-{nanos}", std::process::id())
+}
+
+/// Replace `root/{data,meta}` by `staging/{data,meta}`: the old ones are moved aside (meta
+/// first, so the dataset is never a mix), the new ones moved in (meta last), then the old
+/// ones and the staging directory are removed.
+fn swap_in(staging: &Path, root: &Path) -> Result<()> {
+    let aside = root.join(unique_name(".pir2-replaced"));
+    fs::create_dir(&aside).map_err(|e| Error::io(&aside, e))?;
+    for sub in ["meta", "data"] {
+        let p = root.join(sub);
+        if p.exists() {
+            rename(&p, &aside.join(sub))?;
+        }
+    }
+    for sub in ["data", "meta"] {
+        let p = staging.join(sub);
+        if p.exists() {
+            rename(&p, &root.join(sub))?;
+        }
+    }
+    fs::remove_dir_all(&aside).map_err(|e| Error::io(&aside, e))?;
+    fs::remove_dir_all(staging).map_err(|e| Error::io(staging, e))
 }
 
 pub(super) fn max_file_number(dir: &Path) -> Result<Option<usize>> {
