@@ -210,7 +210,13 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
         .unwrap()
     };
     for (trained, mode, extra, kind, says) in [
-        ("flow", "sync_flow", &["--h", "10"][..], "sync_flow", "sync flow (K = 4, h = 10)"),
+        (
+            "flow",
+            "sync_flow",
+            &["--h", "10"][..],
+            "sync_flow",
+            "sync flow (K = 4, h = 10)",
+        ),
         (
             "flow",
             "naive_async",
@@ -218,9 +224,27 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
             "naive_async",
             "naive async (K = 4, temporal ensembling m = 0.1)",
         ),
-        ("rtc", "rtc", &[][..], "train_time_rtc", "train-time RTC (K = 4)"),
-        ("pi_r2", "pir2_sync", &[][..], "pi_r2_sync", "πR² w/o async (n = 2"),
-        ("pi_r2", "pir2_async", &[][..], "pi_r2_async", "πR² async (n = 2"),
+        (
+            "rtc",
+            "rtc",
+            &[][..],
+            "train_time_rtc",
+            "train-time RTC (K = 4)",
+        ),
+        (
+            "pi_r2",
+            "pir2_sync",
+            &[][..],
+            "pi_r2_sync",
+            "πR² w/o async (n = 2",
+        ),
+        (
+            "pi_r2",
+            "pir2_async",
+            &[][..],
+            "pi_r2_async",
+            "πR² async (n = 2",
+        ),
     ] {
         trained_as(trained);
         let json = ck.join(format!("{mode}.json"));
@@ -253,7 +277,15 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
     trained_as("pi_r2");
     let (out, text) = run(
         &ck,
-        &["--task", "catch_book", "--emulate", "--ticks", "5", "--mode", "rtc"],
+        &[
+            "--task",
+            "catch_book",
+            "--emulate",
+            "--ticks",
+            "5",
+            "--mode",
+            "rtc",
+        ],
     );
     assert!(!out.status.success());
     assert!(

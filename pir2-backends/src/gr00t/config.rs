@@ -1159,9 +1159,19 @@ mod tests {
             }
         );
         // Mismatches name both sides.
-        let e = c.policy.mode(&over(DeployKind::Rtc)).unwrap_err().to_string();
-        assert!(e.contains("mode rtc") && e.contains("trained = \"pi_r2\""), "{e}");
-        let e = flow.mode(&over(DeployKind::PiR2Async)).unwrap_err().to_string();
+        let e = c
+            .policy
+            .mode(&over(DeployKind::Rtc))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("mode rtc") && e.contains("trained = \"pi_r2\""),
+            "{e}"
+        );
+        let e = flow
+            .mode(&over(DeployKind::PiR2Async))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("pir2_async") && e.contains("\"flow\""), "{e}");
         let e = c
             .policy
