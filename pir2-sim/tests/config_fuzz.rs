@@ -5,6 +5,9 @@
 use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 use proptest::prelude::*;
 
+mod common;
+use common::cases;
+
 fn default_toml() -> String {
     toml::to_string(&BallPlateConfig::default()).unwrap()
 }
@@ -16,28 +19,8 @@ fn check(text: &str) {
     }
 }
 
-/// Cases per property: `n` in CI; `PIR2_FUZZ_CASES` runs more (a longer local search).
-/// Shrunk failures are saved and replayed from `proptest-regressions/`.
-fn cases(n: u32) -> ProptestConfig {
-    let n = std::env::var("PIR2_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(n);
-    ProptestConfig {
-        cases: n,
-        // Shrunk failures are kept next to the package (`proptest-regressions/`, committed)
-        // and replayed first on every run.
-        failure_persistence: Some(Box::new(
-            proptest::test_runner::FileFailurePersistence::Direct(
-                "proptest-regressions/config_fuzz.txt",
-            ),
-        )),
-        ..ProptestConfig::default()
-    }
-}
-
 proptest! {
-    #![proptest_config(cases(64))]
+    #![proptest_config(cases(64, "proptest-regressions/config_fuzz.txt"))]
 
     /// Up to 8 single-byte replacements of the default file.
     #[test]

@@ -8,6 +8,9 @@ use std::path::{Path, PathBuf};
 use pir2_sim::dataset::{read_dataset, DatasetSpec, DatasetWriter, Episode, WriteMode};
 use proptest::prelude::*;
 
+mod common;
+use common::cases;
+
 /// Removes the directory when the test thread ends.
 struct Dir(PathBuf);
 impl Drop for Dir {
@@ -125,28 +128,8 @@ const FILES: [&str; 4] = [
     "meta/tasks.parquet",
 ];
 
-/// Cases per property: `n` in CI; `PIR2_FUZZ_CASES` runs more (a longer local search).
-/// Shrunk failures are saved and replayed from `proptest-regressions/`.
-fn cases(n: u32) -> ProptestConfig {
-    let n = std::env::var("PIR2_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(n);
-    ProptestConfig {
-        cases: n,
-        // Shrunk failures are kept next to the package (`proptest-regressions/`, committed)
-        // and replayed first on every run.
-        failure_persistence: Some(Box::new(
-            proptest::test_runner::FileFailurePersistence::Direct(
-                "proptest-regressions/reader_fuzz.txt",
-            ),
-        )),
-        ..ProptestConfig::default()
-    }
-}
-
 proptest! {
-    #![proptest_config(cases(48))]
+    #![proptest_config(cases(48, "proptest-regressions/reader_fuzz.txt"))]
 
     /// Up to 8 byte edits of one file of a valid dataset.
     #[test]
