@@ -599,6 +599,45 @@ mod imp {
         });
     }
 
+    /// An actuator that says on stderr when the first command goes to the robot: the end of
+    /// the warm-up (first features, warm-start chunk), i.e. when the robot starts to move.
+    struct AnnounceFirst<A> {
+        inner: A,
+        clock: Arc<dyn Clock>,
+        t_start: u64,
+        announced: bool,
+    }
+
+    impl<A: Actuator> AnnounceFirst<A> {
+        fn new(inner: A, clock: Arc<dyn Clock>) -> Self {
+            let t_start = clock.now();
+            Self {
+                inner,
+                clock,
+                t_start,
+                announced: false,
+            }
+        }
+    }
+
+    impl<A: Actuator> Actuator for AnnounceFirst<A> {
+        fn dim(&self) -> usize {
+            self.inner.dim()
+        }
+        fn send(&mut self, action: &[f32]) -> pir2_runtime::Result<()> {
+            let r = self.inner.send(action);
+            if !self.announced && r.is_ok() {
+                self.announced = true;
+                let ms = self.clock.now().saturating_sub(self.t_start) as f64 / 1e6;
+                eprintln!("warm-up done after {ms:.0} ms: the robot is under control");
+            }
+            r
+        }
+        fn stop(&mut self) -> pir2_runtime::Result<()> {
+            self.inner.stop()
+        }
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn drive<F: FastSource, A: Actuator>(
         args: &RunOptions,
@@ -611,6 +650,7 @@ mod imp {
         stop: Arc<AtomicBool>,
         robot: &str,
     ) -> Result<RunSummary> {
+        let actuator = AnnounceFirst::new(actuator, clock.clone());
         #[cfg(feature = "remote")]
         let head_stats = head.stats.clone();
         let what = head.what.clone();

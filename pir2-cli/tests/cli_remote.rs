@@ -29,6 +29,24 @@ impl Drop for Server {
     }
 }
 
+#[cfg(feature = "gr00t")]
+/// Read the run's stderr until it says the warm-up is over (the robot is under control).
+fn wait_under_control(err: &mut BufReader<std::process::ChildStderr>) {
+    let mut lines = Vec::new();
+    loop {
+        let mut l = String::new();
+        assert!(
+            err.read_line(&mut l).unwrap() > 0,
+            "the run ended in its warm-up: {lines:?}"
+        );
+        let done = l.contains("the robot is under control");
+        lines.push(l);
+        if done {
+            return;
+        }
+    }
+}
+
 fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
@@ -373,7 +391,9 @@ mod remote_head {
             &["--ticks", "250", "--max-failed-calls", "50"],
         );
         wait_first_request(&mut server);
-        std::thread::sleep(Duration::from_millis(1500));
+        // The outage must fall in the control phase (the warm-up is not in the trace).
+        wait_under_control(&mut err);
+        std::thread::sleep(Duration::from_millis(1000));
         drop(server);
         std::thread::sleep(Duration::from_millis(800));
         let still_running = run.try_wait().unwrap().is_none();
@@ -490,7 +510,8 @@ mod remote_head {
             ],
         );
         wait_first_request(&mut server);
-        std::thread::sleep(Duration::from_millis(1000));
+        wait_under_control(&mut err);
+        std::thread::sleep(Duration::from_millis(500));
         drop(server);
         let t0 = Instant::now();
         let mut rest = String::new();
@@ -506,7 +527,15 @@ mod remote_head {
         );
         assert!(rest.contains("failed_calls: 1"), "{rest}");
         assert!(!rest.contains("panicked"), "{rest}");
-        assert!(!json.exists(), "no summary is written for a failed run");
+        // A failed run records its failure (not a summary) in --json.
+        let report = std::fs::read_to_string(&json).expect("the failure report must be written");
+        let v: serde_json::Value = serde_json::from_str(&report).unwrap();
+        let error = v["error"].as_str().expect("a failure report has an error");
+        assert!(error.contains("safety stop"), "{report}");
+        assert!(
+            v.get("trace").is_none(),
+            "a failure is not a summary: {report}"
+        );
     }
 
     #[test]
@@ -605,9 +634,10 @@ fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
             "200",
         ],
     );
-    // Long enough for the control phase to run, short enough that a loaded machine does
-    // not trip another safety stop (state watchdog, slow grace) before the kill.
-    std::thread::sleep(Duration::from_secs(2));
+    // Into the control phase, then long enough for it to run, short enough that a loaded
+    // machine does not trip another safety stop (state watchdog, slow grace) before the kill.
+    wait_under_control(&mut err);
+    std::thread::sleep(Duration::from_millis(500));
     let alive = run.try_wait().unwrap().is_none();
     drop(server);
     let t_kill = Instant::now();

@@ -126,6 +126,8 @@ struct FastMail {
 
 struct ChunkMail {
     full: bool,
+    /// The number of the call that produced `chunk` (1, 2, …; 0 before the first).
+    seq: u64,
     chunk: Chunk,
 }
 
@@ -137,7 +139,11 @@ pub struct Shared {
     slow: Mutex<SlowFeatures>,
     slow_seen: AtomicBool,
     wants_call: AtomicBool,
+    /// The number of the last call the action worker started.
     call_started: AtomicU64,
+    /// A finished chunk waits in `chunk` for the control thread: the worker starts no new
+    /// call until it is taken, so no chunk (nor its trace record) is ever overwritten.
+    chunk_pending: AtomicBool,
     stop: AtomicBool,
     error: Mutex<Option<Error>>,
 }
@@ -163,15 +169,31 @@ impl Shared {
             fast_cv: Condvar::new(),
             chunk: Mutex::new(ChunkMail {
                 full: false,
+                seq: 0,
                 chunk: Chunk::new(horizon, action_dim),
             }),
             slow: Mutex::new(SlowFeatures::default()),
             slow_seen: AtomicBool::new(false),
             wants_call: AtomicBool::new(true),
             call_started: AtomicU64::new(0),
+            chunk_pending: AtomicBool::new(false),
             stop: AtomicBool::new(false),
             error: Mutex::new(None),
         })
+    }
+
+    /// The action worker starts call `n` (numbers increase by one from 1).
+    fn begin_call(&self, n: u64) {
+        self.call_started.store(n, Ordering::Release);
+    }
+
+    /// The action worker hands over the chunk of call `n` (`out` gets the old storage).
+    fn publish_chunk(&self, n: u64, out: &mut Chunk) {
+        let mut m = self.chunk.lock().unwrap_or_else(|p| p.into_inner());
+        std::mem::swap(&mut m.chunk, out);
+        m.seq = n;
+        m.full = true;
+        self.chunk_pending.store(true, Ordering::Release);
     }
 
     fn fail(&self, e: Error) {
@@ -192,7 +214,8 @@ pub struct ControlLoop {
     hist: Vec<f32>,
     obs: Vec<f32>,
     n_obs: usize,
-    started_seen: u64,
+    /// The number of the last call whose chunk was delivered.
+    delivered_seq: u64,
 }
 
 impl ControlLoop {
@@ -203,7 +226,7 @@ impl ControlLoop {
             hist: vec![0.0; n_obs * fast_dim],
             obs: vec![0.0; fast_dim],
             n_obs,
-            started_seen: 0,
+            delivered_seq: 0,
         }
     }
 
@@ -241,16 +264,19 @@ impl ControlLoop {
             drop(m);
             shared.fast_cv.notify_one();
         }
-        let started = shared.call_started.load(Ordering::Acquire);
-        if started != self.started_seen {
-            self.started_seen = started;
-            self.control.call_started();
-        }
         if let Ok(mut m) = shared.chunk.try_lock() {
             if m.full {
                 self.control.deliver(&mut m.chunk);
+                self.delivered_seq = m.seq;
                 m.full = false;
+                shared.chunk_pending.store(false, Ordering::Release);
             }
+        }
+        // A call is in flight while the worker has started one whose chunk has not been
+        // delivered. Counting (not "did the number change") keeps this right when a call
+        // ends and the next one starts between two ticks.
+        if shared.call_started.load(Ordering::Acquire) > self.delivered_seq {
+            self.control.call_started();
         }
         let action = self.control.action();
         act.send(action)?;
@@ -318,7 +344,10 @@ fn action_worker<M: VelocityModel>(
                 if shared.stop.load(Ordering::Acquire) {
                     return Ok(());
                 }
-                if m.seq != last_seq && shared.wants_call.load(Ordering::Acquire) {
+                if m.seq != last_seq
+                    && shared.wants_call.load(Ordering::Acquire)
+                    && !shared.chunk_pending.load(Ordering::Acquire)
+                {
                     break;
                 }
                 m = shared
@@ -333,7 +362,7 @@ fn action_worker<M: VelocityModel>(
             snap.fast.copy_from_slice(&m.hist);
         }
         n_calls += 1;
-        shared.call_started.store(n_calls, Ordering::Release);
+        shared.begin_call(n_calls);
         let t0 = clock.now();
         if spec.slow_dim > 0 {
             if let Some((source, encoder)) = inline.as_mut() {
@@ -351,9 +380,7 @@ fn action_worker<M: VelocityModel>(
         let latency = clock.now().saturating_sub(t0);
         head.record_latency(latency);
         out.call.latency = latency;
-        let mut m = shared.chunk.lock().unwrap_or_else(|p| p.into_inner());
-        std::mem::swap(&mut m.chunk, &mut out);
-        m.full = true;
+        shared.publish_chunk(n_calls, &mut out);
     }
 }
 
@@ -671,4 +698,99 @@ where
             .push("the slow worker was still capturing at the end; left to finish".into());
     }
     Ok((metrics, head))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::clock::MockClock;
+    use crate::control::CallPolicy;
+    use crate::testing::FakeRobot;
+
+    fn setup() -> (Arc<Shared>, ControlLoop, FakeRobot) {
+        let (h, a, f, n_obs) = (16, 3, 6, 2);
+        let clock: Arc<dyn Clock> = Arc::new(MockClock::new());
+        let robot = FakeRobot::new(a, clock);
+        let cfg = ControlConfig {
+            horizon: h,
+            action_dim: a,
+            policy: CallPolicy::Async,
+            ensemble: None,
+            output: Default::default(),
+        };
+        let mut lp = ControlLoop::new(ControlState::new(cfg).unwrap(), n_obs, f);
+        let mut first = Chunk::new(h, a);
+        first.clean.fill(true);
+        lp.control.deliver(&mut first);
+        (Shared::new(n_obs, f, h, a), lp, robot)
+    }
+
+    fn chunk(latency: Nanos) -> Chunk {
+        let mut c = Chunk::new(16, 3);
+        c.clean.fill(true);
+        c.call.latency = latency;
+        c
+    }
+
+    /// Call 1 ends and call 2 starts between two ticks: the tick delivers call 1 and still
+    /// knows call 2 is in flight (before: "the number changed" marked a call in flight,
+    /// then the delivery of call 1 cleared it, so the control thread asked for calls while
+    /// call 2 ran, and call 2's chunk was overwritten by call 3's before it was taken; a
+    /// 1.6 s call through a policy-server outage vanished from the trace that way).
+    #[test]
+    fn a_call_started_between_ticks_stays_in_flight_after_the_previous_delivery() {
+        let (shared, mut lp, mut robot) = setup();
+        let mut act = robot.clone();
+        lp.tick(&shared, &mut robot, &mut act).unwrap();
+        assert!(shared.wants_call.load(Ordering::Acquire));
+
+        shared.begin_call(1);
+        shared.publish_chunk(1, &mut chunk(1_000_000));
+        shared.begin_call(2);
+        lp.tick(&shared, &mut robot, &mut act).unwrap();
+        // The warm-start chunk (latency 0) and call 1.
+        assert_eq!(lp.control.metrics.calls.len(), 2);
+        assert!(
+            !shared.wants_call.load(Ordering::Acquire),
+            "call 2 is in flight: no new call may be asked for"
+        );
+        assert!(!shared.chunk_pending.load(Ordering::Acquire));
+
+        // Call 2 takes many ticks; nothing is asked for meanwhile.
+        for _ in 0..5 {
+            lp.tick(&shared, &mut robot, &mut act).unwrap();
+            assert!(!shared.wants_call.load(Ordering::Acquire));
+        }
+        shared.publish_chunk(2, &mut chunk(1_600_000_000));
+        assert!(shared.chunk_pending.load(Ordering::Acquire));
+        lp.tick(&shared, &mut robot, &mut act).unwrap();
+        assert!(shared.wants_call.load(Ordering::Acquire));
+        let lat: Vec<Nanos> = lp.control.metrics.calls.iter().map(|c| c.latency).collect();
+        assert_eq!(lat, [0, 1_000_000, 1_600_000_000]);
+    }
+
+    /// A finished chunk the control thread has not taken holds the worker back: the worker
+    /// waits on `chunk_pending`, so the next chunk never replaces it.
+    #[test]
+    fn a_pending_chunk_is_taken_once_and_then_released() {
+        let (shared, mut lp, mut robot) = setup();
+        let mut act = robot.clone();
+        shared.begin_call(1);
+        shared.publish_chunk(1, &mut chunk(5));
+        assert!(shared.chunk_pending.load(Ordering::Acquire));
+        // The control thread is inside a tick holding nothing; a try_lock miss leaves it.
+        {
+            let _g = shared.chunk.lock().unwrap();
+            lp.tick(&shared, &mut robot, &mut act).unwrap();
+        }
+        assert!(shared.chunk_pending.load(Ordering::Acquire));
+        assert!(
+            !shared.wants_call.load(Ordering::Acquire),
+            "call 1 not delivered yet"
+        );
+        lp.tick(&shared, &mut robot, &mut act).unwrap();
+        assert!(!shared.chunk_pending.load(Ordering::Acquire));
+        assert!(shared.wants_call.load(Ordering::Acquire));
+        assert_eq!(lp.control.metrics.calls.len(), 2);
+    }
 }
