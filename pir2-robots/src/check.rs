@@ -242,9 +242,13 @@ pub fn check_with(opts: &CheckOptions) -> Result<CheckReport> {
     Ok(out)
 }
 
+/// The XHand on its own driver thread, as the composite of a run holds it.
+pub type ThreadedHand<T> = crate::Threaded<crate::XHand<T>>;
+
 /// The paper's robot, ready for a run: connect the xArm6 (servo mode, streaming) and the
-/// XHand on `hand_path`, combine them into the 45-d / 18-d composite and wrap it in the
-/// safety layer with its watchdog running (polling every 10 ms). Hand it to
+/// XHand on `hand_path` (on its own driver thread, [`crate::Threaded`], so a serial stall
+/// never makes a control tick late), combine them into the 45-d / 18-d composite and wrap it
+/// in the safety layer with its watchdog running (polling every 10 ms). Hand it to
 /// [`crate::split`] for the runtime.
 #[cfg(unix)]
 pub fn connect_arm_hand(
@@ -253,9 +257,12 @@ pub fn connect_arm_hand(
     hand: crate::XHandConfig,
     safety: crate::SafetyConfig,
     clock: Arc<dyn Clock>,
-) -> Result<crate::SafetyLayer<crate::ArmHand<crate::XArm6, crate::XHand<xhand::tty::TtyPort>>>> {
+) -> Result<crate::SafetyLayer<crate::ArmHand<crate::XArm6, ThreadedHand<xhand::tty::TtyPort>>>> {
     let port = xhand::tty::TtyPort::open(hand_path, consts::BAUD)?;
-    let hand = crate::XHand::new(port, hand, clock.clone());
+    let hand = crate::Threaded::spawn(
+        crate::XHand::new(port, hand, clock.clone()),
+        crate::ThreadedConfig::default(),
+    )?;
     let arm = crate::XArm6::connect(arm, clock.clone())?;
     let composite = crate::ArmHand::new(arm, hand)?;
     let mut layer = crate::SafetyLayer::new(composite, safety, clock)?;

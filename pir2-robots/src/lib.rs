@@ -26,6 +26,7 @@ pub mod emu;
 pub mod error;
 pub mod robot;
 pub mod safety;
+pub mod threaded;
 pub mod xarm;
 pub mod xhand;
 
@@ -39,6 +40,7 @@ pub use robot::{
     HAND_DOF,
 };
 pub use safety::{SafetyConfig, SafetyLayer, SafetyStats};
+pub use threaded::{Threaded, ThreadedConfig, ThreadedStats};
 pub use xarm::{XArm6, XArm6Config};
 pub use xhand::{XHand, XHandConfig};
 

@@ -4,7 +4,9 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot, XArmFault};
+use pir2_robots::emu::{
+    EmulatedArmHand, EmulatedArmHandConfig, EmulatedRobot, XArmFault, XHandFault,
+};
 use pir2_robots::robot::{ARM_HAND_ACTION_DIM, ARM_HAND_STATE_DIM};
 use pir2_robots::xarm::proto::state;
 use pir2_robots::{split, SafetyConfig};
@@ -212,4 +214,53 @@ fn arm_controller_error_stops_the_whole_robot_at_once() {
     assert_eq!(stats.stops, 1, "{stats}");
     assert!(actuator.send(&reference(0, &home)).is_err());
     let _ = emu;
+}
+
+/// A stalled XHand serial line (the emulator answers 50 ms late; with the 2 × 10 ms line
+/// latency that is within the driver's 100 ms reply timeout) does not hold up the
+/// composite's control calls: the hand runs on its own
+/// driver thread, so a tick's read and send return while the hand is still stalled, with the
+/// hand's part of the state as old as its last reply (before: the hand was called on the
+/// control thread and every such tick waited for the reply).
+#[test]
+fn a_stalled_hand_line_does_not_hold_up_a_control_tick() {
+    let Rig { emu, clock, layer } = rig(SafetyConfig::xarm6_xhand());
+    let (mut source, mut actuator) = split(layer);
+    let mut obs = vec![0f32; ARM_HAND_STATE_DIM];
+    let t_before = source.read(&mut obs).unwrap();
+    let mut action = obs[..6].to_vec();
+    action.extend(obs[6..18].iter());
+    actuator.send(&action).unwrap();
+    // Let the hand driver finish the exchange in flight, then stall its next one.
+    std::thread::sleep(Duration::from_millis(30));
+    let hand = emu.hand.handle();
+    hand.inject(XHandFault::Stall(Duration::from_millis(50)));
+    // Wait until the stalled request has reached the emulator.
+    let requests = hand.requests();
+    let t0 = std::time::Instant::now();
+    while hand.requests() == requests {
+        assert!(t0.elapsed() < Duration::from_secs(2), "no hand request");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let commands = hand.commands();
+    let t_tick = clock.now();
+    for _ in 0..3 {
+        source.read(&mut obs).unwrap();
+        actuator.send(&action).unwrap();
+    }
+    // Still inside the stall: no reply has gone out since it began.
+    assert_eq!(
+        hand.commands(),
+        commands,
+        "the control calls waited for the stalled hand"
+    );
+    let t_state = source.read(&mut obs).unwrap();
+    assert!(
+        t_state >= t_before && t_state <= t_tick,
+        "the state's time is its last reply's"
+    );
+    // After the stall, the hand answers again and the robot is still usable.
+    std::thread::sleep(Duration::from_millis(150));
+    assert!(source.read(&mut obs).unwrap() > t_tick);
+    actuator.send(&action).unwrap();
 }

@@ -14,11 +14,12 @@ use super::{duplex, DuplexPort, XArmEmulator, XArmPorts, XHandEmulator};
 use crate::error::Result;
 use crate::robot::ArmHand;
 use crate::safety::{SafetyConfig, SafetyLayer};
+use crate::threaded::{Threaded, ThreadedConfig};
 use crate::xarm::{XArm6, XArm6Config};
 use crate::xhand::{XHand, XHandConfig};
 
 /// The robot the emulated rig hands out: arm + hand behind the safety layer.
-pub type EmulatedRobot = SafetyLayer<ArmHand<XArm6, XHand<DuplexPort>>>;
+pub type EmulatedRobot = SafetyLayer<ArmHand<XArm6, Threaded<XHand<DuplexPort>>>>;
 
 /// Options of [`EmulatedArmHand::start`].
 #[derive(Debug, Clone)]
@@ -83,14 +84,17 @@ impl EmulatedArmHand {
             acfg.action_period = p;
         }
         let arm = XArm6::connect(acfg, clock.clone())?;
-        let hand = XHand::new(
-            host,
-            XHandConfig {
-                timeout: Duration::from_millis(100),
-                ..Default::default()
-            },
-            clock.clone(),
-        );
+        let hand = Threaded::spawn(
+            XHand::new(
+                host,
+                XHandConfig {
+                    timeout: Duration::from_millis(100),
+                    ..Default::default()
+                },
+                clock.clone(),
+            ),
+            ThreadedConfig::default(),
+        )?;
         let mut layer = SafetyLayer::new(ArmHand::new(arm, hand)?, cfg.safety.clone(), clock)?;
         layer.spawn_watchdog(cfg.watchdog)?;
         Ok((rig, layer))
