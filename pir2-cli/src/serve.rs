@@ -153,8 +153,8 @@ mod imp {
 
     use pir2_backends::candle::CandleModel;
     use pir2_runtime::remote::{
-        serve_policy, serve_slow, Link, PolicyServerConfig, RemoteModel, RemoteModelConfig,
-        RemoteStats, SlowServerConfig,
+        serve_policy_counted, serve_slow, Link, PolicyServerConfig, PolicyServerStats, RemoteModel,
+        RemoteModelConfig, RemoteStats, SlowServerConfig,
     };
     use pir2_runtime::testing::{CameraStub, PassThroughEncoder};
     use pir2_runtime::{
@@ -178,6 +178,7 @@ mod imp {
                     link: Link::listen(listen.clone()),
                     key: key.clone(),
                     reply_delay: Duration::from_millis(*inject_delay_ms),
+                    ..Default::default()
                 };
                 let delay = if *inject_delay_ms > 0 {
                     format!(", every reply held {inject_delay_ms} ms")
@@ -194,7 +195,7 @@ mod imp {
                             ck.display(),
                             model.backend()
                         );
-                        serve_policy(Announce::new(model), &cfg, stop).with_context(ctx)
+                        serve_counted(Announce::new(model), &cfg, stop).with_context(ctx)
                     }
                     (None, Some(dir)) => {
                         let task = task
@@ -202,7 +203,7 @@ mod imp {
                             .context("--task is required with --gr00t-checkpoint")?;
                         let (model, what) = gr00t_head(dir, task)?;
                         eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
-                        serve_policy(Announce::new(model), &cfg, stop).with_context(ctx)
+                        serve_counted(Announce::new(model), &cfg, stop).with_context(ctx)
                     }
                     (None, None) => {
                         anyhow::bail!("give --checkpoint DIR or --gr00t-checkpoint DIR --task T")
@@ -243,6 +244,30 @@ mod imp {
                     .with_context(|| format!("serving slow features on {listen}"))
             }
         }
+    }
+
+    /// Serve, then say on stderr what was served and refused (also when serving failed).
+    fn serve_counted<M: VelocityModel>(
+        model: M,
+        cfg: &PolicyServerConfig,
+        stop: Arc<AtomicBool>,
+    ) -> pir2_runtime::remote::Result<()> {
+        let stats = Arc::new(PolicyServerStats::default());
+        let r = serve_policy_counted(model, cfg, stop, stats.clone());
+        let c = stats.counters();
+        eprintln!(
+            "policy server: {} requests, {} answered; refused: {} oversized, {} batch too large, \
+             {} malformed, {} model errors, {} model panics; {} replies not delivered",
+            c.requests,
+            c.answered,
+            c.oversized,
+            c.too_large_batch,
+            c.malformed,
+            c.model_errors,
+            c.model_panics,
+            c.reply_failures
+        );
+        r
     }
 
     /// Says on stderr when the first request was answered (a client is being served).

@@ -72,6 +72,7 @@ fn policy_server(port: u16, model_ms: u64, reply_delay: Duration) -> Server {
         link: Link::listen(ep(port)),
         key: "test/policy".into(),
         reply_delay,
+        ..Default::default()
     };
     let s = stop.clone();
     let handle = std::thread::spawn(move || {
@@ -428,4 +429,278 @@ fn slow_server_gone_ends_the_run_even_without_a_grace() {
         took < Duration::from_secs(3),
         "ended {took:?} after the kill"
     );
+}
+
+// ---- bad messages ------------------------------------------------------------------------
+
+/// A model that panics on a batch of 2 and negates `x` otherwise.
+struct PanicsOnBatch2;
+
+impl VelocityModel for PanicsOnBatch2 {
+    fn backend(&self) -> &'static str {
+        "panics-on-2"
+    }
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
+        assert!(input.batch != 2, "a batch of 2 breaks this model");
+        for (o, x) in out.iter_mut().zip(input.x) {
+            *o = -x;
+        }
+        Ok(())
+    }
+}
+
+/// Call `m` with a batch of `b`, H = 4, A = 2, one fast frame of 3 and `slow` floats a sample.
+fn call(m: &mut RemoteModel, b: usize, slow: usize) -> pir2_runtime::remote::Result<Vec<f32>> {
+    let (h, a) = (4, 2);
+    let x: Vec<f32> = (0..b * h * a).map(|i| i as f32).collect();
+    let tau = vec![0.5; b * h];
+    let obs = vec![0.1; b * 3];
+    let d_vis = vec![0u32; b];
+    let s = vec![0.25; b * slow];
+    let input = ModelInput {
+        batch: b,
+        horizon: h,
+        action_dim: a,
+        x: &x,
+        tau: &tau,
+        obs_fast: &obs,
+        n_obs: 1,
+        fast_dim: 3,
+        slow: if slow == 0 {
+            SlowInput::None
+        } else {
+            SlowInput::Vector {
+                data: &s,
+                dim: slow,
+            }
+        },
+        d_vis: &d_vis,
+    };
+    let mut out = vec![0.0; b * h * a];
+    m.call(&input, &mut out)?;
+    Ok(out)
+}
+
+/// Oversized, malformed, too-large-batch and model-panicking requests each get an error
+/// reply naming why and are counted; the server keeps serving (before: no size or batch
+/// limit, a model panic killed the server, and a reply that could not be sent ended it).
+#[test]
+fn bad_requests_are_refused_counted_and_the_server_keeps_serving() {
+    use pir2_runtime::remote::{serve_policy_counted, PolicyServerStats};
+    use zenoh::Wait;
+
+    let port = free_port();
+    let stop = Arc::new(AtomicBool::new(false));
+    let stats = Arc::new(PolicyServerStats::default());
+    let cfg = PolicyServerConfig {
+        link: Link::listen(ep(port)),
+        key: "test/policy".into(),
+        max_request_bytes: 4096,
+        max_batch: 2,
+        ..Default::default()
+    };
+    let (s, st) = (stop.clone(), stats.clone());
+    let server = Server {
+        stop: stop.clone(),
+        handle: std::thread::spawn(move || serve_policy_counted(PanicsOnBatch2, &cfg, s, st)),
+    };
+    let mut m = remote_model(port, 2000, 3);
+
+    assert_eq!(call(&mut m, 1, 0).unwrap()[1], -1.0);
+    let e = call(&mut m, 1, 2000).unwrap_err().to_string();
+    assert!(
+        e.contains("refused") && e.contains("at most 4096 bytes"),
+        "{e}"
+    );
+    let e = call(&mut m, 3, 0).unwrap_err().to_string();
+    assert!(e.contains("batch of 3 refused"), "{e}");
+    let e = call(&mut m, 2, 0).unwrap_err().to_string();
+    assert!(
+        e.contains("panicked") && e.contains("breaks this model"),
+        "{e}"
+    );
+    // Garbage on the server's key, from another session.
+    let zs = zenoh::open({
+        let mut c = zenoh::Config::default();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5("connect/endpoints", &format!("[\"{}\"]", ep(port)))
+            .unwrap();
+        c
+    })
+    .wait()
+    .unwrap();
+    let replies = zs
+        .get("test/policy")
+        .payload(vec![0xde_u8, 0xad, 0xbe, 0xef, 1, 2, 3])
+        .timeout(Duration::from_secs(2))
+        .wait()
+        .unwrap();
+    let r = replies
+        .recv()
+        .expect("the server answers garbage with an error");
+    let bytes = r.result().unwrap().payload().to_bytes();
+    assert!(matches!(
+        pir2_runtime::remote::wire::decode_reply(&bytes),
+        Ok(pir2_runtime::remote::wire::Reply::Error(_))
+    ));
+    drop(replies);
+    zs.close().wait().unwrap();
+    // Still serving.
+    assert_eq!(call(&mut m, 1, 0).unwrap()[2], -2.0);
+    let c = stats.counters();
+    assert_eq!(
+        (
+            c.answered,
+            c.oversized,
+            c.too_large_batch,
+            c.model_panics,
+            c.malformed
+        ),
+        (2, 1, 1, 1, 1),
+        "{c:?}"
+    );
+    server.kill();
+}
+
+/// A slow-channel message that is not a feature message (another publisher on the key, a
+/// damaged frame) is dropped and counted; the channel goes on with the server's frames
+/// (before: the first such message ended the run).
+#[test]
+fn garbage_on_the_features_key_is_dropped_and_counted() {
+    use zenoh::Wait;
+
+    let (port, rogue_port) = (free_port(), free_port());
+    let base = Arc::new(SystemClock::new());
+    let server = slow_server(port, clock(&base, 0));
+    // Another peer the robot also connects to, publishing garbage on the features key.
+    let rogue = zenoh::open({
+        let mut c = zenoh::Config::default();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5("listen/endpoints", &format!("[\"{}\"]", ep(rogue_port)))
+            .unwrap();
+        c
+    })
+    .wait()
+    .unwrap();
+    let (slow, stats) = remote_slow_channel(
+        RemoteSlowConfig {
+            link: Link {
+                retry: Duration::from_millis(20),
+                listen: Vec::new(),
+                connect: vec![ep(port), ep(rogue_port)],
+            },
+            key: "test/slow".into(),
+            stale_poll: Duration::from_millis(100),
+            first_timeout: Duration::from_secs(5),
+            ..Default::default()
+        },
+        clock(&base, 0),
+    )
+    .unwrap();
+    let SlowChannel::Async { mut source, .. } = slow else {
+        panic!("the remote slow channel is async");
+    };
+    assert_eq!(block_on_frame(&mut *source).values.len(), 4);
+    let publisher = rogue.declare_publisher("test/slow").wait().unwrap();
+    for _ in 0..5 {
+        publisher.put(vec![1u8, 2, 3, 4, 5]).wait().unwrap();
+        assert_eq!(block_on_frame(&mut *source).values.len(), 4);
+    }
+    let c = stats.counters();
+    assert!(c.malformed >= 1, "{c:?}");
+    assert!(c.frames >= 6, "{c:?}");
+    drop(publisher);
+    rogue.close().wait().unwrap();
+    server.kill();
+}
+
+fn block_on_frame(source: &mut dyn SlowSource) -> SlowFrame {
+    struct Noop;
+    impl std::task::Wake for Noop {
+        fn wake(self: Arc<Self>) {}
+    }
+    let waker = std::task::Waker::from(Arc::new(Noop));
+    let mut cx = std::task::Context::from_waker(&waker);
+    let mut fut = source.capture();
+    loop {
+        if let std::task::Poll::Ready(r) = fut.as_mut().poll(&mut cx) {
+            return r.unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+/// Replies that cannot be used (garbage, or velocities for another request) are dropped and
+/// counted; they count as failed attempts, so a server that only sends such replies ends the
+/// call in a safety stop after `max_failed_calls` (before: the first one ended the run with
+/// a decoding error, not a safety stop, and was not counted).
+#[test]
+fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
+    use pir2_runtime::remote::wire;
+    use zenoh::Wait;
+
+    let port = free_port();
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = stop.clone();
+    // A server that answers pings properly and every request with garbage, or with the
+    // velocities of another request (alternately).
+    let rogue = std::thread::spawn(move || {
+        let zs = zenoh::open({
+            let mut c = zenoh::Config::default();
+            c.insert_json5("scouting/multicast/enabled", "false")
+                .unwrap();
+            c.insert_json5("listen/endpoints", &format!("[\"{}\"]", ep(port)))
+                .unwrap();
+            c
+        })
+        .wait()
+        .unwrap();
+        let q = zs.declare_queryable("test/policy").wait().unwrap();
+        let mut n = 0u64;
+        while !s.load(Ordering::Acquire) {
+            let Ok(Some(query)) = q.recv_timeout(Duration::from_millis(20)) else {
+                continue;
+            };
+            let bytes = query.payload().map(|p| p.to_bytes().to_vec()).unwrap();
+            let (h, _) = wire::decode_header(&bytes).unwrap();
+            let reply = if h.kind == wire::Kind::Ping {
+                wire::encode_pong(9, &h, 0)
+            } else {
+                n += 1;
+                if n % 2 == 1 {
+                    vec![0xff; 40]
+                } else {
+                    let other = wire::Header {
+                        seq: h.seq + 100,
+                        ..h
+                    };
+                    wire::encode_reply(9, &other, 0, [1, 4, 2], &[0.0; 8])
+                }
+            };
+            query.reply("test/policy", reply).wait().unwrap();
+        }
+        drop(q);
+        zs.close().wait().unwrap();
+    });
+    let mut m = remote_model(port, 100, 4);
+    let stats = m.stats();
+    let e = call(&mut m, 1, 0).unwrap_err();
+    assert!(
+        matches!(e, pir2_runtime::remote::Error::Unusable { failed: 4, .. }),
+        "{e}"
+    );
+    assert!(matches!(
+        pir2_runtime::Error::from(e),
+        pir2_runtime::Error::SafetyStop(_)
+    ));
+    let c = stats.counters();
+    assert_eq!(
+        (c.malformed, c.failed_calls, c.attempts),
+        (4, 1, 4),
+        "{c:?}"
+    );
+    stop.store(true, Ordering::SeqCst);
+    rogue.join().unwrap();
 }

@@ -46,7 +46,10 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 
 pub use clock_sync::{estimate_offset, ClockOffset, OffsetSample};
-pub use policy::{serve_policy, PolicyServerConfig, RemoteModel, RemoteModelConfig};
+pub use policy::{
+    serve_policy, serve_policy_counted, PolicyServerConfig, PolicyServerCounters,
+    PolicyServerStats, RemoteModel, RemoteModelConfig,
+};
 pub use slow::{
     remote_slow_channel, serve_slow, RemoteSlowConfig, RemoteSlowEncoder, RemoteSlowSource,
     SlowServerConfig,
@@ -86,9 +89,15 @@ pub enum Error {
         /// Timeout per attempt.
         timeout: Duration,
     },
-    /// A reply does not match its request (shape or sequence number).
-    #[error("reply mismatch: {0}")]
-    Mismatch(String),
+    /// The policy server's replies could not be used `failed` times in a row (malformed,
+    /// or answering another request): stop the robot.
+    #[error("policy server: {failed} replies in a row were unusable (last: {last})")]
+    Unusable {
+        /// Consecutive unusable replies.
+        failed: u32,
+        /// Why the last one was unusable.
+        last: String,
+    },
     /// Invalid configuration.
     #[error("invalid remote configuration: {0}")]
     Config(String),
@@ -104,7 +113,9 @@ impl From<Error> for crate::Error {
     fn from(e: Error) -> Self {
         match e {
             Error::Runtime(e) => e,
-            Error::ServerGone { .. } => crate::Error::SafetyStop(e.to_string()),
+            Error::ServerGone { .. } | Error::Unusable { .. } => {
+                crate::Error::SafetyStop(e.to_string())
+            }
             Error::Server(m) => crate::Error::Model(format!("remote: {m}")),
             Error::Config(m) => crate::Error::Config(m),
             other => crate::Error::io("remote", other),
@@ -203,6 +214,7 @@ pub struct RemoteStats {
     timeouts: AtomicU64,
     failed_calls: AtomicU64,
     server_errors: AtomicU64,
+    malformed: AtomicU64,
     offset_ns: AtomicI64,
     offset_rtt_ns: AtomicU64,
     last_rtt_ns: AtomicU64,
@@ -233,6 +245,9 @@ pub struct RemoteCounters {
     pub failed_calls: u64,
     /// Policy: error replies from the server.
     pub server_errors: u64,
+    /// Messages that could not be used (malformed, or a reply to another request): dropped.
+    #[serde(default)]
+    pub malformed: u64,
     /// Slow: current offset estimate, server clock − robot clock, ns.
     pub offset_ns: i64,
     /// Slow: round trip of the sample the offset came from (accuracy bound = half), ns.
@@ -257,6 +272,7 @@ impl RemoteStats {
             timeouts: r(&self.timeouts),
             failed_calls: r(&self.failed_calls),
             server_errors: r(&self.server_errors),
+            malformed: r(&self.malformed),
             offset_ns: self.offset_ns.load(Ordering::Relaxed),
             offset_rtt_ns: r(&self.offset_rtt_ns),
             last_rtt_ns: r(&self.last_rtt_ns),

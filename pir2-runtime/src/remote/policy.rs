@@ -1,7 +1,7 @@
 //! The remote action head: `serve_policy` answers one-NFE requests with a local model;
 //! `RemoteModel` is the robot's `VelocityModel` that forwards each call.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -24,6 +24,22 @@ pub struct PolicyServerConfig {
     /// Extra delay before each reply: a stand-in for a slow network in tests and
     /// measurements (zero in deployment).
     pub reply_delay: Duration,
+    /// Requests larger than this are refused before they are decoded (bytes).
+    #[serde(default = "default_max_request_bytes")]
+    pub max_request_bytes: usize,
+    /// Requests with a larger batch are refused before the model runs.
+    #[serde(default = "default_max_batch")]
+    pub max_batch: usize,
+}
+
+/// 64 MiB: a GR00T-sized request (a few hundred VL tokens × 2048 floats per sample) fits
+/// many times over.
+fn default_max_request_bytes() -> usize {
+    64 << 20
+}
+
+fn default_max_batch() -> usize {
+    64
 }
 
 impl Default for PolicyServerConfig {
@@ -32,6 +48,60 @@ impl Default for PolicyServerConfig {
             link: Link::listen("tcp/127.0.0.1:7447"),
             key: "pir2/policy".into(),
             reply_delay: Duration::ZERO,
+            max_request_bytes: default_max_request_bytes(),
+            max_batch: default_max_batch(),
+        }
+    }
+}
+
+/// Counters of a policy server (relaxed atomics; read them with [`Self::counters`]).
+#[derive(Debug, Default)]
+pub struct PolicyServerStats {
+    requests: AtomicU64,
+    answered: AtomicU64,
+    oversized: AtomicU64,
+    too_large_batch: AtomicU64,
+    malformed: AtomicU64,
+    model_errors: AtomicU64,
+    model_panics: AtomicU64,
+    reply_failures: AtomicU64,
+}
+
+/// A snapshot of [`PolicyServerStats`]. Every request that was not answered with
+/// velocities was answered with an error message naming why, and counted here.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PolicyServerCounters {
+    /// Queries received (pings included).
+    pub requests: u64,
+    /// Requests answered with velocities.
+    pub answered: u64,
+    /// Refused before decoding: larger than `max_request_bytes`.
+    pub oversized: u64,
+    /// Refused: batch larger than `max_batch`.
+    pub too_large_batch: u64,
+    /// Could not be decoded (bad magic, version, kind, shapes...).
+    pub malformed: u64,
+    /// The model returned an error (e.g. shapes it does not take).
+    pub model_errors: u64,
+    /// The model panicked; the server answered with an error and kept serving.
+    pub model_panics: u64,
+    /// A reply could not be sent (the client went away); the server kept serving.
+    pub reply_failures: u64,
+}
+
+impl PolicyServerStats {
+    /// Read every counter.
+    pub fn counters(&self) -> PolicyServerCounters {
+        let r = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        PolicyServerCounters {
+            requests: r(&self.requests),
+            answered: r(&self.answered),
+            oversized: r(&self.oversized),
+            too_large_batch: r(&self.too_large_batch),
+            malformed: r(&self.malformed),
+            model_errors: r(&self.model_errors),
+            model_panics: r(&self.model_panics),
+            reply_failures: r(&self.reply_failures),
         }
     }
 }
@@ -44,10 +114,31 @@ fn key(k: &str) -> Result<KeyExpr<'static>> {
 /// does not decode, or a model error, is answered with an error message (the caller gets a
 /// typed error) and serving goes on. Pings are answered (liveness).
 pub fn serve_policy<M: VelocityModel>(
-    mut model: M,
+    model: M,
     cfg: &PolicyServerConfig,
     stop: Arc<AtomicBool>,
 ) -> Result<()> {
+    serve_policy_counted(model, cfg, stop, Arc::new(PolicyServerStats::default()))
+}
+
+/// [`serve_policy`], counting into `stats` (e.g. to print them when the server stops).
+///
+/// A bad request never ends the server: one larger than
+/// [`PolicyServerConfig::max_request_bytes`] is refused before decoding, one that does not
+/// decode or has a batch over [`PolicyServerConfig::max_batch`] is refused after, a model
+/// error or panic is answered with an error, and a reply that cannot be sent is dropped;
+/// each is counted. Only a failure of the server's own session ends it.
+pub fn serve_policy_counted<M: VelocityModel>(
+    mut model: M,
+    cfg: &PolicyServerConfig,
+    stop: Arc<AtomicBool>,
+    stats: Arc<PolicyServerStats>,
+) -> Result<()> {
+    if cfg.max_request_bytes == 0 || cfg.max_batch == 0 {
+        return Err(Error::Config(
+            "max_request_bytes and max_batch must be positive".into(),
+        ));
+    }
     let me = instance_id();
     let clock = SystemClock::new();
     let session = cfg.link.open()?;
@@ -63,44 +154,103 @@ pub fn serve_policy<M: VelocityModel>(
             Err(e) => return Err(transport("receive requests")(e)),
         };
         let t_recv = clock.now();
-        let Some(bytes) = q.payload().map(|p| p.to_bytes()) else {
-            continue;
-        };
-        let reply = match wire::decode_header(&bytes) {
-            Err(e) => wire::encode_error(me, 0, &e.to_string()),
-            Ok((h, _)) if h.kind == wire::Kind::Ping => wire::encode_pong(me, &h, t_recv),
-            Ok((h, _)) => match answer(&mut model, &bytes, &mut v) {
-                Ok((req, shape)) => {
-                    wire::encode_reply(me, &req, clock.now().saturating_sub(t_recv), shape, &v)
+        bump(&stats.requests);
+        let size = q.payload().map_or(0, |p| p.len());
+        let reply = if size > cfg.max_request_bytes {
+            bump(&stats.oversized);
+            wire::encode_error(
+                me,
+                0,
+                &format!(
+                    "request of {size} bytes refused: the server takes at most {} bytes",
+                    cfg.max_request_bytes
+                ),
+            )
+        } else {
+            let bytes = q.payload().map(|p| p.to_bytes()).unwrap_or_default();
+            match wire::decode_header(&bytes) {
+                Err(e) => {
+                    bump(&stats.malformed);
+                    wire::encode_error(me, 0, &e.to_string())
                 }
-                Err(e) => wire::encode_error(me, h.seq, &e.to_string()),
-            },
+                Ok((h, _)) if h.kind == wire::Kind::Ping => wire::encode_pong(me, &h, t_recv),
+                Ok((h, _)) => match answer(&mut model, &bytes, &mut v, cfg.max_batch) {
+                    Ok((req, shape)) => {
+                        bump(&stats.answered);
+                        let took = clock.now().saturating_sub(t_recv);
+                        wire::encode_reply(me, &req, took, shape, &v)
+                    }
+                    Err(refused) => {
+                        bump(match refused {
+                            Refused::Malformed(_) => &stats.malformed,
+                            Refused::Batch(_) => &stats.too_large_batch,
+                            Refused::Model(_) => &stats.model_errors,
+                            Refused::Panic(_) => &stats.model_panics,
+                        });
+                        wire::encode_error(me, h.seq, &refused.to_string())
+                    }
+                },
+            }
         };
         if !cfg.reply_delay.is_zero() {
             std::thread::sleep(cfg.reply_delay);
         }
-        q.reply(q.key_expr().clone(), reply)
-            .wait()
-            .map_err(transport("reply"))?;
+        if q.reply(q.key_expr().clone(), reply).wait().is_err() {
+            bump(&stats.reply_failures);
+        }
     }
     drop(queryable);
     session.close().wait().map_err(transport("close"))?;
     Ok(())
 }
 
+/// Why a request got an error instead of velocities.
+enum Refused {
+    Malformed(String),
+    Batch(String),
+    Model(String),
+    Panic(String),
+}
+
+impl std::fmt::Display for Refused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Refused::Malformed(m) | Refused::Batch(m) | Refused::Model(m) => f.write_str(m),
+            Refused::Panic(m) => write!(f, "the model panicked: {m}"),
+        }
+    }
+}
+
 fn answer<M: VelocityModel>(
     model: &mut M,
     bytes: &[u8],
     v: &mut Vec<f32>,
-) -> Result<(wire::Header, [usize; 3])> {
-    let req = wire::decode_request(bytes)?;
+    max_batch: usize,
+) -> std::result::Result<(wire::Header, [usize; 3]), Refused> {
+    let req = wire::decode_request(bytes).map_err(|e| Refused::Malformed(e.to_string()))?;
+    if req.batch > max_batch {
+        return Err(Refused::Batch(format!(
+            "batch of {} refused: the server takes at most {max_batch}",
+            req.batch
+        )));
+    }
     let input = req.input();
-    input.validate()?;
+    input
+        .validate()
+        .map_err(|e| Refused::Malformed(e.to_string()))?;
     let shape = [req.batch, req.horizon, req.action_dim];
     v.clear();
     v.resize(shape.iter().product(), 0.0);
-    model.velocity(&input, v)?;
-    Ok((req.header, shape))
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| model.velocity(&input, v))) {
+        Ok(Ok(())) => Ok((req.header, shape)),
+        Ok(Err(e)) => Err(Refused::Model(e.to_string())),
+        Err(p) => Err(Refused::Panic(
+            p.downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| p.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "(no message)".into()),
+        )),
+    }
 }
 
 /// Settings of [`RemoteModel`].
@@ -135,7 +285,11 @@ impl Default for RemoteModelConfig {
 /// Each call sends the request and waits up to [`RemoteModelConfig::timeout`]; without a
 /// reply it sends the same request again (the control thread meanwhile runs the overrun
 /// path), and after [`RemoteModelConfig::max_failed_calls`] consecutive failures it returns
-/// [`Error::ServerGone`] (→ [`crate::Error::SafetyStop`]). The real-time worker measures
+/// [`Error::ServerGone`] (→ [`crate::Error::SafetyStop`]). A reply that cannot be used
+/// (malformed, or velocities for another request) is dropped, counted in
+/// [`RemoteCounters::malformed`](super::RemoteCounters::malformed) and counts as a failed
+/// attempt ([`Error::Unusable`] at the limit, also a safety stop); a reply from a peer of
+/// another wire version is an error at once. The real-time worker measures
 /// the whole call, retries included, so `d` reflects the network honestly.
 pub struct RemoteModel {
     session: zenoh::Session,
@@ -227,18 +381,14 @@ impl RemoteModel {
             let t0 = Instant::now();
             match query(&self.session, &self.key, payload.clone(), self.cfg.timeout)? {
                 Some(bytes) => {
-                    return match wire::decode_reply(&bytes)? {
-                        wire::Reply::Error(m) => {
+                    let unusable = match wire::decode_reply(&bytes) {
+                        Ok(wire::Reply::Error(m)) => {
                             bump(&self.stats.server_errors);
-                            Err(Error::Server(m))
+                            return Err(Error::Server(m));
                         }
-                        wire::Reply::Velocity { header, shape, v } => {
-                            if header.seq != self.seq || shape != want {
-                                return Err(Error::Mismatch(format!(
-                                    "reply seq {} shape {shape:?} for request seq {} shape {want:?}",
-                                    header.seq, self.seq
-                                )));
-                            }
+                        Ok(wire::Reply::Velocity { header, shape, v })
+                            if header.seq == self.seq && shape == want =>
+                        {
                             out.copy_from_slice(&v);
                             if self.failing {
                                 self.failing = false;
@@ -248,9 +398,28 @@ impl RemoteModel {
                                 self.clock.now().saturating_sub(t_send),
                                 std::sync::atomic::Ordering::Relaxed,
                             );
-                            Ok(())
+                            return Ok(());
                         }
+                        Ok(wire::Reply::Velocity { header, shape, .. }) => format!(
+                            "reply seq {} shape {shape:?} for request seq {} shape {want:?}",
+                            header.seq, self.seq
+                        ),
+                        // A peer of another wire version cannot heal by retrying.
+                        Err(e @ wire::WireError::Version { .. }) => return Err(e.into()),
+                        Err(e) => e.to_string(),
                     };
+                    // Dropped and counted; it counts as a failed attempt, like no reply.
+                    bump(&self.stats.malformed);
+                    self.failing = true;
+                    failed += 1;
+                    if failed >= self.cfg.max_failed_calls {
+                        bump(&self.stats.failed_calls);
+                        return Err(Error::Unusable {
+                            failed,
+                            last: unusable,
+                        });
+                    }
+                    std::thread::sleep(self.cfg.timeout.saturating_sub(t0.elapsed()));
                 }
                 None => {
                     bump(&self.stats.timeouts);

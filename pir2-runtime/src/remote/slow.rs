@@ -317,7 +317,16 @@ impl RemoteSlowSource {
                 Err(e) => return Err(transport("receive features")(e)),
             };
             let bytes = sample.payload().to_bytes();
-            let msg = wire::decode_features(&bytes)?;
+            let msg = match wire::decode_features(&bytes) {
+                Ok(m) => m,
+                // A server of another wire version: a typed error, it cannot heal.
+                Err(e @ wire::WireError::Version { .. }) => return Err(e.into()),
+                Err(_) => {
+                    // Not ours or damaged: dropped and counted, never the end of a run.
+                    bump(&self.stats.malformed);
+                    continue;
+                }
+            };
             if self
                 .sync
                 .as_ref()
