@@ -181,6 +181,8 @@ pub struct RemoteOptions {
     pub max_failed: u32,
     /// Time to wait for the server at start.
     pub connect_timeout: Duration,
+    /// Mutual TLS (for a `tls/…` endpoint).
+    pub tls: crate::serve::TlsOptions,
 }
 
 /// `pir2 eval`.
@@ -247,6 +249,7 @@ pub fn eval(o: &EvalOptions) -> Result<()> {
         Some(r) => {
             let remote = crate::serve::RemotePolicy::connect(
                 &r.endpoint,
+                &r.tls,
                 r.timeout,
                 r.connect_timeout,
                 r.max_failed,

@@ -14,7 +14,7 @@ use pir2_cli::commands::{
     self, CollectOptions, DemoOptions, Emulated, EvalOptions, RemoteOptions, TaskName, TrainOptions,
 };
 use pir2_cli::run::{self, RunOptions};
-use pir2_cli::serve::{self, ServeOptions};
+use pir2_cli::serve::{self, ServeOptions, TlsOptions};
 use pir2_runtime::Policy;
 use pir2_sim::dataset::WriteMode;
 
@@ -181,6 +181,9 @@ enum Cmd {
         /// With --remote: seconds to wait for the server at start.
         #[arg(long, default_value_t = 5.0)]
         connect_timeout: f64,
+        /// With --remote: mutual TLS for a `tls/…` endpoint.
+        #[command(flatten)]
+        tls: TlsArgs,
     },
     /// Run a policy stack on a robot (or its emulators).
     Run(RunArgs),
@@ -312,6 +315,9 @@ struct RunArgs {
     /// Naive async: plain swap even if the checkpoint's `[policy] ensemble` is set.
     #[arg(long)]
     no_ensemble: bool,
+    /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
+    #[command(flatten)]
+    tls: TlsArgs,
 }
 
 impl From<RunArgs> for RunOptions {
@@ -342,6 +348,37 @@ impl From<RunArgs> for RunOptions {
             h: a.h,
             ensemble: a.ensemble,
             no_ensemble: a.no_ensemble,
+            tls: a.tls.into(),
+        }
+    }
+}
+
+/// `--tls-ca/--tls-cert/--tls-key` (all three or none) and `--insecure` (→ `TlsOptions`).
+#[derive(Args, Debug, Clone, Default)]
+struct TlsArgs {
+    /// The CA (PEM) both sides trust; with --tls-cert and --tls-key, endpoints are
+    /// `tls/HOST:PORT` and both sides verify each other (mutual TLS).
+    #[arg(long, requires_all = ["tls_cert", "tls_key"])]
+    tls_ca: Option<PathBuf>,
+    /// This side's certificate (PEM), signed by --tls-ca.
+    #[arg(long, requires_all = ["tls_ca", "tls_key"])]
+    tls_cert: Option<PathBuf>,
+    /// This side's private key (PEM).
+    #[arg(long, requires_all = ["tls_ca", "tls_cert"])]
+    tls_key: Option<PathBuf>,
+    /// Servers: listen on a non-loopback address without TLS. Anyone on that network can
+    /// then read the features, query the policy or impersonate the server.
+    #[arg(long)]
+    insecure: bool,
+}
+
+impl From<TlsArgs> for TlsOptions {
+    fn from(a: TlsArgs) -> Self {
+        TlsOptions {
+            ca: a.tls_ca,
+            cert: a.tls_cert,
+            key: a.tls_key,
+            insecure: a.insecure,
         }
     }
 }
@@ -379,6 +416,8 @@ enum ServeCmd {
         /// Key the requests arrive on.
         #[arg(long, default_value = "pir2/policy")]
         key: String,
+        #[command(flatten)]
+        tls: TlsArgs,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
@@ -400,6 +439,8 @@ enum ServeCmd {
         /// Camera frame period, ms.
         #[arg(long, default_value_t = 60)]
         frame_ms: u64,
+        #[command(flatten)]
+        tls: TlsArgs,
     },
 }
 
@@ -413,6 +454,7 @@ impl From<ServeCmd> for ServeOptions {
                 inject_delay_ms,
                 listen,
                 key,
+                tls,
             } => ServeOptions::Policy {
                 checkpoint,
                 gr00t_checkpoint,
@@ -420,6 +462,7 @@ impl From<ServeCmd> for ServeOptions {
                 inject_delay_ms,
                 listen,
                 key,
+                tls: tls.into(),
             },
             ServeCmd::Slow {
                 listen,
@@ -428,6 +471,7 @@ impl From<ServeCmd> for ServeOptions {
                 task,
                 stub,
                 frame_ms,
+                tls,
             } => ServeOptions::Slow {
                 listen,
                 key,
@@ -435,6 +479,7 @@ impl From<ServeCmd> for ServeOptions {
                 task,
                 stub,
                 frame_ms,
+                tls: tls.into(),
             },
         }
     }
@@ -557,6 +602,7 @@ fn main() -> Result<()> {
             remote_timeout_ms,
             remote_max_failed,
             connect_timeout,
+            tls,
         } => commands::eval(&EvalOptions {
             task: task(&t),
             checkpoint,
@@ -574,6 +620,7 @@ fn main() -> Result<()> {
                 timeout: Duration::from_millis(remote_timeout_ms.max(1)),
                 max_failed: remote_max_failed.max(1),
                 connect_timeout: Duration::from_secs_f64(connect_timeout.max(0.0)),
+                tls: tls.into(),
             }),
         }),
         Cmd::Run(args) => run::run_command(&args.into(), ctrl_c_flag()),

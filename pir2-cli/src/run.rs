@@ -58,6 +58,8 @@ pub struct RunOptions {
     pub max_failed_calls: u32,
     /// With --remote-policy: seconds to wait for the policy server at start-up.
     pub connect_timeout: f64,
+    /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
+    pub tls: crate::serve::TlsOptions,
     /// Stop after this many control ticks.
     pub ticks: Option<u64>,
     /// Stop after this many seconds (rounded to ticks of the embodiment's rate).
@@ -451,7 +453,7 @@ mod imp {
         let d_vl = head.dims().d_vl;
         drop(head);
         let cfg = RemoteModelConfig {
-            link: Link::connect(endpoint.clone()),
+            link: args.tls.apply(Link::connect(endpoint.clone()))?,
             timeout: Duration::from_millis(args.policy_timeout_ms),
             max_failed_calls: args.max_failed_calls,
             connect_timeout: Duration::from_secs_f64(args.connect_timeout),
@@ -748,7 +750,7 @@ mod imp {
             .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
         let seq = build_sequence(&tok, cfg.prompt_for(&args.task), &cfg.prompt)?;
         let rcfg = RemoteSlowConfig {
-            link: Link::connect(endpoint),
+            link: args.tls.apply(Link::connect(endpoint))?,
             first_timeout: opts.slow_timeout,
             ..Default::default()
         };

@@ -25,6 +25,47 @@ use pir2_backends::candle::CandleModel;
 
 use crate::study::pipeline::Models;
 
+/// Mutual TLS for the remote channels (all three files or none) and the explicit
+/// `--insecure` for a server listening beyond this machine without TLS.
+#[derive(Debug, Clone, Default)]
+pub struct TlsOptions {
+    /// The CA (PEM) both sides trust.
+    pub ca: Option<PathBuf>,
+    /// This side's certificate (PEM), signed by `ca`.
+    pub cert: Option<PathBuf>,
+    /// This side's private key (PEM).
+    pub key: Option<PathBuf>,
+    /// Listen on a non-loopback address without TLS.
+    pub insecure: bool,
+}
+
+#[cfg(feature = "remote")]
+impl TlsOptions {
+    /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files, and a
+    /// server refuses a non-loopback address without TLS unless `insecure` (then it says so
+    /// loudly on stderr).
+    pub fn apply(&self, link: pir2_runtime::remote::Link) -> Result<pir2_runtime::remote::Link> {
+        let link = match (&self.ca, &self.cert, &self.key) {
+            (Some(ca), Some(cert), Some(key)) => link.with_tls(pir2_runtime::remote::TlsFiles {
+                ca: ca.clone(),
+                cert: cert.clone(),
+                key: key.clone(),
+            }),
+            (None, None, None) => link,
+            _ => anyhow::bail!("--tls-ca, --tls-cert and --tls-key go together: give all three"),
+        };
+        link.check_exposure(self.insecure)?;
+        if self.insecure && link.check_exposure(false).is_err() {
+            eprintln!(
+                "WARNING: --insecure: listening on {:?} WITHOUT TLS. Anyone who can reach this \
+                 address can read the features, query the policy or impersonate the server.",
+                link.listen
+            );
+        }
+        Ok(link)
+    }
+}
+
 /// What `pir2 serve …` runs (the binary fills it from its arguments).
 #[derive(Debug, Clone)]
 pub enum ServeOptions {
@@ -48,6 +89,8 @@ pub enum ServeOptions {
         listen: String,
         /// Key the requests arrive on.
         key: String,
+        /// Mutual TLS and `--insecure`.
+        tls: TlsOptions,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
@@ -63,6 +106,8 @@ pub enum ServeOptions {
         stub: Option<usize>,
         /// Camera frame period, ms.
         frame_ms: u64,
+        /// Mutual TLS and `--insecure`.
+        tls: TlsOptions,
     },
 }
 
@@ -101,13 +146,14 @@ impl RemotePolicy {
     #[allow(unused_variables)]
     pub fn connect(
         endpoint: &str,
+        tls: &TlsOptions,
         timeout: std::time::Duration,
         connect_timeout: std::time::Duration,
         max_failed: u32,
     ) -> Result<Self> {
         #[cfg(feature = "remote")]
         return Ok(Self {
-            inner: imp::RemotePolicy::connect(endpoint, timeout, connect_timeout, max_failed)?,
+            inner: imp::RemotePolicy::connect(endpoint, tls, timeout, connect_timeout, max_failed)?,
         });
         #[cfg(not(feature = "remote"))]
         anyhow::bail!("--remote: {NO_REMOTE}")
@@ -173,9 +219,10 @@ mod imp {
                 inject_delay_ms,
                 listen,
                 key,
+                tls,
             } => {
                 let cfg = PolicyServerConfig {
-                    link: Link::listen(listen.clone()),
+                    link: tls.apply(Link::listen(listen.clone()))?,
                     key: key.clone(),
                     reply_delay: Duration::from_millis(*inject_delay_ms),
                     ..Default::default()
@@ -217,7 +264,9 @@ mod imp {
                 task,
                 stub,
                 frame_ms,
+                tls,
             } => {
+                let link = tls.apply(Link::listen(listen.clone()))?;
                 let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
                 let period = Duration::from_millis(*frame_ms);
                 let (source, encoder, what): (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String) =
@@ -233,7 +282,7 @@ mod imp {
                         (None, None) => anyhow::bail!("give --gr00t-checkpoint DIR or --stub DIM"),
                     };
                 let cfg = SlowServerConfig {
-                    link: Link::listen(listen.clone()),
+                    link,
                     key: key.clone(),
                 };
                 eprintln!(
@@ -413,12 +462,13 @@ mod imp {
     impl RemotePolicy {
         pub(super) fn connect(
             endpoint: &str,
+            tls: &super::TlsOptions,
             timeout: Duration,
             connect_timeout: Duration,
             max_failed: u32,
         ) -> Result<Self> {
             let cfg = RemoteModelConfig {
-                link: Link::connect(endpoint),
+                link: tls.apply(Link::connect(endpoint))?,
                 timeout,
                 max_failed_calls: max_failed,
                 connect_timeout,

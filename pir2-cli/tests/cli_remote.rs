@@ -698,3 +698,45 @@ fn sigterm_during_warm_up_stops_the_emulated_arm() {
         "{out}{rest}"
     );
 }
+
+/// `pir2 serve` refuses to listen beyond this machine without TLS (one error naming the
+/// endpoint and the way out), accepts it with `--insecure` and says so loudly, and a
+/// half-given TLS triple is refused (before: it listened on any address in plain TCP).
+#[test]
+fn serve_refuses_a_public_address_without_tls() {
+    let out = pir2()
+        .args(["serve", "slow", "--stub", "4", "--listen", "tcp/0.0.0.0:0"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("refusing to listen on `tcp/0.0.0.0:0` without TLS"),
+        "{err}"
+    );
+
+    let out = pir2()
+        .args(["serve", "slow", "--stub", "4", "--listen", "tcp/0.0.0.0:0"])
+        .args(["--tls-ca", "ca.pem"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+
+    let port = free_port();
+    let mut s = pir2()
+        .args(["serve", "slow", "--stub", "4", "--insecure"])
+        .args(["--listen", &format!("tcp/0.0.0.0:{port}")])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(s.stderr.take().unwrap());
+    let mut first = String::new();
+    err.read_line(&mut first).unwrap();
+    let _ = s.kill();
+    let _ = s.wait();
+    assert!(
+        first.contains("WARNING: --insecure") && first.contains("WITHOUT TLS"),
+        "{first}"
+    );
+}

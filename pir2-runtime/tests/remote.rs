@@ -588,8 +588,8 @@ fn garbage_on_the_features_key_is_dropped_and_counted() {
         RemoteSlowConfig {
             link: Link {
                 retry: Duration::from_millis(20),
-                listen: Vec::new(),
                 connect: vec![ep(port), ep(rogue_port)],
+                ..Link::connect(ep(port))
             },
             key: "test/slow".into(),
             stale_poll: Duration::from_millis(100),

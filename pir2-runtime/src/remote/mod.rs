@@ -18,7 +18,19 @@
 //!   The real-time worker measures each call, so the round trip lands in the latency
 //!   window and `d` grows with the network.
 //!
+//! Security: endpoints `tls/HOST:PORT` run mutual TLS with the user's CA ([`Link::tls`],
+//! [`TlsFiles`]): both sides present a certificate signed by that CA and verify the other's,
+//! and a connecting side checks that the server's certificate names the host it dialled.
+//! [`Link::check_exposure`] refuses to listen beyond this machine without TLS unless the
+//! user accepts the risk explicitly (`pir2 serve --insecure`).
+//!
 //! Faults (see `notes/issue-9.md` for the measured behaviour):
+//! - a message larger than [`Link::max_message_bytes`] is dropped by the transport before it
+//!   is reassembled; a policy request over [`PolicyServerConfig::max_request_bytes`] or
+//!   [`PolicyServerConfig::max_batch`] is refused with an error reply; a message that does
+//!   not decode is dropped and counted ([`PolicyServerCounters`], [`RemoteCounters::malformed`]).
+//!   None of these ends a server or a run by itself (a policy call still stops the robot
+//!   after [`RemoteModelConfig::max_failed_calls`] unusable replies in a row);
 //! - slow server gone: [`RemoteSlowSource`] hands the last features again (same capture
 //!   time) every [`RemoteSlowConfig::stale_poll`], so `d_vis` keeps growing; the head's
 //!   stale-slow check ([`crate::head::ActionHead::set_slow_grace`]) stops the robot with
@@ -141,6 +153,51 @@ pub struct Link {
     pub connect: Vec<String>,
     /// First retry period after a lost connection (then doubles, up to 10×).
     pub retry: Duration,
+    /// Mutual TLS for `tls/…` endpoints (`None`: plain TCP / Unix sockets only).
+    #[serde(default)]
+    pub tls: Option<TlsFiles>,
+    /// Largest message the transport reassembles, bytes: larger ones are dropped before
+    /// anything is decoded.
+    #[serde(default = "default_max_message_bytes")]
+    pub max_message_bytes: usize,
+}
+
+fn default_max_message_bytes() -> usize {
+    64 << 20
+}
+
+/// PEM files of a mutual-TLS link. Both sides present a certificate signed by `ca` and
+/// verify the other's against it; a connecting side also checks that the server's
+/// certificate names the host it dialled.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TlsFiles {
+    /// The certificate authority both sides trust (the user's CA).
+    pub ca: std::path::PathBuf,
+    /// This side's certificate chain, signed by `ca`.
+    pub cert: std::path::PathBuf,
+    /// This side's private key.
+    pub key: std::path::PathBuf,
+}
+
+/// Whether an endpoint (`tcp/HOST:PORT`, `tls/…`, `unixsock-stream/PATH`) only reaches this
+/// machine.
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let Some((proto, addr)) = endpoint.split_once('/') else {
+        return false;
+    };
+    if proto == "unixsock-stream" {
+        return true;
+    }
+    // Strip Zenoh's `#…` / `?…` suffixes and the port.
+    let addr = addr.split(['#', '?']).next().unwrap_or(addr);
+    let host = match addr.rsplit_once(':') {
+        Some((h, _)) => h.trim_start_matches('[').trim_end_matches(']'),
+        None => addr,
+    };
+    host == "localhost"
+        || host
+            .parse::<std::net::IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
 }
 
 impl Link {
@@ -150,6 +207,8 @@ impl Link {
             listen: vec![endpoint.into()],
             connect: Vec::new(),
             retry: Duration::from_millis(100),
+            tls: None,
+            max_message_bytes: default_max_message_bytes(),
         }
     }
     /// Connect to `endpoint`.
@@ -158,7 +217,40 @@ impl Link {
             listen: Vec::new(),
             connect: vec![endpoint.into()],
             retry: Duration::from_millis(100),
+            tls: None,
+            max_message_bytes: default_max_message_bytes(),
         }
+    }
+
+    /// The same link with mutual TLS.
+    pub fn with_tls(mut self, tls: TlsFiles) -> Self {
+        self.tls = Some(tls);
+        self
+    }
+
+    /// Refuse to listen beyond this machine without TLS: every listen endpoint must be a
+    /// loopback or Unix-socket one, or a `tls/…` one with [`Link::tls`] set, unless
+    /// `insecure`. Also refuses `tls/…` endpoints without TLS files.
+    pub fn check_exposure(&self, insecure: bool) -> Result<()> {
+        for e in self.listen.iter().chain(&self.connect) {
+            if e.starts_with("tls/") && self.tls.is_none() {
+                return Err(Error::Config(format!(
+                    "endpoint `{e}` is TLS but no CA, certificate and key were given"
+                )));
+            }
+        }
+        for e in &self.listen {
+            let protected = e.starts_with("tls/") && self.tls.is_some();
+            if !protected && !is_loopback_endpoint(e) && !insecure {
+                return Err(Error::Config(format!(
+                    "refusing to listen on `{e}` without TLS: anyone on that network could read \
+                     the features, query the policy or impersonate the server. Listen on \
+                     `tls/…` with a CA, certificate and key, or accept the risk explicitly \
+                     (insecure)"
+                )));
+            }
+        }
+        Ok(())
     }
 
     fn zenoh_config(&self) -> Result<zenoh::Config> {
@@ -167,10 +259,14 @@ impl Link {
                 "a link needs at least one listen or connect endpoint".into(),
             ));
         }
+        if self.max_message_bytes == 0 {
+            return Err(Error::Config("max_message_bytes must be positive".into()));
+        }
+        self.check_exposure(true)?;
         let json = |v: &[String]| serde_json::to_string(v).unwrap_or_else(|_| "[]".into());
         let retry = self.retry.as_millis().max(1);
         let mut c = zenoh::Config::default();
-        let entries = [
+        let mut entries = vec![
             ("mode", "\"peer\"".to_string()),
             ("scouting/multicast/enabled", "false".into()),
             ("scouting/gossip/enabled", "false".into()),
@@ -183,7 +279,33 @@ impl Link {
                     retry * 10
                 ),
             ),
+            (
+                "transport/link/rx/max_message_size",
+                self.max_message_bytes.to_string(),
+            ),
         ];
+        if let Some(t) = &self.tls {
+            for (what, p) in [("CA", &t.ca), ("certificate", &t.cert), ("key", &t.key)] {
+                if !p.is_file() {
+                    return Err(Error::Config(format!(
+                        "TLS {what} file {} does not exist",
+                        p.display()
+                    )));
+                }
+            }
+            let path = |p: &std::path::Path| {
+                serde_json::to_string(&p.display().to_string()).unwrap_or_else(|_| "\"\"".into())
+            };
+            entries.extend([
+                ("transport/link/tls/root_ca_certificate", path(&t.ca)),
+                ("transport/link/tls/listen_certificate", path(&t.cert)),
+                ("transport/link/tls/listen_private_key", path(&t.key)),
+                ("transport/link/tls/connect_certificate", path(&t.cert)),
+                ("transport/link/tls/connect_private_key", path(&t.key)),
+                ("transport/link/tls/enable_mtls", "true".into()),
+                ("transport/link/tls/verify_name_on_connect", "true".into()),
+            ]);
+        }
         for (k, v) in entries {
             c.insert_json5(k, &v)
                 .map_err(|e| Error::Config(format!("zenoh config `{k}` = {v}: {e}")))?;
