@@ -2,7 +2,8 @@
 # One command for the native pieces behind cargo features:
 #   MuJoCo 3.17.0 (feature `mujoco`), ONNX Runtime 1.31.1 (feature `ort`), libtorch 2.13.0 (feature `tch`),
 #   and the LeapCubeReorient scene from the `playground==0.2.0` wheel (Apache-2.0).
-# Everything comes from PyPI into a private venv under .native/ (nothing is downloaded from elsewhere).
+# Everything comes from PyPI into a private venv under .native/ (nothing is downloaded from elsewhere),
+# with the Python references of the native tests (onnx, tokenizers, jinja2, xarm-python-sdk).
 # It writes .native/env.sh; `source .native/env.sh` before building/running with those features.
 # Idempotent: a second run only checks.
 #
@@ -37,6 +38,10 @@ have mujoco 3.17.0 || "$pip" -q install "mujoco==3.17.0"
 have onnxruntime 1.31.1 || "$pip" -q install "onnxruntime==1.31.1"
 # `onnx` + numpy: the GR00T tests write their tiny synthetic graphs with them.
 "$venv/bin/python" -c "import onnx, numpy" 2>/dev/null || "$pip" -q install onnx numpy
+# Hugging Face `tokenizers` + Jinja2: the Python reference of the GR00T tokenizer golden test
+# (pir2-backends/tests/gr00t_tokenizer.rs).
+have tokenizers 0.23.3 || "$pip" -q install "tokenizers==0.23.3"
+have jinja2 3.1.6 || "$pip" -q install "jinja2==3.1.6"
 # UFACTORY's official xArm SDK: the real client of the xArm emulator in the native tests.
 have xarm-python-sdk 1.18.4 || "$pip" -q install "xarm-python-sdk==1.18.4"
 if [ "$want_torch" = 1 ]; then

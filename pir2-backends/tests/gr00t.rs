@@ -226,6 +226,58 @@ fn backbone_encodes_camera_frames_into_tokens() {
 }
 
 #[test]
+fn backbone_with_tokenizer_json_feeds_gr00ts_chat_template() {
+    use pir2_backends::gr00t::testing::{add_bpe_tokenizer, BPE_TEXT_TOKENS};
+    use pir2_backends::gr00t::{load_tokenizer, EmbodimentConfig};
+
+    let dir = fixture("bpe", "");
+    add_bpe_tokenizer(&dir).unwrap();
+    let files = CheckpointFiles::in_dir(&dir);
+    let cfg = EmbodimentConfig::load(&files.embodiment).unwrap();
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    assert!(
+        tok.chat_template().is_some(),
+        "tokenizer.json is preferred to vocab.txt"
+    );
+    let load = |prompt: &str| {
+        Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            tok.as_ref(),
+            prompt,
+            Some((D_VL, PathBuf::from("dit.onnx"))),
+            &OrtOptions::default(),
+        )
+        .unwrap()
+    };
+    let mut bb = load("Catch the book!");
+    let t = 4 + BPE_TEXT_TOKENS;
+    assert_eq!(bb.output_shape(), (t, D_VL));
+    // Python `tokenizers` on the fixture: <|im_start|> user \n <|vision_start|> <|image_pad|>×4
+    // <|vision_end|> catch the book <|im_end|> \n, left-padded with <|endoftext|> (400).
+    let want = [
+        401, 379, 198, 403, 405, 405, 405, 405, 404, 336, 291, 258, 316, 402, 198,
+    ];
+    let s = bb.sequence().clone();
+    let pad = t - want.len();
+    assert_eq!(&s.ids[pad..], &want);
+    assert!(s.ids[..pad].iter().all(|&i| i == 400));
+    assert_eq!(s.attention.iter().sum::<i64>(), want.len() as i64);
+    let image: Vec<usize> = (0..t).filter(|&i| s.layout.image_mask[i]).collect();
+    assert_eq!(image, (pad + 4..pad + 8).collect::<Vec<_>>());
+    let img = vec![90u8; 480 * 640 * 3];
+    let a = bb.encode_image(&img, (480, 640)).unwrap().to_vec();
+    let b = load("put the ball in the bowl")
+        .encode_image(&img, (480, 640))
+        .unwrap()
+        .to_vec();
+    assert_eq!(a.len(), t * D_VL);
+    assert_ne!(a, b, "the prompt's ids reach the features");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn end_to_end_25hz_on_the_emulated_xarm6_xhand() {
     use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
     use pir2_robots::split;

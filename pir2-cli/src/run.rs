@@ -695,7 +695,10 @@ mod imp {
                 prompt: report.prompt,
                 mode: report.mode,
                 robot: robot.to_string(),
-                slow: "backbone.onnx on a synthetic camera (local slow worker)".into(),
+                slow: format!(
+                    "backbone.onnx on a synthetic camera (local slow worker), prompt tokenised by {}",
+                    report.tokenizer
+                ),
                 head: String::new(),
                 d_vis_counts: report.d_vis_counts,
                 hand_commands: None,
@@ -741,14 +744,14 @@ mod imp {
         mut opts: Gr00tRunOptions,
         robot: &str,
     ) -> Result<RunSummary> {
-        use pir2_backends::gr00t::{build_sequence, BackboneChoice, VocabTokenizer};
+        use pir2_backends::gr00t::{build_sequence, load_tokenizer, BackboneChoice};
         use pir2_runtime::remote::{Link, RemoteSlowConfig, RemoteSlowSource};
 
         let cfg = embodiment(args)?;
         let files = CheckpointFiles::in_dir(&args.checkpoint);
-        let tok = VocabTokenizer::load(&files.vocab)
+        let tok = load_tokenizer(&files, &cfg.prompt)
             .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
-        let seq = build_sequence(&tok, cfg.prompt_for(&args.task), &cfg.prompt)?;
+        let seq = build_sequence(tok.as_ref(), cfg.prompt_for(&args.task), &cfg.prompt)?;
         let rcfg = RemoteSlowConfig {
             link: args.tls.apply(Link::connect(endpoint))?,
             first_timeout: opts.slow_timeout,

@@ -387,7 +387,7 @@ mod imp {
     ) -> Result<SlowPair> {
         use pir2_backends::gr00t::testing::SyntheticCamera;
         use pir2_backends::gr00t::{
-            CheckpointFiles, EmbodimentConfig, Gr00tBackbone, VocabTokenizer,
+            load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone,
         };
         use pir2_backends::ort::OrtOptions;
 
@@ -399,13 +399,13 @@ mod imp {
             EmbodimentConfig::xarm6_xhand()
         };
         let prompt = cfg.prompt_for(task).to_string();
-        let tok = VocabTokenizer::load(&files.vocab)
+        let tok = load_tokenizer(&files, &cfg.prompt)
             .with_context(|| format!("checkpoint {}", dir.display()))?;
         let bb = Gr00tBackbone::load(
             &files,
             &cfg.image,
             &cfg.prompt,
-            &tok,
+            tok.as_ref(),
             &prompt,
             None,
             &OrtOptions::default(),

@@ -62,6 +62,45 @@ fn run_gr00t_on_the_emulators_end_to_end() {
 }
 
 #[test]
+fn run_gr00t_uses_the_checkpoints_tokenizer_json() {
+    use pir2_backends::gr00t::testing::add_bpe_tokenizer;
+
+    let ck = checkpoint("bpe", "");
+    add_bpe_tokenizer(&ck).unwrap();
+    let json = ck.join("run.json");
+    let (out, text) = run(
+        &ck,
+        &[
+            "--task",
+            "catch_book",
+            "--emulate",
+            "--ticks",
+            "25",
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let slow = v["slow"].as_str().unwrap();
+    assert!(
+        slow.contains("tokenizer.json") && slow.contains("chat template"),
+        "{slow}"
+    );
+    assert_eq!(v["trace"]["ticks"], 25);
+    // A broken tokenizer.json stops the run before the robot moves, naming the file.
+    std::fs::write(ck.join("tokenizer.json"), "not json").unwrap();
+    let (out, text) = run(&ck, &["--task", "catch_book", "--emulate", "--ticks", "5"]);
+    assert!(!out.status.success());
+    assert!(
+        text.contains("tokenizer.json") && text.contains("not a Hugging Face tokenizer"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&ck).ok();
+}
+
+#[test]
 fn run_gr00t_errors_name_the_problem() {
     let bad = checkpoint("bad", "wrong_name");
     // A graph that breaks the export contract: the file and the tensor are named.

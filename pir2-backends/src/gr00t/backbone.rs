@@ -6,16 +6,19 @@
 //!
 //! 1. [`preprocess_image`]: HWC `u8` RGB → shorter side resized to `image.resize` (bilinear,
 //!    half-pixel centres) → center crop `image.crop`² → `(x/255 − mean)/std` → `[1, 3, crop, crop]`;
-//! 2. [`build_sequence`]: `image_tokens` image placeholders, then the prompt's tokens padded /
-//!    truncated to `text_tokens` → `input_ids [1, T]`, `attention_mask [1, T]` and the
-//!    [`VlLayout`] the DiT's masks need;
+//! 2. [`build_sequence`]: with the VLM's `tokenizer.json`, the prompt rendered through GR00T
+//!    N1.7's chat template around the image placeholders and padded to `T` (see
+//!    [`super::tokenizer`]); with a `vocab.txt`, `image_tokens` image placeholders, then the
+//!    prompt's tokens padded / truncated to `text_tokens` → `input_ids [1, T]`,
+//!    `attention_mask [1, T]` and the [`VlLayout`] the DiT's masks need;
 //! 3. `backbone.onnx` (ViT + LLM, fused by the user: see `docs/gr00t-contract.md`) →
 //!    `embeddings [1, T, D_vl]`;
 //! 4. GR00T's `vlln` LayerNorm (if the side weights carry it) and `vl_self_attention.onnx`
 //!    (if present; GR00T's exporter writes it unchanged).
 //!
-//! The prompt is tokenised by a [`PromptTokenizer`]: [`VocabTokenizer`] reads a vocabulary
-//! file; the real Qwen3-VL tokenizer can be plugged in by implementing the trait.
+//! The prompt is tokenised by a [`PromptTokenizer`]: [`super::tokenizer::HfTokenizer`] loads
+//! the VLM's `tokenizer.json` (GR00T's own BPE tokenizer, with its chat template);
+//! [`VocabTokenizer`] reads the simpler vocabulary file of older pir2 checkpoints.
 //!
 //! A remote backbone is any other [`SlowEncoder`] returning `[T, D_vl]` tokens (see
 //! [`super::run::BackboneChoice::Custom`]).
@@ -29,6 +32,7 @@ use super::config::{CheckpointFiles, ImageConfig, PromptConfig};
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
 use super::error::{Gr00tError, Result};
 use super::head::VlLayout;
+use super::tokenizer::{chat_sequence, ChatTemplate};
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
 
@@ -40,6 +44,15 @@ pub trait PromptTokenizer: Send {
     fn pad_id(&self) -> i64;
     /// Id of the image placeholder token.
     fn image_token_id(&self) -> i64;
+    /// The chat template the prompt is rendered through ([`build_sequence`]); `None` (the
+    /// default): image placeholders first, then the bare prompt's tokens.
+    fn chat_template(&self) -> Option<&ChatTemplate> {
+        None
+    }
+    /// What this tokenizer is, for run summaries (default: "a custom tokenizer").
+    fn describe(&self) -> String {
+        "a custom tokenizer".into()
+    }
 }
 
 /// A vocabulary-file tokenizer: one token per line, id = line number (0-based).
@@ -50,6 +63,7 @@ pub trait PromptTokenizer: Send {
 /// `<unk>` and `<image>`.
 #[derive(Debug, Clone)]
 pub struct VocabTokenizer {
+    source: PathBuf,
     vocab: HashMap<String, i64>,
     pad: i64,
     unk: i64,
@@ -85,6 +99,7 @@ impl VocabTokenizer {
             })
         };
         Ok(VocabTokenizer {
+            source: path.to_path_buf(),
             pad: get("<pad>")?,
             unk: get("<unk>")?,
             image: get("<image>")?,
@@ -165,6 +180,9 @@ impl PromptTokenizer for VocabTokenizer {
     fn image_token_id(&self) -> i64 {
         self.image
     }
+    fn describe(&self) -> String {
+        format!("vocabulary `{}` (no chat template)", self.source.display())
+    }
 }
 
 /// Token ids, attention mask and layout of one prompt (see the module docs).
@@ -180,12 +198,18 @@ pub struct Sequence {
     pub truncated: usize,
 }
 
+/// The backbone's token sequence for `prompt`: through the tokenizer's chat template when it
+/// has one (GR00T N1.7: see [`super::tokenizer`]; `T = image_tokens + text_tokens` positions,
+/// padded on the template's side, a prompt too long for `text_tokens` is an error), else
 /// `[image placeholder × image_tokens] + prompt tokens`, padded/truncated to `text_tokens`.
 pub fn build_sequence(
     tok: &dyn PromptTokenizer,
     prompt: &str,
     cfg: &PromptConfig,
 ) -> Result<Sequence> {
+    if let Some(chat) = tok.chat_template() {
+        return chat_sequence(tok, chat, prompt, cfg);
+    }
     let text = tok.encode(prompt)?;
     let n = text.len().min(cfg.text_tokens);
     let t = cfg.image_tokens + cfg.text_tokens;
@@ -457,6 +481,7 @@ mod tests {
         let cfg = PromptConfig {
             image_tokens: 3,
             text_tokens: 5,
+            ..Default::default()
         };
         let s = build_sequence(&vocab(), "catch the book", &cfg).unwrap();
         assert_eq!(s.ids, vec![2, 2, 2, 3, 4, 5, 0, 0]);
@@ -468,6 +493,7 @@ mod tests {
         let cfg = PromptConfig {
             image_tokens: 1,
             text_tokens: 2,
+            ..Default::default()
         };
         let s = build_sequence(&vocab(), "catch the book", &cfg).unwrap();
         assert_eq!((s.ids.len(), s.truncated), (3, 1));

@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::error::{Gr00tError, Result};
+use super::tokenizer::ChatTemplate;
 
 /// The four task prompts of the paper (Table "Real-world task prompts"): `(task, prompt)`.
 pub const PAPER_TASKS: [(&str, &str); 4] = [
@@ -101,8 +102,14 @@ impl Default for ImageConfig {
 pub struct PromptConfig {
     /// Image placeholder tokens in the sequence (the ViT's merged patch count).
     pub image_tokens: usize,
-    /// Text tokens after the image, padded/truncated to this length.
+    /// Text tokens: with a chat template, every non-image token (template and instruction;
+    /// padded to this length, a longer prompt is an error); without one, the prompt's tokens
+    /// after the image, padded/truncated to this length.
     pub text_tokens: usize,
+    /// The chat template around the images and the instruction (GR00T N1.7's by default);
+    /// used with the VLM's `tokenizer.json`, not with a `vocab.txt`.
+    #[serde(default)]
+    pub chat: ChatTemplate,
 }
 
 impl Default for PromptConfig {
@@ -110,6 +117,7 @@ impl Default for PromptConfig {
         PromptConfig {
             image_tokens: 64,
             text_tokens: 32,
+            chat: ChatTemplate::default(),
         }
     }
 }
@@ -666,6 +674,9 @@ impl EmbodimentConfig {
         if self.prompt.text_tokens == 0 {
             return bad("prompt.text_tokens must be positive".to_string());
         }
+        self.prompt
+            .chat
+            .tokens_per_image(self.prompt.image_tokens)?;
         let sg = self.safety.slow_grace_ms;
         if !(sg.is_finite() && sg > 0.0) {
             return bad(format!("safety.slow_grace_ms must be > 0, got {sg}"));
@@ -920,7 +931,9 @@ pub struct CheckpointFiles {
     pub vl_self_attention: PathBuf,
     /// pir2 side weights: delay table, position embedding, `vlln`.
     pub weights: PathBuf,
-    /// Tokenizer vocabulary.
+    /// The VLM's Hugging Face tokenizer (used when present).
+    pub tokenizer: PathBuf,
+    /// Tokenizer vocabulary of older pir2 checkpoints (used without `tokenizer.json`).
     pub vocab: PathBuf,
 }
 
@@ -939,6 +952,7 @@ impl CheckpointFiles {
             backbone: onnx.join("backbone.onnx"),
             vl_self_attention: onnx.join("vl_self_attention.onnx"),
             weights: dir.join("pir2_gr00t.safetensors"),
+            tokenizer: dir.join("tokenizer.json"),
             vocab: dir.join("vocab.txt"),
         }
     }

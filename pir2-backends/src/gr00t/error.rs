@@ -16,13 +16,21 @@ pub enum Gr00tError {
         /// The I/O error.
         source: std::io::Error,
     },
-    /// A file could not be parsed (JSON, TOML, safetensors, vocabulary).
+    /// A file could not be parsed (JSON, TOML, safetensors, vocabulary, tokenizer).
     #[error("cannot parse `{path}`: {message}")]
     Parse {
         /// The file.
         path: PathBuf,
         /// What went wrong.
         message: String,
+    },
+    /// The checkpoint has no tokenizer file.
+    #[error("no tokenizer: neither `{tokenizer}` nor `{vocab}` exists")]
+    NoTokenizer {
+        /// The VLM's Hugging Face tokenizer (preferred).
+        tokenizer: PathBuf,
+        /// The vocabulary file of older pir2 checkpoints.
+        vocab: PathBuf,
     },
     /// The embodiment configuration is inconsistent.
     #[error("invalid GR00T embodiment configuration: {0}")]

@@ -150,7 +150,9 @@ def main(out, variant):
     save(
         f"{out}/backbone.onnx",
         [
-            helper.make_node("Gather", ["embed", "input_ids"], ["tok"], axis=0),  # [b,T,D_VL]
+            # ids wrap around the tiny table, so a real tokenizer's ids (fixture BPE: ~400) fit
+            helper.make_node("Mod", ["input_ids", "vocab"], ["ids"]),
+            helper.make_node("Gather", ["embed", "ids"], ["tok"], axis=0),  # [b,T,D_VL]
             helper.make_node("Cast", ["attention_mask"], ["af"], to=F),
             helper.make_node("Unsqueeze", ["af", "axm1"], ["au"]),
             helper.make_node("Mul", ["tok", "au"], ["tm"]),
@@ -168,6 +170,7 @@ def main(out, variant):
         {
             "embed": w(VOCAB, D_VL),
             "Wp": w(3, D_VL, scale=2.0),
+            "vocab": np.array(VOCAB, np.int64),
             "axm1": np.array([-1], np.int64),
             "ax1": np.array([1], np.int64),
             "ax23": np.array([2, 3], np.int64),

@@ -29,6 +29,8 @@
 //! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
 //! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
 //!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
+//! - [`tokenizer`]: the VLM's `tokenizer.json` ([`HfTokenizer`]) and GR00T N1.7's chat
+//!   template ([`ChatTemplate`]);
 //! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`;
 //! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
@@ -39,6 +41,7 @@ pub mod error;
 pub mod head;
 pub mod run;
 pub mod testing;
+pub mod tokenizer;
 pub mod weights;
 
 pub use backbone::{
@@ -55,3 +58,4 @@ pub use run::{
     load_action_head, run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport,
     HeadChoice,
 };
+pub use tokenizer::{formalize_language, load_tokenizer, ChatTemplate, HfTokenizer, PaddingSide};

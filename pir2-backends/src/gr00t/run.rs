@@ -32,20 +32,22 @@ use pir2_runtime::{
     Mode, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
 };
 
-use super::backbone::{Gr00tBackbone, PromptTokenizer, VocabTokenizer};
+use super::backbone::{Gr00tBackbone, PromptTokenizer};
 use super::config::{
     read_embodiment_id, CheckpointFiles, EmbodimentConfig, ModeOverrides, Normalizer,
 };
 use super::error::{Gr00tError, Result};
 use super::head::{Gr00tActionHead, VlLayout};
+use super::tokenizer::load_tokenizer;
 use crate::ort::OrtOptions;
 
 /// Where the backbone features come from.
 pub enum BackboneChoice {
     /// `backbone.onnx` (+ `vl_self_attention.onnx`) from the checkpoint, prompt tokenised by
-    /// `tokenizer` (default: [`VocabTokenizer`] on the checkpoint's `vocab.txt`).
+    /// `tokenizer` (default: the checkpoint's, see [`load_tokenizer`]: `tokenizer.json` with
+    /// the chat template, else `vocab.txt`).
     Onnx {
-        /// The tokenizer; `None` reads `vocab.txt`.
+        /// The tokenizer; `None`: the checkpoint's ([`load_tokenizer`]).
         tokenizer: Option<Box<dyn PromptTokenizer>>,
     },
     /// Any other encoder (e.g. a remote backbone client) producing `[T, D_vl]` tokens whose
@@ -193,6 +195,8 @@ pub struct Gr00tRunReport {
     pub d_vis_counts: Vec<u64>,
     /// The prompt used.
     pub prompt: String,
+    /// The tokenizer the prompt went through (empty with a custom backbone).
+    pub tokenizer: String,
     /// The embodiment used.
     pub embodiment: EmbodimentConfig,
     /// The deployment mode run (mode and schedule).
@@ -224,7 +228,7 @@ where
 
 /// Load the checkpoint's action head (embodiment, statistics, embodiment id, the four
 /// graphs and side weights, all checked against the contract) with the VL token layout of
-/// `task`'s prompt (from `vocab.txt` and the embodiment's prompt layout) set, so it answers
+/// `task`'s prompt (from the checkpoint's tokenizer and the embodiment's prompt layout) set, so it answers
 /// calls on its own: what `pir2 serve policy --gr00t-checkpoint` serves, and what the
 /// pre-flight check of `pir2 run` loads before any robot is connected. Returns the head and
 /// the prompt.
@@ -248,8 +252,8 @@ pub fn load_action_head(
     let embodiment_id =
         read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
     let mut head = Gr00tActionHead::load(&files, &cfg, norm, embodiment_id, ort)?;
-    let tok = VocabTokenizer::load(&files.vocab)?;
-    let layout = super::backbone::build_sequence(&tok, &prompt, &cfg.prompt)?.layout;
+    let tok = load_tokenizer(&files, &cfg.prompt)?;
+    let layout = super::backbone::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
     if let Some(t) = head.dims().vl_tokens {
         if t != layout.image_mask.len() {
             return Err(Gr00tError::Contract {
@@ -313,12 +317,14 @@ where
         Ok(h) => (h.dims().d_vl, h.dims().vl_tokens),
         Err((_, d_vl)) => (*d_vl, None),
     };
+    let mut tokenizer_used = String::new();
     let (encoder, layout): (Box<dyn SlowEncoder>, VlLayout) = match opts.backbone {
         BackboneChoice::Onnx { tokenizer } => {
             let tok: Box<dyn PromptTokenizer> = match tokenizer {
                 Some(t) => t,
-                None => Box::new(VocabTokenizer::load(&files.vocab)?),
+                None => load_tokenizer(&files, &cfg.prompt)?,
             };
+            tokenizer_used = tok.describe();
             let d_vl_source = match &local {
                 Ok(_) => files.dit.clone(),
                 Err(_) => "<the custom action head's D_vl>".into(),
@@ -435,6 +441,7 @@ where
         metrics,
         d_vis_counts,
         prompt,
+        tokenizer: tokenizer_used,
         embodiment: cfg,
         mode: run_mode,
     })

@@ -7,6 +7,8 @@
 //! (`$PIR2_PYTHON` after `source .native/env.sh`). They are not GR00T: they exist so the
 //! stack (contract checks, action head, backbone, the real-time driver, the CLI) can be run end
 //! to end without weights. Used by `pir2-backends/tests/gr00t.rs` and the `pir2-cli` tests.
+//! [`add_bpe_tokenizer`] gives such a checkpoint a small BPE `tokenizer.json` (the format of
+//! GR00T's VLM tokenizer) in place of its `vocab.txt`.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -30,6 +32,37 @@ pub const MAKE_GRAPHS_PY: &str = include_str!("make_graphs.py");
 /// Vocabulary of the synthetic checkpoint (covers the paper's four prompts).
 pub const VOCAB: &str = "<pad>\n<unk>\n<image>\ncatch\nthe\nbook\nput\nin\nbasket\nbox\nbooks\n\
                          ball\nbowl\nand\non\ncutting\nboard\nthem\n";
+
+/// A small byte-level BPE `tokenizer.json` shaped like the Qwen3-VL tokenizer of GR00T
+/// N1.7's VLM (NFC, regex split with look-ahead, byte-level mapping, the chat template's
+/// special tokens after the 400 learned ones), trained by [`BPE_FIXTURE_PY`].
+pub const BPE_TOKENIZER_JSON: &str = include_str!("testdata/tokenizer.json");
+/// Its `tokenizer_config.json` (pad token and a Jinja chat template, for the Python reference).
+pub const BPE_TOKENIZER_CONFIG: &str = include_str!("testdata/tokenizer_config.json");
+/// The script that trained the BPE fixture and computes the Python reference ids
+/// (`bpe_fixture.py train OUTDIR` / `bpe_fixture.py encode DIR`, with `tokenizers` and
+/// `jinja2` from PyPI).
+pub const BPE_FIXTURE_PY: &str = include_str!("testdata/bpe_fixture.py");
+/// `prompt.text_tokens` of the tiny embodiment once it has the BPE tokenizer: room for the
+/// chat template and the paper's prompts.
+pub const BPE_TEXT_TOKENS: usize = 24;
+
+/// Give the synthetic checkpoint in `dir` the BPE tokenizer: writes [`BPE_TOKENIZER_JSON`]
+/// as `tokenizer.json` (used instead of `vocab.txt` from then on) and
+/// [`BPE_TOKENIZER_CONFIG`], and sets `prompt.text_tokens` of its `embodiment.toml` to
+/// [`BPE_TEXT_TOKENS`].
+pub fn add_bpe_tokenizer(dir: &Path) -> Result<()> {
+    let write = |name: &str, text: &str| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).map_err(io("writing", &p))
+    };
+    write("tokenizer.json", BPE_TOKENIZER_JSON)?;
+    write("tokenizer_config.json", BPE_TOKENIZER_CONFIG)?;
+    let path = dir.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path)?;
+    cfg.prompt.text_tokens = BPE_TEXT_TOKENS;
+    write("embodiment.toml", &cfg.to_toml()?)
+}
 
 /// The Python interpreter with `onnx` (`$PIR2_PYTHON`, set by `.native/env.sh`).
 pub fn python_from_env() -> Result<PathBuf> {
