@@ -31,7 +31,7 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use pir2_runtime::Nanos;
+use pir2_runtime::{panic_message, Nanos};
 
 use crate::error::{Error, Result};
 use crate::robot::{Robot, StateLayout};
@@ -308,13 +308,6 @@ fn drive<R: Robot>(mut robot: R, sh: &Shared, period: Duration) {
     m.stop_result = Some(r);
     drop(m);
     sh.cv.notify_all();
-}
-
-fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
-    p.downcast_ref::<&str>()
-        .map(|s| s.to_string())
-        .or_else(|| p.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "(no message)".into())
 }
 
 impl<R: Robot + 'static> Robot for Threaded<R> {

@@ -86,14 +86,10 @@ impl Error {
     }
     /// [`Error::Panicked`] from a caught panic payload.
     pub fn panicked(thread: &'static str, payload: &(dyn std::any::Any + Send)) -> Self {
-        let message = if let Some(s) = payload.downcast_ref::<&str>() {
-            (*s).to_string()
-        } else if let Some(s) = payload.downcast_ref::<String>() {
-            s.clone()
-        } else {
-            "non-string panic payload".to_string()
-        };
-        Error::Panicked { thread, message }
+        Error::Panicked {
+            thread,
+            message: panic_message(payload),
+        }
     }
     /// Convenience constructor for [`Error::Io`].
     pub fn io(device: impl Into<String>, message: impl std::fmt::Display) -> Self {
@@ -101,5 +97,16 @@ impl Error {
             device: device.into(),
             message: message.to_string(),
         }
+    }
+}
+
+/// The message of a caught panic payload (`&str` or `String`; otherwise a placeholder).
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        (*s).to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "non-string panic payload".to_string()
     }
 }

@@ -35,7 +35,7 @@ pub mod window;
 pub use chunk::Chunk;
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
 pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap};
-pub use error::{Error, Result};
+pub use error::{panic_message, Error, Result};
 pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
 pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,

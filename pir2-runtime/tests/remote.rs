@@ -433,6 +433,18 @@ fn slow_server_gone_ends_the_run_even_without_a_grace() {
 
 // ---- bad messages ------------------------------------------------------------------------
 
+/// A bare Zenoh session (not pir2's) that listens on or connects to `port` on 127.0.0.1:
+/// a rogue peer or client of the tests below.
+fn test_session(side: &str, port: u16) -> zenoh::Session {
+    use zenoh::Wait;
+    let mut c = zenoh::Config::default();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    c.insert_json5(&format!("{side}/endpoints"), &format!("[\"{}\"]", ep(port)))
+        .unwrap();
+    zenoh::open(c).wait().unwrap()
+}
+
 /// A model that panics on a batch of 2 and negates `x` otherwise.
 struct PanicsOnBatch2;
 
@@ -520,16 +532,7 @@ fn bad_requests_are_refused_counted_and_the_server_keeps_serving() {
         "{e}"
     );
     // Garbage on the server's key, from another session.
-    let zs = zenoh::open({
-        let mut c = zenoh::Config::default();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        c.insert_json5("connect/endpoints", &format!("[\"{}\"]", ep(port)))
-            .unwrap();
-        c
-    })
-    .wait()
-    .unwrap();
+    let zs = test_session("connect", port);
     let replies = zs
         .get("test/policy")
         .payload(vec![0xde_u8, 0xad, 0xbe, 0xef, 1, 2, 3])
@@ -574,16 +577,7 @@ fn garbage_on_the_features_key_is_dropped_and_counted() {
     let base = Arc::new(SystemClock::new());
     let server = slow_server(port, clock(&base, 0));
     // Another peer the robot also connects to, publishing garbage on the features key.
-    let rogue = zenoh::open({
-        let mut c = zenoh::Config::default();
-        c.insert_json5("scouting/multicast/enabled", "false")
-            .unwrap();
-        c.insert_json5("listen/endpoints", &format!("[\"{}\"]", ep(rogue_port)))
-            .unwrap();
-        c
-    })
-    .wait()
-    .unwrap();
+    let rogue = test_session("listen", rogue_port);
     let (slow, stats) = remote_slow_channel(
         RemoteSlowConfig {
             link: Link {
@@ -647,16 +641,7 @@ fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
     // A server that answers pings properly and every request with garbage, or with the
     // velocities of another request (alternately).
     let rogue = std::thread::spawn(move || {
-        let zs = zenoh::open({
-            let mut c = zenoh::Config::default();
-            c.insert_json5("scouting/multicast/enabled", "false")
-                .unwrap();
-            c.insert_json5("listen/endpoints", &format!("[\"{}\"]", ep(port)))
-                .unwrap();
-            c
-        })
-        .wait()
-        .unwrap();
+        let zs = test_session("listen", port);
         let q = zs.declare_queryable("test/policy").wait().unwrap();
         let mut n = 0u64;
         while !s.load(Ordering::Acquire) {

@@ -244,12 +244,7 @@ fn answer<M: VelocityModel>(
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| model.velocity(&input, v))) {
         Ok(Ok(())) => Ok((req.header, shape)),
         Ok(Err(e)) => Err(Refused::Model(e.to_string())),
-        Err(p) => Err(Refused::Panic(
-            p.downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| p.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "(no message)".into()),
-        )),
+        Err(p) => Err(Refused::Panic(crate::error::panic_message(&*p))),
     }
 }
 
