@@ -198,3 +198,110 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Ctrl-C during `pir2 collect leap-cube`: the batch in progress is finished and written, the
+/// process exits 0 and says how many episodes the dataset holds; `--resume` continues from
+/// there. The expert is an untrained policy (weights written here), so an episode costs
+/// physics only. Before: the "written now" count of the summary was the last batch's.
+#[cfg(feature = "mujoco")]
+#[test]
+fn leap_cube_collect_on_sigint_writes_the_batch_in_progress_and_resumes() {
+    use std::io::{BufRead, BufReader};
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+
+    use pir2_sim::leap::ppo::{PpoConfig, Trainer};
+    use pir2_sim::leap::LeapModel;
+
+    let dir = std::env::temp_dir().join(format!("pir2-leap-sigint-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("tmp dir");
+    let scene = LeapModel::load(None)
+        .expect("Leap-cube scene: run scripts/setup-native.sh and source .native/env.sh");
+    let cfg = PpoConfig {
+        seed: 3,
+        n_envs: 2,
+        rollout_len: 1,
+        env_chunk: 1,
+        minibatches: 1,
+        grad_chunks: 1,
+        actor_hidden: vec![8],
+        critic_hidden: vec![8],
+        ..PpoConfig::default()
+    };
+    let expert = dir.join("expert.safetensors");
+    Trainer::new(&scene, cfg, 1)
+        .expect("untrained expert")
+        .expert()
+        .save(&expert)
+        .expect("save expert");
+    let data = dir.join("data");
+    let collect = |per_seed: usize, extra: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_pir2"))
+            .args(["collect", "leap-cube", "--seeds", "0", "--out", s(&data)])
+            .args(["--per-seed", &per_seed.to_string(), "--expert", s(&expert)])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("running pir2")
+    };
+    let mut child = collect(1000, &[]);
+    // Signal once two batches are written, so the summary must add up several batches.
+    let mut log = String::new();
+    let mut lines = BufReader::new(child.stderr.take().expect("stderr")).lines();
+    for line in lines.by_ref() {
+        let line = line.expect("stderr line");
+        log += &line;
+        log.push('\n');
+        if line.starts_with("collected 10/") {
+            break;
+        }
+    }
+    assert!(log.contains("collected 10/1000"), "{log}");
+    // SAFETY: plain kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    let t0 = Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "still running 120 s after SIGINT"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for line in lines {
+        log += &line.expect("stderr line");
+        log.push('\n');
+    }
+    let out = child.wait_with_output().expect("output");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert_eq!(out.status.signal(), None, "killed by the signal: {log}");
+    assert!(out.status.success(), "{:?}: {log}", out.status);
+    let held: usize = log
+        .split("interrupted: ")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no `interrupted: N/1000` line: {log}"));
+    assert!((10..1000).contains(&held) && held % 5 == 0, "{held}: {log}");
+    assert!(
+        stdout.contains(&format!("{held} episodes"))
+            && stdout.contains(&format!("({held} written now")),
+        "{stdout}"
+    );
+    let ds = pir2_sim::dataset::read_dataset(&data).expect("readable after SIGINT");
+    assert_eq!(ds.episodes.len(), held);
+
+    // Resume to three more episodes than were written: only those three are collected.
+    let out = collect(held + 3, &["--resume"])
+        .wait_with_output()
+        .expect("resume");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    assert!(
+        stdout.contains(&format!("{} episodes", held + 3)) && stdout.contains("(3 written now"),
+        "{stdout}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -537,6 +537,7 @@ pub fn collect_leap(
         .with_context(|| format!("opening dataset {}", out.display()))?;
     let total = seeds.len() * per_seed;
     let mut done = w.num_episodes();
+    let already = done;
     if done > total {
         bail!(
             "dataset {} already holds {done} episodes, more than the {total} requested",
@@ -603,8 +604,13 @@ pub fn collect_leap(
         ));
     }
     pb.finish();
+    // Each batch reopens the writer, so its summary counts that batch only: report every
+    // episode this call wrote.
     match summary {
-        Some(s) => Ok(s),
+        Some(s) => Ok(DatasetSummary {
+            written_episodes: done - already,
+            ..s
+        }),
         None => Ok(w.finish()?),
     }
 }
