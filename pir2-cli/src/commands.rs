@@ -161,6 +161,11 @@ pub fn train(o: &TrainOptions) -> Result<()> {
                 bail!("--resume is for leap-cube training; ballplate trains in minutes");
             }
             let policy = o.policy.context("--policy is required for ballplate")?;
+            if o.resume {
+                bail!(
+                    "--resume is for leap-cube studies (a ball-plate evaluation is not resumable)"
+                );
+            }
             let cfg = DemoConfig::load(o.config.as_deref(), false)?;
             let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out)?;
             println!("closed-loop validation (step, success): {scores:?}");
@@ -212,6 +217,8 @@ pub struct EvalOptions {
     pub json: Option<PathBuf>,
     /// Run the action head on a policy server (ball-plate, feature `remote`).
     pub remote: Option<RemoteOptions>,
+    /// Leap cube: continue the interrupted evaluation in `out`.
+    pub resume: bool,
 }
 
 /// `pir2 eval`: a checkpoint in every mode that fits it at each unit delay (ball-plate,
@@ -228,7 +235,7 @@ pub fn eval(o: &EvalOptions) -> Result<()> {
             .out
             .as_deref()
             .context("--out is required for leap-cube")?;
-        return crate::leap_cmd::eval(&o.study, &args, out);
+        return crate::leap_cmd::eval(&o.study, &args, out, o.resume);
     }
     let checkpoint = o
         .checkpoint

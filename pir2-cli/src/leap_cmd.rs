@@ -129,14 +129,15 @@ pub fn train(
 }
 
 /// `pir2 eval leap-cube --study deployment|horizon`: run the study into `out` (a new
-/// directory: `result.json`, `table.md`, `success.png`) and print its table.
-pub fn eval(study: &str, args: &LeapArgs, out: &Path) -> Result<()> {
+/// directory, or with `resume` an interrupted evaluation to continue: `cells.jsonl`,
+/// `result.json`, `table.md`, `success.png`) and print its table.
+pub fn eval(study: &str, args: &LeapArgs, out: &Path, resume: bool) -> Result<()> {
     #[cfg(feature = "mujoco")]
     {
         let cfg = load_config(args)?;
         let r = match study {
-            "deployment" => crate::study::leap_cube::study_deployment(&cfg, out)?,
-            "horizon" => crate::study::leap_cube::study_horizon(&cfg, out)?,
+            "deployment" => crate::study::leap_cube::study_deployment(&cfg, out, resume)?,
+            "horizon" => crate::study::leap_cube::study_horizon(&cfg, out, resume)?,
             other => anyhow::bail!("unknown study {other} (deployment or horizon)"),
         };
         println!(
@@ -155,7 +156,7 @@ pub fn eval(study: &str, args: &LeapArgs, out: &Path) -> Result<()> {
     }
     #[cfg(not(feature = "mujoco"))]
     {
-        let _ = (study, args, out);
+        let _ = (study, args, out, resume);
         anyhow::bail!(NEEDS_MUJOCO)
     }
 }

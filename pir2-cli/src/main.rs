@@ -152,9 +152,14 @@ enum Cmd {
         /// leap-cube: dataset directory (overrides the config's).
         #[arg(long)]
         data: Option<PathBuf>,
-        /// leap-cube: output directory (must not exist or be empty).
+        /// leap-cube: output directory (must not exist or be empty, unless --resume).
         #[arg(long)]
         out: Option<PathBuf>,
+        /// leap-cube: continue an interrupted evaluation in --out with the same config: the
+        /// cells in its `cells.jsonl` are reused, the rest are measured (the config's seed
+        /// list may grow, e.g. from a one-seed table to three seeds).
+        #[arg(long)]
+        resume: bool,
         /// Unit delays.
         #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
         d0: Vec<usize>,
@@ -603,6 +608,7 @@ fn main() -> Result<()> {
             remote_max_failed,
             connect_timeout,
             tls,
+            resume,
         } => commands::eval(&EvalOptions {
             task: task(&t),
             checkpoint,
@@ -622,6 +628,7 @@ fn main() -> Result<()> {
                 connect_timeout: Duration::from_secs_f64(connect_timeout.max(0.0)),
                 tls: tls.into(),
             }),
+            resume,
         }),
         Cmd::Run(args) => run::run_command(&args.into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),

@@ -195,6 +195,58 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         }
         // The trained policies were loaded, not trained again.
         assert!(!out_dir.join("checkpoints").exists(), "{study}");
+
+        // Every measured cell is in the cell log; an interrupted evaluation (here: the log
+        // cut in the middle of a line, the outputs gone) continues with --resume, measures
+        // only the missing cells and ends with the same results.
+        let log_file = out_dir.join("cells.jsonl");
+        let log = std::fs::read_to_string(&log_file).unwrap();
+        let lines: Vec<&str> = log.lines().collect();
+        assert!(lines.len() >= cells.len(), "{study}: {log}");
+        let eval = [
+            "eval",
+            "leap-cube",
+            "--study",
+            study,
+            "--config",
+            s(&eval_cfg),
+            "--data",
+            s(&data),
+            "--checkpoint",
+            s(&trained),
+            "--out",
+            s(&out_dir),
+        ];
+        let again = pir2(&eval);
+        assert!(
+            !again.status.success(),
+            "{study}: a second run needs --resume"
+        );
+        let keep = lines.len() / 2;
+        let cut = lines[..keep].join("\n") + "\n" + &lines[keep][..lines[keep].len() / 2];
+        std::fs::write(&log_file, cut).unwrap();
+        for f in ["result.json", "table.md"] {
+            std::fs::remove_file(out_dir.join(f)).unwrap();
+        }
+        let mut resume = eval.to_vec();
+        resume.push("--resume");
+        let o = pir2(&resume);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{study}: {err}");
+        assert!(
+            err.contains(&format!("{keep} cells measured earlier are reused")),
+            "{study}: {err}"
+        );
+        assert_eq!(
+            std::fs::read_to_string(&log_file).unwrap().lines().count(),
+            lines.len(),
+            "{study}: one line per cell again"
+        );
+        let resumed: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out_dir.join("result.json")).unwrap())
+                .unwrap();
+        assert_eq!(resumed["cells"], result["cells"], "{study}");
+        assert_eq!(resumed["best_per_cell"], result["best_per_cell"], "{study}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

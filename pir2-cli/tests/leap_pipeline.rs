@@ -66,7 +66,7 @@ fn leap_pipeline_runs_end_to_end() {
         threads: 1,
         ..LeapStudyConfig::default()
     };
-    let r = study_deployment(&cfg, &dir.join("deployment")).expect("deployment study");
+    let r = study_deployment(&cfg, &dir.join("deployment"), false).expect("deployment study");
     // Rows: sync flow (h = d), naive async (plain swap), naive async + TE (labelled extra),
     // train-time RTC, πR² w/o async, πR² async, πR² full ramp.
     assert_eq!(r.labels.len(), 7, "{:?}", r.labels);
@@ -81,7 +81,7 @@ fn leap_pipeline_runs_end_to_end() {
     let t = std::fs::read_to_string(dir.join("deployment/table.md")).expect("table");
     assert!(t.contains("πR² async (n=2)") && t.contains("d0=3"), "{t}");
     assert!(dir.join("deployment/success.png").exists());
-    let h = study_horizon(&cfg, &dir.join("horizon")).expect("horizon study");
+    let h = study_horizon(&cfg, &dir.join("horizon"), false).expect("horizon study");
     assert_eq!(h.cells.len(), 3 * 2);
     let t = std::fs::read_to_string(dir.join("horizon/table.md")).expect("table");
     assert!(t.contains("| sync flow |") && t.contains("h=8"), "{t}");

@@ -314,7 +314,7 @@ pub type DemoResult = StudyResult<DemoConfig>;
 pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
     let task = BallPlateTask::new(cfg.clone());
     let study = Study::deployment(task.rows(), &cfg.d0s);
-    pipeline::run(&task, &study, out)
+    pipeline::run(&task, &study, out, false)
 }
 
 /// `pir2 train ballplate`: train one policy on a dataset into `out` (a new directory:
@@ -375,7 +375,7 @@ pub fn eval_checkpoint(
         seed_base: 0,
         ..Study::deployment(rows, d0s)
     };
-    let cells = pipeline::evaluate(&task, &study, &|_, _| models, &ProgressBar::hidden())?;
+    let cells = pipeline::evaluate(&task, &study, &|_, _| models, None, &ProgressBar::hidden())?;
     Ok((cells, labels))
 }
 

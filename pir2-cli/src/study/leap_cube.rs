@@ -654,15 +654,20 @@ pub fn train_policies(
 
 /// Deployment study: every row × `d0s` × seeds through the lock-step runtime with
 /// `LockstepTiming::for_mode` (h = d, slow features delayed by d_vis). Writes
-/// `result.json`, `table.md`, `success.png` into `out` (a new directory).
-pub fn study_deployment(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResult> {
+/// `result.json`, `table.md`, `success.png` into `out` (a new directory, or with `resume`
+/// an interrupted evaluation of the same config, whose measured cells are reused).
+pub fn study_deployment(
+    cfg: &LeapStudyConfig,
+    out: &Path,
+    resume: bool,
+) -> Result<LeapStudyResult> {
     let task = LeapCubeTask::new(cfg.clone())?;
-    pipeline::run(&task, &task.deployment_study(), out)
+    pipeline::run(&task, &task.deployment_study(), out, resume)
 }
 
-/// Horizon study ([`LeapCubeTask::horizon_study`]) into `out` (a new directory).
-pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path) -> Result<LeapStudyResult> {
+/// Horizon study ([`LeapCubeTask::horizon_study`]) into `out` (as [`study_deployment`]).
+pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path, resume: bool) -> Result<LeapStudyResult> {
     let task = LeapCubeTask::new(cfg.clone())?;
     let study = task.horizon_study();
-    pipeline::run(&task, &study, out)
+    pipeline::run(&task, &study, out, resume)
 }

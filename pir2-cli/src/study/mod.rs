@@ -13,6 +13,7 @@
 
 pub mod ballplate;
 pub mod cells;
+pub mod evaluate;
 #[cfg(feature = "mujoco")]
 pub mod leap_cube;
 pub mod pipeline;

@@ -19,7 +19,11 @@ use pir2_runtime::lockstep::eval_cell;
 use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
 use pir2_sim::dataset::Episode;
 
-use super::{Cell, Policy, Scores, Study, StudyResult, Sweep, Task};
+pub use super::evaluate::{
+    chosen_checkpoint, config_fingerprint, evaluate, evaluate_best_per_cell, last_step_checkpoints,
+    total_episodes, trained_dir, CellLog, Logged,
+};
+use super::{Policy, Scores, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
 /// A progress bar with the studies' style.
@@ -414,212 +418,25 @@ pub fn train_all<T: Task>(
         .collect())
 }
 
-/// Evaluate every row × seed × column of `study` (in that order) over the settings'
-/// episodes; `models(policy, seed)` supplies what runs the action head.
-pub fn evaluate<'m, T: Task>(
-    task: &T,
-    study: &Study,
-    models: &dyn Fn(Policy, u64) -> &'m Models<'m>,
-    pb: &ProgressBar,
-) -> Result<Vec<Cell>> {
-    let s = task.settings();
-    let zero = LockstepTiming::zero_latency();
-    let mut cells = Vec::new();
-    for r in &study.rows {
-        let (label, policy) = (&r.row.label, r.row.policy);
-        for &seed in &s.seeds {
-            let m = models(policy, seed);
-            let run = |mode: &Mode, timing| {
-                closed_loop(
-                    task,
-                    m,
-                    policy,
-                    mode,
-                    timing,
-                    s.episodes,
-                    study.seed_base + seed,
-                    s.threads,
-                    &|| pb.inc(1),
-                )
-            };
-            let once = match r.sweep {
-                Sweep::Once(timing) => {
-                    let res = run(&r.row.mode, timing)?;
-                    log_line(&format!("{label} seed {seed}: {}/{}", res.0, s.episodes));
-                    Some(res)
-                }
-                _ => None,
-            };
-            for &col in &study.columns {
-                let (successes, overruns) = match (r.sweep, once) {
-                    (_, Some(res)) => res,
-                    (Sweep::Horizon, None) => {
-                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
-                            bail!("row {label}: a horizon sweep needs a sync-flow mode");
-                        };
-                        let res = run(&Mode::SyncFlow { steps, h: col }, zero)?;
-                        log_line(&format!(
-                            "{label} h={col} seed {seed}: {}/{}",
-                            res.0, s.episodes
-                        ));
-                        res
-                    }
-                    (Sweep::UnitDelaySync, None) => {
-                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
-                            bail!("row {label}: a sync unit-delay sweep needs a sync-flow mode");
-                        };
-                        let timing = LockstepTiming::for_mode(&r.row.mode, col);
-                        let h = timing.call_ticks.max(1);
-                        let res = run(&Mode::SyncFlow { steps, h }, timing)?;
-                        log_line(&format!(
-                            "{label} d0={col} (h={h}) seed {seed}: {}/{}",
-                            res.0, s.episodes
-                        ));
-                        res
-                    }
-                    _ => {
-                        let mode = &r.row.mode;
-                        let res = run(mode, LockstepTiming::for_mode(mode, col))?;
-                        log_line(&format!(
-                            "{policy:?} {mode:?} d0={col} seed {seed}: {}/{}",
-                            res.0, s.episodes
-                        ));
-                        res
-                    }
-                };
-                cells.push(Cell {
-                    label: label.clone(),
-                    d0: col,
-                    seed,
-                    successes,
-                    episodes: s.episodes,
-                    overruns,
-                });
-            }
-        }
-    }
-    Ok(cells)
-}
-
-/// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`,
-/// leaving out the chosen one (the step named by `dir/best.json`), whose cells are measured
-/// anyway. Fewer when the run has fewer.
-pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
-    let chosen = std::fs::read_to_string(dir.join("best.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
-    let mut steps = Vec::new();
-    let entries = std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))?;
-    for e in entries {
-        let e = e.with_context(|| format!("reading {}", dir.display()))?;
-        let name = e.file_name().to_string_lossy().into_owned();
-        if let Some(step) = name
-            .strip_prefix("step-")
-            .and_then(|n| n.parse::<u64>().ok())
-        {
-            if Some(step) != chosen && e.path().is_dir() {
-                steps.push((step, e.path()));
-            }
-        }
-    }
-    steps.sort_by_key(|s| std::cmp::Reverse(s.0));
-    Ok(steps.into_iter().take(k).map(|s| s.1).collect())
-}
-
-/// The paper's optimistic checkpoint protocol ("for each cell we pick the best epoch per
-/// seed"): every cell of `study` is evaluated again with each of the last `k` step
-/// checkpoints of its training run ([`last_step_checkpoints`]), and per row × column × seed
-/// the best success count of those and of `chosen` (the cells of the chosen checkpoints) is
-/// kept. It selects on the evaluation episodes themselves, so it is optimistic; the study
-/// reports it next to, never instead of, the chosen-checkpoint cells.
-pub fn evaluate_best_per_cell<T: Task>(
-    task: &T,
-    study: &Study,
-    trained: &[Trained],
-    k: usize,
-    chosen: &[Cell],
-    pb: &ProgressBar,
-) -> Result<Vec<Cell>> {
-    let mut best = chosen.to_vec();
-    let ckpts = trained
-        .iter()
-        .map(|t| last_step_checkpoints(&t.dir, k))
-        .collect::<Result<Vec<_>>>()?;
-    for j in 0..k {
-        // The j-th latest other checkpoint of every run that has one; the rest keep their
-        // chosen model, and rows none of whose runs have a j-th checkpoint are skipped.
-        let models = trained
-            .iter()
-            .zip(&ckpts)
-            .map(|(t, c)| match c.get(j) {
-                Some(dir) => {
-                    let m = CandleModel::load_expect(dir, &task.spec())
-                        .with_context(|| format!("loading {}", dir.display()))?;
-                    Ok((t.policy, t.seed, Models::local(&m)?, true))
-                }
-                None => Ok((t.policy, t.seed, Models::local(&t.model)?, false)),
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let rows: Vec<_> = study
-            .rows
-            .iter()
-            .filter(|r| models.iter().any(|m| m.0 == r.row.policy && m.3))
-            .cloned()
-            .collect();
-        if rows.is_empty() {
-            break;
-        }
-        let sub = Study {
-            rows,
-            ..study.clone()
-        };
-        let cells = evaluate(
-            task,
-            &sub,
-            &|p, s| {
-                &models
-                    .iter()
-                    .find(|m| m.0 == p && m.1 == s)
-                    .expect("every policy of the study was trained")
-                    .2
-            },
-            pb,
-        )?;
-        for c in cells {
-            if let Some(b) = best
-                .iter_mut()
-                .find(|b| b.label == c.label && b.d0 == c.d0 && b.seed == c.seed)
-            {
-                if c.successes > b.successes {
-                    *b = c;
-                }
-            }
-        }
-    }
-    Ok(best)
-}
-
-/// Episodes `study` runs in total (for a progress bar).
-pub fn total_episodes<T: Task>(task: &T, study: &Study) -> usize {
-    let s = task.settings();
-    let per_seed: usize = study
-        .rows
-        .iter()
-        .map(|r| match r.sweep {
-            Sweep::Once(_) => 1,
-            _ => study.columns.len(),
-        })
-        .sum();
-    per_seed * s.seeds.len() * s.episodes
-}
-
 /// Run `study` on `task` into `out` (a new directory): demonstrations, training (checkpoints
 /// under `out/checkpoints/`), evaluation; writes `result.json`, `table.md`, `success.png`
 /// (and, with the settings' `best_of_last` > 0, the best-checkpoint-per-cell cells, their
-/// table in `table.md` and `success-best-per-cell.png`).
-pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T::Config>> {
-    prepare_out(out)?;
+/// table in `table.md` and `success-best-per-cell.png`). Every cell is appended to
+/// `out/cells.jsonl` as soon as it is measured; with `resume`, `out` is an interrupted run
+/// of the same config and its logged cells are reused ([`CellLog`]; the task's
+/// demonstrations must then not write into `out`).
+pub fn run<T: Task>(
+    task: &T,
+    study: &Study,
+    out: &Path,
+    resume: bool,
+) -> Result<StudyResult<T::Config>> {
+    if resume {
+        std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    } else {
+        prepare_out(out)?;
+    }
+    let log = CellLog::open(out, config_fingerprint(task.config())?, resume)?;
     let t0 = Instant::now();
     let mut timings = Vec::new();
     let demos = task.demonstrations(out)?;
@@ -631,7 +448,7 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
         &demos,
         &study.policies(),
         &out.join("checkpoints"),
-        false,
+        resume,
     )?;
     timings.push(("train".to_string(), t1.elapsed().as_secs_f64()));
 
@@ -644,6 +461,11 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
         .iter()
         .map(|t| Ok((t.policy, t.seed, Models::local(&t.model)?)))
         .collect::<Result<Vec<_>>>()?;
+    let checkpoint = |p, s| chosen_checkpoint(&trained_dir(&trained, p, s));
+    let logged = Logged {
+        log: &log,
+        checkpoint: &checkpoint,
+    };
     let cells = evaluate(
         task,
         study,
@@ -654,6 +476,7 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
                 .expect("every policy of the study was trained")
                 .2
         },
+        Some(&logged),
         &pb,
     )?;
     pb.finish();
@@ -665,7 +488,7 @@ pub fn run<T: Task>(task: &T, study: &Study, out: &Path) -> Result<StudyResult<T
             (k * total_episodes(task, study)) as u64,
             &format!("best checkpoint per cell (last {k})"),
         );
-        let best = evaluate_best_per_cell(task, study, &trained, k, &cells, &pb)?;
+        let best = evaluate_best_per_cell(task, study, &trained, k, &cells, Some(&log), &pb)?;
         pb.finish();
         timings.push(("best per cell".to_string(), t3.elapsed().as_secs_f64()));
         best
@@ -765,33 +588,4 @@ pub fn write_outputs<T: Task>(
         )?;
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn last_step_checkpoints_are_latest_first_without_the_chosen_one() {
-        let dir = std::env::temp_dir().join(format!("pir2-last-steps-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        for step in [100, 200, 300, 400] {
-            std::fs::create_dir_all(dir.join(format!("step-{step:06}"))).unwrap();
-        }
-        std::fs::create_dir_all(dir.join("best")).unwrap();
-        std::fs::write(dir.join("step-000500"), "a file, not a checkpoint").unwrap();
-        let names = |k| -> Vec<String> {
-            last_step_checkpoints(&dir, k)
-                .unwrap()
-                .iter()
-                .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
-                .collect()
-        };
-        assert_eq!(names(2), ["step-000400", "step-000300"]);
-        std::fs::write(dir.join("best.json"), r#"{"step": 400, "score": 0.5}"#).unwrap();
-        assert_eq!(names(2), ["step-000300", "step-000200"]);
-        assert_eq!(names(9), ["step-000300", "step-000200", "step-000100"]);
-        assert!(names(0).is_empty());
-        std::fs::remove_dir_all(&dir).unwrap();
-    }
 }

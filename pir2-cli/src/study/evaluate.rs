@@ -1,0 +1,596 @@
+//! Evaluation of a study: every row × seed × column through the one closed loop, the paper's
+//! best-checkpoint-per-cell protocol, and the cell log that lets a long evaluation continue
+//! after an interruption (`pir2 eval … --resume`).
+//!
+//! A cell's result depends on the checkpoint that ran, the row, the column, the seed, the
+//! episode count and the task's config, nothing else (the lock-step evaluation is
+//! deterministic and independent of the thread count). [`CellLog`] keys the cells it keeps by
+//! exactly that, so a later run reuses a cell only when it would measure the same numbers;
+//! the config's seed list, checkpoint-protocol depth and thread count are not part of the key,
+//! which is what lets a one-seed table grow into the three-seed one without re-running seed 0.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+use anyhow::{bail, Context, Result};
+use indicatif::ProgressBar;
+use serde::{Deserialize, Serialize};
+
+use pir2_backends::candle::CandleModel;
+use pir2_runtime::{LockstepTiming, Mode};
+
+use super::pipeline::{closed_loop, log_line, Models, Trained};
+use super::{Cell, Policy, Study, Sweep, Task};
+
+/// File of the cell log inside a study's output directory.
+pub const CELL_LOG: &str = "cells.jsonl";
+
+/// Config fields a cell does not depend on (left out of [`config_fingerprint`]).
+const NOT_IN_FINGERPRINT: [&str; 3] = ["seeds", "best_of_last", "threads"];
+
+/// A short, stable fingerprint of what in `config` a cell depends on: the config as TOML
+/// without its seed list, best-of-last depth and thread count, hashed (FNV-1a, 64 bits).
+pub fn config_fingerprint<C: Serialize>(config: &C) -> Result<String> {
+    let mut v = toml::Value::try_from(config).context("serialising the config")?;
+    if let Some(t) = v.as_table_mut() {
+        for k in NOT_IN_FINGERPRINT {
+            t.remove(k);
+        }
+    }
+    let text = toml::to_string(&v).context("serialising the config")?;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in text.bytes() {
+        h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+    }
+    Ok(format!("{h:016x}"))
+}
+
+/// What identifies a measured cell besides the config.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+struct CellKey {
+    /// The checkpoint that ran (see [`chosen_checkpoint`]).
+    checkpoint: String,
+    label: String,
+    /// The column; `None` for a row measured once for every column.
+    column: Option<usize>,
+    seed: u64,
+    episodes: usize,
+}
+
+/// One line of the cell log.
+#[derive(Debug, Serialize, Deserialize)]
+struct Entry {
+    config: String,
+    #[serde(flatten)]
+    key: CellKey,
+    successes: usize,
+    overruns: u64,
+}
+
+/// The cells a study's evaluation measured so far, kept in `out/cells.jsonl` (one JSON line
+/// per cell, appended and synced as soon as the cell is measured). Opened with `resume`, the
+/// cells of an earlier, interrupted run of the same config are reused instead of measured
+/// again.
+#[derive(Debug)]
+pub struct CellLog {
+    path: PathBuf,
+    config: String,
+    done: Mutex<HashMap<CellKey, (usize, u64)>>,
+}
+
+impl CellLog {
+    /// The log of the study output directory `out` for a config with fingerprint `config`
+    /// ([`config_fingerprint`]). Without `resume` the log starts empty (an existing one is
+    /// an error: the caller refuses non-empty directories first). With `resume`, the cells
+    /// in the log are loaded; a log written for another config is an error naming the file,
+    /// and a last line cut short by an interruption is dropped.
+    pub fn open(out: &Path, config: String, resume: bool) -> Result<Self> {
+        let path = out.join(CELL_LOG);
+        let mut done = HashMap::new();
+        if resume && path.exists() {
+            let text = std::fs::read_to_string(&path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let lines: Vec<&str> = text.split_terminator('\n').collect();
+            let mut kept = String::new();
+            for (i, line) in lines.iter().enumerate() {
+                let entry = match serde_json::from_str::<Entry>(line) {
+                    Ok(e) => e,
+                    // A write cut short by a crash or a kill: only ever the last line, and
+                    // only without its newline.
+                    Err(_) if i + 1 == lines.len() && !text.ends_with('\n') => {
+                        log_line(&format!(
+                            "{}: dropped a last line cut short by an interruption",
+                            path.display()
+                        ));
+                        std::fs::write(&path, &kept)
+                            .with_context(|| format!("rewriting {}", path.display()))?;
+                        break;
+                    }
+                    Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
+                };
+                if entry.config != config {
+                    bail!(
+                        "--resume: {} holds cells of another config (fingerprint {}, this one \
+                         {config}); resume with the config it was evaluated with, or evaluate \
+                         into a new directory",
+                        path.display(),
+                        entry.config
+                    );
+                }
+                kept.push_str(line);
+                kept.push('\n');
+                done.insert(entry.key, (entry.successes, entry.overruns));
+            }
+            log_line(&format!(
+                "{}: {} cells measured earlier are reused",
+                path.display(),
+                done.len()
+            ));
+        } else if path.exists() {
+            bail!(
+                "{} exists: continue that evaluation with --resume, or choose another --out",
+                path.display()
+            );
+        }
+        Ok(Self {
+            path,
+            config,
+            done: Mutex::new(done),
+        })
+    }
+
+    /// Cells in the log.
+    pub fn len(&self) -> usize {
+        self.done.lock().unwrap_or_else(|e| e.into_inner()).len()
+    }
+
+    /// Whether the log holds no cell.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn get(&self, key: &CellKey) -> Option<(usize, u64)> {
+        self.done
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(key)
+            .copied()
+    }
+
+    /// Append one measured cell and sync it to disk before the evaluation goes on.
+    fn record(&self, key: CellKey, successes: usize, overruns: u64) -> Result<()> {
+        let mut done = self.done.lock().unwrap_or_else(|e| e.into_inner());
+        let entry = Entry {
+            config: self.config.clone(),
+            key,
+            successes,
+            overruns,
+        };
+        let mut line = serde_json::to_string(&entry)?;
+        line.push('\n');
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.path)
+            .with_context(|| format!("opening {}", self.path.display()))?;
+        f.write_all(line.as_bytes())
+            .and_then(|()| f.sync_data())
+            .with_context(|| format!("writing {}", self.path.display()))?;
+        done.insert(entry.key, (successes, overruns));
+        Ok(())
+    }
+}
+
+/// The cell log of an evaluation and the checkpoint each policy × seed runs (its key).
+pub struct Logged<'a> {
+    /// Where measured cells are kept and looked up.
+    pub log: &'a CellLog,
+    /// The checkpoint `(policy, seed)` runs, e.g. [`chosen_checkpoint`].
+    pub checkpoint: &'a dyn Fn(Policy, u64) -> String,
+}
+
+impl std::fmt::Debug for Logged<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Logged")
+            .field("log", &self.log)
+            .finish_non_exhaustive()
+    }
+}
+
+/// Name of the chosen checkpoint of the training run in `run_dir`
+/// (`<policy>-seed<s>/best@<step>`, the step from `best.json`; `…/best` without it).
+pub fn chosen_checkpoint(run_dir: &Path) -> String {
+    let name = run_dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let step = std::fs::read_to_string(run_dir.join("best.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
+    match step {
+        Some(s) => format!("{name}/best@{s}"),
+        None => format!("{name}/best"),
+    }
+}
+
+/// Name of a step checkpoint directory `run_dir/step-NNNNNN` (`<policy>-seed<s>/step-NNNNNN`).
+fn step_checkpoint(dir: &Path) -> String {
+    let part = |p: Option<&Path>| {
+        p.and_then(Path::file_name)
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    format!("{}/{}", part(dir.parent()), part(Some(dir)))
+}
+
+/// Evaluate every row × seed × column of `study` (in that order) over the settings'
+/// episodes; `models(policy, seed)` supplies what runs the action head. With `logged`, a
+/// cell already in the log is taken from it, and every cell measured is appended to it.
+pub fn evaluate<'m, T: Task>(
+    task: &T,
+    study: &Study,
+    models: &dyn Fn(Policy, u64) -> &'m Models<'m>,
+    logged: Option<&Logged<'_>>,
+    pb: &ProgressBar,
+) -> Result<Vec<Cell>> {
+    let s = task.settings();
+    let zero = LockstepTiming::zero_latency();
+    let mut cells = Vec::new();
+    for r in &study.rows {
+        let (label, policy) = (&r.row.label, r.row.policy);
+        for &seed in &s.seeds {
+            let m = models(policy, seed);
+            let checkpoint = logged.map(|l| (l.checkpoint)(policy, seed));
+            // One cell: from the log when it holds it, else measured (and logged).
+            let run = |column: Option<usize>, mode: &Mode, timing, what: String| {
+                let key = checkpoint.as_ref().map(|c| CellKey {
+                    checkpoint: c.clone(),
+                    label: label.clone(),
+                    column,
+                    seed,
+                    episodes: s.episodes,
+                });
+                if let (Some(l), Some(k)) = (logged, &key) {
+                    if let Some(res) = l.log.get(k) {
+                        pb.inc(s.episodes as u64);
+                        log_line(&format!("{what}: {}/{} (logged)", res.0, s.episodes));
+                        return Ok(res);
+                    }
+                }
+                let res = closed_loop(
+                    task,
+                    m,
+                    policy,
+                    mode,
+                    timing,
+                    s.episodes,
+                    study.seed_base + seed,
+                    s.threads,
+                    &|| pb.inc(1),
+                )?;
+                if let (Some(l), Some(k)) = (logged, key) {
+                    l.log.record(k, res.0, res.1)?;
+                }
+                log_line(&format!("{what}: {}/{}", res.0, s.episodes));
+                Ok::<_, anyhow::Error>(res)
+            };
+            let once = match r.sweep {
+                Sweep::Once(timing) => Some(run(
+                    None,
+                    &r.row.mode,
+                    timing,
+                    format!("{label} seed {seed}"),
+                )?),
+                _ => None,
+            };
+            for &col in &study.columns {
+                let (successes, overruns) = match (r.sweep, once) {
+                    (_, Some(res)) => res,
+                    (Sweep::Horizon, None) => {
+                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
+                            bail!("row {label}: a horizon sweep needs a sync-flow mode");
+                        };
+                        run(
+                            Some(col),
+                            &Mode::SyncFlow { steps, h: col },
+                            zero,
+                            format!("{label} h={col} seed {seed}"),
+                        )?
+                    }
+                    (Sweep::UnitDelaySync, None) => {
+                        let Mode::SyncFlow { steps, .. } = r.row.mode else {
+                            bail!("row {label}: a sync unit-delay sweep needs a sync-flow mode");
+                        };
+                        let timing = LockstepTiming::for_mode(&r.row.mode, col);
+                        let h = timing.call_ticks.max(1);
+                        run(
+                            Some(col),
+                            &Mode::SyncFlow { steps, h },
+                            timing,
+                            format!("{label} d0={col} (h={h}) seed {seed}"),
+                        )?
+                    }
+                    _ => {
+                        let mode = &r.row.mode;
+                        run(
+                            Some(col),
+                            mode,
+                            LockstepTiming::for_mode(mode, col),
+                            format!("{label} d0={col} seed {seed}"),
+                        )?
+                    }
+                };
+                cells.push(Cell {
+                    label: label.clone(),
+                    d0: col,
+                    seed,
+                    successes,
+                    episodes: s.episodes,
+                    overruns,
+                });
+            }
+        }
+    }
+    Ok(cells)
+}
+
+/// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`,
+/// leaving out the chosen one (the step named by `dir/best.json`), whose cells are measured
+/// anyway. Fewer when the run has fewer.
+pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
+    let chosen = std::fs::read_to_string(dir.join("best.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
+    let mut steps = Vec::new();
+    let entries = std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))?;
+    for e in entries {
+        let e = e.with_context(|| format!("reading {}", dir.display()))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let Some(step) = name
+            .strip_prefix("step-")
+            .and_then(|n| n.parse::<u64>().ok())
+        {
+            if Some(step) != chosen && e.path().is_dir() {
+                steps.push((step, e.path()));
+            }
+        }
+    }
+    steps.sort_by_key(|s| std::cmp::Reverse(s.0));
+    Ok(steps.into_iter().take(k).map(|s| s.1).collect())
+}
+
+/// The paper's optimistic checkpoint protocol ("for each cell we pick the best epoch per
+/// seed"): every cell of `study` is evaluated again with each of the last `k` step
+/// checkpoints of its training run ([`last_step_checkpoints`]), and per row × column × seed
+/// the best success count of those and of `chosen` (the cells of the chosen checkpoints) is
+/// kept. It selects on the evaluation episodes themselves, so it is optimistic; the study
+/// reports it next to, never instead of, the chosen-checkpoint cells. With `log`, cells are
+/// reused from and kept in the cell log as in [`evaluate`].
+pub fn evaluate_best_per_cell<T: Task>(
+    task: &T,
+    study: &Study,
+    trained: &[Trained],
+    k: usize,
+    chosen: &[Cell],
+    log: Option<&CellLog>,
+    pb: &ProgressBar,
+) -> Result<Vec<Cell>> {
+    let mut best = chosen.to_vec();
+    let ckpts = trained
+        .iter()
+        .map(|t| last_step_checkpoints(&t.dir, k))
+        .collect::<Result<Vec<_>>>()?;
+    for j in 0..k {
+        // The j-th latest other checkpoint of every run that has one; the rest keep their
+        // chosen model, and rows none of whose runs have a j-th checkpoint are skipped.
+        let models = trained
+            .iter()
+            .zip(&ckpts)
+            .map(|(t, c)| match c.get(j) {
+                Some(dir) => {
+                    let m = CandleModel::load_expect(dir, &task.spec())
+                        .with_context(|| format!("loading {}", dir.display()))?;
+                    Ok((
+                        t.policy,
+                        t.seed,
+                        Models::local(&m)?,
+                        Some(step_checkpoint(dir)),
+                    ))
+                }
+                None => Ok((t.policy, t.seed, Models::local(&t.model)?, None)),
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let rows: Vec<_> = study
+            .rows
+            .iter()
+            .filter(|r| models.iter().any(|m| m.0 == r.row.policy && m.3.is_some()))
+            .cloned()
+            .collect();
+        if rows.is_empty() {
+            break;
+        }
+        let sub = Study {
+            rows,
+            ..study.clone()
+        };
+        let find = |p: Policy, s: u64| {
+            models
+                .iter()
+                .find(|m| m.0 == p && m.1 == s)
+                .expect("every policy of the study was trained")
+        };
+        let checkpoint = |p: Policy, s: u64| match &find(p, s).3 {
+            Some(c) => c.clone(),
+            None => chosen_checkpoint(&trained_dir(trained, p, s)),
+        };
+        let logged = log.map(|log| Logged {
+            log,
+            checkpoint: &checkpoint,
+        });
+        let cells = evaluate(task, &sub, &|p, s| &find(p, s).2, logged.as_ref(), pb)?;
+        for c in cells {
+            if let Some(b) = best
+                .iter_mut()
+                .find(|b| b.label == c.label && b.d0 == c.d0 && b.seed == c.seed)
+            {
+                if c.successes > b.successes {
+                    *b = c;
+                }
+            }
+        }
+    }
+    Ok(best)
+}
+
+/// The training-run directory of `(policy, seed)` among `trained`.
+pub fn trained_dir(trained: &[Trained], policy: Policy, seed: u64) -> PathBuf {
+    trained
+        .iter()
+        .find(|t| t.policy == policy && t.seed == seed)
+        .map(|t| t.dir.clone())
+        .unwrap_or_default()
+}
+
+/// Episodes `study` runs in total (for a progress bar).
+pub fn total_episodes<T: Task>(task: &T, study: &Study) -> usize {
+    let s = task.settings();
+    let per_seed: usize = study
+        .rows
+        .iter()
+        .map(|r| match r.sweep {
+            Sweep::Once(_) => 1,
+            _ => study.columns.len(),
+        })
+        .sum();
+    per_seed * s.seeds.len() * s.episodes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("pir2-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn last_step_checkpoints_are_latest_first_without_the_chosen_one() {
+        let dir = tmp("last-steps");
+        for step in [100, 200, 300, 400] {
+            std::fs::create_dir_all(dir.join(format!("step-{step:06}"))).unwrap();
+        }
+        std::fs::create_dir_all(dir.join("best")).unwrap();
+        std::fs::write(dir.join("step-000500"), "a file, not a checkpoint").unwrap();
+        let names = |k| -> Vec<String> {
+            last_step_checkpoints(&dir, k)
+                .unwrap()
+                .iter()
+                .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+                .collect()
+        };
+        assert_eq!(names(2), ["step-000400", "step-000300"]);
+        assert_eq!(
+            chosen_checkpoint(&dir),
+            format!("{}/best", dir.file_name().unwrap().to_string_lossy())
+        );
+        std::fs::write(dir.join("best.json"), r#"{"step": 400, "score": 0.5}"#).unwrap();
+        assert_eq!(names(2), ["step-000300", "step-000200"]);
+        assert_eq!(names(9), ["step-000300", "step-000200", "step-000100"]);
+        assert!(names(0).is_empty());
+        assert!(chosen_checkpoint(&dir).ends_with("/best@400"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    fn key(label: &str, column: Option<usize>, seed: u64) -> CellKey {
+        CellKey {
+            checkpoint: "flow-seed0/best@100".into(),
+            label: label.into(),
+            column,
+            seed,
+            episodes: 20,
+        }
+    }
+
+    #[test]
+    fn the_cell_log_keeps_cells_across_runs_of_the_same_config_only() {
+        let dir = tmp("cell-log");
+        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        assert!(log.is_empty());
+        log.record(key("sync flow", Some(1), 0), 7, 2).unwrap();
+        log.record(key("πR² async", None, 0), 9, 0).unwrap();
+        drop(log);
+        // Without --resume an existing log is refused by name; nothing is changed.
+        let before = std::fs::read_to_string(dir.join(CELL_LOG)).unwrap();
+        let e = CellLog::open(&dir, "aaaa".into(), false).unwrap_err();
+        assert!(e.to_string().contains("--resume"), "{e}");
+        // Resumed with the same config: both cells, keyed exactly.
+        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        assert_eq!(log.len(), 2);
+        assert_eq!(log.get(&key("sync flow", Some(1), 0)), Some((7, 2)));
+        assert_eq!(log.get(&key("sync flow", Some(2), 0)), None);
+        assert_eq!(log.get(&key("sync flow", Some(1), 1)), None);
+        assert_eq!(log.get(&key("πR² async", None, 0)), Some((9, 0)));
+        let mut other_ckpt = key("sync flow", Some(1), 0);
+        other_ckpt.checkpoint = "flow-seed0/step-000200".into();
+        assert_eq!(log.get(&other_ckpt), None);
+        drop(log);
+        // Another config: one error naming the file; the log is untouched.
+        let e = CellLog::open(&dir, "bbbb".into(), true).unwrap_err();
+        assert!(e.to_string().contains(CELL_LOG), "{e}");
+        assert_eq!(std::fs::read_to_string(dir.join(CELL_LOG)).unwrap(), before);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_last_line_cut_short_is_dropped_and_a_bad_line_elsewhere_is_an_error() {
+        let dir = tmp("cell-log-cut");
+        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        log.record(key("sync flow", Some(1), 0), 7, 0).unwrap();
+        drop(log);
+        let path = dir.join(CELL_LOG);
+        let whole = std::fs::read_to_string(&path).unwrap();
+        std::fs::write(&path, format!("{whole}{}", &whole[..whole.len() / 2])).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        assert_eq!(log.len(), 1);
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), whole);
+        // Appending after the repair keeps one cell per line.
+        log.record(key("sync flow", Some(2), 0), 3, 0).unwrap();
+        drop(log);
+        assert_eq!(CellLog::open(&dir, "aaaa".into(), true).unwrap().len(), 2);
+        std::fs::write(&path, format!("not json\n{whole}")).unwrap();
+        let e = CellLog::open(&dir, "aaaa".into(), true).unwrap_err();
+        assert!(e.to_string().contains("line 1"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_fingerprint_ignores_seeds_depth_and_threads_only() {
+        #[derive(Serialize)]
+        struct C {
+            episodes: usize,
+            seeds: Vec<u64>,
+            best_of_last: usize,
+            threads: usize,
+        }
+        let f = |episodes, seeds: &[u64], best_of_last, threads| {
+            config_fingerprint(&C {
+                episodes,
+                seeds: seeds.to_vec(),
+                best_of_last,
+                threads,
+            })
+            .unwrap()
+        };
+        let base = f(100, &[0], 0, 1);
+        assert_eq!(base.len(), 16);
+        assert_eq!(f(100, &[0, 1, 2], 3, 2), base);
+        assert_ne!(f(50, &[0], 0, 1), base);
+    }
+}
