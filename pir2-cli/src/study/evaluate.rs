@@ -6,8 +6,9 @@
 //! episode count and the task's config, nothing else (the lock-step evaluation is
 //! deterministic and independent of the thread count). [`CellLog`] keys the cells it keeps by
 //! exactly that, so a later run reuses a cell only when it would measure the same numbers;
-//! the config's seed list, checkpoint-protocol depth and thread count are not part of the key,
-//! which is what lets a one-seed table grow into the three-seed one without re-running seed 0.
+//! which policies, seeds and columns the config lists, its checkpoint-protocol depth and its
+//! thread count are not part of the key, which is what lets a one-seed table of some policies
+//! grow into the full three-seed one without measuring a cell twice.
 
 use std::collections::HashMap;
 use std::io::Write;
@@ -27,11 +28,13 @@ use super::{Cell, Policy, Study, Sweep, Task};
 /// File of the cell log inside a study's output directory.
 pub const CELL_LOG: &str = "cells.jsonl";
 
-/// Config fields a cell does not depend on (left out of [`config_fingerprint`]).
-const NOT_IN_FINGERPRINT: [&str; 3] = ["seeds", "best_of_last", "threads"];
+/// Config fields a cell does not depend on (left out of [`config_fingerprint`]): which
+/// policies, seeds and columns are evaluated (the key names the cell's own), the
+/// best-of-last depth and the thread count.
+const NOT_IN_FINGERPRINT: [&str; 6] = ["policies", "seeds", "d0s", "hs", "best_of_last", "threads"];
 
 /// A short, stable fingerprint of what in `config` a cell depends on: the config as TOML
-/// without its seed list, best-of-last depth and thread count, hashed (FNV-1a, 64 bits).
+/// without the fields in `NOT_IN_FINGERPRINT`, hashed (FNV-1a, 64 bits).
 pub fn config_fingerprint<C: Serialize>(config: &C) -> Result<String> {
     let mut v = toml::Value::try_from(config).context("serialising the config")?;
     if let Some(t) = v.as_table_mut() {
@@ -571,26 +574,43 @@ mod tests {
     }
 
     #[test]
-    fn the_fingerprint_ignores_seeds_depth_and_threads_only() {
+    fn the_fingerprint_ignores_what_is_evaluated_not_how() {
         #[derive(Serialize)]
         struct C {
             episodes: usize,
+            max_steps: usize,
+            policies: Vec<&'static str>,
             seeds: Vec<u64>,
+            d0s: Vec<usize>,
             best_of_last: usize,
             threads: usize,
         }
-        let f = |episodes, seeds: &[u64], best_of_last, threads| {
-            config_fingerprint(&C {
-                episodes,
-                seeds: seeds.to_vec(),
-                best_of_last,
-                threads,
-            })
-            .unwrap()
+        let base = C {
+            episodes: 100,
+            max_steps: 600,
+            policies: vec!["flow"],
+            seeds: vec![0],
+            d0s: vec![1],
+            best_of_last: 0,
+            threads: 1,
         };
-        let base = f(100, &[0], 0, 1);
-        assert_eq!(base.len(), 16);
-        assert_eq!(f(100, &[0, 1, 2], 3, 2), base);
-        assert_ne!(f(50, &[0], 0, 1), base);
+        let f = |c: &C| config_fingerprint(c).unwrap();
+        assert_eq!(f(&base).len(), 16);
+        let wider = C {
+            policies: vec!["flow", "rtc"],
+            seeds: vec![0, 1, 2],
+            d0s: vec![1, 2, 3],
+            best_of_last: 3,
+            threads: 2,
+            ..base
+        };
+        assert_eq!(f(&wider), f(&base));
+        assert_ne!(
+            f(&C {
+                max_steps: 300,
+                ..wider
+            }),
+            f(&base)
+        );
     }
 }
