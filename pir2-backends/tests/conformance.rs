@@ -548,6 +548,52 @@ mod ort_backend {
         assert!(rt.version().starts_with("1."), "{}", rt.version());
         assert!(!rt.path().as_os_str().is_empty());
     }
+
+    /// The CPU build of ONNX Runtime (what CI installs) has no GPU provider: asking for one is
+    /// one error naming the library, the provider and what the library offers; it never
+    /// runs on the CPU instead. On a GPU build with a device, the same request loads.
+    #[test]
+    fn an_unavailable_gpu_provider_is_one_clear_error() {
+        use pir2_backends::ort::{OrtError, Provider};
+        let rt = pir2_backends::ort::runtime(None).unwrap();
+        let probe = Probe::new(probe_dims(SlowSpec::None), 8, 3);
+        for provider in [
+            Provider::Cuda { device: 0 },
+            Provider::TensorRt {
+                device: 0,
+                cache_dir: None,
+            },
+        ] {
+            if provider.is_available(rt) {
+                eprintln!(
+                    "{} is in this library: not checking the error",
+                    provider.ort_name()
+                );
+                continue;
+            }
+            let opts = OrtOptions {
+                provider: provider.clone(),
+                ..OrtOptions::default()
+            };
+            let e = OrtModel::from_bytes(&probe.onnx_bytes(), &opts).unwrap_err();
+            assert!(matches!(e, OrtError::Provider { .. }), "{e:?}");
+            let msg = e.to_string();
+            for part in [
+                provider.ort_name(),
+                &rt.path().display().to_string(),
+                "CPUExecutionProvider",
+                "onnxruntime-gpu",
+            ] {
+                assert!(msg.contains(part), "`{part}` missing from: {msg}");
+            }
+        }
+        // The CPU provider, asked for explicitly, is the default.
+        let opts = OrtOptions {
+            provider: Provider::Cpu,
+            ..OrtOptions::default()
+        };
+        assert!(OrtModel::from_bytes(&probe.onnx_bytes(), &opts).is_ok());
+    }
 }
 
 #[cfg(feature = "tch")]

@@ -324,12 +324,31 @@ pub fn export(checkpoint: &Path, onnx: &Path) -> Result<()> {
 }
 
 /// `pir2 bench`: `schedule`, `runtime` or `all`, real-time runs of `seconds`.
-pub fn bench(what: &str, seconds: f64) -> Result<()> {
+pub fn bench(
+    what: &str,
+    seconds: f64,
+    gr00t: Option<(&Path, &str)>,
+    ep: &crate::ep::EpOptions,
+) -> Result<()> {
     if what == "schedule" || what == "all" {
         print!("{}", crate::bench::schedule()?);
     }
     if what == "runtime" || what == "all" {
         print!("{}", crate::bench::runtime(seconds)?);
+    }
+    if what == "gr00t" {
+        let (checkpoint, task) = gr00t.context("bench gr00t needs --checkpoint and --task")?;
+        #[cfg(feature = "gr00t")]
+        print!(
+            "{}",
+            crate::bench::gr00t(checkpoint, task, ep, seconds)
+                .with_context(|| format!("benchmarking {}", checkpoint.display()))?
+        );
+        #[cfg(not(feature = "gr00t"))]
+        {
+            let _ = (checkpoint, task, ep);
+            bail!("bench gr00t needs a pir2 built with feature `gr00t` (--features gr00t)");
+        }
     }
     Ok(())
 }

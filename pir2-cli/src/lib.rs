@@ -7,6 +7,7 @@
 
 pub mod bench;
 pub mod commands;
+pub mod ep;
 pub mod leap_cmd;
 pub mod plot;
 pub mod run;

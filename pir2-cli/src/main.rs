@@ -13,6 +13,7 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use pir2_cli::commands::{
     self, CollectOptions, DemoOptions, Emulated, EvalOptions, RemoteOptions, TaskName, TrainOptions,
 };
+use pir2_cli::ep::EpOptions;
 use pir2_cli::run::{self, RunOptions};
 use pir2_cli::serve::{self, ServeOptions, TlsOptions};
 use pir2_runtime::Policy;
@@ -215,12 +216,22 @@ enum Cmd {
     },
     /// Benchmarks printed side by side (schedule, runtime).
     Bench {
-        /// What to measure.
-        #[arg(value_parser = ["schedule", "runtime", "all"], default_value = "all")]
+        /// What to measure (`gr00t`: a GR00T export's action head and backbone, feature
+        /// `gr00t`; not part of `all`).
+        #[arg(value_parser = ["schedule", "runtime", "all", "gr00t"], default_value = "all")]
         what: String,
-        /// Seconds per real-time run.
+        /// Seconds per real-time run (`gr00t`: seconds of calls per graph).
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
+        /// gr00t: the export directory (docs/gr00t-contract.md).
+        #[arg(long, required_if_eq("what", "gr00t"))]
+        checkpoint: Option<PathBuf>,
+        /// gr00t: the task (key or prompt) whose prompt layout the head is fed.
+        #[arg(long, required_if_eq("what", "gr00t"))]
+        task: Option<String>,
+        /// gr00t: where ONNX Runtime runs the graphs.
+        #[command(flatten)]
+        ep: EpArgs,
     },
     /// Robot tools: check a connection, run the emulators.
     Robot {
@@ -323,6 +334,36 @@ struct RunArgs {
     /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
     #[command(flatten)]
     tls: TlsArgs,
+    /// Where ONNX Runtime runs the action head and the backbone.
+    #[command(flatten)]
+    ep: EpArgs,
+}
+
+/// `--ep`, `--ep-device`, `--trt-cache` (→ `EpOptions`).
+#[derive(Args, Debug, Clone)]
+struct EpArgs {
+    /// ONNX Runtime execution provider for the GR00T graphs. `cuda` and `tensorrt` need the
+    /// GPU build of ONNX Runtime (PyPI `onnxruntime-gpu`, same version) in ORT_DYLIB_PATH;
+    /// a library without the provider is one error at start, never a CPU fallback.
+    #[arg(long, value_parser = ["cpu", "cuda", "tensorrt"], default_value = "cpu")]
+    ep: String,
+    /// CUDA device id for --ep cuda|tensorrt.
+    #[arg(long, default_value_t = 0)]
+    ep_device: i32,
+    /// --ep tensorrt: keep built engines and the timing cache here (the first start builds
+    /// them, which takes minutes; later starts load them).
+    #[arg(long)]
+    trt_cache: Option<PathBuf>,
+}
+
+impl From<EpArgs> for EpOptions {
+    fn from(a: EpArgs) -> Self {
+        EpOptions {
+            name: a.ep,
+            device: a.ep_device,
+            trt_cache: a.trt_cache,
+        }
+    }
 }
 
 impl From<RunArgs> for RunOptions {
@@ -354,6 +395,7 @@ impl From<RunArgs> for RunOptions {
             ensemble: a.ensemble,
             no_ensemble: a.no_ensemble,
             tls: a.tls.into(),
+            ep: a.ep.into(),
         }
     }
 }
@@ -423,6 +465,9 @@ enum ServeCmd {
         key: String,
         #[command(flatten)]
         tls: TlsArgs,
+        /// Where ONNX Runtime runs the GR00T graphs.
+        #[command(flatten)]
+        ep: EpArgs,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
@@ -446,6 +491,9 @@ enum ServeCmd {
         frame_ms: u64,
         #[command(flatten)]
         tls: TlsArgs,
+        /// Where ONNX Runtime runs the GR00T graphs.
+        #[command(flatten)]
+        ep: EpArgs,
     },
 }
 
@@ -460,6 +508,7 @@ impl From<ServeCmd> for ServeOptions {
                 listen,
                 key,
                 tls,
+                ep,
             } => ServeOptions::Policy {
                 checkpoint,
                 gr00t_checkpoint,
@@ -468,6 +517,7 @@ impl From<ServeCmd> for ServeOptions {
                 listen,
                 key,
                 tls: tls.into(),
+                ep: ep.into(),
             },
             ServeCmd::Slow {
                 listen,
@@ -477,6 +527,7 @@ impl From<ServeCmd> for ServeOptions {
                 stub,
                 frame_ms,
                 tls,
+                ep,
             } => ServeOptions::Slow {
                 listen,
                 key,
@@ -485,6 +536,7 @@ impl From<ServeCmd> for ServeOptions {
                 stub,
                 frame_ms,
                 tls: tls.into(),
+                ep: ep.into(),
             },
         }
     }
@@ -634,7 +686,18 @@ fn main() -> Result<()> {
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
         Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),
         Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),
-        Cmd::Bench { what, seconds } => commands::bench(&what, seconds),
+        Cmd::Bench {
+            what,
+            seconds,
+            checkpoint,
+            task,
+            ep,
+        } => commands::bench(
+            &what,
+            seconds,
+            checkpoint.as_deref().zip(task.as_deref()),
+            &ep.into(),
+        ),
         Cmd::Robot { cmd } => match cmd {
             RobotCmd::Check {
                 xarm,

@@ -86,6 +86,8 @@ pub struct RunOptions {
     pub ensemble: Option<f32>,
     /// Naive async: plain swap whatever the checkpoint says.
     pub no_ensemble: bool,
+    /// Where ONNX Runtime runs the local action head and backbone.
+    pub ep: crate::ep::EpOptions,
 }
 
 /// What a run reports (printed, and written by `--json`).
@@ -378,12 +380,8 @@ mod imp {
     /// bad export must fail while nothing is powered. The loaded head is the one the run
     /// uses (local head), or the source of the backbone width (remote head).
     fn preflight(args: &RunOptions) -> Result<Gr00tActionHead> {
-        let (head, _) = load_action_head(
-            &args.checkpoint,
-            &args.task,
-            &pir2_backends::ort::OrtOptions::default(),
-        )
-        .with_context(|| format!("checking checkpoint {}", args.checkpoint.display()))?;
+        let (head, _) = load_action_head(&args.checkpoint, &args.task, &args.ep.ort()?)
+            .with_context(|| format!("checking checkpoint {}", args.checkpoint.display()))?;
         Ok(head)
     }
 
@@ -418,13 +416,16 @@ mod imp {
     }
 
     impl Head {
-        fn local(head: Gr00tActionHead) -> Self {
-            Head {
+        fn local(head: Gr00tActionHead, ep: &crate::ep::EpOptions) -> Result<Self> {
+            Ok(Head {
                 choice: HeadChoice::Loaded(Box::new(head)),
-                what: "the checkpoint's ONNX graphs, in this process".into(),
+                what: format!(
+                    "the checkpoint's ONNX graphs, in this process, on {}",
+                    ep.ort()?.provider.describe()
+                ),
                 #[cfg(feature = "remote")]
                 stats: None,
-            }
+            })
         }
     }
 
@@ -433,7 +434,7 @@ mod imp {
         if args.remote_policy.is_some() {
             bail!("--remote-policy needs a pir2 built with feature `remote` (--features gr00t,remote)")
         }
-        Ok(Head::local(head))
+        Head::local(head, &args.ep)
     }
 
     /// Connect to the policy server (before any robot is connected: an unreachable server
@@ -442,7 +443,7 @@ mod imp {
     fn head(args: &RunOptions, head: Gr00tActionHead) -> Result<Head> {
         use pir2_runtime::remote::{Link, RemoteModel, RemoteModelConfig};
         let Some(endpoint) = &args.remote_policy else {
-            return Ok(Head::local(head));
+            return Head::local(head, &args.ep);
         };
         if !args.connect_timeout.is_finite() || args.connect_timeout <= 0.0 {
             bail!(
@@ -664,6 +665,7 @@ mod imp {
             stop,
             slow_timeout,
             slow_grace: args.slow_grace_ms.map(|g| Duration::from_secs_f64(g / 1e3)),
+            ort: args.ep.ort()?,
             ..Default::default()
         };
         let ctx = || {

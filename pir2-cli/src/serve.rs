@@ -91,6 +91,8 @@ pub enum ServeOptions {
         key: String,
         /// Mutual TLS and `--insecure`.
         tls: TlsOptions,
+        /// Where ONNX Runtime runs the GR00T action head.
+        ep: crate::ep::EpOptions,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
@@ -108,6 +110,8 @@ pub enum ServeOptions {
         frame_ms: u64,
         /// Mutual TLS and `--insecure`.
         tls: TlsOptions,
+        /// Where ONNX Runtime runs the GR00T backbone.
+        ep: crate::ep::EpOptions,
     },
 }
 
@@ -220,6 +224,7 @@ mod imp {
                 listen,
                 key,
                 tls,
+                ep,
             } => {
                 let cfg = PolicyServerConfig {
                     link: tls.apply(Link::listen(listen.clone()))?,
@@ -248,7 +253,7 @@ mod imp {
                         let task = task
                             .as_deref()
                             .context("--task is required with --gr00t-checkpoint")?;
-                        let (model, what) = gr00t_head(dir, task)?;
+                        let (model, what) = gr00t_head(dir, task, ep)?;
                         eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
                         serve_counted(Announce::new(model), &cfg, stop).with_context(ctx)
                     }
@@ -265,13 +270,14 @@ mod imp {
                 stub,
                 frame_ms,
                 tls,
+                ep,
             } => {
                 let link = tls.apply(Link::listen(listen.clone()))?;
                 let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
                 let period = Duration::from_millis(*frame_ms);
                 let (source, encoder, what): (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String) =
                     match (gr00t_checkpoint, stub) {
-                        (Some(dir), _) => gr00t_backbone(dir, task.as_deref(), &clock, period)?,
+                        (Some(dir), _) => gr00t_backbone(dir, task.as_deref(), &clock, period, ep)?,
                         (None, Some(dim)) => (
                             Box::new(CameraStub::new(clock.clone(), period, *dim)),
                             Box::new(PassThroughEncoder {
@@ -351,28 +357,34 @@ mod imp {
 
     /// The GR00T action head of a checkpoint, with the VL layout of `task`'s prompt.
     #[cfg(feature = "gr00t")]
-    fn gr00t_head(dir: &std::path::Path, task: &str) -> Result<(Box<dyn VelocityModel>, String)> {
-        let (head, prompt) = pir2_backends::gr00t::load_action_head(
-            dir,
-            task,
-            &pir2_backends::ort::OrtOptions::default(),
-        )
-        .with_context(|| format!("loading the GR00T action head from {}", dir.display()))?;
+    fn gr00t_head(
+        dir: &std::path::Path,
+        task: &str,
+        ep: &crate::ep::EpOptions,
+    ) -> Result<(Box<dyn VelocityModel>, String)> {
+        let ort = ep.ort()?;
+        let (head, prompt) = pir2_backends::gr00t::load_action_head(dir, task, &ort)
+            .with_context(|| format!("loading the GR00T action head from {}", dir.display()))?;
         let d = *head.dims();
         Ok((
             Box::new(head),
             format!(
-                "GR00T action head of {} (H {}, A {}, D_vl {}; prompt {prompt:?})",
+                "GR00T action head of {} (H {}, A {}, D_vl {}; prompt {prompt:?}) on {}",
                 dir.display(),
                 d.horizon,
                 d.action_dim,
-                d.d_vl
+                d.d_vl,
+                ort.provider.describe()
             ),
         ))
     }
 
     #[cfg(not(feature = "gr00t"))]
-    fn gr00t_head(_: &std::path::Path, _: &str) -> Result<(Box<dyn VelocityModel>, String)> {
+    fn gr00t_head(
+        _: &std::path::Path,
+        _: &str,
+        _: &crate::ep::EpOptions,
+    ) -> Result<(Box<dyn VelocityModel>, String)> {
         anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
     }
 
@@ -384,14 +396,14 @@ mod imp {
         task: Option<&str>,
         clock: &Arc<dyn Clock>,
         period: Duration,
+        ep: &crate::ep::EpOptions,
     ) -> Result<SlowPair> {
         use pir2_backends::gr00t::testing::SyntheticCamera;
         use pir2_backends::gr00t::{
             load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone,
         };
-        use pir2_backends::ort::OrtOptions;
-
         let task = task.context("--task is required with --gr00t-checkpoint")?;
+        let ort = ep.ort()?;
         let files = CheckpointFiles::in_dir(dir);
         let cfg = if files.embodiment.exists() {
             EmbodimentConfig::load(&files.embodiment)?
@@ -408,7 +420,7 @@ mod imp {
             tok.as_ref(),
             &prompt,
             None,
-            &OrtOptions::default(),
+            &ort,
         )
         .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
         let (t, d) = bb.output_shape();
@@ -416,8 +428,9 @@ mod imp {
             Box::new(SyntheticCamera::new(clock.clone(), period)),
             Box::new(bb),
             format!(
-                "GR00T backbone.onnx [{t}×{d}] of {} on a synthetic camera, prompt {prompt:?}",
-                dir.display()
+                "GR00T backbone.onnx [{t}×{d}] of {} on {}, synthetic camera, prompt {prompt:?}",
+                dir.display(),
+                ort.provider.describe()
             ),
         ))
     }
@@ -428,6 +441,7 @@ mod imp {
         _: Option<&str>,
         _: &Arc<dyn Clock>,
         _: Duration,
+        _: &crate::ep::EpOptions,
     ) -> Result<SlowPair> {
         anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
     }

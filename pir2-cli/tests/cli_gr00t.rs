@@ -334,3 +334,64 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
     assert!(!text.contains("ticks 5"), "{text}");
     std::fs::remove_dir_all(&ck).ok();
 }
+
+/// `--ep cuda|tensorrt` on the CPU build of ONNX Runtime (what CI installs): one error naming
+/// the library and the provider, before any robot is connected (the emulators are never
+/// started: no "warm-up done" line). `pir2 bench gr00t` prints the one-NFE latency and the
+/// `d` it implies at 25 Hz, on the CPU.
+#[test]
+fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay() {
+    let ck = checkpoint("ep", "");
+    for ep in ["cuda", "tensorrt"] {
+        let (out, text) = run(
+            &ck,
+            &[
+                "--task",
+                "catch the book",
+                "--emulate",
+                "--ticks",
+                "5",
+                "--ep",
+                ep,
+            ],
+        );
+        assert!(!out.status.success(), "{ep}: {text}");
+        let provider = if ep == "cuda" {
+            "CUDAExecutionProvider"
+        } else {
+            "TensorrtExecutionProvider"
+        };
+        assert!(
+            text.contains(provider) && text.contains("onnxruntime-gpu"),
+            "{ep}: {text}"
+        );
+        assert!(!text.contains("warm-up done"), "{ep}: {text}");
+        eprintln!("{text}");
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args([
+            "bench",
+            "gr00t",
+            "--seconds",
+            "0.2",
+            "--task",
+            "catch the book",
+        ])
+        .arg("--checkpoint")
+        .arg(&ck)
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{text}");
+    eprintln!("{text}");
+    for part in [
+        "on CPU",
+        "one NFE (batch 1): median",
+        "at 25 Hz: πR² (one NFE per call) d = ",
+        "backbone, one 640×480 frame",
+    ] {
+        assert!(text.contains(part), "`{part}` missing: {text}");
+    }
+    std::fs::remove_dir_all(&ck).ok();
+}

@@ -12,12 +12,11 @@ use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use ::ort::session::builder::GraphOptimizationLevel;
 use ::ort::session::{Session, SessionInputValue};
 use ::ort::value::{TensorElementType, ValueType};
 
 use super::error::{Gr00tError, Result};
-use crate::ort::{runtime, OrtError, OrtOptions};
+use crate::ort::{runtime, session_builder, OrtError, OrtOptions};
 
 /// Element type of a tensor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -428,16 +427,7 @@ impl Graph {
                 ),
             });
         }
-        let session = Session::builder(rt.environment())
-            .map_err(|e| session_err(e.to_string()))?
-            .with_optimization_level(GraphOptimizationLevel::All)
-            .map_err(|e| session_err(e.to_string()))?
-            .with_intra_threads(opts.intra_threads.max(1))
-            .map_err(|e| session_err(e.to_string()))?
-            .with_inter_threads(opts.inter_threads.max(1))
-            .map_err(|e| session_err(e.to_string()))?
-            .with_parallel_execution(false)
-            .map_err(|e| session_err(e.to_string()))?
+        let session = session_builder(rt, opts, path)?
             .commit_from_file(path)
             .map_err(|e| session_err(e.to_string()))?;
         let collect = |outlets: &[::ort::value::Outlet]| -> Result<Vec<_>> {

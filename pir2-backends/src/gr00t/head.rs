@@ -208,6 +208,11 @@ impl Gr00tActionHead {
         self.layout = Some(layout);
     }
 
+    /// The token layout of the backbone features, once set.
+    pub fn vl_layout(&self) -> Option<&VlLayout> {
+        self.layout.as_ref()
+    }
+
     /// How many calls saw each `d_vis` (after clamping to `d_vis_max`).
     pub fn d_vis_counts(&self) -> &[u64] {
         &self.d_vis_counts

@@ -46,6 +46,9 @@ use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 use crate::export::contract::{self, describe_slow, ContractDims, SlowSpec};
 
+mod provider;
+pub use provider::Provider;
+
 /// The ONNX Runtime version this backend is built and tested against.
 pub const EXPECTED_VERSION: &str = "1.31.x";
 const MIN_MINOR: u32 = 31;
@@ -84,6 +87,18 @@ pub enum OrtError {
         /// ONNX Runtime's message.
         message: String,
     },
+    /// The execution provider asked for is not in the loaded library or cannot start.
+    #[error("ONNX Runtime {version} at `{path}` cannot run on {provider}: {reason}")]
+    Provider {
+        /// ONNX Runtime's name of the provider.
+        provider: &'static str,
+        /// The library loaded.
+        path: PathBuf,
+        /// Its version.
+        version: String,
+        /// Why (what the library offers instead, or ONNX Runtime's message).
+        reason: String,
+    },
     /// The model does not follow the graph contract.
     #[error("ONNX model `{path}` does not follow the pir2 contract: {message}")]
     Contract {
@@ -105,6 +120,8 @@ pub struct OrtOptions {
     pub inter_threads: usize,
     /// Check every output for NaN/inf and fail with [`pir2_runtime::Error::NonFinite`] (default on).
     pub check_finite: bool,
+    /// Where the graphs run (default the CPU; see [`Provider`]).
+    pub provider: Provider,
 }
 
 impl Default for OrtOptions {
@@ -114,6 +131,7 @@ impl Default for OrtOptions {
             intra_threads: 1,
             inter_threads: 1,
             check_finite: true,
+            provider: Provider::Cpu,
         }
     }
 }
@@ -246,6 +264,31 @@ pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime, OrtError>
     Ok(rt)
 }
 
+/// A session builder with `opts` applied: full graph optimisation, `intra`/`inter` threads,
+/// sequential execution and the execution provider (an unavailable provider is an error,
+/// never a silent fallback to the CPU). `path` names the model in errors.
+pub fn session_builder(
+    rt: &OrtRuntime,
+    opts: &OrtOptions,
+    path: &Path,
+) -> Result<::ort::session::builder::SessionBuilder, OrtError> {
+    let err = |e: String| OrtError::Session {
+        path: path.to_path_buf(),
+        message: e,
+    };
+    let builder = Session::builder(&rt.env)
+        .map_err(|e| err(e.to_string()))?
+        .with_optimization_level(GraphOptimizationLevel::All)
+        .map_err(|e| err(e.to_string()))?
+        .with_intra_threads(opts.intra_threads.max(1))
+        .map_err(|e| err(e.to_string()))?
+        .with_inter_threads(opts.inter_threads.max(1))
+        .map_err(|e| err(e.to_string()))?
+        .with_parallel_execution(false)
+        .map_err(|e| err(e.to_string()))?;
+    opts.provider.register(rt, builder)
+}
+
 /// A velocity model run by ONNX Runtime (see the module docs for the graph contract).
 pub struct OrtModel {
     session: Session,
@@ -303,20 +346,7 @@ impl OrtModel {
         opts: &OrtOptions,
         path: &Path,
     ) -> Result<::ort::session::builder::SessionBuilder, OrtError> {
-        let err = |e: String| OrtError::Session {
-            path: path.to_path_buf(),
-            message: e,
-        };
-        Session::builder(&rt.env)
-            .map_err(|e| err(e.to_string()))?
-            .with_optimization_level(GraphOptimizationLevel::All)
-            .map_err(|e| err(e.to_string()))?
-            .with_intra_threads(opts.intra_threads.max(1))
-            .map_err(|e| err(e.to_string()))?
-            .with_inter_threads(opts.inter_threads.max(1))
-            .map_err(|e| err(e.to_string()))?
-            .with_parallel_execution(false)
-            .map_err(|e| err(e.to_string()))
+        session_builder(rt, opts, path)
     }
 
     fn from_session(
