@@ -3,7 +3,8 @@
 #   MuJoCo 3.17.0 (feature `mujoco`), ONNX Runtime 1.31.1 (feature `ort`), libtorch 2.13.0 (feature `tch`),
 #   and the LeapCubeReorient scene from the `playground==0.2.0` wheel (Apache-2.0).
 # Everything comes from PyPI into a private venv under .native/ (nothing is downloaded from elsewhere),
-# with the Python references of the native tests (onnx, tokenizers, jinja2, xarm-python-sdk).
+# with the Python references of the native tests (onnx, tokenizers, jinja2, albumentations +
+# opencv-python-headless, xarm-python-sdk).
 # It writes .native/env.sh; `source .native/env.sh` before building/running with those features.
 # Idempotent: a second run only checks.
 #
@@ -42,6 +43,10 @@ have onnxruntime 1.31.1 || "$pip" -q install "onnxruntime==1.31.1"
 # (pir2-backends/tests/gr00t_tokenizer.rs).
 have tokenizers 0.23.3 || "$pip" -q install "tokenizers==0.23.3"
 have jinja2 3.1.6 || "$pip" -q install "jinja2==3.1.6"
+# albumentations + OpenCV: the Python reference of GR00T N1.7's image preprocessing
+# (pir2-backends/tests/gr00t_image.rs), the libraries GR00T's processor uses.
+have albumentations 2.0.8 || "$pip" -q install "albumentations==2.0.8"
+have opencv-python-headless 4.14.0.94 || "$pip" -q install "opencv-python-headless==4.14.0.94"
 # UFACTORY's official xArm SDK: the real client of the xArm emulator in the native tests.
 have xarm-python-sdk 1.18.4 || "$pip" -q install "xarm-python-sdk==1.18.4"
 if [ "$want_torch" = 1 ]; then

@@ -4,8 +4,9 @@
 //! on its own thread (`SlowChannel::Async`) and caches its output with the frame's capture
 //! time. Its pipeline:
 //!
-//! 1. [`preprocess_image`]: HWC `u8` RGB → shorter side resized to `image.resize` (bilinear,
-//!    half-pixel centres) → center crop `image.crop`² → `(x/255 − mean)/std` → `[1, 3, crop, crop]`;
+//! 1. [`preprocess_image`]: HWC `u8` RGB → GR00T N1.7's transform ([`super::image`]: letterbox,
+//!    `INTER_AREA` resize to `image.shortest_edge`, centre crop 0.95, resize back) →
+//!    `(x/255 − mean)/std` → `[1, 3, s, s]`;
 //! 2. [`build_sequence`]: with the VLM's `tokenizer.json`, the prompt rendered through GR00T
 //!    N1.7's chat template around the image placeholders and padded to `T` (see
 //!    [`super::tokenizer`]); with a `vocab.txt`, `image_tokens` image placeholders, then the
@@ -28,10 +29,11 @@ use std::path::{Path, PathBuf};
 
 use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame};
 
-use super::config::{CheckpointFiles, ImageConfig, PromptConfig};
+use super::config::{CheckpointFiles, ImageConfig, ImagePipeline, PromptConfig};
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
 use super::error::{Gr00tError, Result};
 use super::head::VlLayout;
+use super::image::{gr00t_n17_transform, Rgb};
 use super::tokenizer::{chat_sequence, ChatTemplate};
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
@@ -230,8 +232,9 @@ pub fn build_sequence(
     })
 }
 
-/// Resize (shorter side → `cfg.resize`, bilinear), center-crop and normalise an HWC `u8` RGB
-/// image into `out` as CHW `f32` `[3, crop, crop]`.
+/// Preprocess an HWC `u8` RGB camera image with `cfg` (GR00T N1.7's transform by default,
+/// [`super::image`]) and normalise it into `out` as CHW `f32` `[3, s, s]`,
+/// `s = cfg.pixel_side()`.
 pub fn preprocess_image(
     rgb: &[u8],
     (h, w): (usize, usize),
@@ -245,6 +248,34 @@ pub fn preprocess_image(
             format!("{} bytes", rgb.len()),
         ));
     }
+    match cfg.pipeline {
+        ImagePipeline::Gr00tN17 => {
+            let img = Rgb::new(h, w, rgb.to_vec())?;
+            let t = gr00t_n17_transform(&img, cfg.letterbox, cfg.shortest_edge, cfg.crop_fraction)?;
+            let (s, n) = (t.h, t.h * t.w);
+            debug_assert_eq!((t.h, t.w), (cfg.shortest_edge, cfg.shortest_edge));
+            out.clear();
+            out.resize(3 * n, 0.0);
+            for (i, px) in t.data.chunks_exact(3).enumerate() {
+                for ch in 0..3 {
+                    out[ch * n + i] = (f32::from(px[ch]) / 255.0 - cfg.mean[ch]) / cfg.std[ch];
+                }
+            }
+            let _ = s;
+            Ok(())
+        }
+        ImagePipeline::ResizeCrop => resize_crop(rgb, (h, w), cfg, out),
+    }
+}
+
+/// The `resize_crop` pipeline: bilinear resize of the shorter side to `cfg.resize`
+/// (half-pixel centres), centre crop `cfg.crop`, normalise.
+fn resize_crop(
+    rgb: &[u8],
+    (h, w): (usize, usize),
+    cfg: &ImageConfig,
+    out: &mut Vec<f32>,
+) -> Result<()> {
     let s = cfg.resize as f32 / h.min(w) as f32;
     let (rh, rw) = (
         ((h as f32 * s).round() as usize).max(cfg.crop),
@@ -327,7 +358,11 @@ impl Gr00tBackbone {
     ) -> Result<Self> {
         let seq = build_sequence(tokenizer, prompt, prompt_cfg)?;
         let mut b = Bindings::default();
-        b.bind("crop", image.crop, "<embodiment config: image.crop>");
+        b.bind(
+            "crop",
+            image.pixel_side(),
+            "<embodiment config: image side (shortest_edge, or crop with resize_crop)>",
+        );
         b.bind(
             "T",
             seq.ids.len(),
@@ -389,7 +424,7 @@ impl Gr00tBackbone {
     /// Encode one image (HWC `u8` RGB) into `[T, D_vl]` tokens.
     pub fn encode_image(&mut self, rgb: &[u8], hw: (usize, usize)) -> Result<&[f32]> {
         preprocess_image(rgb, hw, &self.image, &mut self.pixels)?;
-        let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.crop);
+        let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.pixel_side());
         let mut feeds = vec![
             feed("pixel_values", &[1, 3, c, c], &self.pixels)?,
             feed("input_ids", &[1, t], &self.seq.ids)?,
@@ -512,10 +547,10 @@ mod tests {
             }
         }
         let cfg = ImageConfig {
+            pipeline: ImagePipeline::ResizeCrop,
             resize: 4,
             crop: 4,
-            mean: [0.5; 3],
-            std: [0.5; 3],
+            ..ImageConfig::default()
         };
         let mut out = Vec::new();
         preprocess_image(&img, (h, w), &cfg, &mut out).unwrap();
@@ -524,5 +559,16 @@ mod tests {
         let row0: Vec<f32> = out[0..4].to_vec();
         assert_eq!(row0, vec![-1.0, -1.0, 1.0, 1.0]);
         assert!(preprocess_image(&img[1..], (h, w), &cfg, &mut out).is_err());
+        // GR00T N1.7's pipeline: letterboxed to 8×8 (2 black rows above and below), 8 px
+        // side, crop ⌊8·0.5⌋ = 4 at offset 2, back to 8: the crop's left half is black, its
+        // right half white, and it holds no padding.
+        let n17 = ImageConfig {
+            shortest_edge: 8,
+            crop_fraction: 0.5,
+            ..ImageConfig::default()
+        };
+        preprocess_image(&img, (h, w), &n17, &mut out).unwrap();
+        assert_eq!(out.len(), 3 * 64);
+        assert_eq!(&out[..8], &[-1.0, -1.0, -1.0, -1.0, 1.0, 1.0, 1.0, 1.0]);
     }
 }

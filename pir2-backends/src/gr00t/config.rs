@@ -72,12 +72,47 @@ impl Group {
     }
 }
 
-/// Camera preprocessing: resize the shorter side, center-crop, normalise per channel.
+/// How camera frames become the backbone's `pixel_values` (see [`super::image`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImagePipeline {
+    /// GR00T N1.7's processor: letterbox, `INTER_AREA` resize of the shorter side to
+    /// `shortest_edge`, centre crop `crop_fraction`, resize back; `pixel_values` is
+    /// `[N, 3, shortest_edge, shortest_edge]`.
+    #[default]
+    Gr00tN17,
+    /// pir2's earlier approximation: bilinear resize of the shorter side to `resize`, centre
+    /// crop `crop`; `pixel_values` is `[N, 3, crop, crop]`. Kept for checkpoints exported
+    /// with it; not what GR00T N1.7 was trained on.
+    ResizeCrop,
+}
+
+/// Camera preprocessing, then `(x/255 − mean)/std` per channel.
+///
+/// ```toml
+/// [image]
+/// pipeline = "gr00t_n17"  # or "resize_crop"
+/// letterbox = true        # GR00T: processor_config.json `letter_box_transform`
+/// shortest_edge = 256     # GR00T: `shortest_image_edge`
+/// crop_fraction = 0.95    # GR00T: `crop_fraction`
+/// mean = [0.5, 0.5, 0.5]  # the VLM image processor's (Qwen3-VL: 0.5)
+/// std = [0.5, 0.5, 0.5]
+/// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ImageConfig {
-    /// Shorter side after resizing (GR00T N1.7: 256).
+    /// Which preprocessing (default GR00T N1.7's).
+    pub pipeline: ImagePipeline,
+    /// `gr00t_n17`: pad to a square with black first (a non-square frame without it is an
+    /// error).
+    pub letterbox: bool,
+    /// `gr00t_n17`: the shorter side after each resize (GR00T N1.7: 256).
+    pub shortest_edge: usize,
+    /// `gr00t_n17`: centre-crop fraction between the resizes (GR00T N1.7: 0.95).
+    pub crop_fraction: f64,
+    /// `resize_crop`: shorter side after resizing.
     pub resize: usize,
-    /// Side of the square center crop (GR00T N1.7: 230); `pixel_values` is `[1, 3, crop, crop]`.
+    /// `resize_crop`: side of the square centre crop.
     pub crop: usize,
     /// Per-channel mean subtracted after scaling to `[0, 1]` (RGB).
     pub mean: [f32; 3],
@@ -89,10 +124,24 @@ impl Default for ImageConfig {
     fn default() -> Self {
         // Qwen-VL image processors normalise with mean = std = 0.5 per channel.
         ImageConfig {
+            pipeline: ImagePipeline::Gr00tN17,
+            letterbox: true,
+            shortest_edge: 256,
+            crop_fraction: 0.95,
             resize: 256,
             crop: 230,
             mean: [0.5; 3],
             std: [0.5; 3],
+        }
+    }
+}
+
+impl ImageConfig {
+    /// Side of the square image the backbone receives (`pixel_values` `[N, 3, s, s]`).
+    pub fn pixel_side(&self) -> usize {
+        match self.pipeline {
+            ImagePipeline::Gr00tN17 => self.shortest_edge,
+            ImagePipeline::ResizeCrop => self.crop,
         }
     }
 }
@@ -662,11 +711,27 @@ impl EmbodimentConfig {
                 return bad(format!("{what} = {v} is above the limit {MAX_SIZE}"));
             }
         }
-        if self.image.crop == 0 || self.image.crop > self.image.resize {
-            return bad(format!(
-                "image crop {} must be in [1, resize = {}]",
-                self.image.crop, self.image.resize
-            ));
+        match self.image.pipeline {
+            ImagePipeline::ResizeCrop => {
+                if self.image.crop == 0 || self.image.crop > self.image.resize {
+                    return bad(format!(
+                        "image crop {} must be in [1, resize = {}]",
+                        self.image.crop, self.image.resize
+                    ));
+                }
+            }
+            ImagePipeline::Gr00tN17 => {
+                if self.image.shortest_edge == 0 || self.image.shortest_edge > MAX_SIZE {
+                    return bad(format!(
+                        "image.shortest_edge = {} must be in [1, {MAX_SIZE}]",
+                        self.image.shortest_edge
+                    ));
+                }
+                let f = self.image.crop_fraction;
+                if !(f > 0.0 && f <= 1.0) {
+                    return bad(format!("image.crop_fraction = {f} must be in (0, 1]"));
+                }
+            }
         }
         if self.image.std.iter().any(|s| *s <= 0.0) {
             return bad(format!("image std must be > 0: {:?}", self.image.std));

@@ -39,6 +39,7 @@ pub mod config;
 pub mod contract;
 pub mod error;
 pub mod head;
+pub mod image;
 pub mod run;
 pub mod testing;
 pub mod tokenizer;
@@ -49,8 +50,8 @@ pub use backbone::{
 };
 pub use config::{
     policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupLimits,
-    ModeOverrides, Norm, Normalizer, PolicySection, SafetySection, DEFAULT_SLOW_GRACE_MS,
-    PAPER_TASKS,
+    ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection, SafetySection,
+    DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

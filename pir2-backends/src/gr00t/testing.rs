@@ -80,6 +80,7 @@ pub fn python_from_env() -> Result<PathBuf> {
 /// The paper's xArm6 + XHand embodiment with a tiny image (16 px) and prompt (4 + 4 tokens).
 pub fn tiny_embodiment() -> EmbodimentConfig {
     let mut c = EmbodimentConfig::xarm6_xhand();
+    c.image.shortest_edge = 16;
     c.image.resize = 16;
     c.image.crop = 16;
     c.prompt.image_tokens = 4;

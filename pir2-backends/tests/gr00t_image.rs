@@ -1,0 +1,114 @@
+//! GR00T N1.7's camera preprocessing against the Python reference: albumentations + OpenCV
+//! from PyPI (the libraries GR00T's processor uses), run by `tests/gr00t_image_reference.py`
+//! with `$PIR2_PYTHON` (`source .native/env.sh`; `scripts/setup-native.sh` installs both) on
+//! the committed frames in `tests/data/gr00t_image/` (written once by `make_images.py` there).
+//!
+//! Per frame: pir2's transform of the decoded frame must equal the reference image to within
+//! one `u8` step (1/255) on every value, and `preprocess_image` must give that image
+//! normalised as the VLM processor does (`(x/255 − 0.5)/0.5`, CHW).
+#![cfg(feature = "gr00t")]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use pir2_backends::gr00t::image::{gr00t_n17_transform, Rgb};
+use pir2_backends::gr00t::testing::python_from_env;
+use pir2_backends::gr00t::{preprocess_image, ImageConfig};
+
+fn tests_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests")
+}
+
+/// Run the reference on `png`; returns (input frame, reference output).
+fn reference(png: &str, edge: usize, fraction: f64) -> (Rgb, Rgb) {
+    let out = std::env::temp_dir().join(format!(
+        "pir2-gr00t-image-{}-{png}-{edge}",
+        std::process::id()
+    ));
+    let o = Command::new(python_from_env().unwrap())
+        .arg(tests_dir().join("gr00t_image_reference.py"))
+        .arg(
+            tests_dir()
+                .join("data/gr00t_image")
+                .join(format!("{png}.png")),
+        )
+        .arg(&out)
+        .arg(edge.to_string())
+        .arg(fraction.to_string())
+        .output()
+        .expect("running the Python reference");
+    assert!(
+        o.status.success(),
+        "reference failed (albumentations and opencv-python-headless installed? \
+         scripts/setup-native.sh): {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let meta: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let shape = |k: &str| {
+        let v = meta[k].as_array().unwrap();
+        (
+            v[0].as_u64().unwrap() as usize,
+            v[1].as_u64().unwrap() as usize,
+        )
+    };
+    let read = |name: &str, (h, w): (usize, usize)| {
+        Rgb::new(h, w, std::fs::read(out.join(name)).unwrap()).unwrap()
+    };
+    let r = (
+        read("input.rgb", shape("input")),
+        read("output.rgb", shape("output")),
+    );
+    std::fs::remove_dir_all(&out).ok();
+    r
+}
+
+#[test]
+fn the_transform_matches_albumentations_and_opencv_within_one_step() {
+    for (png, edge, fraction) in [
+        ("wide_640x480", 256, 0.95),
+        ("tall_360x480", 256, 0.95),
+        ("small_200x150", 256, 0.95),
+        ("square_512", 256, 0.95),
+        ("wide_640x480", 224, 0.9),
+    ] {
+        let (input, want) = reference(png, edge, fraction);
+        let got = gr00t_n17_transform(&input, true, edge, fraction).unwrap();
+        assert_eq!((got.h, got.w), (want.h, want.w), "{png}");
+        let diffs: Vec<u8> = got
+            .data
+            .iter()
+            .zip(&want.data)
+            .map(|(a, b)| a.abs_diff(*b))
+            .collect();
+        let max = *diffs.iter().max().unwrap();
+        let off = diffs.iter().filter(|&&d| d > 0).count();
+        eprintln!(
+            "{png} edge {edge} fraction {fraction}: max |Δ| = {max}, {off} of {} values differ",
+            diffs.len()
+        );
+        assert!(max <= 1, "{png}: max |Δ| = {max} u8 steps");
+        // Within one step, and almost everywhere exact.
+        assert!(off * 100 <= diffs.len(), "{png}: {off} values differ");
+
+        // preprocess_image = that image, normalised, CHW.
+        let cfg = ImageConfig {
+            shortest_edge: edge,
+            crop_fraction: fraction,
+            ..ImageConfig::default()
+        };
+        let mut px = Vec::new();
+        preprocess_image(&input.data, (input.h, input.w), &cfg, &mut px).unwrap();
+        let n = edge * edge;
+        assert_eq!(px.len(), 3 * n);
+        for (i, rgb) in want.data.chunks_exact(3).enumerate() {
+            for c in 0..3 {
+                let r = (f32::from(rgb[c]) / 255.0 - 0.5) / 0.5;
+                assert!(
+                    (px[c * n + i] - r).abs() <= 2.0 / 255.0 + 1e-6,
+                    "{png}: channel {c} pixel {i}: {} vs {r}",
+                    px[c * n + i]
+                );
+            }
+        }
+    }
+}
