@@ -70,6 +70,19 @@ pub enum Error {
         name: String,
     },
 
+    /// Training was stopped from outside ([`crate::train::Trainer::stop_on`]); with an output
+    /// directory the training state at `step` is on disk and a resumed run continues from it.
+    #[error(
+        "training interrupted at step {step}{}; run again with resume to continue from there",
+        match .resume_point { Some(p) => format!(" (training state saved in {})", p.display()), None => String::new() }
+    )]
+    Interrupted {
+        /// Steps done.
+        step: usize,
+        /// The checkpoint a resumed run continues from, if any was written.
+        resume_point: Option<PathBuf>,
+    },
+
     // ---- files ----
     /// Refusing to overwrite an existing checkpoint directory.
     #[error("checkpoint directory {0} already exists; refusing to overwrite it")]

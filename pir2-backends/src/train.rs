@@ -360,6 +360,7 @@ pub struct Trainer<'a> {
     resume: bool,
     fused: bool,
     stop_after: Option<usize>,
+    stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     later_ties: bool,
 }
 
@@ -386,6 +387,7 @@ impl<'a> Trainer<'a> {
             resume: false,
             fused: true,
             stop_after: None,
+            stop: None,
             later_ties: false,
         }
     }
@@ -442,6 +444,16 @@ impl<'a> Trainer<'a> {
         self.stop_after = Some(steps);
         self
     }
+    /// Stop at the next step once `flag` is set (e.g. by Ctrl-C): with an output directory
+    /// the full training state is written first as `interrupted-NNNNNN/` (unless a step
+    /// checkpoint of that step exists), then the run returns [`Error::Interrupted`]. A run
+    /// with [`Trainer::resume`] continues from the latest of the step checkpoints and that
+    /// state, bit-identically; `interrupted-*` directories are removed when the run finishes.
+    /// They are not step checkpoints: nothing picks or evaluates them.
+    pub fn stop_on(mut self, flag: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Self {
+        self.stop = Some(flag);
+        self
+    }
     /// Train a U-Net with the hand-written host kernels (default `true`; see
     /// [`CandleModel::set_fused`]); `false` uses candle's autograd graph. Other architectures
     /// always use candle's autograd.
@@ -477,7 +489,8 @@ impl<'a> Trainer<'a> {
                 if !self.resume {
                     if let Ok(rd) = std::fs::read_dir(d) {
                         for e in rd.flatten() {
-                            if e.file_name().to_string_lossy().starts_with("step-") {
+                            let name = e.file_name().to_string_lossy().into_owned();
+                            if name.starts_with("step-") || name.starts_with(INTERRUPTED_PREFIX) {
                                 return Err(Error::CheckpointExists(e.path()));
                             }
                         }
@@ -546,6 +559,30 @@ impl<'a> Trainer<'a> {
         for step in st.step..cfg.steps {
             if self.stop_after.is_some_and(|s| step >= s) {
                 break;
+            }
+            if self
+                .stop
+                .as_ref()
+                .is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
+            {
+                let mut resume_point = None;
+                if let (Some(d), true) = (out_dir.as_deref(), step > 0) {
+                    log_line(None, &mut self)?;
+                    let regular = d.join(format!("step-{step:06}"));
+                    if regular.join(TRAIN_STATE_FILE).is_file() {
+                        resume_point = Some(regular);
+                    } else {
+                        let p = d.join(format!("{INTERRUPTED_PREFIX}{step:06}"));
+                        if !p.exists() {
+                            if stale {
+                                model.set_host_params(&st.params)?;
+                            }
+                            st.save_step(model, d, &p, batcher.rng.state(), &names, &cfg)?;
+                        }
+                        resume_point = Some(p);
+                    }
+                }
+                return Err(Error::Interrupted { step, resume_point });
             }
             let lr = cfg.lr_at(step);
             batcher.fill(data)?;
@@ -720,6 +757,9 @@ impl<'a> Trainer<'a> {
             model.set_host_params(&st.params)?;
         }
         log_line(None, &mut self)?;
+        if let (Some(d), true) = (out_dir.as_deref(), st.step >= cfg.steps) {
+            remove_interrupted(d)?;
+        }
         Ok(st.report)
     }
 }
@@ -1013,6 +1053,25 @@ fn sync_path(path: &Path) -> Result<()> {
 }
 
 /// The step checkpoint with the highest step that carries a training state, if any.
+/// Name prefix of the training state a stopped run leaves ([`Trainer::stop_on`]).
+const INTERRUPTED_PREFIX: &str = "interrupted-";
+
+/// Remove the `interrupted-*` training states of a finished run in `out`.
+fn remove_interrupted(out: &Path) -> Result<()> {
+    let Ok(rd) = std::fs::read_dir(out) else {
+        return Ok(());
+    };
+    for e in rd.flatten() {
+        if e.file_name()
+            .to_string_lossy()
+            .starts_with(INTERRUPTED_PREFIX)
+        {
+            std::fs::remove_dir_all(e.path()).map_err(|err| Error::io(e.path(), err))?;
+        }
+    }
+    Ok(())
+}
+
 fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
     let rd = match std::fs::read_dir(out) {
         Ok(rd) => rd,
@@ -1025,6 +1084,7 @@ fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
         let name = e.file_name().to_string_lossy().into_owned();
         let Some(n) = name
             .strip_prefix("step-")
+            .or_else(|| name.strip_prefix(INTERRUPTED_PREFIX))
             .and_then(|s| s.parse::<usize>().ok())
         else {
             continue;

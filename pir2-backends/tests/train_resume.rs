@@ -135,3 +135,78 @@ fn fused_unet_resume_is_bit_identical() {
 fn candle_graph_resume_is_bit_identical() {
     check(mlp_config(4), false);
 }
+
+/// A run stopped by its stop flag between two step checkpoints (here: after step 5, the
+/// checkpoints being every 2 steps) writes its training state as `interrupted-000005/` and
+/// returns `Error::Interrupted`; resumed, it continues from step 5 (not from the step-4
+/// checkpoint) bit-identically to an uninterrupted run, and the interrupted state is
+/// removed when the run finishes. It is never a step checkpoint.
+#[test]
+fn a_stop_flag_saves_the_exact_step_and_resume_continues_from_it() {
+    use pir2_backends::Error;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+
+    let cfg = unet();
+    let root = std::env::temp_dir().join(format!("pir2-stop-flag-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let (straight, r1) = run(&cfg, true, &root.join("a"), None, false);
+
+    let dir = root.join("b");
+    let data = dataset(8, 12, 3);
+    let stats = compute_stats(data.as_slice(), &cfg.spec).unwrap();
+    let mut m = CandleModel::new(cfg.clone(), stats.clone(), 1).unwrap();
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    let err = Trainer::new(tc())
+        .out_dir(&dir)
+        .validate(|_, step| score(step))
+        .on_progress(move |p| {
+            if p.step == 5 {
+                f.store(true, Ordering::SeqCst);
+            }
+        })
+        .stop_on(flag)
+        .run(&mut m, data.as_slice())
+        .unwrap_err();
+    match &err {
+        Error::Interrupted {
+            step: 5,
+            resume_point: Some(p),
+        } => assert!(p.ends_with("interrupted-000005"), "{err}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(dir.join("interrupted-000005").is_dir());
+    assert!(!dir.join("step-000006").exists());
+    // A fresh run into that directory is refused; a resumed one continues from step 5.
+    let mut m = CandleModel::new(cfg.clone(), stats.clone(), 1).unwrap();
+    assert!(Trainer::new(tc())
+        .out_dir(&dir)
+        .run(&mut m, data.as_slice())
+        .is_err());
+    let mut losses_after = Vec::new();
+    let mut m = CandleModel::new(cfg.clone(), stats.clone(), 99).unwrap();
+    let r2 = Trainer::new(tc())
+        .out_dir(&dir)
+        .resume(true)
+        .validate(|_, step| score(step))
+        .on_progress(|p| losses_after.push(p.step))
+        .run(&mut m, data.as_slice())
+        .unwrap();
+    assert_eq!(losses_after, vec![6, 7, 8], "continued from step 5");
+    assert_eq!(
+        bits(&straight),
+        bits(&m),
+        "final weights differ after the stop"
+    );
+    assert_eq!(r1.losses, r2.losses);
+    assert_eq!(
+        r1.best.as_ref().map(|b| b.step),
+        r2.best.as_ref().map(|b| b.step)
+    );
+    assert!(
+        !dir.join("interrupted-000005").exists(),
+        "removed at the end"
+    );
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -248,7 +248,94 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         assert_eq!(resumed["cells"], result["cells"], "{study}");
         assert_eq!(resumed["best_per_cell"], result["best_per_cell"], "{study}");
     }
+
+    // Ctrl-C during training saves the exact step reached (not only the last step
+    // checkpoint); --resume continues from it.
+    let long = dir.join("long.toml");
+    std::fs::write(
+        &long,
+        std::fs::read_to_string(&cfg)
+            .unwrap()
+            .replace("train_steps = 3", "train_steps = 100000"),
+    )
+    .unwrap();
+    let stopped = dir.join("stopped");
+    let train_long = |extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "leap-cube",
+            "--policy",
+            "flow",
+            "--data",
+            s(&data),
+            "--config",
+            s(&long),
+            "--out",
+            s(&stopped),
+        ];
+        args.extend_from_slice(extra);
+        interrupt_after_progress(&args)
+    };
+    let (first, log) = train_long(&[]);
+    assert!(log.contains("training interrupted at step"), "{log}");
+    let saved = std::fs::read_dir(stopped.join("flow-seed0"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .find(|n| n.starts_with("interrupted-"))
+        .unwrap_or_else(|| panic!("no interrupted-* state: {log}"));
+    let at: usize = saved["interrupted-".len()..].parse().unwrap();
+    assert!(at >= first, "saved {at}, progress reached {first}");
+    let (resumed_first, log) = train_long(&["--resume"]);
+    assert!(
+        resumed_first > at,
+        "the resumed run's first progress line is step {resumed_first}, the state was at {at}: {log}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Run `pir2 args`, SIGINT it once its first `step N/` progress line appears; returns N and
+/// the whole stderr after the process ended (unsuccessfully).
+#[cfg(feature = "mujoco")]
+fn interrupt_after_progress(args: &[&str]) -> (usize, String) {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(args)
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("running pir2");
+    let mut log = String::new();
+    let mut lines = BufReader::new(child.stderr.take().expect("stderr")).lines();
+    let mut first = None;
+    for line in lines.by_ref() {
+        let line = line.expect("stderr line");
+        log += &line;
+        log.push('\n');
+        if let Some(n) = line
+            .split(": step ")
+            .nth(1)
+            .and_then(|r| r.split('/').next())
+            .and_then(|n| n.parse::<usize>().ok())
+        {
+            first = Some(n);
+            break;
+        }
+    }
+    let first = first.unwrap_or_else(|| panic!("no progress line: {log}"));
+    // SAFETY: plain kill(2) on our own child.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
+    for line in lines {
+        log += &line.expect("stderr line");
+        log.push('\n');
+    }
+    let status = child.wait().expect("wait");
+    assert!(
+        !status.success(),
+        "an interrupted training is not a success: {log}"
+    );
+    (first, log)
 }
 
 /// Ctrl-C during `pir2 collect leap-cube`: the batch in progress is finished and written, the

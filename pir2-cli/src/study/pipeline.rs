@@ -246,7 +246,10 @@ pub fn train_policy_resumable<T: Task>(
         }
     };
     let mut scores = Vec::new();
+    // Ctrl-C / SIGTERM: the training state of the step reached is saved (with an output
+    // directory) and the run ends with an error saying `--resume` continues from there.
     let mut trainer = Trainer::new(tc)
+        .stop_on(crate::signals::stop_flag())
         .on_progress(on_progress)
         .validate(|m, step| {
             let ok = Models::local(m)
