@@ -1,0 +1,261 @@
+//! Tests of the embodiment configuration, the `[policy]` table and the normaliser.
+use super::*;
+
+#[test]
+fn xarm6_xhand_matches_the_paper() {
+    let c = EmbodimentConfig::xarm6_xhand();
+    c.validate().unwrap();
+    assert_eq!(c.state_dim(), 45);
+    assert_eq!(c.action_dim(), 18);
+    assert_eq!((c.horizon, c.d_max, c.d_vis_max), (50, 5, 5));
+    assert_eq!(c.period_ns(), 40_000_000);
+    assert_eq!(c.prompt_for("catch_book"), "catch the book");
+    assert_eq!(c.prompt_for("catch the book"), "catch the book");
+    assert_eq!(c.tasks.len(), 4);
+    let back: EmbodimentConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
+    assert_eq!(back, c);
+}
+
+/// `[safety]` in embodiment.toml: grace and per-group limits are read, flattened over
+/// the action vector, and bad values are one error naming the field (before: hand limits
+/// and tracking bounds were placeholders in code, not configurable).
+#[test]
+fn safety_section_is_parsed_flattened_and_checked() {
+    let text = "slow_grace_ms = 150.0\n\n[limits.hand_joints]\n\
+                lower = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -0.2]\n\
+                upper = [1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.5, 1.0]\n\
+                max_velocity = 3.0\ntracking_error = 0.4\n";
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    c.safety = toml::from_str(text).unwrap();
+    // The whole file round-trips with the table in it.
+    let c: EmbodimentConfig = toml::from_str(&c.to_toml().unwrap()).unwrap();
+    c.validate().unwrap();
+    assert_eq!(c.slow_grace_ns(), 150_000_000);
+    let l = c.action_limits();
+    assert_eq!(l.lower.len(), 18);
+    assert_eq!(
+        (l.lower[0], l.lower[6], l.lower[17]),
+        (None, Some(0.0), Some(-0.2))
+    );
+    assert_eq!(
+        (l.upper[17], l.max_velocity[6], l.max_velocity[5]),
+        (Some(1.0), Some(3.0), None)
+    );
+    assert_eq!((l.tracking_error[10], l.max_accel[10]), (Some(0.4), None));
+    // Defaults when the table is absent.
+    let d = EmbodimentConfig::xarm6_xhand();
+    assert_eq!(d.slow_grace_ns(), 200_000_000);
+    assert!(d.action_limits().lower.iter().all(Option::is_none));
+    // Errors name the field.
+    let bad = |edit: &dyn Fn(&mut EmbodimentConfig), want: &str| {
+        let mut c = EmbodimentConfig::xarm6_xhand();
+        edit(&mut c);
+        let e = c.validate().unwrap_err().to_string();
+        assert!(e.contains(want), "{e}");
+    };
+    bad(&|c| c.safety.slow_grace_ms = 0.0, "slow_grace_ms");
+    bad(
+        &|c| {
+            c.safety
+                .limits
+                .insert("wrist".into(), GroupLimits::default());
+        },
+        "safety.limits.wrist",
+    );
+    bad(
+        &|c| {
+            c.safety.limits.insert(
+                "hand_joints".into(),
+                GroupLimits {
+                    lower: Some(vec![0.0; 5]),
+                    ..Default::default()
+                },
+            );
+        },
+        "hand_joints.lower has 5 values",
+    );
+    bad(
+        &|c| {
+            c.safety.limits.insert(
+                "arm_joints".into(),
+                GroupLimits {
+                    max_velocity: Some(-1.0),
+                    ..Default::default()
+                },
+            );
+        },
+        "arm_joints.max_velocity",
+    );
+    assert!(toml::from_str::<SafetySection>("grace = 1").is_err());
+}
+
+/// The action groups must be the robot's by name and order, not only by total width.
+#[test]
+fn action_groups_are_checked_by_name_and_order() {
+    let robot = [("arm_joints", 6), ("hand_joints", 12)];
+    let c = EmbodimentConfig::xarm6_xhand();
+    c.check_action_groups(&robot).unwrap();
+    let mut swapped = c.clone();
+    swapped.action.reverse();
+    assert_eq!(swapped.action_dim(), 18);
+    let e = swapped.check_action_groups(&robot).unwrap_err().to_string();
+    assert!(e.contains("do not match"), "{e}");
+    let mut renamed = c;
+    renamed.action[1].name = "gripper".into();
+    assert!(renamed.check_action_groups(&robot).is_err());
+}
+
+fn stats_json(drop: Option<&str>) -> String {
+    let c = EmbodimentConfig::xarm6_xhand();
+    let mut emb = serde_json::Map::new();
+    for (m, groups) in [("state", &c.state), ("action", &c.action)] {
+        let mut gm = serde_json::Map::new();
+        for g in groups.iter() {
+            let mut s = serde_json::Map::new();
+            for (k, v) in [("min", -2.0), ("max", 4.0), ("mean", 1.0), ("std", 2.0)] {
+                if drop == Some(&format!("{m}.{}.{k}", g.name)) {
+                    continue;
+                }
+                s.insert(k.into(), serde_json::json!(vec![v; g.dim]));
+            }
+            gm.insert(g.name.clone(), s.into());
+        }
+        emb.insert(m.into(), gm.into());
+    }
+    serde_json::json!({ "new_embodiment": emb }).to_string()
+}
+
+#[test]
+fn min_max_maps_to_unit_interval_and_back() {
+    let dir = std::env::temp_dir().join(format!("pir2-gr00t-stats-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("statistics.json");
+    std::fs::write(&p, stats_json(None)).unwrap();
+    let c = EmbodimentConfig::xarm6_xhand();
+    let n = Normalizer::load(&p, &c).unwrap();
+    let mut out = vec![0.0; 45];
+    n.normalize_state(&[-2.0; 45], &mut out);
+    assert!(out.iter().all(|x| (*x + 1.0).abs() < 1e-6), "{out:?}");
+    n.normalize_state(&[1.0; 45], &mut out);
+    assert!(out.iter().all(|x| x.abs() < 1e-6));
+    n.normalize_state(&[100.0; 45], &mut out);
+    assert!(out.iter().all(|x| *x == 1.0), "clipped");
+    let mut a = vec![1.0; 18];
+    n.denormalize_action(&mut a);
+    assert!(a.iter().all(|x| (*x - 4.0).abs() < 1e-6));
+
+    std::fs::write(&p, stats_json(Some("state.hand_torques.max"))).unwrap();
+    let e = Normalizer::load(&p, &c).unwrap_err().to_string();
+    assert!(
+        e.contains("new_embodiment.state.hand_torques.max") && e.contains("missing"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn every_row_of_the_robot_table_resolves_from_the_policy_table() {
+    use pir2_runtime::{Mode, Policy};
+    use pir2_schedule::{Alignment, FrontMode};
+    // No [policy] table: a πR² head (n = 2) in πR² async, as before the table existed.
+    let c = EmbodimentConfig::xarm6_xhand();
+    assert_eq!(
+        c.policy.mode(&ModeOverrides::default()).unwrap(),
+        Mode::PiR2Async {
+            nfe: Some(2),
+            alignment: Alignment::Fresh,
+            front: FrontMode::Visible
+        }
+    );
+    let section = |text: &str| -> PolicySection { toml::from_str(text).unwrap() };
+    let flow = section("trained = \"flow\"\nmode = \"sync_flow\"\nflow_steps = 4\nh = 10");
+    let over = |mode: DeployKind| ModeOverrides {
+        mode: Some(mode),
+        ..Default::default()
+    };
+    assert_eq!(
+        flow.mode(&ModeOverrides::default()).unwrap(),
+        Mode::SyncFlow { steps: 4, h: 10 }
+    );
+    assert_eq!(
+        flow.mode(&ModeOverrides {
+            ensemble: Some(Some(0.1)),
+            ..over(DeployKind::NaiveAsync)
+        })
+        .unwrap(),
+        Mode::NaiveAsync {
+            steps: 4,
+            ensemble: Some(0.1)
+        }
+    );
+    let rtc = section("trained = \"rtc\"\nmode = \"rtc\"\nflow_steps = 4");
+    assert_eq!(
+        rtc.mode(&ModeOverrides::default()).unwrap(),
+        Mode::TrainTimeRtc { steps: 4 }
+    );
+    let full = section("trained = \"pi_r2_full\"");
+    assert_eq!(
+        full.mode(&over(DeployKind::PiR2Sync)).unwrap(),
+        Mode::PiR2Sync {
+            nfe: None,
+            alignment: Alignment::Paper,
+            front: FrontMode::Visible
+        }
+    );
+    let hidden = section("trained = \"pi_r2_hidden\"\nnfe = 3");
+    assert_eq!(
+        hidden.mode(&ModeOverrides::default()).unwrap(),
+        Mode::PiR2Async {
+            nfe: Some(3),
+            alignment: Alignment::Fresh,
+            front: FrontMode::Hidden
+        }
+    );
+    // Mismatches name both sides.
+    let e = c
+        .policy
+        .mode(&over(DeployKind::Rtc))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("mode rtc") && e.contains("trained = \"pi_r2\""),
+        "{e}"
+    );
+    let e = flow
+        .mode(&over(DeployKind::PiR2Async))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("pir2_async") && e.contains("\"flow\""), "{e}");
+    let e = c
+        .policy
+        .mode(&ModeOverrides {
+            nfe: Some(4),
+            ..Default::default()
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--nfe 4") && e.contains("nfe = 2"), "{e}");
+    let e = flow
+        .mode(&ModeOverrides {
+            h: Some(0),
+            ..Default::default()
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("h must be >= 1"), "{e}");
+    let e = flow
+        .mode(&ModeOverrides {
+            ensemble: Some(Some(1.5)),
+            ..over(DeployKind::NaiveAsync)
+        })
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("ensemble = 1.5"), "{e}");
+    // Unknown modes and keys are refused by the TOML reader.
+    assert!(toml::from_str::<PolicySection>("mode = \"fast\"").is_err());
+    assert!(toml::from_str::<PolicySection>("steps = 4").is_err());
+    assert_eq!(policy_name(Policy::PiR2Hidden), "pi_r2_hidden");
+    for k in DeployKind::ALL {
+        assert_eq!(DeployKind::parse(k.name()), Some(k));
+    }
+}
