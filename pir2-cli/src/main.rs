@@ -1,5 +1,8 @@
 //! The `pir2` binary: parses arguments and makes one call into `pir2_cli::commands` (or
 //! `run`, `serve`) per subcommand.
+//!
+//! Every clap type of the binary lives in this one file on purpose (the library takes plain
+//! option structs and never sees clap), which is why it is long.
 
 use std::net::IpAddr;
 use std::path::PathBuf;

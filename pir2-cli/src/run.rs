@@ -10,6 +10,10 @@
 //! Cameras: pir2 has no camera driver yet. `--emulate` and `--synthetic-camera` use a
 //! synthetic 640×480 camera (`gr00t::testing::SyntheticCamera`); `--remote-slow ENDPOINT`
 //! takes the backbone features (camera + backbone on another machine) from `pir2 serve slow`.
+//!
+//! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
+//! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
+//! bottom in one place; each piece is a short function.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;

@@ -4,6 +4,9 @@
 //!
 //! Every buffer is a `Vec<f32>` owned by its layer and resized per call, so a warm call at an
 //! unchanged batch size allocates nothing.
+//!
+//! One file on purpose: the kernels share their blocking constants and buffer conventions,
+//! and their gradient checks live next to them.
 
 use gemm::Parallelism;
 use rayon::prelude::*;

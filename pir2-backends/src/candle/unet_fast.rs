@@ -5,6 +5,8 @@
 //! The network is a fixed list of [`Op`]s over activation buffers; the backward walks it in
 //! reverse. Every buffer is owned here and reused, so a warm call at an unchanged batch size
 //! allocates nothing (the batch-1 inference path relies on it).
+//!
+//! One file on purpose: the op list, its forward and its reverse walk must stay in step.
 
 use std::collections::HashMap;
 

@@ -24,6 +24,9 @@
 //! sets the error bit in every reply until `CLEAN_ERR`; after that the arm needs
 //! `MOTION_EN`/`SET_STATE 0` again. The SDK's heartbeat frame (protocol id 1) gets no answer.
 //! Unknown registers answer with the invalid bit.
+//!
+//! One file on purpose: the register table, the command handlers and the motion model are one
+//! state machine, read against the protocol module line by line.
 
 use std::collections::VecDeque;
 use std::io::{ErrorKind, Read, Write};

@@ -29,6 +29,9 @@
 //! checkpoints are taken only at segment boundaries. A checkpoint therefore holds the whole
 //! state (weights, Adam moments, normalisers, counters), and a resumed run continues
 //! bit-identically to an uninterrupted one.
+//!
+//! One file on purpose: rollout, advantage estimation, the update and the checkpoint are one
+//! state whose exact order makes resumption bit-identical.
 
 use std::path::Path;
 
