@@ -10,6 +10,7 @@ use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{
     Config, DitConfig, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig,
 };
+use pir2_tests::fuzz_cases;
 use proptest::prelude::*;
 use serde_json::Value;
 
@@ -151,28 +152,8 @@ fn at<'a>(v: &'a mut Value, path: &[Value]) -> &'a mut Value {
     })
 }
 
-/// Cases per property: `n` in CI; `PIR2_FUZZ_CASES` runs more (a longer local search).
-/// Shrunk failures are saved and replayed from `proptest-regressions/`.
-fn cases(n: u32) -> ProptestConfig {
-    let n = std::env::var("PIR2_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(n);
-    ProptestConfig {
-        cases: n,
-        // Shrunk failures are kept next to the package (`proptest-regressions/`, committed)
-        // and replayed first on every run.
-        failure_persistence: Some(Box::new(
-            proptest::test_runner::FileFailurePersistence::Direct(
-                "proptest-regressions/checkpoint_fuzz.txt",
-            ),
-        )),
-        ..ProptestConfig::default()
-    }
-}
-
 proptest! {
-    #![proptest_config(cases(48))]
+    #![proptest_config(fuzz_cases(48, "proptest-regressions/checkpoint_fuzz.txt"))]
 
     /// Up to 8 byte edits of one file of one checkpoint.
     #[test]

@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 
 use pir2_backends::gr00t::EmbodimentConfig;
+use pir2_tests::fuzz_cases;
 use proptest::prelude::*;
 
 struct File(PathBuf);
@@ -41,28 +42,8 @@ fn file(name: &str) -> File {
     )))
 }
 
-/// Cases per property: `n` in CI; `PIR2_FUZZ_CASES` runs more (a longer local search).
-/// Shrunk failures are saved and replayed from `proptest-regressions/`.
-fn cases(n: u32) -> ProptestConfig {
-    let n = std::env::var("PIR2_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(n);
-    ProptestConfig {
-        cases: n,
-        // Shrunk failures are kept next to the package (`proptest-regressions/`, committed)
-        // and replayed first on every run.
-        failure_persistence: Some(Box::new(
-            proptest::test_runner::FileFailurePersistence::Direct(
-                "proptest-regressions/embodiment_fuzz.txt",
-            ),
-        )),
-        ..ProptestConfig::default()
-    }
-}
-
 proptest! {
-    #![proptest_config(cases(64))]
+    #![proptest_config(fuzz_cases(64, "proptest-regressions/embodiment_fuzz.txt"))]
 
     /// Up to 8 single-byte replacements of the default file.
     #[test]

@@ -5,8 +5,7 @@
 use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 use proptest::prelude::*;
 
-mod common;
-use common::cases;
+use pir2_tests::fuzz_cases;
 
 fn default_toml() -> String {
     toml::to_string(&BallPlateConfig::default()).unwrap()
@@ -20,7 +19,7 @@ fn check(text: &str) {
 }
 
 proptest! {
-    #![proptest_config(cases(64, "proptest-regressions/config_fuzz.txt"))]
+    #![proptest_config(fuzz_cases(64, "proptest-regressions/config_fuzz.txt"))]
 
     /// Up to 8 single-byte replacements of the default file.
     #[test]

@@ -8,8 +8,7 @@ use std::path::{Path, PathBuf};
 use pir2_sim::dataset::{read_dataset, DatasetSpec, DatasetWriter, Episode, WriteMode};
 use proptest::prelude::*;
 
-mod common;
-use common::cases;
+use pir2_tests::fuzz_cases;
 
 /// Removes the directory when the test thread ends.
 struct Dir(PathBuf);
@@ -129,7 +128,7 @@ const FILES: [&str; 4] = [
 ];
 
 proptest! {
-    #![proptest_config(cases(48, "proptest-regressions/reader_fuzz.txt"))]
+    #![proptest_config(fuzz_cases(48, "proptest-regressions/reader_fuzz.txt"))]
 
     /// Up to 8 byte edits of one file of a valid dataset.
     #[test]

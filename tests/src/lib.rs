@@ -4,6 +4,24 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 
+use proptest::test_runner::{Config as ProptestConfig, FileFailurePersistence};
+
+/// Proptest settings of the fuzz tests of every crate: `n` cases per property in CI,
+/// `PIR2_FUZZ_CASES` runs more (a longer local search); shrunk failures are kept in
+/// `regressions` (a file under the package's `proptest-regressions/`, committed) and replayed
+/// first on every run.
+pub fn fuzz_cases(n: u32, regressions: &'static str) -> ProptestConfig {
+    let n = std::env::var("PIR2_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(n);
+    ProptestConfig {
+        cases: n,
+        failure_persistence: Some(Box::new(FileFailurePersistence::Direct(regressions))),
+        ..ProptestConfig::default()
+    }
+}
+
 /// A global allocator that counts allocations made by the current thread while armed.
 /// Install it in a test binary with `#[global_allocator]`.
 #[derive(Debug)]
