@@ -95,6 +95,14 @@ impl Shared {
     fn lock(&self) -> MutexGuard<'_, Mailbox> {
         self.mail.lock().unwrap_or_else(|p| p.into_inner())
     }
+
+    /// Release `m` until notified or `left` has passed, and take it back.
+    fn wait<'a>(&'a self, m: MutexGuard<'a, Mailbox>, left: Duration) -> MutexGuard<'a, Mailbox> {
+        self.cv
+            .wait_timeout(m, left)
+            .unwrap_or_else(|p| p.into_inner())
+            .0
+    }
 }
 
 /// A [`Robot`] whose device calls run on a driver thread (see the module docs).
@@ -212,12 +220,7 @@ impl<R> Threaded<R> {
                     waited_ms: t0.elapsed().as_millis() as u64,
                 });
             }
-            m = self
-                .shared
-                .cv
-                .wait_timeout(m, left)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
+            m = self.shared.wait(m, left);
         }
         let r = m.stop_result.take().unwrap_or(Ok(()));
         drop(m);
@@ -251,11 +254,7 @@ fn drive<R: Robot>(mut robot: R, sh: &Shared, period: Duration) {
                 if left.is_zero() {
                     break Some(false);
                 }
-                m = sh
-                    .cv
-                    .wait_timeout(m, left)
-                    .unwrap_or_else(|p| p.into_inner())
-                    .0;
+                m = sh.wait(m, left);
             }
         };
         let Some(send) = send else { break };
@@ -341,12 +340,7 @@ impl<R: Robot + 'static> Robot for Threaded<R> {
                     waited_ms: t0.elapsed().as_millis() as u64,
                 });
             }
-            m = self
-                .shared
-                .cv
-                .wait_timeout(m, left)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
+            m = self.shared.wait(m, left);
         }
     }
     fn send_targets(&mut self, targets: &[f32]) -> Result<()> {
