@@ -1,0 +1,247 @@
+//! The training state carried from step to step, and its on-disk form: step checkpoints,
+//! the `interrupted-*` state of a stopped run, and finding the latest to resume from.
+
+use super::*;
+
+/// Everything a run carries from one step to the next.
+pub(super) struct State {
+    /// Steps done.
+    pub(super) step: usize,
+    /// Raw (trained) weights, in [`CandleModel::vars`] order.
+    pub(super) params: Vec<Vec<f32>>,
+    pub(super) opt: AdamW,
+    pub(super) ema: Option<Vec<Vec<f32>>>,
+    pub(super) best: Option<(f64, Vec<Vec<f32>>)>,
+    pub(super) report: TrainReport,
+}
+
+/// The JSON part of a step checkpoint's training state.
+#[derive(Debug, Serialize, Deserialize)]
+pub(super) struct StateMeta {
+    pub(super) step: usize,
+    pub(super) adam_t: u64,
+    pub(super) rng: [u64; 4],
+    pub(super) best_score: Option<f64>,
+    pub(super) config: TrainConfig,
+    pub(super) report: TrainReport,
+}
+
+impl State {
+    /// Write the step checkpoint `dir` (model weights as evaluated + training state): into a
+    /// uniquely named temp directory, every file fsynced, then renamed into place.
+    pub(super) fn save_step(
+        &self,
+        model: &CandleModel,
+        out: &Path,
+        dir: &Path,
+        rng: [u64; 4],
+        names: &[String],
+        cfg: &TrainConfig,
+    ) -> Result<()> {
+        if dir.exists() {
+            return Err(Error::CheckpointExists(dir.to_owned()));
+        }
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        let leaf = dir
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let tmp = out.join(format!(".{leaf}.tmp-{}-{nanos}", std::process::id()));
+        model.save(&tmp)?;
+        let meta = StateMeta {
+            step: self.step,
+            adam_t: self.opt.t,
+            rng,
+            best_score: self.best.as_ref().map(|b| b.0),
+            config: cfg.clone(),
+            report: self.report.clone(),
+        };
+        let path = tmp.join(TRAIN_STATE_FILE);
+        let text = serde_json::to_string(&meta).map_err(|e| Error::Format {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        write_durable(&path, text.as_bytes())?;
+        let mut tensors: Vec<(String, &[f32])> = Vec::new();
+        for (i, n) in names.iter().enumerate() {
+            tensors.push((format!("param/{n}"), &self.params[i]));
+            tensors.push((format!("adam_m/{n}"), &self.opt.m[i]));
+            tensors.push((format!("adam_v/{n}"), &self.opt.v[i]));
+            if let Some(e) = &self.ema {
+                tensors.push((format!("ema/{n}"), &e[i]));
+            }
+            if let Some((_, b)) = &self.best {
+                tensors.push((format!("best/{n}"), &b[i]));
+            }
+        }
+        let tpath = tmp.join(TRAIN_TENSORS_FILE);
+        let st_err = |e: safetensors::SafeTensorError| Error::Safetensors {
+            path: tpath.clone(),
+            message: e.to_string(),
+        };
+        let bytes: Vec<(String, Vec<u8>)> = tensors
+            .iter()
+            .map(|(n, d)| (n.clone(), d.iter().flat_map(|v| v.to_le_bytes()).collect()))
+            .collect();
+        let mut views = Vec::with_capacity(bytes.len());
+        for ((n, b), (_, d)) in bytes.iter().zip(&tensors) {
+            views.push((
+                n.clone(),
+                safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![d.len()], b)
+                    .map_err(st_err)?,
+            ));
+        }
+        let data = safetensors::serialize(views, None).map_err(st_err)?;
+        write_durable(&tpath, &data)?;
+        // The model's own files (written by `CandleModel::save`), then the directories.
+        for f in std::fs::read_dir(&tmp)
+            .map_err(|e| Error::io(&tmp, e))?
+            .flatten()
+        {
+            sync_path(&f.path())?;
+        }
+        sync_path(&tmp)?;
+        std::fs::rename(&tmp, dir).map_err(|e| Error::io(dir, e))?;
+        sync_path(out)
+    }
+
+    /// Read the training state of the step checkpoint `dir`; returns the batch generator.
+    pub(super) fn load(&mut self, dir: &Path, cfg: &TrainConfig, names: &[String]) -> Result<Rng> {
+        let path = dir.join(TRAIN_STATE_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let meta: StateMeta = serde_json::from_str(&text).map_err(|e| Error::Format {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        if meta.config != *cfg {
+            return Err(Error::config(
+                "train.resume",
+                format!(
+                    "{} was written with another training configuration ({:?}); resume needs the same",
+                    path.display(),
+                    meta.config
+                ),
+            ));
+        }
+        let tpath = dir.join(TRAIN_TENSORS_FILE);
+        let bytes = std::fs::read(&tpath).map_err(|e| Error::io(&tpath, e))?;
+        let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| Error::Safetensors {
+            path: tpath.clone(),
+            message: e.to_string(),
+        })?;
+        let read = |key: String, want: usize| -> Result<Vec<f32>> {
+            let v = st.tensor(&key).map_err(|e| Error::Safetensors {
+                path: tpath.clone(),
+                message: format!("`{key}`: {e}"),
+            })?;
+            let d: Vec<f32> = v
+                .data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            if d.len() != want || v.dtype() != safetensors::Dtype::F32 {
+                return Err(Error::shape("train state tensor", want, d.len()));
+            }
+            Ok(d)
+        };
+        for (i, n) in names.iter().enumerate() {
+            let len = self.params[i].len();
+            self.params[i] = read(format!("param/{n}"), len)?;
+            self.opt.m[i] = read(format!("adam_m/{n}"), len)?;
+            self.opt.v[i] = read(format!("adam_v/{n}"), len)?;
+            if let Some(e) = self.ema.as_mut() {
+                e[i] = read(format!("ema/{n}"), len)?;
+            }
+        }
+        self.best = match meta.best_score {
+            Some(s) => Some((
+                s,
+                names
+                    .iter()
+                    .zip(&self.params)
+                    .map(|(n, p)| read(format!("best/{n}"), p.len()))
+                    .collect::<Result<Vec<_>>>()?,
+            )),
+            None => None,
+        };
+        self.step = meta.step;
+        self.opt.t = meta.adam_t;
+        self.report = meta.report;
+        Rng::from_state(meta.rng).ok_or_else(|| Error::Format {
+            path,
+            message: "all-zero random state".into(),
+        })
+    }
+}
+
+/// Write `bytes` to `path` and fsync it.
+pub(super) fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    f.write_all(bytes).map_err(|e| Error::io(path, e))?;
+    f.sync_all().map_err(|e| Error::io(path, e))
+}
+
+/// fsync a file or a directory.
+pub(super) fn sync_path(path: &Path) -> Result<()> {
+    std::fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+/// The step checkpoint with the highest step that carries a training state, if any.
+/// Name prefix of the training state a stopped run leaves ([`Trainer::stop_on`]).
+pub(super) const INTERRUPTED_PREFIX: &str = "interrupted-";
+
+/// Remove the `interrupted-*` training states of a finished run in `out`.
+pub(super) fn remove_interrupted(out: &Path) -> Result<()> {
+    let Ok(rd) = std::fs::read_dir(out) else {
+        return Ok(());
+    };
+    for e in rd.flatten() {
+        if e.file_name()
+            .to_string_lossy()
+            .starts_with(INTERRUPTED_PREFIX)
+        {
+            std::fs::remove_dir_all(e.path()).map_err(|err| Error::io(e.path(), err))?;
+        }
+    }
+    Ok(())
+}
+
+pub(super) fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
+    let rd = match std::fs::read_dir(out) {
+        Ok(rd) => rd,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(out, e)),
+    };
+    let mut best: Option<(usize, PathBuf)> = None;
+    let mut without_state = None;
+    for e in rd.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(n) = name
+            .strip_prefix("step-")
+            .or_else(|| name.strip_prefix(INTERRUPTED_PREFIX))
+            .and_then(|s| s.parse::<usize>().ok())
+        else {
+            continue;
+        };
+        if !e.path().join(TRAIN_STATE_FILE).is_file() {
+            without_state = Some(e.path());
+            continue;
+        }
+        if best.as_ref().is_none_or(|(b, _)| n > *b) {
+            best = Some((n, e.path()));
+        }
+    }
+    match (best, without_state) {
+        (Some((_, p)), _) => Ok(Some(p)),
+        (None, Some(p)) => Err(Error::config(
+            "train.resume",
+            format!("{} has no training state to resume from", p.display()),
+        )),
+        (None, None) => Ok(None),
+    }
+}
