@@ -276,6 +276,13 @@ struct RunArgs {
     /// Use the synthetic camera with real robots (no camera driver exists yet).
     #[arg(long)]
     synthetic_camera: bool,
+    /// Replay recorded frames as the camera: every .png/.jpg of this folder in file-name
+    /// order, looping (GR00T's preprocessing applies as to a live camera).
+    #[arg(long, conflicts_with_all = ["remote_slow", "synthetic_camera"])]
+    frames: Option<PathBuf>,
+    /// With --frames: ms between frames.
+    #[arg(long, default_value_t = 33)]
+    frame_ms: u64,
     /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
     #[arg(long)]
@@ -381,6 +388,8 @@ impl From<RunArgs> for RunOptions {
             clear_errors: a.clear_errors,
             emulate: a.emulate,
             synthetic_camera: a.synthetic_camera,
+            frames: a.frames,
+            frame_ms: a.frame_ms,
             remote_slow: a.remote_slow,
             remote_policy: a.remote_policy,
             policy_timeout_ms: a.policy_timeout_ms,

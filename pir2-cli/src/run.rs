@@ -46,6 +46,11 @@ pub struct RunOptions {
     pub emulate: bool,
     /// Use the synthetic camera with real robots (no camera driver exists yet).
     pub synthetic_camera: bool,
+    /// Replay the recorded frames of this folder (`.png`/`.jpg`, file-name order, looping) as
+    /// the camera, one per `frame_ms`.
+    pub frames: Option<PathBuf>,
+    /// With `frames`: ms between replayed frames.
+    pub frame_ms: u64,
     /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
     pub remote_slow: Option<String>,
@@ -495,12 +500,19 @@ mod imp {
             (None, Some(s)) => bail!("--seconds must be > 0, got {s}"),
             (None, None) => None,
         };
-        if args.remote_slow.is_none() && !args.emulate && !args.synthetic_camera {
+        if args.remote_slow.is_none()
+            && !args.emulate
+            && !args.synthetic_camera
+            && args.frames.is_none()
+        {
             bail!(
-                "no camera: pir2 has no camera driver yet. Use --remote-slow ENDPOINT (camera and \
-                 backbone behind `pir2 serve slow`), or --synthetic-camera to run the real robot \
-                 on a synthetic image"
+                "no camera: pir2 has no live camera driver yet. Use --remote-slow ENDPOINT (camera \
+                 and backbone behind `pir2 serve slow`), --frames DIR to replay recorded frames, \
+                 or --synthetic-camera to run the real robot on a synthetic image"
             );
+        }
+        if args.frames.is_some() && args.remote_slow.is_some() {
+            bail!("--frames and --remote-slow both give the camera: choose one");
         }
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
@@ -691,8 +703,30 @@ mod imp {
         let mut summary = if let Some(endpoint) = &args.remote_slow {
             remote_slow(args, endpoint, source, actuator, clock, opts, robot).with_context(ctx)?
         } else {
-            let camera = SyntheticCamera::new(clock, CAMERA_PERIOD);
-            let frames = camera.frames();
+            let (camera, frames, what): (Box<dyn pir2_runtime::SlowSource>, _, String) =
+                match &args.frames {
+                    Some(dir) => {
+                        let cam = pir2_robots::FolderCamera::open(
+                            dir,
+                            Duration::from_millis(args.frame_ms.max(1)),
+                            clock,
+                        )
+                        .with_context(|| format!("--frames {}", dir.display()))?;
+                        let what = format!(
+                            "{} recorded frames from {} (one per {} ms, looping)",
+                            cam.len(),
+                            dir.display(),
+                            args.frame_ms.max(1)
+                        );
+                        let frames = cam.frames();
+                        (Box::new(cam), frames, what)
+                    }
+                    None => {
+                        let cam = SyntheticCamera::new(clock, CAMERA_PERIOD);
+                        let frames = cam.frames();
+                        (Box::new(cam), frames, "a synthetic camera".to_string())
+                    }
+                };
             let report =
                 run_gr00t_report(&args.checkpoint, &args.task, source, actuator, camera, opts)
                     .with_context(ctx)?;
@@ -702,7 +736,7 @@ mod imp {
                 mode: report.mode,
                 robot: robot.to_string(),
                 slow: format!(
-                    "backbone.onnx on a synthetic camera (local slow worker), prompt tokenised by {}",
+                    "backbone.onnx on {what} (local slow worker), prompt tokenised by {}",
                     report.tokenizer
                 ),
                 head: String::new(),

@@ -395,3 +395,60 @@ fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay()
     }
     std::fs::remove_dir_all(&ck).ok();
 }
+
+/// `--frames DIR` replays recorded frames as the camera through GR00T's preprocessing: a run
+/// on the emulators driven by the committed test frames, and an empty folder refused by name
+/// before any robot is connected.
+#[test]
+fn a_replayed_frame_folder_drives_a_run_end_to_end() {
+    let ck = checkpoint("frames", "");
+    let frames =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/data/gr00t_image");
+    let json = ck.join("run.json");
+    let (out, text) = run(
+        &ck,
+        &[
+            "--task",
+            "catch the book",
+            "--emulate",
+            "--ticks",
+            "40",
+            "--frames",
+            frames.to_str().unwrap(),
+            "--frame-ms",
+            "20",
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(
+        v["slow"].as_str().unwrap().contains("4 recorded frames"),
+        "{v}"
+    );
+    assert!(v["camera_frames"].as_u64().unwrap() >= 2, "{v}");
+    assert_eq!(v["trace"]["ticks"], 40);
+    let empty = ck.join("no-frames");
+    std::fs::create_dir_all(&empty).unwrap();
+    let (out, text) = run(
+        &ck,
+        &[
+            "--task",
+            "catch the book",
+            "--emulate",
+            "--ticks",
+            "5",
+            "--frames",
+            empty.to_str().unwrap(),
+        ],
+    );
+    assert!(!out.status.success(), "{text}");
+    assert!(
+        text.contains("no .png") && text.contains("no-frames"),
+        "{text}"
+    );
+    assert!(!text.contains("warm-up done"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}

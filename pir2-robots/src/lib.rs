@@ -21,6 +21,7 @@
 //!   [`split`].
 #![warn(missing_docs)]
 
+pub mod camera;
 pub mod check;
 pub mod emu;
 pub mod error;
@@ -30,6 +31,7 @@ pub mod threaded;
 pub mod xarm;
 pub mod xhand;
 
+pub use camera::FolderCamera;
 pub use check::{check, check_with, CheckOptions, CheckReport};
 #[cfg(unix)]
 pub use emu::run_xhand_emulator_pty;

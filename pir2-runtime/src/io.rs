@@ -63,6 +63,13 @@ pub trait SlowSource: Send {
     async fn capture(&mut self) -> Result<SlowFrame>;
 }
 
+#[async_trait::async_trait]
+impl SlowSource for Box<dyn SlowSource> {
+    async fn capture(&mut self) -> Result<SlowFrame> {
+        (**self).capture().await
+    }
+}
+
 /// A backbone that turns a slow frame into features (a VLM, an image encoder, or identity).
 #[async_trait::async_trait]
 pub trait SlowEncoder: Send {
