@@ -7,8 +7,9 @@
 //! the emulators started in-process (`--emulate`). A run is bounded by `--ticks` /
 //! `--seconds` or Ctrl-C; the robot is stopped on every exit path of the driver.
 //!
-//! Cameras: pir2 has no camera driver yet. `--emulate` and `--synthetic-camera` use a
-//! synthetic 640×480 camera (`gr00t::testing::SyntheticCamera`); `--remote-slow ENDPOINT`
+//! Cameras: pir2 has no live camera driver yet. `--emulate` and `--synthetic-camera` use a
+//! synthetic 640×480 camera (`gr00t::testing::SyntheticCamera`); `--frames DIR` replays
+//! recorded frames (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT`
 //! takes the backbone features (camera + backbone on another machine) from `pir2 serve slow`.
 //!
 //! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
