@@ -39,6 +39,7 @@
 
 mod collect;
 mod read;
+mod select;
 mod spec;
 mod stats;
 #[cfg(test)]
@@ -47,6 +48,7 @@ mod write;
 
 pub use collect::*;
 pub use read::*;
+pub use select::{check_selection, float_features, read_selected, FeatureSelection, FloatFeature};
 pub use spec::*;
 pub use stats::*;
 pub use write::*;
