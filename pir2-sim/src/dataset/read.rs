@@ -437,8 +437,17 @@ impl Default for ReadOptions {
 }
 
 /// Read the frames of the given episodes (grouped by their data files).
-pub(super) fn read_frames(root: &Path, rows: &[EpisodeRow]) -> Result<Vec<LoadedEpisode>> {
-    read_frames_with(root, DATA_PATH, rows, &Columns::of(&ReadOptions::default()))
+pub(super) fn read_frames(
+    root: &Path,
+    rows: &[EpisodeRow],
+    keys: &FeatureKeys,
+) -> Result<Vec<LoadedEpisode>> {
+    let opts = ReadOptions {
+        fast_key: keys.fast.clone(),
+        slow_key: keys.slow.clone(),
+        action_key: keys.action.clone(),
+    };
+    read_frames_with(root, DATA_PATH, rows, &Columns::of(&opts))
 }
 
 pub(super) fn read_frames_with(
@@ -462,9 +471,10 @@ pub(super) fn read_frames_with(
             let (fast, fd) = cols.read_group(&b, &path, fk, false)?;
             let (slow, sd) = cols.read_group(&b, &path, sk, cols.slow_optional)?;
             let (action, ad) = cols.read_group(&b, &path, ak, false)?;
-            for (seen, (name, w)) in widths
-                .iter_mut()
-                .zip([(&fname, fd), (&sname, sd), (&aname, ad)])
+            for (seen, (name, w)) in
+                widths
+                    .iter_mut()
+                    .zip([(&fname, fd), (&sname, sd), (&aname, ad)])
             {
                 match *seen {
                     None => *seen = Some(w),

@@ -81,8 +81,7 @@ impl Columns {
         keys: &[String],
         optional: bool,
     ) -> Result<(Vec<f32>, usize)> {
-        if keys.is_empty() || (optional && keys.iter().any(|k| batch.column_by_name(k).is_none()))
-        {
+        if keys.is_empty() || (optional && keys.iter().any(|k| batch.column_by_name(k).is_none())) {
             return Ok((Vec::new(), 0));
         }
         let n = batch.num_rows();
@@ -166,13 +165,13 @@ fn check_selection_in(
         key: key.into(),
         reason,
     };
-    let features =
-        info.get("features")
-            .and_then(Value::as_object)
-            .ok_or_else(|| Error::Inconsistent {
-                path: info_path.into(),
-                reason: "no `features` object".into(),
-            })?;
+    let features = info
+        .get("features")
+        .and_then(Value::as_object)
+        .ok_or_else(|| Error::Inconsistent {
+            path: info_path.into(),
+            reason: "no `features` object".into(),
+        })?;
     if sel.fast.is_empty() {
         return Err(Error::ConfigValue {
             field: "fast keys",

@@ -1,9 +1,13 @@
-//! The reader on a dataset written by LeRobot's own writer (lerobot 0.4.4,
-//! `tests/fixtures/make_lerobot_fixture.py`), and its errors for features that cannot be read.
+//! Reading features by name: a dataset written by LeRobot's own writer (lerobot 0.4.4,
+//! `tests/fixtures/make_lerobot_fixture.py`), one written by our writer under custom keys, and
+//! the errors for features that cannot be read.
 
 use std::path::{Path, PathBuf};
 
-use pir2_sim::dataset::{float_features, read_selected, FeatureSelection};
+use pir2_sim::dataset::{
+    float_features, read_dataset, read_selected, DatasetSpec, DatasetWriter, Episode, FeatureKeys,
+    FeatureSelection, WriteMode,
+};
 use pir2_sim::Error;
 
 fn fixture() -> PathBuf {
@@ -127,14 +131,17 @@ fn non_float_duplicate_video_and_matrix_features_are_refused_by_name() {
     assert!(reason.contains("more than once"), "{reason}");
 
     let root = patched("video", |info| {
-        info["features"]["observation.images.top"] =
-            serde_json::json!({"dtype": "video", "shape": [48, 64, 3], "names": ["height", "width", "channels"]});
+        info["features"]["observation.images.top"] = serde_json::json!({"dtype": "video", "shape": [48, 64, 3], "names": ["height", "width", "channels"]});
         info["features"]["observation.matrix"] =
             serde_json::json!({"dtype": "float32", "shape": [2, 2], "names": null});
     });
     let (key, reason) = feature_error(
         &root,
-        &sel(&["observation.state", "observation.images.top"], &[], "action"),
+        &sel(
+            &["observation.state", "observation.images.top"],
+            &[],
+            "action",
+        ),
     );
     assert_eq!(key, "observation.images.top");
     assert!(reason.contains("video feature"), "{reason}");
@@ -158,5 +165,60 @@ fn a_width_that_differs_from_info_json_is_an_error_naming_the_column() {
         }
         other => panic!("expected a column type error, got {other:?}"),
     }
+    std::fs::remove_dir_all(&root).unwrap();
+}
+
+#[test]
+fn our_writer_with_custom_keys_round_trips_and_resumes() {
+    let root = std::env::temp_dir().join(format!("pir2-custom-keys-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let spec = DatasetSpec {
+        fps: 20,
+        robot_type: Some("custom".into()),
+        tasks: vec!["t".into()],
+        fast_names: vec!["q0".into(), "q1".into()],
+        slow_names: vec!["target".into()],
+        action_names: vec!["dq".into()],
+        keys: FeatureKeys {
+            fast: "observation.joints".into(),
+            slow: "observation.target".into(),
+            action: "action.joint_velocity".into(),
+        },
+    };
+    let episode = |n: usize, k: f32| {
+        let mut e = Episode::new(2, 1, 1);
+        for t in 0..n {
+            let t = t as f32;
+            e.push(&[t, k * t], &[k], &[k - t]);
+        }
+        e
+    };
+    let mut w = DatasetWriter::open(&root, spec.clone(), WriteMode::New).unwrap();
+    w.append(&episode(4, 1.0)).unwrap();
+    w.finish().unwrap();
+    // A second session appends (the writer reads its own custom columns back for the stats).
+    let mut w = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap();
+    w.append(&episode(3, 2.0)).unwrap();
+    w.finish().unwrap();
+    let ds = read_selected(
+        &root,
+        &sel(
+            &["observation.target", "observation.joints"],
+            &[],
+            "action.joint_velocity",
+        ),
+    )
+    .unwrap();
+    assert_eq!(ds.episodes.len(), 2);
+    let e1 = &ds.episodes[1];
+    assert_eq!((e1.fast_dim, e1.slow_dim, e1.action_dim), (3, 0, 1));
+    assert_eq!(e1.fast(2), [2.0, 2.0, 4.0], "target first, then the joints");
+    assert_eq!(e1.action(2), [0.0]);
+    // The default reader looks for `observation.state` and says so.
+    let err = read_dataset(&root).unwrap_err();
+    assert!(
+        matches!(&err, Error::MissingColumn { column, .. } if column == "observation.state"),
+        "{err}"
+    );
     std::fs::remove_dir_all(&root).unwrap();
 }
