@@ -13,7 +13,7 @@ use std::path::Path;
 use arrow_array::cast::AsArray;
 use arrow_array::Array;
 
-use super::select::Columns;
+use super::select::{Columns, ReadOptions};
 use super::*;
 
 /// A dataset loaded into memory.
@@ -412,28 +412,6 @@ pub(super) fn read_episode_rows(root: &Path) -> Result<Vec<EpisodeRow>> {
         acc = r.to;
     }
     Ok(rows)
-}
-
-/// Which columns hold the fast/slow/action features (ours by default; LeRobot datasets of
-/// other robots may name theirs differently).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ReadOptions {
-    /// Column of the fast observation.
-    pub fast_key: String,
-    /// Column of the slow observation; absent from the file = no slow channel.
-    pub slow_key: String,
-    /// Column of the action.
-    pub action_key: String,
-}
-
-impl Default for ReadOptions {
-    fn default() -> Self {
-        Self {
-            fast_key: KEY_FAST.into(),
-            slow_key: KEY_SLOW.into(),
-            action_key: KEY_ACTION.into(),
-        }
-    }
 }
 
 /// Read the frames of the given episodes (grouped by their data files).

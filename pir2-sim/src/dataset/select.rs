@@ -16,6 +16,28 @@ use std::path::Path;
 use super::read::{read_info_checked, vec_column};
 use super::*;
 
+/// Which columns hold the fast/slow/action features (ours by default; LeRobot datasets of
+/// other robots may name theirs differently).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadOptions {
+    /// Column of the fast observation.
+    pub fast_key: String,
+    /// Column of the slow observation; absent from the file = no slow channel.
+    pub slow_key: String,
+    /// Column of the action.
+    pub action_key: String,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        Self {
+            fast_key: KEY_FAST.into(),
+            slow_key: KEY_SLOW.into(),
+            action_key: KEY_ACTION.into(),
+        }
+    }
+}
+
 /// Which features of a dataset make the fast observation, the slow observation and the action.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FeatureSelection {
