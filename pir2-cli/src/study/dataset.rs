@@ -518,7 +518,7 @@ mod tests {
 
     const MINIMAL: &str = r#"
 fast_keys = ["observation.state"]
-horizon = 8
+horizon = 16
 policy = "pi_r2"
 "#;
 

@@ -185,13 +185,13 @@ mod tests {
 
     fn spec() -> HeadSpec {
         HeadSpec {
-            horizon: 4,
+            horizon: 8,
             action_dim: 2,
             n_obs: 2,
             fast_dim: 1,
             slow_dim: 0,
             period: 100_000_000,
-            d_max: 3,
+            d_max: 2,
             d_vis_max: 0,
         }
     }
@@ -209,7 +209,7 @@ mod tests {
         let r = pir2_runtime::Recipe::default();
         // Recorded actions are constant (1, −2); the model's chunk is normalised (0.5, 0.5)
         // with scale (2, 4) and offset (0, −4): (1, −2) exactly.
-        let ep = episode(&[[1.0, -2.0]; 6]);
+        let ep = episode(&[[1.0, -2.0]; 10]);
         for policy in [
             pir2_runtime::Policy::Flow,
             pir2_runtime::Policy::Rtc,
