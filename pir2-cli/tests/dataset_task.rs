@@ -251,6 +251,7 @@ fn a_missing_key_or_an_unknown_field_is_one_error_naming_it() {
         err.contains("`observation.gaol`") && err.contains("not in meta/info.json"),
         "{err}"
     );
+    assert!(!dir.path().join("missing").exists(), "nothing written");
     let err = failed(&run(&REACH.replace("horizon = 8", "horizon = 4"), "short"));
     assert!(
         err.contains("`horizon` = 4 does not fit policy PiR2"),
@@ -328,7 +329,10 @@ fn same_seed_same_bits_and_resume_continues_bit_identically() {
     for (x, y) in rb.checkpoints.iter().zip(&ra.checkpoints) {
         assert_eq!(x.step, y.step);
         assert!((x.flow_loss - y.flow_loss).abs() < 1e-12, "{x:?} {y:?}");
-        assert!((x.open_loop.nrmse - y.open_loop.nrmse).abs() < 1e-12, "{x:?} {y:?}");
+        assert!(
+            (x.open_loop.nrmse - y.open_loop.nrmse).abs() < 1e-12,
+            "{x:?} {y:?}"
+        );
     }
     assert_eq!(rb.checkpoints[2], ra.checkpoints[2]);
     // Resuming with another task is refused.

@@ -329,6 +329,11 @@ pub fn train(
     out: &Path,
     resume: bool,
 ) -> Result<ValidationReport> {
+    // The dataset and the split first: a bad key leaves no output directory behind.
+    let ds = read_selected(data, &cfg.selection())
+        .with_context(|| format!("reading dataset {}", data.display()))?;
+    let n = ds.episodes.len();
+    let (train_idx, held_idx) = split(n, &cfg.validation, cfg.seed)?;
     let task_file = out.join("task.toml");
     let text = toml::to_string(cfg).context("serialising the task")?;
     if resume {
@@ -353,10 +358,6 @@ pub fn train(
         prepare_out(out)?;
         write_atomically(&task_file, text.as_bytes())?;
     }
-    let ds = read_selected(data, &cfg.selection())
-        .with_context(|| format!("reading dataset {}", data.display()))?;
-    let n = ds.episodes.len();
-    let (train_idx, held_idx) = split(n, &cfg.validation, cfg.seed)?;
     let pick = |idx: &[usize]| {
         idx.iter()
             .map(|&i| ds.episodes[i].clone())
@@ -425,7 +426,6 @@ pub fn train(
     let report_path = out.join("validation.json");
     let mut failure: Option<anyhow::Error> = None;
     let trained = {
-        let held = Episodes(&held_eps);
         let on_progress = |p: &Progress| {
             if p.step % 100 == 0 || p.step == p.steps {
                 log_line(&format!(
@@ -435,30 +435,24 @@ pub fn train(
             }
         };
         let validate = |m: &mut CandleModel, step: usize| -> f64 {
-            let scored = (|| -> Result<CheckpointScore> {
-                let flow_loss = held_out_loss(
-                    m,
-                    &held,
-                    schedule,
-                    o.batch_size,
-                    v.loss_batches,
-                    cfg.seed ^ 0x00F1_0055,
-                )?;
-                let ol = OpenLoop {
-                    spec: head,
-                    mode,
-                    delay: v.delay,
-                    output: output_map(m),
-                    windows: v.windows,
-                    seed: cfg.seed ^ 0x0033_0009,
-                };
-                let open_loop = open_loop_error(m, &held_eps, &ol)?;
-                Ok(CheckpointScore {
-                    step,
-                    flow_loss,
-                    open_loop,
-                })
-            })();
+            let ol = OpenLoop {
+                spec: head,
+                mode,
+                delay: v.delay,
+                output: output_map(m),
+                windows: v.windows,
+                seed: cfg.seed ^ 0x0033_0009,
+            };
+            let scored = score(
+                m,
+                step,
+                &held_eps,
+                &ol,
+                schedule,
+                o.batch_size,
+                v.loss_batches,
+            )
+            .map_err(|e| e.context(format!("validating step {step}")));
             match scored {
                 Ok(s) => {
                     log_line(&format!(
@@ -479,7 +473,7 @@ pub fn train(
                     }
                 }
                 Err(e) => {
-                    failure.get_or_insert(e.context(format!("validating step {step}")));
+                    failure.get_or_insert(e);
                     f64::NEG_INFINITY
                 }
             }
@@ -499,6 +493,33 @@ pub fn train(
     write_report(&report_path, &report)?;
     model.save(&out.join("best"))?;
     Ok(report)
+}
+
+/// Both held-out scores of the model at `step` (the flow loss with fixed draws seeded from
+/// the open-loop seed).
+fn score(
+    m: &mut CandleModel,
+    step: usize,
+    held: &[Episode],
+    ol: &OpenLoop,
+    schedule: pir2_schedule::train::TrainSchedule,
+    batch_size: usize,
+    batches: usize,
+) -> Result<CheckpointScore> {
+    let flow_loss = held_out_loss(
+        m,
+        &Episodes(held),
+        schedule,
+        batch_size,
+        batches,
+        ol.seed ^ 0x00C2_005C, // = the task seed ^ 0x00F1_0055
+    )?;
+    let open_loop = open_loop_error(m, held, ol)?;
+    Ok(CheckpointScore {
+        step,
+        flow_loss,
+        open_loop,
+    })
 }
 
 fn write_report(path: &Path, r: &ValidationReport) -> Result<()> {
