@@ -227,11 +227,17 @@ mod tests {
                 windows: 6,
                 seed: 1,
             };
-            let err = open_loop_error(&mut Target(vec![0.5, 0.5]), &[ep.clone()], &cfg).unwrap();
+            let err = open_loop_error(&mut Target(vec![0.5, 0.5]), std::slice::from_ref(&ep), &cfg)
+                .unwrap();
             assert_eq!(err.windows, 6);
             assert!(err.rmse < 1e-3 && err.nrmse < 1e-3, "{policy:?}: {err:?}");
             // Off by 0.25 normalised units in both dimensions: 0.5 and 1.0 in action units.
-            let err = open_loop_error(&mut Target(vec![0.75, 0.75]), &[ep.clone()], &cfg).unwrap();
+            let err = open_loop_error(
+                &mut Target(vec![0.75, 0.75]),
+                std::slice::from_ref(&ep),
+                &cfg,
+            )
+            .unwrap();
             assert!((err.nrmse - 0.25).abs() < 1e-3, "{policy:?}: {err:?}");
             let want = ((0.5f64 * 0.5 + 1.0) / 2.0).sqrt();
             assert!((err.rmse - want).abs() < 1e-3, "{policy:?}: {err:?}");
