@@ -37,8 +37,7 @@
 //! the named `float32`/`float64` vector (or scalar) features concatenated in order, the
 //! action one named feature; each is checked against `meta/info.json` first, and a missing
 //! key, an image/video/integer feature or a width that does not match is one
-//! [`Error::Feature`](crate::Error::Feature) or [`Error::ColumnType`](crate::Error::ColumnType)
-//! naming the key.
+//! [`Error::Feature`] or [`Error::ColumnType`] naming the key.
 //!
 //! Writing never replaces an existing dataset silently: [`WriteMode::New`] refuses a
 //! non-empty directory, [`WriteMode::Resume`] appends episodes in new data/episode files
