@@ -629,3 +629,43 @@ impl<'a> Trainer<'a> {
         Ok(st.report)
     }
 }
+
+/// Mean flow-matching loss of `model` on `data` (e.g. held-out episodes) under `schedule`:
+/// `batches` batches of `batch_size` samples drawn exactly as in training (frames, `d_vis`,
+/// noise, schedule draws) from `seed`, the loss of each as the trainer's masked per-position
+/// MSE, averaged over batches. No gradient, no update. The same arguments draw the same
+/// samples, so checkpoints of one run are compared on identical draws.
+pub fn held_out_loss<D: Dataset + ?Sized>(
+    model: &mut CandleModel,
+    data: &D,
+    schedule: TrainSchedule,
+    batch_size: usize,
+    batches: usize,
+    seed: u64,
+) -> Result<f64> {
+    let spec = *model.spec();
+    check_dataset(data, &spec)?;
+    let cfg = TrainConfig {
+        batch_size: batch_size.max(1),
+        seed,
+        schedule,
+        ..TrainConfig::default()
+    };
+    cfg.schedule.validate(spec.horizon)?;
+    let mut batcher = Batcher::new(data, &spec, model.stats(), &cfg);
+    let a = spec.action_dim;
+    let mut v = vec![0.0f32; cfg.batch_size * spec.horizon * a];
+    let mut total = 0.0f64;
+    for _ in 0..batches.max(1) {
+        batcher.fill(data)?;
+        model.velocity_into(&batcher.input(), &mut v)?;
+        let msum: f32 = batcher.mask.iter().sum();
+        let mut loss = 0.0f64;
+        for (i, (&vi, &t)) in v.iter().zip(&batcher.target).enumerate() {
+            let e = (vi - t) as f64;
+            loss += batcher.mask[i / a] as f64 * e * e;
+        }
+        total += loss / (msum.max(1.0) as f64 * a as f64);
+    }
+    Ok(total / batches.max(1) as f64)
+}

@@ -529,3 +529,37 @@ fn hidden_front_draws_train_every_architecture() {
         assert!(one_call(&mut m).iter().all(|v| v.is_finite()));
     }
 }
+
+/// `held_out_loss` draws its batches as the trainer does: with the trainer's seed, batch
+/// size and schedule, its one-batch loss is the trainer's step-1 loss (computed before the
+/// first update); it is deterministic, and it falls once the model has trained.
+#[test]
+fn held_out_loss_matches_the_trainers_first_step_and_falls_with_training() {
+    use pir2_backends::train::held_out_loss;
+    let cfg = mlp_config(8);
+    let data = dataset(32, 16, 2);
+    let stats = compute_stats(data.as_slice(), &cfg.spec).unwrap();
+    let schedule = TrainSchedule::PiR2(PiR2Draws {
+        n: Some(2),
+        delay: DelayDist::Uniform { max: 2 },
+        ..PiR2Draws::default()
+    });
+    let tc = TrainConfig {
+        seed: 5,
+        ..quick(150, 3e-3, schedule)
+    };
+    let mut model = CandleModel::new(cfg, stats, 1).unwrap();
+    let before = held_out_loss(&mut model, data.as_slice(), schedule, 64, 1, 5).unwrap();
+    assert_eq!(
+        before,
+        held_out_loss(&mut model, data.as_slice(), schedule, 64, 1, 5).unwrap()
+    );
+    let report = Trainer::new(tc).run(&mut model, data.as_slice()).unwrap();
+    let first = report.losses[0].1 as f64;
+    assert!(
+        (before - first).abs() < 1e-4 * first.max(1.0),
+        "{before} vs the trainer's {first}"
+    );
+    let after = held_out_loss(&mut model, data.as_slice(), schedule, 64, 4, 6).unwrap();
+    assert!(after < 0.5 * before, "{before} -> {after}");
+}

@@ -14,6 +14,7 @@ use pir2_runtime::Policy;
 use pir2_sim::dataset::WriteMode;
 
 use crate::study::ballplate::{self, DemoConfig};
+use crate::study::dataset::{self, DatasetTaskConfig};
 use crate::study::pipeline::Models;
 
 /// The tasks the stock pipeline knows.
@@ -140,12 +141,18 @@ pub struct TrainOptions {
     pub config: Option<PathBuf>,
     /// Seed (ball-plate; the Leap cube trains the config's seeds).
     pub seed: u64,
-    /// Leap cube: continue an interrupted run in `out`.
+    /// Leap cube, dataset task: continue an interrupted run in `out`.
     pub resume: bool,
+    /// A dataset task file (`task.toml`, [`DatasetTaskConfig`]): train on any state-only
+    /// LeRobotDataset v3.0 instead of a stock task.
+    pub task_file: Option<PathBuf>,
 }
 
 /// `pir2 train`: train a policy (ball-plate) or the study's policies (Leap cube).
 pub fn train(o: &TrainOptions) -> Result<()> {
+    if let Some(file) = &o.task_file {
+        return train_dataset(o, file);
+    }
     match o.task {
         TaskName::LeapCube => {
             let args = crate::leap_cmd::LeapArgs {
@@ -173,6 +180,40 @@ pub fn train(o: &TrainOptions) -> Result<()> {
             Ok(())
         }
     }
+}
+
+/// `pir2 train --data DATASET --task task.toml --out DIR`: the dataset task.
+fn train_dataset(o: &TrainOptions, file: &Path) -> Result<()> {
+    if o.policy.is_some() || o.config.is_some() || o.seed != 0 {
+        bail!(
+            "--policy, --config and --seed are for the stock tasks; with --task the task file \
+             names the policy, the model and the seed"
+        );
+    }
+    let cfg = DatasetTaskConfig::load(file)?;
+    let r = dataset::train(&o.data, &cfg, &o.out, o.resume)?;
+    println!("held-out episodes: {:?}", r.held_out);
+    println!("step      flow loss  open-loop RMSE  (normalised)");
+    for c in &r.checkpoints {
+        println!(
+            "{:<9} {:<10.4} {:<15.4} {:.4}{}",
+            c.step,
+            c.flow_loss,
+            c.open_loop.rmse,
+            c.open_loop.nrmse,
+            if Some(c.step) == r.best_step {
+                "  ← best"
+            } else {
+                ""
+            }
+        );
+    }
+    println!(
+        "best checkpoint (lowest {}): {}",
+        r.metric,
+        o.out.join("best").display()
+    );
+    Ok(())
 }
 
 /// Where `pir2 eval --remote` sends the action-head calls.

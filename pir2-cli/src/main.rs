@@ -107,11 +107,16 @@ enum Cmd {
         overwrite: bool,
     },
     /// Train one policy (candle MLP; leap-cube: U-Nets, the config's `policies` unless
-    /// --policy) on a dataset; the checkpoint is picked in closed loop.
+    /// --policy) on a dataset; the checkpoint is picked in closed loop. With --task FILE: a
+    /// policy on any state-only LeRobotDataset v3.0, picked on held-out episodes.
     Train {
-        /// The task (leap-cube needs a build with `--features mujoco`).
-        #[arg(value_parser = ["ballplate", "leap-cube"], default_value = "ballplate")]
-        task: String,
+        /// The stock task (default ballplate; leap-cube needs a build with `--features mujoco`).
+        #[arg(value_parser = ["ballplate", "leap-cube"], conflicts_with = "task_file")]
+        task: Option<String>,
+        /// A task file (task.toml: fast/slow/action keys, horizon, n_obs, policy, model,
+        /// optimiser, held-out episodes) for a user's own dataset.
+        #[arg(long = "task", value_name = "TASK_TOML")]
+        task_file: Option<PathBuf>,
         /// Dataset directory (LeRobotDataset v3.0).
         #[arg(long)]
         data: PathBuf,
@@ -128,9 +133,9 @@ enum Cmd {
         /// Seed.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// leap-cube: continue an interrupted `pir2 train leap-cube --out DIR` with the same
-        /// config and data: finished policies are kept, unfinished ones continue from their
-        /// last step checkpoint (bit-identically to an uninterrupted run).
+        /// leap-cube and --task: continue an interrupted `pir2 train … --out DIR` with the same
+        /// config (task file) and data: finished policies are kept, unfinished ones continue
+        /// from their last step checkpoint (bit-identically to an uninterrupted run).
         #[arg(long)]
         resume: bool,
     },
@@ -640,6 +645,7 @@ fn main() -> Result<()> {
         }),
         Cmd::Train {
             task: t,
+            task_file,
             data,
             policy,
             out,
@@ -647,7 +653,8 @@ fn main() -> Result<()> {
             seed,
             resume,
         } => commands::train(&TrainOptions {
-            task: task(&t),
+            task: task(t.as_deref().unwrap_or("ballplate")),
+            task_file,
             data,
             policy: policy.map(Into::into),
             out,

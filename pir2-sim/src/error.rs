@@ -133,6 +133,18 @@ pub enum Error {
         /// What is wrong with it.
         reason: String,
     },
+    /// A feature asked for by name (a training task's fast, slow or action key) cannot be
+    /// read: absent from `meta/info.json`, not a float feature (an image or video, an
+    /// integer, a string), not a fixed-width vector, or asked for twice.
+    #[error("{path}: feature `{key}` {reason}")]
+    Feature {
+        /// The dataset's `meta/info.json`.
+        path: PathBuf,
+        /// The feature key.
+        key: String,
+        /// What is wrong with it.
+        reason: String,
+    },
     /// Episodes handed to the writer do not fit the dataset's features.
     #[error("episode {episode} does not fit the dataset: {reason}")]
     EpisodeShape {

@@ -29,6 +29,7 @@ fn dataset(name: &str) -> PathBuf {
         fast_names: vec!["a".into(), "b".into()],
         slow_names: vec!["s".into()],
         action_names: vec!["u".into()],
+        keys: Default::default(),
     };
     let mut w = DatasetWriter::open(&root, spec, WriteMode::New).unwrap();
     for n in [3, 5] {

@@ -190,6 +190,7 @@ pub fn dataset_spec() -> DatasetSpec {
         fast_names: fast_names(),
         slow_names: slow_names(),
         action_names: (0..NU).map(|i| format!("motor_target_delta{i}")).collect(),
+        keys: Default::default(),
     }
 }
 

@@ -10,12 +10,18 @@
 //! Shipped tasks: [`ballplate`] (the embedded default, `pir2 demo`) and, with feature
 //! `mujoco`, `leap_cube`. A new task is one file: a type implementing [`Task`] (plus its
 //! environment, an [`Environment`] of the runtime).
+//!
+//! A user's own dataset without an environment is the [`dataset`] task (`pir2 train --data
+//! DATASET --task task.toml`): the same trainer and checkpoint layout, validated on held-out
+//! episodes by the flow loss and the [`open_loop`] action error instead of in closed loop.
 
 pub mod ballplate;
 pub mod cells;
+pub mod dataset;
 pub mod evaluate;
 #[cfg(feature = "mujoco")]
 pub mod leap_cube;
+pub mod open_loop;
 pub mod pipeline;
 
 use std::path::{Path, PathBuf};

@@ -63,7 +63,7 @@ pub fn prepare_out(out: &Path) -> Result<()> {
 
 /// Write `bytes` to `path` through a temporary file and a rename, so an interrupted write
 /// never leaves a truncated file.
-fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))

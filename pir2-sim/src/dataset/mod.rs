@@ -25,9 +25,19 @@
 //! ```
 //!
 //! Frame columns: `observation.state` (fast, fixed-size list of `f32`),
-//! `observation.environment_state` (slow), `action`, `timestamp` (`f32`, s), `frame_index`,
+//! `observation.environment_state` (slow), `action` (the three keys are
+//! [`DatasetSpec::keys`], these by default), `timestamp` (`f32`, s), `frame_index`,
 //! `episode_index`, `index` (global frame index), `task_index` (`i64`), `next.done`,
 //! `next.success` (`bool`, true on the last frame of an episode that ended / succeeded).
+//!
+//! # Reading any state-only dataset
+//!
+//! [`read_dataset`] reads our three channels. [`read_selected`] reads any LeRobotDataset
+//! v3.0 (LeRobot's own writer included) by feature name: the fast and slow observations are
+//! the named `float32`/`float64` vector (or scalar) features concatenated in order, the
+//! action one named feature; each is checked against `meta/info.json` first, and a missing
+//! key, an image/video/integer feature or a width that does not match is one
+//! [`Error::Feature`] or [`Error::ColumnType`] naming the key.
 //!
 //! Writing never replaces an existing dataset silently: [`WriteMode::New`] refuses a
 //! non-empty directory, [`WriteMode::Resume`] appends episodes in new data/episode files
@@ -39,6 +49,7 @@
 
 mod collect;
 mod read;
+mod select;
 mod spec;
 mod stats;
 #[cfg(test)]
@@ -47,6 +58,9 @@ mod write;
 
 pub use collect::*;
 pub use read::*;
+pub use select::{
+    check_selection, float_features, read_selected, FeatureSelection, FloatFeature, ReadOptions,
+};
 pub use spec::*;
 pub use stats::*;
 pub use write::*;

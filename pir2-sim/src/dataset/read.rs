@@ -13,6 +13,7 @@ use std::path::Path;
 use arrow_array::cast::AsArray;
 use arrow_array::Array;
 
+use super::select::{Columns, ReadOptions};
 use super::*;
 
 /// A dataset loaded into memory.
@@ -413,38 +414,25 @@ pub(super) fn read_episode_rows(root: &Path) -> Result<Vec<EpisodeRow>> {
     Ok(rows)
 }
 
-/// Which columns hold the fast/slow/action features (ours by default; LeRobot datasets of
-/// other robots may name theirs differently).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ReadOptions {
-    /// Column of the fast observation.
-    pub fast_key: String,
-    /// Column of the slow observation; absent from the file = no slow channel.
-    pub slow_key: String,
-    /// Column of the action.
-    pub action_key: String,
-}
-
-impl Default for ReadOptions {
-    fn default() -> Self {
-        Self {
-            fast_key: KEY_FAST.into(),
-            slow_key: KEY_SLOW.into(),
-            action_key: KEY_ACTION.into(),
-        }
-    }
-}
-
 /// Read the frames of the given episodes (grouped by their data files).
-pub(super) fn read_frames(root: &Path, rows: &[EpisodeRow]) -> Result<Vec<LoadedEpisode>> {
-    read_frames_with(root, DATA_PATH, rows, &ReadOptions::default())
+pub(super) fn read_frames(
+    root: &Path,
+    rows: &[EpisodeRow],
+    keys: &FeatureKeys,
+) -> Result<Vec<LoadedEpisode>> {
+    let opts = ReadOptions {
+        fast_key: keys.fast.clone(),
+        slow_key: keys.slow.clone(),
+        action_key: keys.action.clone(),
+    };
+    read_frames_with(root, DATA_PATH, rows, &Columns::of(&opts))
 }
 
 pub(super) fn read_frames_with(
     root: &Path,
     data_tmpl: &str,
     rows: &[EpisodeRow],
-    opts: &ReadOptions,
+    cols: &Columns,
 ) -> Result<Vec<LoadedEpisode>> {
     let mut files: BTreeMap<(i64, i64), ()> = BTreeMap::new();
     for r in rows {
@@ -457,24 +445,21 @@ pub(super) fn read_frames_with(
     for &(chunk, file) in files.keys() {
         let path = root.join(fill_template(data_tmpl, chunk as usize, file as usize));
         for b in read_parquet(&path)? {
-            let (fast, fd) = vec_column(&b, &path, &opts.fast_key)?;
-            let (slow, sd) = if b.column_by_name(&opts.slow_key).is_some() {
-                vec_column(&b, &path, &opts.slow_key)?
-            } else {
-                (Vec::new(), 0)
-            };
-            let (action, ad) = vec_column(&b, &path, &opts.action_key)?;
-            for (seen, (name, w)) in widths.iter_mut().zip([
-                (&opts.fast_key, fd),
-                (&opts.slow_key, sd),
-                (&opts.action_key, ad),
-            ]) {
+            let [(fk, fname), (sk, sname), (ak, aname)] = cols.groups();
+            let (fast, fd) = cols.read_group(&b, &path, fk, false)?;
+            let (slow, sd) = cols.read_group(&b, &path, sk, cols.slow_optional)?;
+            let (action, ad) = cols.read_group(&b, &path, ak, false)?;
+            for (seen, (name, w)) in
+                widths
+                    .iter_mut()
+                    .zip([(&fname, fd), (&sname, sd), (&aname, ad)])
+            {
                 match *seen {
                     None => *seen = Some(w),
                     Some(first) if first != w => {
                         return Err(Error::ColumnType {
                             path: path.clone(),
-                            column: name.clone(),
+                            column: name.to_string(),
                             expected: format!("rows of width {first} (as the rows read before)"),
                             found: format!("rows of width {w}"),
                         })
@@ -561,6 +546,12 @@ pub fn read_dataset(root: &Path) -> Result<Dataset> {
 /// `episode_index`, `frame_index` and the `meta/episodes` table are required; `next.done`
 /// and `next.success` are used when present.
 pub fn read_dataset_with(root: &Path, opts: &ReadOptions) -> Result<Dataset> {
+    read_dataset_columns(root, &Columns::of(opts))
+}
+
+/// `meta/info.json` of the dataset at `root`, checked: a v3.x codebase version, a positive
+/// `fps`, usable path templates. Returns it with the fps and the data path template.
+pub(super) fn read_info_checked(root: &Path) -> Result<(Value, f64, String)> {
     let info = read_info(root)?;
     let info_path = root.join(INFO_PATH);
     let version = info
@@ -605,8 +596,14 @@ pub fn read_dataset_with(root: &Path, opts: &ReadOptions) -> Result<Dataset> {
         template("data_path", &["chunk_index", "file_index"])?.unwrap_or(DATA_PATH.into());
     // State-only reader: videos are not read, but a bad template is still refused.
     template("video_path", &["video_key", "chunk_index", "file_index"])?;
+    Ok((info, fps, data_tmpl))
+}
+
+/// Read the dataset at `root` with the given column groups.
+pub(super) fn read_dataset_columns(root: &Path, cols: &Columns) -> Result<Dataset> {
+    let (info, fps, data_tmpl) = read_info_checked(root)?;
     let rows = read_episode_rows(root)?;
-    let mut loaded = read_frames_with(root, &data_tmpl, &rows, opts)?;
+    let mut loaded = read_frames_with(root, &data_tmpl, &rows, cols)?;
     // Done/success flags from the `next.*` frame columns when present.
     fill_flags_from_frames(root, &data_tmpl, &rows, &mut loaded)?;
     let tasks_path = root.join(TASKS_PATH);

@@ -21,6 +21,31 @@ pub struct DatasetSpec {
     pub slow_names: Vec<String>,
     /// Names of the action entries.
     pub action_names: Vec<String>,
+    /// Feature keys of the three channels (default: `observation.state`,
+    /// `observation.environment_state`, `action`).
+    #[serde(default)]
+    pub keys: FeatureKeys,
+}
+
+/// The feature keys a dataset stores its fast, slow and action channels under.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FeatureKeys {
+    /// Fast observation.
+    pub fast: String,
+    /// Slow observation.
+    pub slow: String,
+    /// Action.
+    pub action: String,
+}
+
+impl Default for FeatureKeys {
+    fn default() -> Self {
+        Self {
+            fast: KEY_FAST.into(),
+            slow: KEY_SLOW.into(),
+            action: KEY_ACTION.into(),
+        }
+    }
 }
 
 impl DatasetSpec {
@@ -35,6 +60,7 @@ impl DatasetSpec {
             fast_names: s(&FAST_NAMES),
             slow_names: s(&SLOW_NAMES),
             action_names: s(&ACTION_NAMES),
+            keys: FeatureKeys::default(),
         }
     }
 
@@ -43,11 +69,11 @@ impl DatasetSpec {
         let mut f = serde_json::Map::new();
         let vec_ft =
             |names: &[String]| json!({"dtype": "float32", "shape": [names.len()], "names": names});
-        f.insert(KEY_FAST.into(), vec_ft(&self.fast_names));
+        f.insert(self.keys.fast.clone(), vec_ft(&self.fast_names));
         if !self.slow_names.is_empty() {
-            f.insert(KEY_SLOW.into(), vec_ft(&self.slow_names));
+            f.insert(self.keys.slow.clone(), vec_ft(&self.slow_names));
         }
-        f.insert(KEY_ACTION.into(), vec_ft(&self.action_names));
+        f.insert(self.keys.action.clone(), vec_ft(&self.action_names));
         for (k, dtype) in SCALAR_COLUMNS {
             f.insert(
                 k.into(),

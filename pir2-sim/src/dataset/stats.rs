@@ -94,24 +94,24 @@ pub(super) fn quantile_sorted(sorted: &[f64], q: f64) -> f64 {
 /// Every numeric feature of a set of episodes as `(key, rows, width)`, in column order.
 pub(super) fn feature_columns<'a>(
     eps: impl Iterator<Item = &'a Episode> + Clone,
-    spec: &DatasetSpec,
-) -> Vec<(&'static str, Vec<f64>, usize)> {
+    spec: &'a DatasetSpec,
+) -> Vec<(&'a str, Vec<f64>, usize)> {
     let mut out = Vec::new();
     let widen = |v: &[f32]| v.iter().map(|x| *x as f64).collect::<Vec<_>>();
     out.push((
-        KEY_FAST,
+        spec.keys.fast.as_str(),
         eps.clone().flat_map(|e| widen(&e.fast)).collect(),
         spec.fast_names.len(),
     ));
     if !spec.slow_names.is_empty() {
         out.push((
-            KEY_SLOW,
+            spec.keys.slow.as_str(),
             eps.clone().flat_map(|e| widen(&e.slow)).collect(),
             spec.slow_names.len(),
         ));
     }
     out.push((
-        KEY_ACTION,
+        spec.keys.action.as_str(),
         eps.clone().flat_map(|e| widen(&e.action)).collect(),
         spec.action_names.len(),
     ));
@@ -219,7 +219,7 @@ pub(super) fn episodes_batch(
         r.meta_file
     });
     // Per-episode stats, flattened as LeRobot does: `stats/<feature>/<stat>`.
-    let per_ep: Vec<Vec<(&'static str, FeatureStats)>> = eps
+    let per_ep: Vec<Vec<(&str, FeatureStats)>> = eps
         .iter()
         .map(|l| {
             let n = l.episode.len();

@@ -515,6 +515,7 @@ fn tiny_dataset(name: &str) -> PathBuf {
         fast_names: vec!["a".into(), "b".into()],
         slow_names: vec!["s".into()],
         action_names: vec!["u".into()],
+        keys: FeatureKeys::default(),
     };
     let mut w = DatasetWriter::open(&root, spec, WriteMode::New).unwrap();
     for n in [3, 4] {
@@ -734,6 +735,7 @@ fn overwrite_swaps_only_when_the_first_episode_is_written() {
         fast_names: vec!["a".into(), "b".into()],
         slow_names: vec!["s".into()],
         action_names: vec!["u".into()],
+        keys: FeatureKeys::default(),
     };
     let entries = |root: &std::path::Path| {
         let mut v: Vec<String> = fs::read_dir(root)

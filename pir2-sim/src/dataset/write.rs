@@ -318,13 +318,13 @@ impl DatasetWriter {
     fn data_batch(&mut self, path: &Path) -> Result<RecordBatch> {
         let spec = &self.spec;
         let f = std::mem::take(&mut self.frames);
-        let mut fields = vec![f32_list_field(KEY_FAST, spec.fast_names.len())];
+        let mut fields = vec![f32_list_field(&spec.keys.fast, spec.fast_names.len())];
         let mut cols = vec![f32_list_array(f.fast, spec.fast_names.len(), path)?];
         if !spec.slow_names.is_empty() {
-            fields.push(f32_list_field(KEY_SLOW, spec.slow_names.len()));
+            fields.push(f32_list_field(&spec.keys.slow, spec.slow_names.len()));
             cols.push(f32_list_array(f.slow, spec.slow_names.len(), path)?);
         }
-        fields.push(f32_list_field(KEY_ACTION, spec.action_names.len()));
+        fields.push(f32_list_field(&spec.keys.action, spec.action_names.len()));
         cols.push(f32_list_array(f.action, spec.action_names.len(), path)?);
         fields.push(Field::new("next.done", DataType::Boolean, true));
         cols.push(Arc::new(BooleanArray::from(f.done)));
@@ -390,7 +390,7 @@ impl DatasetWriter {
             .cloned()
             .collect();
         // Stats over every frame of the dataset, and per episode for the episodes table.
-        let loaded = read_frames(&self.root, &all)?;
+        let loaded = read_frames(&self.root, &all, &self.spec.keys)?;
         if !self.new_rows.is_empty() {
             let ep_path = self.root.join(fill_template(EPISODES_PATH, chunk, file));
             let new_eps = &loaded[self.existing.len()..];
