@@ -229,20 +229,14 @@ pub fn train_policy_resumable<T: Task>(
     };
     let (val_mode, val_timing) = task.validation(policy);
     let val_seed = 1_000_000 + seed;
-    let t0 = Instant::now();
-    let mut loss_sum = 0.0f64;
+    let mut meter = ProgressMeter::new(Instant::now());
     let on_progress = |p: &Progress| {
         on_step(p.step);
-        loss_sum += p.loss as f64;
-        if p.step % 100 == 0 || p.step == p.steps {
+        if let Some((mean_loss, rate)) = meter.step(p.step, p.steps, p.loss, Instant::now()) {
             log_line(&format!(
-                "  {policy:?} seed {seed}: step {}/{}, mean loss {:.4}, {:.1} steps/s",
-                p.step,
-                p.steps,
-                loss_sum / 100.0,
-                p.step as f64 / t0.elapsed().as_secs_f64()
+                "  {policy:?} seed {seed}: step {}/{}, mean loss {mean_loss:.4}, {rate:.1} steps/s",
+                p.step, p.steps,
             ));
-            loss_sum = 0.0;
         }
     };
     let mut scores = Vec::new();
@@ -591,4 +585,78 @@ pub fn write_outputs<T: Task>(
         )?;
     }
     Ok(())
+}
+
+/// The numbers of a training progress line, printed every 100 steps and at the last one:
+/// the mean loss of the steps since the previous line and the steps per second of this
+/// sitting. Both count only the steps this process ran, so a resumed run does not report
+/// the resumed-from steps as done in no time, nor spread a partial window's loss over 100.
+struct ProgressMeter {
+    t0: Instant,
+    first: Option<usize>,
+    loss_sum: f64,
+    in_window: usize,
+}
+
+impl ProgressMeter {
+    fn new(t0: Instant) -> Self {
+        Self {
+            t0,
+            first: None,
+            loss_sum: 0.0,
+            in_window: 0,
+        }
+    }
+
+    /// Record step `step` (1-based) of `steps`; `Some((mean loss, steps/s))` when a line is due.
+    fn step(&mut self, step: usize, steps: usize, loss: f32, now: Instant) -> Option<(f64, f64)> {
+        let first = *self.first.get_or_insert(step);
+        self.loss_sum += loss as f64;
+        self.in_window += 1;
+        if step % 100 != 0 && step != steps {
+            return None;
+        }
+        let mean = self.loss_sum / self.in_window as f64;
+        let done = (step + 1 - first) as f64;
+        let rate = done / now.duration_since(self.t0).as_secs_f64().max(1e-9);
+        self.loss_sum = 0.0;
+        self.in_window = 0;
+        Some((mean, rate))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ProgressMeter;
+    use std::time::{Duration, Instant};
+
+    #[test]
+    fn a_resumed_run_reports_its_own_steps_and_the_mean_of_its_window() {
+        let t0 = Instant::now();
+        let mut m = ProgressMeter::new(t0);
+        // Resumed after step 11150: 50 steps of loss 1.0 reach the line at 11200.
+        for step in 11151..11200 {
+            assert!(m.step(step, 20000, 1.0, t0).is_none());
+        }
+        let (mean, rate) = m
+            .step(11200, 20000, 1.0, t0 + Duration::from_secs(25))
+            .unwrap();
+        assert_eq!(mean, 1.0);
+        assert!((rate - 2.0).abs() < 1e-9, "{rate}");
+        // The next window: 100 steps alternating 0.5 and 1.5 (mean 1.0).
+        for step in 11201..11300 {
+            let loss = if step % 2 == 0 { 0.5 } else { 1.5 };
+            assert!(m.step(step, 20000, loss, t0).is_none());
+        }
+        let (mean, _) = m
+            .step(11300, 20000, 0.5, t0 + Duration::from_secs(75))
+            .unwrap();
+        assert!((mean - 1.0).abs() < 1e-9, "{mean}");
+        // The last step closes a partial window of one step.
+        let (mean, rate) = m
+            .step(11301, 11301, 3.0, t0 + Duration::from_secs(151))
+            .unwrap();
+        assert_eq!(mean, 3.0);
+        assert!((rate - 1.0).abs() < 1e-9, "{rate}");
+    }
 }
