@@ -101,19 +101,13 @@ pub fn gr00t(
     seconds: f64,
 ) -> Result<String> {
     use anyhow::Context;
-    use pir2_backends::gr00t::{
-        load_action_head, load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone,
-    };
+    use pir2_backends::gr00t::{load_action_head, CheckpointFiles, Gr00tBackbone};
     use pir2_runtime::window::LatencyWindow;
     use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
     let ort = ep.ort()?;
     let files = CheckpointFiles::in_dir(checkpoint);
-    let cfg = if files.embodiment.exists() {
-        EmbodimentConfig::load(&files.embodiment)?
-    } else {
-        EmbodimentConfig::xarm6_xhand()
-    };
+    let cfg = files.embodiment_config()?;
     let (mut head, prompt) = load_action_head(checkpoint, task, &ort)
         .with_context(|| format!("loading the action head of {}", checkpoint.display()))?;
     let d = *head.dims();
@@ -191,17 +185,8 @@ pub fn gr00t(
         );
     }
     if files.backbone.exists() {
-        let tok = load_tokenizer(&files, &cfg.prompt)?;
-        let mut bb = Gr00tBackbone::load(
-            &files,
-            &cfg.image,
-            &cfg.prompt,
-            tok.as_ref(),
-            &prompt,
-            None,
-            &ort,
-        )
-        .with_context(|| format!("loading the backbone of {}", checkpoint.display()))?;
+        let (mut bb, _) = Gr00tBackbone::for_checkpoint(checkpoint, task, &ort)
+            .with_context(|| format!("loading the backbone of {}", checkpoint.display()))?;
         let (h, w) = (480usize, 640usize);
         let image: Vec<u8> = (0..h * w * 3).map(|i| (i % 251) as u8).collect();
         let enc = time_calls(seconds, || {

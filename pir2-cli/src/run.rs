@@ -318,14 +318,9 @@ mod imp {
                 dir.display()
             );
         }
-        let files = CheckpointFiles::in_dir(dir);
-        let cfg = if files.embodiment.exists() {
-            EmbodimentConfig::load(&files.embodiment)
-                .with_context(|| format!("checkpoint {}", dir.display()))?
-        } else {
-            EmbodimentConfig::xarm6_xhand()
-        };
-        Ok(cfg)
+        CheckpointFiles::in_dir(dir)
+            .embodiment_config()
+            .with_context(|| format!("checkpoint {}", dir.display()))
     }
 
     /// Check `--task` against the configured tasks (keys or prompts).

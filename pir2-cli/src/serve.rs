@@ -399,30 +399,11 @@ mod imp {
         ep: &crate::ep::EpOptions,
     ) -> Result<SlowPair> {
         use pir2_backends::gr00t::testing::SyntheticCamera;
-        use pir2_backends::gr00t::{
-            load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone,
-        };
+        use pir2_backends::gr00t::Gr00tBackbone;
         let task = task.context("--task is required with --gr00t-checkpoint")?;
         let ort = ep.ort()?;
-        let files = CheckpointFiles::in_dir(dir);
-        let cfg = if files.embodiment.exists() {
-            EmbodimentConfig::load(&files.embodiment)?
-        } else {
-            EmbodimentConfig::xarm6_xhand()
-        };
-        let prompt = cfg.prompt_for(task).to_string();
-        let tok = load_tokenizer(&files, &cfg.prompt)
-            .with_context(|| format!("checkpoint {}", dir.display()))?;
-        let bb = Gr00tBackbone::load(
-            &files,
-            &cfg.image,
-            &cfg.prompt,
-            tok.as_ref(),
-            &prompt,
-            None,
-            &ort,
-        )
-        .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
+        let (bb, prompt) = Gr00tBackbone::for_checkpoint(dir, task, &ort)
+            .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
         let (t, d) = bb.output_shape();
         Ok((
             Box::new(SyntheticCamera::new(clock.clone(), period)),

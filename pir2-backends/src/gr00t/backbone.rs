@@ -344,6 +344,27 @@ impl std::fmt::Debug for Gr00tBackbone {
 }
 
 impl Gr00tBackbone {
+    /// The backbone of the checkpoint in `dir` for `task` (a key of the embodiment's
+    /// `[tasks]`, or a prompt used verbatim): its embodiment, its tokenizer and its
+    /// `backbone.onnx`, without a `D_vl` check against an action head (for a backbone served
+    /// or measured on its own). Returns the backbone and the prompt it encodes.
+    pub fn for_checkpoint(dir: &Path, task: &str, opts: &OrtOptions) -> Result<(Self, String)> {
+        let files = CheckpointFiles::in_dir(dir);
+        let cfg = files.embodiment_config()?;
+        let prompt = cfg.prompt_for(task).to_string();
+        let tok = super::tokenizer::load_tokenizer(&files, &cfg.prompt)?;
+        let bb = Self::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            tok.as_ref(),
+            &prompt,
+            None,
+            opts,
+        )?;
+        Ok((bb, prompt))
+    }
+
     /// Load `backbone.onnx` (+ `vl_self_attention.onnx` if it exists, + `vlln` from the side
     /// weights if present) and tokenise `prompt`. `d_vl`, when given (the DiT's `D_vl`), must
     /// match the files.

@@ -636,4 +636,14 @@ impl CheckpointFiles {
             vocab: dir.join("vocab.txt"),
         }
     }
+
+    /// The checkpoint's embodiment: its `embodiment.toml`, or the built-in xArm6 + XHand
+    /// when the file is absent (a file that exists but does not parse is an error).
+    pub fn embodiment_config(&self) -> Result<EmbodimentConfig> {
+        if self.embodiment.exists() {
+            EmbodimentConfig::load(&self.embodiment)
+        } else {
+            Ok(EmbodimentConfig::xarm6_xhand())
+        }
+    }
 }

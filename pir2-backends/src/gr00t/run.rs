@@ -238,11 +238,7 @@ pub fn load_action_head(
     ort: &OrtOptions,
 ) -> Result<(Gr00tActionHead, String)> {
     let files = CheckpointFiles::in_dir(checkpoint_dir);
-    let cfg = if files.embodiment.exists() {
-        EmbodimentConfig::load(&files.embodiment)?
-    } else {
-        EmbodimentConfig::xarm6_xhand()
-    };
+    let cfg = files.embodiment_config()?;
     cfg.validate()?;
     let prompt = cfg.prompt_for(task).to_string();
     if prompt.trim().is_empty() {
@@ -288,8 +284,7 @@ where
     let files = CheckpointFiles::in_dir(checkpoint_dir);
     let cfg = match opts.embodiment {
         Some(c) => c,
-        None if files.embodiment.exists() => EmbodimentConfig::load(&files.embodiment)?,
-        None => EmbodimentConfig::xarm6_xhand(),
+        None => files.embodiment_config()?,
     };
     cfg.validate()?;
     let run_mode = cfg.policy.mode(&opts.mode)?;
