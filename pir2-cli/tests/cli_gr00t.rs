@@ -28,26 +28,31 @@ fn run(ck: &Path, extra: &[&str]) -> (Output, String) {
     (out, text)
 }
 
+/// `pir2 run` of `task` on the in-process emulators for `ticks` ticks, with `extra` flags.
+fn emulated(ck: &Path, task: &str, ticks: u32, extra: &[&str]) -> (Output, String) {
+    let ticks = ticks.to_string();
+    let mut args = vec!["--task", task, "--emulate", "--ticks", &ticks];
+    args.extend_from_slice(extra);
+    run(ck, &args)
+}
+
+/// [`emulated`] with `--json`: the run must succeed; returns its JSON report and output.
+fn emulated_json(ck: &Path, task: &str, ticks: u32, extra: &[&str]) -> (serde_json::Value, String) {
+    let json = ck.join("run.json");
+    let _ = std::fs::remove_file(&json);
+    let mut args = extra.to_vec();
+    args.extend_from_slice(&["--json", json.to_str().unwrap()]);
+    let (out, text) = emulated(ck, task, ticks, &args);
+    assert!(out.status.success(), "{extra:?}: {text}");
+    let v = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    (v, text)
+}
+
 #[test]
 fn run_gr00t_on_the_emulators_end_to_end() {
     let ck = checkpoint("e2e", "");
-    let json = ck.join("run.json");
-    let (out, text) = run(
-        &ck,
-        &[
-            "--task",
-            "catch the book",
-            "--emulate",
-            "--ticks",
-            "50",
-            "--json",
-            json.to_str().unwrap(),
-        ],
-    );
+    let (v, text) = emulated_json(&ck, "catch the book", 50, &[]);
     eprintln!("{text}");
-    assert!(out.status.success(), "{text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["prompt"], "catch the book");
     assert_eq!(v["trace"]["ticks"], 50);
     assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1);
@@ -67,22 +72,7 @@ fn run_gr00t_uses_the_checkpoints_tokenizer_json() {
 
     let ck = checkpoint("bpe", "");
     add_bpe_tokenizer(&ck).unwrap();
-    let json = ck.join("run.json");
-    let (out, text) = run(
-        &ck,
-        &[
-            "--task",
-            "catch_book",
-            "--emulate",
-            "--ticks",
-            "25",
-            "--json",
-            json.to_str().unwrap(),
-        ],
-    );
-    assert!(out.status.success(), "{text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let (v, _) = emulated_json(&ck, "catch_book", 25, &[]);
     let slow = v["slow"].as_str().unwrap();
     assert!(
         slow.contains("tokenizer.json") && slow.contains("chat template"),
@@ -91,7 +81,7 @@ fn run_gr00t_uses_the_checkpoints_tokenizer_json() {
     assert_eq!(v["trace"]["ticks"], 25);
     // A broken tokenizer.json stops the run before the robot moves, naming the file.
     std::fs::write(ck.join("tokenizer.json"), "not json").unwrap();
-    let (out, text) = run(&ck, &["--task", "catch_book", "--emulate", "--ticks", "5"]);
+    let (out, text) = emulated(&ck, "catch_book", 5, &[]);
     assert!(!out.status.success());
     assert!(
         text.contains("tokenizer.json") && text.contains("not a Hugging Face tokenizer"),
@@ -104,14 +94,14 @@ fn run_gr00t_uses_the_checkpoints_tokenizer_json() {
 fn run_gr00t_errors_name_the_problem() {
     let bad = checkpoint("bad", "wrong_name");
     // A graph that breaks the export contract: the file and the tensor are named.
-    let (out, text) = run(&bad, &["--task", "catch_book", "--emulate", "--ticks", "5"]);
+    let (out, text) = emulated(&bad, "catch_book", 5, &[]);
     assert!(!out.status.success());
     assert!(
         text.contains("dit.onnx") && text.contains("sa_emb"),
         "{text}"
     );
     // An unknown task lists the known ones.
-    let (out, text) = run(&bad, &["--task", "juggle", "--emulate", "--ticks", "5"]);
+    let (out, text) = emulated(&bad, "juggle", 5, &[]);
     assert!(!out.status.success());
     assert!(
         text.contains("unknown task") && text.contains("catch_book"),
@@ -186,14 +176,13 @@ fn run_gr00t_takes_the_embodiments_safety_table() {
     let toml_path = ck.join("embodiment.toml");
     let original = std::fs::read_to_string(&toml_path).unwrap();
     assert!(original.contains("slow_grace_ms = 200.0"), "{original}");
-    let args = ["--task", "catch_book", "--emulate", "--ticks", "25"];
 
     std::fs::write(
         &toml_path,
         original.replace("slow_grace_ms = 200.0", "slow_grace_ms = 0.0"),
     )
     .unwrap();
-    let (out, text) = run(&ck, &args);
+    let (out, text) = emulated(&ck, "catch_book", 25, &[]);
     assert!(!out.status.success());
     assert!(text.contains("safety.slow_grace_ms"), "{text}");
 
@@ -202,7 +191,7 @@ fn run_gr00t_takes_the_embodiments_safety_table() {
         format!("{original}\n[safety.limits.hand_joints]\nmax_velocity = -1.0\n"),
     )
     .unwrap();
-    let (out, text) = run(&ck, &args);
+    let (out, text) = emulated(&ck, "catch_book", 25, &[]);
     assert!(!out.status.success());
     assert!(
         text.contains("safety.limits.hand_joints.max_velocity"),
@@ -214,7 +203,7 @@ fn run_gr00t_takes_the_embodiments_safety_table() {
         format!("{original}\n[safety.limits.wrist]\nmax_velocity = 1.0\n"),
     )
     .unwrap();
-    let (out, text) = run(&ck, &args);
+    let (out, text) = emulated(&ck, "catch_book", 25, &[]);
     assert!(!out.status.success());
     assert!(text.contains("safety.limits.wrist"), "{text}");
 
@@ -226,7 +215,7 @@ fn run_gr00t_takes_the_embodiments_safety_table() {
         ),
     )
     .unwrap();
-    let (out, text) = run(&ck, &args);
+    let (out, text) = emulated(&ck, "catch_book", 25, &[]);
     assert!(out.status.success(), "{text}");
     assert!(text.contains("ticks 25"), "{text}");
     std::fs::remove_dir_all(&ck).ok();
@@ -286,24 +275,10 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
         ),
     ] {
         trained_as(trained);
-        let json = ck.join(format!("{mode}.json"));
-        let mut args = vec![
-            "--task",
-            "catch_book",
-            "--emulate",
-            "--ticks",
-            "40",
-            "--mode",
-            mode,
-            "--json",
-            json.to_str().unwrap(),
-        ];
+        let mut args = vec!["--mode", mode];
         args.extend_from_slice(extra);
-        let (out, text) = run(&ck, &args);
-        assert!(out.status.success(), "{mode}: {text}");
+        let (v, text) = emulated_json(&ck, "catch_book", 40, &args);
         assert!(text.contains(&format!("mode: {says}")), "{mode}: {text}");
-        let v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
         assert_eq!(v["mode"]["kind"], kind, "{mode}");
         assert_eq!(v["trace"]["ticks"], 40, "{mode}");
         assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1, "{mode}");
@@ -314,18 +289,7 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
     }
     // A mode the head was not trained for: one error naming both, nothing started.
     trained_as("pi_r2");
-    let (out, text) = run(
-        &ck,
-        &[
-            "--task",
-            "catch_book",
-            "--emulate",
-            "--ticks",
-            "5",
-            "--mode",
-            "rtc",
-        ],
-    );
+    let (out, text) = emulated(&ck, "catch_book", 5, &["--mode", "rtc"]);
     assert!(!out.status.success());
     assert!(
         text.contains("mode rtc") && text.contains("trained = \"pi_r2\""),
@@ -343,18 +307,7 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
 fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay() {
     let ck = checkpoint("ep", "");
     for ep in ["cuda", "tensorrt"] {
-        let (out, text) = run(
-            &ck,
-            &[
-                "--task",
-                "catch the book",
-                "--emulate",
-                "--ticks",
-                "5",
-                "--ep",
-                ep,
-            ],
-        );
+        let (out, text) = emulated(&ck, "catch the book", 5, &["--ep", ep]);
         assert!(!out.status.success(), "{ep}: {text}");
         let provider = if ep == "cuda" {
             "CUDAExecutionProvider"
@@ -404,26 +357,12 @@ fn a_replayed_frame_folder_drives_a_run_end_to_end() {
     let ck = checkpoint("frames", "");
     let frames =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/data/gr00t_image");
-    let json = ck.join("run.json");
-    let (out, text) = run(
+    let (v, _) = emulated_json(
         &ck,
-        &[
-            "--task",
-            "catch the book",
-            "--emulate",
-            "--ticks",
-            "40",
-            "--frames",
-            frames.to_str().unwrap(),
-            "--frame-ms",
-            "20",
-            "--json",
-            json.to_str().unwrap(),
-        ],
+        "catch the book",
+        40,
+        &["--frames", frames.to_str().unwrap(), "--frame-ms", "20"],
     );
-    assert!(out.status.success(), "{text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert!(
         v["slow"].as_str().unwrap().contains("4 recorded frames"),
         "{v}"
@@ -432,17 +371,11 @@ fn a_replayed_frame_folder_drives_a_run_end_to_end() {
     assert_eq!(v["trace"]["ticks"], 40);
     let empty = ck.join("no-frames");
     std::fs::create_dir_all(&empty).unwrap();
-    let (out, text) = run(
+    let (out, text) = emulated(
         &ck,
-        &[
-            "--task",
-            "catch the book",
-            "--emulate",
-            "--ticks",
-            "5",
-            "--frames",
-            empty.to_str().unwrap(),
-        ],
+        "catch the book",
+        5,
+        &["--frames", empty.to_str().unwrap()],
     );
     assert!(!out.status.success(), "{text}");
     assert!(
