@@ -3,6 +3,9 @@
 //! server is killed and restarted mid-run; without a server the eval fails with a clear
 //! error. With feature `gr00t` too: `pir2 serve slow` (GR00T ONNX backbone) feeding
 //! `pir2 run gr00t-xarm-xhand --emulate --remote-slow`.
+//!
+//! One file on purpose: every test starts the same binary pair (server and client) with the
+//! shared helpers at its top.
 #![cfg(feature = "remote")]
 
 use std::io::{BufRead, BufReader};

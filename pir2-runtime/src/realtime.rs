@@ -20,6 +20,10 @@
 //! it is seen, before the workers are wound down. A tick that starts more than one period
 //! late sends one action and restarts the schedule from there (counted in
 //! [`RunMetrics::late_ticks`]): missed deadlines are skipped, never fired back to back.
+//!
+//! One file on purpose: the control thread, the two workers and [`run`]'s start and wind-down
+//! share one stop-and-panic protocol (who stops the actuator, in which phase, and which error
+//! ends the run), which is only checkable when read together.
 
 use std::future::Future;
 use std::panic::{catch_unwind, AssertUnwindSafe};

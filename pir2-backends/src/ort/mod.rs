@@ -33,6 +33,10 @@
 //! Sessions are single-threaded by default (`intra_op = inter_op = 1`, sequential execution):
 //! one NFE at batch 1 is latency-bound, and the control loop's other threads must not be
 //! starved by a thread pool spinning on the same cores.
+//!
+//! One file on purpose (execution providers are in `provider.rs`): loading the library, the
+//! session options, the contract check of a graph's inputs and outputs and the binding of
+//! [`OrtModel`]'s inputs read the same tensor list and must change together.
 
 use std::ffi::{c_char, CStr};
 use std::path::{Path, PathBuf};

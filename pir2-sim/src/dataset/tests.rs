@@ -1,4 +1,7 @@
 //! Collection, writing, resuming and reading back, on the ball-on-plate task.
+//!
+//! One file on purpose: the collect, write, stats and read modules are tested through the same
+//! small episodes and round trips (a dataset written by one module is read back by another).
 
 use arrow_array::cast::AsArray;
 use arrow_array::types::Float64Type;
