@@ -50,7 +50,7 @@ fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<()> {
 }
 
 /// Write `bytes` to a new file `path` and fsync it.
-fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
+pub(crate) fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
     use std::io::Write;
     let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
     f.write_all(bytes).map_err(|e| Error::io(path, e))?;
@@ -101,12 +101,19 @@ pub fn save<'a>(
     stats: &Stats,
     tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
 ) -> Result<()> {
+    create_dir_durably(dir, |tmp| write_files(tmp, config, stats, tensors))
+}
+
+/// Create the new directory `dir` holding the files `fill` writes (its parent is created if
+/// needed; [`Error::CheckpointExists`] if `dir` exists). `fill` writes into a temporary
+/// sibling of our own (never another writer's) with [`write_durable`]; the directory is then
+/// fsynced, renamed into place and the parent fsynced. A crash leaves either no `dir` or a
+/// whole one, a failed `fill` leaves nothing behind, and two saves never share a temp
+/// directory.
+pub(crate) fn create_dir_durably(dir: &Path, fill: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
     if dir.exists() {
         return Err(Error::CheckpointExists(dir.to_owned()));
     }
-    // Write into a temp sibling of our own (never another writer's), fsync every file and
-    // the directory, then rename into place and fsync the parent: a crash leaves either no
-    // checkpoint or a whole one, and two saves never share a temp directory.
     let parent = match dir.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_owned(),
         _ => PathBuf::from("."),
@@ -114,7 +121,7 @@ pub fn save<'a>(
     std::fs::create_dir_all(&parent).map_err(|e| Error::io(&parent, e))?;
     let tmp = unique_temp(dir);
     std::fs::create_dir(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    let written = write_files(&tmp, config, stats, tensors).and_then(|()| sync_dir(&tmp));
+    let written = fill(&tmp).and_then(|()| sync_dir(&tmp));
     let renamed = written.and_then(|()| {
         if dir.exists() {
             return Err(Error::CheckpointExists(dir.to_owned()));
@@ -128,17 +135,25 @@ pub fn save<'a>(
     sync_dir(&parent)
 }
 
-fn write_files<'a>(
-    tmp: &Path,
+/// The files of a checkpoint (config, stats, weights) in the existing directory `dir`.
+pub(crate) fn write_files<'a>(
+    dir: &Path,
     config: &Config,
     stats: &Stats,
     tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
 ) -> Result<()> {
-    write_json(&tmp.join(CONFIG_FILE), config)?;
-    write_json(&tmp.join(STATS_FILE), stats)?;
-    let wpath = tmp.join(WEIGHTS_FILE);
+    write_json(&dir.join(CONFIG_FILE), config)?;
+    write_json(&dir.join(STATS_FILE), stats)?;
+    write_tensors(&dir.join(WEIGHTS_FILE), tensors)
+}
+
+/// Write f32 tensors (name, shape, data) as one fsynced safetensors file.
+pub(crate) fn write_tensors<'a>(
+    path: &Path,
+    tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
+) -> Result<()> {
     let st_err = |e: safetensors::SafeTensorError| Error::Safetensors {
-        path: wpath.clone(),
+        path: path.to_owned(),
         message: e.to_string(),
     };
     let owned: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
@@ -153,7 +168,7 @@ fn write_files<'a>(
         ));
     }
     let bytes = safetensors::serialize(views, None).map_err(st_err)?;
-    write_durable(&wpath, &bytes)
+    write_durable(path, &bytes)
 }
 
 impl Checkpoint {

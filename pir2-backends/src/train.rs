@@ -47,7 +47,7 @@ use batcher::Batcher;
 use data::check_dataset;
 pub use data::{compute_stats, Dataset, Episode};
 use optim::{clip_grad_store, clip_grads, AdamW};
-use state::{latest_step_checkpoint, remove_interrupted, write_durable, State, INTERRUPTED_PREFIX};
+use state::{latest_step_checkpoint, remove_interrupted, State, INTERRUPTED_PREFIX};
 
 // ---------------------------------------------------------------- config
 
@@ -443,7 +443,7 @@ impl<'a> Trainer<'a> {
                             if stale {
                                 model.set_host_params(&st.params)?;
                             }
-                            st.save_step(model, d, &p, batcher.rng.state(), &names, &cfg)?;
+                            st.save_step(model, &p, batcher.rng.state(), &names, &cfg)?;
                         }
                         resume_point = Some(p);
                     }
@@ -598,7 +598,7 @@ impl<'a> Trainer<'a> {
             if let (Some(d), Some(p)) = (out_dir.as_deref(), &step_dir) {
                 // Flush the log first: a resumed run appends after what is on disk.
                 log_line(None, &mut self)?;
-                st.save_step(model, d, p, batcher.rng.state(), &names, &cfg)?;
+                st.save_step(model, p, batcher.rng.state(), &names, &cfg)?;
                 if score.is_some() && st.report.best.as_ref().is_some_and(|b| b.step == done) {
                     let path = d.join("best.json");
                     let text = serde_json::to_string_pretty(&st.report.best).map_err(|e| {
@@ -607,7 +607,7 @@ impl<'a> Trainer<'a> {
                             message: e.to_string(),
                         }
                     })?;
-                    write_durable(&path, text.as_bytes())?;
+                    crate::checkpoint::write_durable(&path, text.as_bytes())?;
                 }
             }
             if done == cfg.steps {

@@ -248,6 +248,11 @@ impl CandleModel {
     /// Save into a new directory (`config.json`, `stats.json`, `model.safetensors`).
     /// Fails if `dir` exists.
     pub fn save(&self, dir: &Path) -> Result<()> {
+        checkpoint::create_dir_durably(dir, |tmp| self.write_files(tmp))
+    }
+
+    /// The checkpoint's files (config, stats, weights) in the existing directory `dir`.
+    pub(crate) fn write_files(&self, dir: &Path) -> Result<()> {
         let mut owned = Vec::with_capacity(self.vars.len());
         for (n, v) in &self.vars {
             owned.push((
@@ -256,7 +261,7 @@ impl CandleModel {
                 v.flatten_all()?.to_vec1::<f32>()?,
             ));
         }
-        checkpoint::save(
+        checkpoint::write_files(
             dir,
             &self.config,
             &self.stats,

@@ -32,80 +32,44 @@ impl State {
     pub(super) fn save_step(
         &self,
         model: &CandleModel,
-        out: &Path,
         dir: &Path,
         rng: [u64; 4],
         names: &[String],
         cfg: &TrainConfig,
     ) -> Result<()> {
-        if dir.exists() {
-            return Err(Error::CheckpointExists(dir.to_owned()));
-        }
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos())
-            .unwrap_or(0);
-        let leaf = dir
-            .file_name()
-            .map(|f| f.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let tmp = out.join(format!(".{leaf}.tmp-{}-{nanos}", std::process::id()));
-        model.save(&tmp)?;
-        let meta = StateMeta {
-            step: self.step,
-            adam_t: self.opt.t,
-            rng,
-            best_score: self.best.as_ref().map(|b| b.0),
-            config: cfg.clone(),
-            report: self.report.clone(),
-        };
-        let path = tmp.join(TRAIN_STATE_FILE);
-        let text = serde_json::to_string(&meta).map_err(|e| Error::Format {
-            path: path.clone(),
-            message: e.to_string(),
-        })?;
-        write_durable(&path, text.as_bytes())?;
-        let mut tensors: Vec<(String, &[f32])> = Vec::new();
-        for (i, n) in names.iter().enumerate() {
-            tensors.push((format!("param/{n}"), &self.params[i]));
-            tensors.push((format!("adam_m/{n}"), &self.opt.m[i]));
-            tensors.push((format!("adam_v/{n}"), &self.opt.v[i]));
-            if let Some(e) = &self.ema {
-                tensors.push((format!("ema/{n}"), &e[i]));
+        crate::checkpoint::create_dir_durably(dir, |tmp| {
+            model.write_files(tmp)?;
+            let meta = StateMeta {
+                step: self.step,
+                adam_t: self.opt.t,
+                rng,
+                best_score: self.best.as_ref().map(|b| b.0),
+                config: cfg.clone(),
+                report: self.report.clone(),
+            };
+            let path = tmp.join(TRAIN_STATE_FILE);
+            let text = serde_json::to_string(&meta).map_err(|e| Error::Format {
+                path: path.clone(),
+                message: e.to_string(),
+            })?;
+            crate::checkpoint::write_durable(&path, text.as_bytes())?;
+            let mut tensors: Vec<(String, &[f32])> = Vec::new();
+            for (i, n) in names.iter().enumerate() {
+                tensors.push((format!("param/{n}"), &self.params[i]));
+                tensors.push((format!("adam_m/{n}"), &self.opt.m[i]));
+                tensors.push((format!("adam_v/{n}"), &self.opt.v[i]));
+                if let Some(e) = &self.ema {
+                    tensors.push((format!("ema/{n}"), &e[i]));
+                }
+                if let Some((_, b)) = &self.best {
+                    tensors.push((format!("best/{n}"), &b[i]));
+                }
             }
-            if let Some((_, b)) = &self.best {
-                tensors.push((format!("best/{n}"), &b[i]));
-            }
-        }
-        let tpath = tmp.join(TRAIN_TENSORS_FILE);
-        let st_err = |e: safetensors::SafeTensorError| Error::Safetensors {
-            path: tpath.clone(),
-            message: e.to_string(),
-        };
-        let bytes: Vec<(String, Vec<u8>)> = tensors
-            .iter()
-            .map(|(n, d)| (n.clone(), d.iter().flat_map(|v| v.to_le_bytes()).collect()))
-            .collect();
-        let mut views = Vec::with_capacity(bytes.len());
-        for ((n, b), (_, d)) in bytes.iter().zip(&tensors) {
-            views.push((
-                n.clone(),
-                safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![d.len()], b)
-                    .map_err(st_err)?,
-            ));
-        }
-        let data = safetensors::serialize(views, None).map_err(st_err)?;
-        write_durable(&tpath, &data)?;
-        // The model's own files (written by `CandleModel::save`), then the directories.
-        for f in std::fs::read_dir(&tmp)
-            .map_err(|e| Error::io(&tmp, e))?
-            .flatten()
-        {
-            sync_path(&f.path())?;
-        }
-        sync_path(&tmp)?;
-        std::fs::rename(&tmp, dir).map_err(|e| Error::io(dir, e))?;
-        sync_path(out)
+            crate::checkpoint::write_tensors(
+                &tmp.join(TRAIN_TENSORS_FILE),
+                tensors.into_iter().map(|(n, d)| (n, vec![d.len()], d)),
+            )
+        })
     }
 
     /// Read the training state of the step checkpoint `dir`; returns the batch generator.
@@ -175,20 +139,6 @@ impl State {
             message: "all-zero random state".into(),
         })
     }
-}
-
-/// Write `bytes` to `path` and fsync it.
-pub(super) fn write_durable(path: &Path, bytes: &[u8]) -> Result<()> {
-    let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-    f.write_all(bytes).map_err(|e| Error::io(path, e))?;
-    f.sync_all().map_err(|e| Error::io(path, e))
-}
-
-/// fsync a file or a directory.
-pub(super) fn sync_path(path: &Path) -> Result<()> {
-    std::fs::File::open(path)
-        .and_then(|f| f.sync_all())
-        .map_err(|e| Error::io(path, e))
 }
 
 /// The step checkpoint with the highest step that carries a training state, if any.
