@@ -35,8 +35,14 @@ fn fixture(name: &str, variant: &str) -> PathBuf {
 }
 
 fn load_head(dir: &Path) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
+    load_head_as(dir, embodiment())
+}
+
+fn load_head_as(
+    dir: &Path,
+    cfg: pir2_backends::gr00t::EmbodimentConfig,
+) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
     let files = CheckpointFiles::in_dir(dir);
-    let cfg = embodiment();
     let norm = Normalizer::load(&files.statistics, &cfg)?;
     Gr00tActionHead::load(&files, &cfg, norm, 3, &OrtOptions::default())
 }
@@ -69,12 +75,52 @@ fn call(head: &mut Gr00tActionHead, tau: &[f32], d_vis: u32, vl: &[f32]) -> Vec<
     v
 }
 
+/// A state group with GR00T's sin/cos encoding enters the model twice as wide: the head's
+/// state width grows by the group's width, the output changes, and a graph whose padded
+/// state width is too small for the encoded state is refused naming both widths.
+#[test]
+fn a_sin_cos_state_group_widens_the_models_state_and_is_checked_against_the_graph() {
+    use pir2_backends::gr00t::Norm;
+    let dir = fixture("sincos", "");
+    let vl: Vec<f32> = (0..8 * D_VL).map(|i| (i as f32 * 0.37).cos()).collect();
+    let tau: Vec<f32> = (0..50).map(|p| 1.0 - p as f32 / 50.0).collect();
+    let layout = || pir2_backends::gr00t::VlLayout {
+        image_mask: (0..8).map(|i| i < 4).collect(),
+        attention_mask: vec![true; 8],
+    };
+    let mut plain = load_head(&dir).unwrap();
+    plain.set_vl_layout(layout());
+    let v_plain = call(&mut plain, &tau, 0, &vl);
+
+    let mut cfg = embodiment();
+    assert_eq!(cfg.state[0].name, "arm_joints");
+    cfg.state[0].norm = Norm::SinCos;
+    let mut sc = load_head_as(&dir, cfg.clone()).unwrap();
+    assert_eq!(sc.dims().state_dim, 45);
+    assert_eq!(sc.dims().encoded_state_dim, 51);
+    sc.set_vl_layout(layout());
+    let v_sc = call(&mut sc, &tau, 0, &vl);
+    assert!(v_sc.iter().all(|x| x.is_finite()));
+    assert_ne!(v_plain, v_sc, "the encoding did not reach the state tokens");
+
+    // Every group encoded: 90 values per step, more than the graph's 64.
+    for g in cfg.state.iter_mut() {
+        g.norm = Norm::SinCos;
+    }
+    let e = load_head_as(&dir, cfg).unwrap_err().to_string();
+    assert!(
+        e.contains("max_state_dim >= 90") && e.contains("after sin/cos encoding; 45 raw"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn delay_embedding_row_and_per_position_timesteps_reach_the_output() {
     let dir = fixture("head", "");
     let mut head = load_head(&dir).unwrap();
     assert_eq!(head.dims().d_in, D_IN);
-    assert_eq!(head.dims().max_state_dim, 48);
+    assert_eq!(head.dims().max_state_dim, 64);
     head.set_vl_layout(pir2_backends::gr00t::VlLayout {
         image_mask: (0..8).map(|i| i < 4).collect(),
         attention_mask: vec![true; 8],

@@ -27,13 +27,34 @@ pub enum CallPolicy {
     },
 }
 
-/// Affine map from model action space to robot commands: `u = x·scale + offset`.
+/// Affine map from model action space to robot commands: `u = c(x)·scale + offset`, where
+/// `c` clips `x` to `[-1, 1]` on the dimensions marked in `clip` (a min/max-normalised action,
+/// as GR00T decodes it) and is the identity elsewhere.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct OutputMap {
     /// Per-dimension scale (empty = 1).
     pub scale: Vec<f32>,
     /// Per-dimension offset (empty = 0).
     pub offset: Vec<f32>,
+    /// Per-dimension clip to `[-1, 1]` before the scale (empty = none).
+    #[serde(default)]
+    pub clip: Vec<bool>,
+}
+
+impl OutputMap {
+    /// Map one action `x` into `out`.
+    pub fn apply(&self, x: &[f32], out: &mut [f32]) {
+        for (j, (o, &v)) in out.iter_mut().zip(x).enumerate() {
+            let v = if self.clip.get(j).copied().unwrap_or(false) {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
+            };
+            let s = self.scale.get(j).copied().unwrap_or(1.0);
+            let b = self.offset.get(j).copied().unwrap_or(0.0);
+            *o = v * s + b;
+        }
+    }
 }
 
 /// Configuration of the control side.
@@ -89,6 +110,12 @@ impl ControlState {
                     v.len()
                 )));
             }
+        }
+        let clip = cfg.output.clip.len();
+        if clip != 0 && clip != a {
+            return Err(Error::Config(format!(
+                "output.clip has {clip} entries, expected action_dim = {a}"
+            )));
         }
         if let CallPolicy::Sync { h: he } = cfg.policy {
             if he == 0 || he > h {
@@ -209,13 +236,7 @@ impl ControlState {
             self.executed_since_swap += 1;
         }
         self.tick += 1;
-        let a = self.cfg.action_dim;
-        let (sc, of) = (&self.cfg.output.scale, &self.cfg.output.offset);
-        for j in 0..a {
-            let s = if sc.is_empty() { 1.0 } else { sc[j] };
-            let o = if of.is_empty() { 0.0 } else { of[j] };
-            self.out[j] = self.last[j] * s + o;
-        }
+        self.cfg.output.apply(&self.last, &mut self.out);
         &self.out
     }
 

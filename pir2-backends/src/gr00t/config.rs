@@ -7,14 +7,20 @@
 //!
 //! Statistics come from the checkpoint's `statistics.json` in GR00T's layout
 //! `{embodiment_tag: {"state"|"action": {group: {"min","max","mean","std","q01","q99": [..]}}}}`.
-//! Per group, [`Norm`] picks the map (GR00T's `StateActionProcessor`):
-//! - `min_max`: `2·(x − min)/max(max − min, 1e-8) − 1`, clipped to `[-1, 1]` for states;
+//! Per group, [`Norm`] picks the map, as GR00T's `StateActionProcessor` (with its default
+//! `clip_outliers`) applies it:
+//! - `min_max`: `2·(x − min)/(max − min) − 1`, clipped to `[-1, 1]`; a dimension whose
+//!   `max` and `min` are equal within `1e-8 + 1e-5·|min|` (numpy's `isclose`) maps to 0.
+//!   Back: `(clip(x, −1, 1) + 1)/2 · (max − min) + min`;
 //! - `q01_q99`: the same with `q01`/`q99` in place of `min`/`max`;
-//! - `mean_std`: `(x − mean)/std` (`std` floored at `1e-8`);
-//! - `none`: identity.
+//! - `mean_std`: `(x − mean)/std`, back `x·std + mean`; a dimension with `std = 0` passes
+//!   through unchanged both ways;
+//! - `none`: identity;
+//! - `sin_cos` (state only): `[sin x₁ … sin x_D, cos x₁ … cos x_D]`, so the model's state is
+//!   wider than the robot's ([`EmbodimentConfig::encoded_state_dim`]).
 //!
-//! Actions are denormalised by the runtime's output map (`scale·x + offset`), see
-//! [`Normalizer::action_output_map`].
+//! Actions are denormalised by the runtime's output map (`clip(x)·scale + offset`, the clip
+//! for the min/max and percentile groups), see [`Normalizer::action_output_map`].
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -56,6 +62,10 @@ pub enum Norm {
     MeanStd,
     /// No normalisation.
     None,
+    /// State groups only: GR00T's sin/cos encoding of angles. A group of width `D` enters
+    /// the model as `2·D` values, `[sin x₁ … sin x_D, cos x₁ … cos x_D]`, with no statistics
+    /// and no normalisation (GR00T's `sin_cos_embedding_keys`).
+    SinCos,
 }
 
 /// One named slice of the state or action vector.
@@ -414,6 +424,21 @@ impl EmbodimentConfig {
         self.state.iter().map(|g| g.dim).sum()
     }
 
+    /// State width as the model sees it: [`EmbodimentConfig::state_dim`] with every
+    /// [`Norm::SinCos`] group counted twice.
+    pub fn encoded_state_dim(&self) -> usize {
+        self.state
+            .iter()
+            .map(|g| {
+                if g.norm == Norm::SinCos {
+                    2 * g.dim
+                } else {
+                    g.dim
+                }
+            })
+            .sum()
+    }
+
     /// Action width (sum of the action groups).
     pub fn action_dim(&self) -> usize {
         self.action.iter().map(|g| g.dim).sum()
@@ -473,6 +498,15 @@ impl EmbodimentConfig {
             for g in groups.iter() {
                 if g.dim == 0 {
                     return bad(format!("{what} group `{}` has dim 0", g.name));
+                }
+            }
+            if what == "action" {
+                if let Some(g) = groups.iter().find(|g| g.norm == Norm::SinCos) {
+                    return bad(format!(
+                        "action group `{}`: norm = \"sin_cos\" is a state encoding \
+                         (it cannot be decoded back into actions)",
+                        g.name
+                    ));
                 }
             }
             if groups.len() > MAX_SIZE || groups.iter().any(|g| g.dim > MAX_SIZE) {

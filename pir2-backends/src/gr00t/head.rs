@@ -52,6 +52,9 @@ pub struct HeadDims {
     pub max_action_dim: usize,
     /// Robot state width.
     pub state_dim: usize,
+    /// State width the model sees per history step (`state_dim` with the sin/cos encoded
+    /// groups counted twice).
+    pub encoded_state_dim: usize,
     /// Padded state width per history step.
     pub max_state_dim: usize,
     /// History length.
@@ -125,14 +128,19 @@ impl Gr00tActionHead {
             tensor: tensor.to_string(),
             problem,
         };
-        if s_in % cfg.n_obs != 0 || s_in / cfg.n_obs < cfg.state_dim() {
+        if s_in % cfg.n_obs != 0 || s_in / cfg.n_obs < cfg.encoded_state_dim() {
             return Err(contract_err(
                 &files.state_encoder,
                 "state",
                 format!(
-                    "last dimension {s_in} must be n_obs ({}) × max_state_dim with max_state_dim >= {} (the state width)",
+                    "last dimension {s_in} must be n_obs ({}) × max_state_dim with max_state_dim >= {} (the state width{})",
                     cfg.n_obs,
-                    cfg.state_dim()
+                    cfg.encoded_state_dim(),
+                    if cfg.encoded_state_dim() != cfg.state_dim() {
+                        format!(" after sin/cos encoding; {} raw", cfg.state_dim())
+                    } else {
+                        String::new()
+                    }
                 ),
             ));
         }
@@ -151,6 +159,7 @@ impl Gr00tActionHead {
             action_dim: cfg.action_dim(),
             max_action_dim: a_max,
             state_dim: cfg.state_dim(),
+            encoded_state_dim: cfg.encoded_state_dim(),
             max_state_dim: s_in / cfg.n_obs,
             n_obs: cfg.n_obs,
             d_in: need("D_in"),
@@ -159,11 +168,14 @@ impl Gr00tActionHead {
             d_vis_max: cfg.d_vis_max,
             vl_tokens: b.get("T"),
         };
-        if norm.state_dim() != dims.state_dim {
+        if norm.state_dim() != dims.state_dim || norm.encoded_state_dim() != dims.encoded_state_dim
+        {
             return Err(Gr00tError::Config(format!(
-                "normaliser has {} state dims, the embodiment {}",
+                "normaliser has {} state dims ({} encoded), the embodiment {} ({})",
                 norm.state_dim(),
-                dims.state_dim
+                norm.encoded_state_dim(),
+                dims.state_dim,
+                dims.encoded_state_dim
             )));
         }
         let side = SideWeights::load(&files.weights)?;
@@ -290,6 +302,7 @@ impl Gr00tActionHead {
             action_dim: a,
             max_action_dim: a_max,
             state_dim: sd,
+            encoded_state_dim: esd,
             max_state_dim: msd,
             n_obs,
             d_in,
@@ -335,7 +348,8 @@ impl Gr00tActionHead {
         for bi in 0..b {
             for k in 0..n_obs {
                 let src = &input.obs_fast[(bi * n_obs + k) * sd..(bi * n_obs + k + 1) * sd];
-                let dst = &mut self.state[(bi * n_obs + k) * msd..(bi * n_obs + k) * msd + sd];
+                let at = (bi * n_obs + k) * msd;
+                let dst = &mut self.state[at..at + esd];
                 self.norm.normalize_state(src, dst);
             }
         }

@@ -16,7 +16,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-H, A_MAX, S_MAX, D_IN, D_VL, D_HID, CROP, VOCAB, SLOTS = 50, 24, 48, 32, 24, 16, 16, 64, 32
+H, A_MAX, S_MAX, D_IN, D_VL, D_HID, CROP, VOCAB, SLOTS = 50, 24, 64, 32, 24, 16, 16, 64, 32
 N_OBS = 1
 rng = np.random.default_rng(7)
 
@@ -83,7 +83,8 @@ def main(out, variant):
         },
     )
 
-    # DiT: tanh(sa @ Ws + mean_T(vl · mask) @ Wv + (timestep/1000)[..., None] * wt + mean_T(vl · img) @ Wi)
+    # DiT: tanh(sa @ Ws + mean_T(vl · mask) @ Wv + (timestep/1000)[..., None] * wt + mean_T(vl · img) @ Wi
+    #           + sa[:, 0:1] @ Wst)
     d_in = 16 if variant == "wrong_dim" else D_IN
     sa_name = "sa_emb" if variant == "wrong_name" else "sa_embs"
     save(
@@ -107,7 +108,11 @@ def main(out, variant):
             helper.make_node("Add", ["a", "c"], ["s1"]),
             helper.make_node("Add", ["s1", "ci"], ["s2"]),
             helper.make_node("Add", ["s2", "te"], ["s3"]),
-            helper.make_node("Tanh", ["s3"], ["output"]),
+            # The state token (position 0) reaches every position, as attention would.
+            helper.make_node("Slice", [sa_name, "z1", "o1", "ax1"], ["st"]),
+            helper.make_node("MatMul", ["st", "Wst"], ["sc"]),
+            helper.make_node("Add", ["s3", "sc"], ["s4"]),
+            helper.make_node("Tanh", ["s4"], ["output"]),
         ],
         [
             vi(sa_name, F, [1, H + 1, d_in]),
@@ -122,9 +127,12 @@ def main(out, variant):
             "Wv": w(D_VL, D_HID),
             "Wi": w(D_VL, D_HID),
             "wt": w(D_HID),
+            "Wst": w(d_in, D_HID),
             "k1000": np.array(1000.0, np.float32),
             "axm1": np.array([-1], np.int64),
             "ax1": np.array([1], np.int64),
+            "z1": np.array([0], np.int64),
+            "o1": np.array([1], np.int64),
         },
     )
 

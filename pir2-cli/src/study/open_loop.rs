@@ -223,6 +223,7 @@ mod tests {
                 output: OutputMap {
                     scale: vec![2.0, 4.0],
                     offset: vec![0.0, -4.0],
+                    clip: Vec::new(),
                 },
                 windows: 6,
                 seed: 1,

@@ -136,6 +136,7 @@ pub fn output_map(m: &CandleModel) -> OutputMap {
     OutputMap {
         scale: n.std.clone(),
         offset: n.mean.clone(),
+        clip: Vec::new(),
     }
 }
 

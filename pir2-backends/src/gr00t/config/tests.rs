@@ -259,3 +259,81 @@ fn every_row_of_the_robot_table_resolves_from_the_policy_table() {
         assert_eq!(DeployKind::parse(k.name()), Some(k));
     }
 }
+
+/// GR00T's edge cases (its `normalize_values_minmax`, `normalize_values_meanstd`,
+/// `unnormalize_values_minmax`, `apply_sin_cos_encoding`, with `clip_outliers`): a min/max
+/// dimension with `max = min` normalises to 0 and decodes to `min`; a zero-std dimension
+/// passes through; a min/max action is clipped to `[-1, 1]` before it is decoded; a sin/cos
+/// group is `[sin…, cos…]` with no statistics. Expected values computed by hand from those
+/// definitions.
+#[test]
+fn normalisation_follows_gr00ts_edge_cases_and_sin_cos_encoding() {
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    let group = |name: &str, dim, norm| Group {
+        name: name.into(),
+        dim,
+        norm,
+    };
+    c.state = vec![
+        group("pos", 3, Norm::MinMax),
+        group("vel", 2, Norm::MeanStd),
+        group("angle", 2, Norm::SinCos),
+    ];
+    c.action = vec![
+        group("target", 2, Norm::MinMax),
+        group("grip", 1, Norm::MeanStd),
+    ];
+    assert_eq!((c.state_dim(), c.encoded_state_dim()), (7, 9));
+    // No statistics for the sin/cos group: none are needed.
+    let stats = serde_json::json!({ "new_embodiment": {
+        "state": {
+            "pos": { "min": [0.0, 5.0, -1.0], "max": [2.0, 5.0, 1.0] },
+            "vel": { "mean": [1.0, 2.0], "std": [2.0, 0.0] },
+        },
+        "action": {
+            "target": { "min": [-1.0, 3.0], "max": [1.0, 3.0] },
+            "grip": { "mean": [0.5], "std": [0.0] },
+        },
+    }});
+    let dir = std::env::temp_dir().join(format!("pir2-gr00t-edge-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("statistics.json");
+    std::fs::write(&p, stats.to_string()).unwrap();
+    let n = Normalizer::load(&p, &c).unwrap();
+    assert_eq!((n.state_dim(), n.encoded_state_dim()), (7, 9));
+
+    let mut out = vec![f32::NAN; 9];
+    n.normalize_state(&[1.0, 7.0, 3.0, 5.0, 9.0, 0.5, 2.0], &mut out);
+    let want = [
+        0.0, // (1 − 0)/2·2 − 1
+        0.0, // max = min
+        1.0, // 2·(3 + 1)/2 − 1 = 3, clipped
+        2.0, // (5 − 1)/2
+        9.0, // std 0: unchanged
+        0.5f32.sin(),
+        2.0f32.sin(),
+        0.5f32.cos(),
+        2.0f32.cos(),
+    ];
+    for (k, (o, w)) in out.iter().zip(want).enumerate() {
+        assert!((o - w).abs() < 1e-6, "state[{k}] = {o}, GR00T gives {w}");
+    }
+
+    // Decoding: (clip(x) + 1)/2·(max − min) + min; std 0 passes the model's value through.
+    let mut a = [2.0, 0.3, 0.25];
+    n.denormalize_action(&mut a);
+    assert_eq!(a, [1.0, 3.0, 0.25]);
+    // The runtime's output map decodes the same way.
+    let mut u = [0.0; 3];
+    n.action_output_map().apply(&[2.0, 0.3, 0.25], &mut u);
+    assert_eq!(u, a);
+
+    // sin/cos is a state encoding only.
+    c.action[1].norm = Norm::SinCos;
+    let e = c.validate().unwrap_err().to_string();
+    assert!(
+        e.contains("action group `grip`") && e.contains("sin_cos"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
