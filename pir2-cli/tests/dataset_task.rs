@@ -67,6 +67,30 @@ checkpoints = 3
 windows = 24
 "#;
 
+/// `pir2 train --data data --task task --out out` plus `extra` flags.
+fn train(data: &Path, task: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "train",
+        "--data",
+        s(data),
+        "--task",
+        s(task),
+        "--out",
+        s(out),
+    ];
+    args.extend_from_slice(extra);
+    pir2(&args)
+}
+
+/// `pir2 export checkpoint --onnx onnx`, which must succeed.
+fn export(checkpoint: &Path, onnx: &Path) {
+    ok(&pir2(&["export", s(checkpoint), "--onnx", s(onnx)]));
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("UTF-8 path")
+}
+
 fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();
@@ -101,15 +125,7 @@ fn trains_on_the_lerobot_written_fixture_and_exports_to_onnx() {
     let task = write(dir.path(), "task.toml", REACH);
     let out = dir.path().join("run");
     let data = lerobot_fixture();
-    let stdout = ok(&pir2(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--task",
-        task.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let stdout = ok(&train(&data, &task, &out, &[]));
     assert!(stdout.contains("← best"), "{stdout}");
     let r = report(&out);
     assert_eq!((r.held_out.as_slice(), r.train_episodes), (&[5][..], 5));
@@ -118,24 +134,10 @@ fn trains_on_the_lerobot_written_fixture_and_exports_to_onnx() {
     check_learned(&r, 3, 0.7);
     let onnx = dir.path().join("reach.onnx");
     let best = out.join("best");
-    ok(&pir2(&[
-        "export",
-        best.to_str().unwrap(),
-        "--onnx",
-        onnx.to_str().unwrap(),
-    ]));
+    export(&best, &onnx);
     assert!(std::fs::metadata(&onnx).unwrap().len() > 1000);
     // A finished run resumed is kept as it is.
-    let again = ok(&pir2(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--task",
-        task.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--resume",
-    ]));
+    let again = ok(&train(&data, &task, &out, &["--resume"]));
     assert!(again.contains("← best"), "{again}");
     assert_eq!(report(&out), r);
 }
@@ -205,25 +207,12 @@ fn trains_flow_on_a_custom_key_dataset_written_by_our_writer() {
     custom_dataset(&data);
     let task = write(dir.path(), "task.toml", CUSTOM);
     let out = dir.path().join("run");
-    ok(&pir2(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--task",
-        task.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    ok(&train(&data, &task, &out, &[]));
     let r = report(&out);
     assert_eq!((r.held_out.len(), r.train_episodes), (2, 6));
     check_learned(&r, 2, 0.35);
     let onnx = dir.path().join("custom.onnx");
-    ok(&pir2(&[
-        "export",
-        out.join("best").to_str().unwrap(),
-        "--onnx",
-        onnx.to_str().unwrap(),
-    ]));
+    export(&out.join("best"), &onnx);
     assert!(onnx.exists());
 }
 
@@ -233,15 +222,7 @@ fn a_missing_key_or_an_unknown_field_is_one_error_naming_it() {
     let data = lerobot_fixture();
     let run = |task: &str, out: &str| {
         let t = write(dir.path(), &format!("{out}.toml"), task);
-        pir2(&[
-            "train",
-            "--data",
-            data.to_str().unwrap(),
-            "--task",
-            t.to_str().unwrap(),
-            "--out",
-            dir.path().join(out).to_str().unwrap(),
-        ])
+        train(&data, &t, &dir.path().join(out), &[])
     };
     let err = failed(&run(
         &REACH.replace("\"observation.goal\"", "\"observation.gaol\""),
@@ -274,17 +255,12 @@ fn a_missing_key_or_an_unknown_field_is_one_error_naming_it() {
     );
     // Stock-task flags do not mix with a task file.
     let t = write(dir.path(), "ok.toml", REACH);
-    let err = failed(&pir2(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--task",
-        t.to_str().unwrap(),
-        "--out",
-        dir.path().join("mixed").to_str().unwrap(),
-        "--policy",
-        "flow",
-    ]));
+    let err = failed(&train(
+        &data,
+        &t,
+        &dir.path().join("mixed"),
+        &["--policy", "flow"],
+    ));
     assert!(err.contains("--policy"), "{err}");
 }
 

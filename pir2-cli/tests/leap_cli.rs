@@ -294,48 +294,91 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Run `pir2 args`, SIGINT it once its first `step N/` progress line appears; returns N and
-/// the whole stderr after the process ended (unsuccessfully).
+/// What [`interrupt_when`] saw.
 #[cfg(feature = "mujoco")]
-fn interrupt_after_progress(args: &[&str]) -> (usize, String) {
-    use std::io::{BufRead, BufReader};
+struct Interrupted {
+    /// The stderr line that triggered the signal.
+    line: String,
+    /// All of stderr.
+    log: String,
+    /// All of stdout.
+    stdout: String,
+    status: std::process::ExitStatus,
+}
+
+/// Run `pir2 args`, send it SIGINT once a stderr line satisfies `at`, and wait (at most
+/// 120 s) for it to end.
+#[cfg(feature = "mujoco")]
+fn interrupt_when(args: &[&str], at: impl Fn(&str) -> bool) -> Interrupted {
+    use std::io::{BufRead, BufReader, Read};
     use std::process::Stdio;
+    use std::time::{Duration, Instant};
     let mut child = Command::new(env!("CARGO_BIN_EXE_pir2"))
         .args(args)
         .stderr(Stdio::piped())
-        .stdout(Stdio::null())
+        .stdout(Stdio::piped())
         .spawn()
         .expect("running pir2");
+    let mut stdout_pipe = child.stdout.take().expect("stdout");
+    let reader = std::thread::spawn(move || {
+        let mut text = String::new();
+        stdout_pipe.read_to_string(&mut text).expect("stdout");
+        text
+    });
     let mut log = String::new();
     let mut lines = BufReader::new(child.stderr.take().expect("stderr")).lines();
-    let mut first = None;
+    let mut hit = None;
     for line in lines.by_ref() {
         let line = line.expect("stderr line");
         log += &line;
         log.push('\n');
-        if let Some(n) = line
-            .split(": step ")
-            .nth(1)
-            .and_then(|r| r.split('/').next())
-            .and_then(|n| n.parse::<usize>().ok())
-        {
-            first = Some(n);
+        if at(&line) {
+            hit = Some(line);
             break;
         }
     }
-    let first = first.unwrap_or_else(|| panic!("no progress line: {log}"));
+    let line = hit.unwrap_or_else(|| panic!("the awaited line never came: {log}"));
     // SAFETY: plain kill(2) on our own child.
     assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
-    for line in lines {
-        log += &line.expect("stderr line");
+    let t0 = Instant::now();
+    while child.try_wait().expect("wait").is_none() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(120),
+            "still running 120 s after SIGINT: {log}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    for l in lines {
+        log += &l.expect("stderr line");
         log.push('\n');
     }
     let status = child.wait().expect("wait");
+    let stdout = reader.join().expect("stdout reader");
+    Interrupted {
+        line,
+        log,
+        stdout,
+        status,
+    }
+}
+
+/// Run `pir2 args`, SIGINT it once its first `step N/` progress line appears; returns N and
+/// the whole stderr after the process ended (unsuccessfully).
+#[cfg(feature = "mujoco")]
+fn interrupt_after_progress(args: &[&str]) -> (usize, String) {
+    let step = |line: &str| {
+        line.split(": step ")
+            .nth(1)
+            .and_then(|r| r.split('/').next())
+            .and_then(|n| n.parse::<usize>().ok())
+    };
+    let run = interrupt_when(args, |l| step(l).is_some());
     assert!(
-        !status.success(),
-        "an interrupted training is not a success: {log}"
+        !run.status.success(),
+        "an interrupted training is not a success: {}",
+        run.log
     );
-    (first, log)
+    (step(&run.line).expect("a progress line"), run.log)
 }
 
 /// Ctrl-C during `pir2 collect leap-cube`: the batch in progress is finished and written, the
@@ -345,10 +388,7 @@ fn interrupt_after_progress(args: &[&str]) -> (usize, String) {
 #[cfg(feature = "mujoco")]
 #[test]
 fn leap_cube_collect_on_sigint_writes_the_batch_in_progress_and_resumes() {
-    use std::io::{BufRead, BufReader};
     use std::os::unix::process::ExitStatusExt;
-    use std::process::Stdio;
-    use std::time::{Duration, Instant};
 
     use pir2_sim::leap::ppo::{PpoConfig, Trainer};
     use pir2_sim::leap::LeapModel;
@@ -377,46 +417,23 @@ fn leap_cube_collect_on_sigint_writes_the_batch_in_progress_and_resumes() {
         .expect("save expert");
     let data = dir.join("data");
     let collect = |per_seed: usize, extra: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_pir2"))
-            .args(["collect", "leap-cube", "--seeds", "0", "--out", s(&data)])
-            .args(["--per-seed", &per_seed.to_string(), "--expert", s(&expert)])
-            .args(extra)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("running pir2")
+        let mut args: Vec<String> = ["collect", "leap-cube", "--seeds", "0", "--out", s(&data)]
+            .iter()
+            .map(|a| a.to_string())
+            .collect();
+        args.extend(["--per-seed".into(), per_seed.to_string()]);
+        args.extend(["--expert".into(), s(&expert).to_string()]);
+        args.extend(extra.iter().map(|a| a.to_string()));
+        args
     };
-    let mut child = collect(1000, &[]);
     // Signal once two batches are written, so the summary must add up several batches.
-    let mut log = String::new();
-    let mut lines = BufReader::new(child.stderr.take().expect("stderr")).lines();
-    for line in lines.by_ref() {
-        let line = line.expect("stderr line");
-        log += &line;
-        log.push('\n');
-        if line.starts_with("collected 10/") {
-            break;
-        }
-    }
+    let args = collect(1000, &[]);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let run = interrupt_when(&args, |l| l.starts_with("collected 10/"));
+    let (log, stdout) = (run.log, run.stdout);
     assert!(log.contains("collected 10/1000"), "{log}");
-    // SAFETY: plain kill(2) on our own child.
-    assert_eq!(unsafe { libc::kill(child.id() as i32, libc::SIGINT) }, 0);
-    let t0 = Instant::now();
-    while child.try_wait().expect("wait").is_none() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(120),
-            "still running 120 s after SIGINT"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    for line in lines {
-        log += &line.expect("stderr line");
-        log.push('\n');
-    }
-    let out = child.wait_with_output().expect("output");
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert_eq!(out.status.signal(), None, "killed by the signal: {log}");
-    assert!(out.status.success(), "{:?}: {log}", out.status);
+    assert_eq!(run.status.signal(), None, "killed by the signal: {log}");
+    assert!(run.status.success(), "{:?}: {log}", run.status);
     let held: usize = log
         .split("interrupted: ")
         .nth(1)
@@ -433,8 +450,9 @@ fn leap_cube_collect_on_sigint_writes_the_batch_in_progress_and_resumes() {
     assert_eq!(ds.episodes.len(), held);
 
     // Resume to three more episodes than were written: only those three are collected.
-    let out = collect(held + 3, &["--resume"])
-        .wait_with_output()
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(collect(held + 3, &["--resume"]))
+        .output()
         .expect("resume");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}");
