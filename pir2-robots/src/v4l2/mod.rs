@@ -45,8 +45,8 @@
 //! # Errors (fail closed)
 //! Every failure is one typed error naming the device and no frame: a node that cannot be
 //! opened or is not a streaming capture device, no usable format, no frame within the
-//! timeout ([`Error::CameraTimeout`]), a device that disappeared (`ENODEV`, or `poll`
-//! reporting an error: [`Error::CameraGone`]), a frame that is truncated, corrupt, of
+//! timeout ([`Error::CameraTimeout`]), a device that disappeared (`ENODEV`, `EIO` from a
+//! queue the driver marked failed, or `poll` reporting an error: [`Error::CameraGone`]), a frame that is truncated, corrupt, of
 //! another size than negotiated, or not newer than the previous frame
 //! ([`Error::CameraFrame`]). A stale frame is never returned as a new one. `EINTR` is
 //! retried within the same timeout.
@@ -165,7 +165,9 @@ pub fn monotonic_to_runtime(ts: u64, mono_now: u64, now: Nanos) -> Nanos {
 /// An OS error of `op` as the crate's error: the device gone, or a failed call.
 fn os_error(device: &str, op: &'static str, e: io::Error) -> Error {
     match e.raw_os_error() {
-        Some(libc::ENODEV) | Some(libc::ENXIO) => Error::CameraGone {
+        // ENODEV/ENXIO: the node is gone; EIO: the driver put its queue in the error state,
+        // which UVC does when the camera is unplugged.
+        Some(libc::ENODEV) | Some(libc::ENXIO) | Some(libc::EIO) => Error::CameraGone {
             device: device.to_string(),
             reason: format!("{op}: {e}"),
         },
@@ -500,7 +502,7 @@ fn enumerate(fd: i32, device: &str) -> Result<Vec<Offered>> {
 }
 
 /// Open, check, negotiate, map and start streaming (see the module docs).
-fn open_node(cfg: &V4l2Config) -> Result<(Node, Negotiated, String)> {
+fn open_node(cfg: &V4l2Config) -> Result<(Node, Negotiated, String, Timestamps)> {
     let device = cfg.device.display().to_string();
     let path = std::ffi::CString::new(cfg.device.as_os_str().as_encoded_bytes()).map_err(|_| {
         Error::CameraUnsupported {
@@ -592,6 +594,7 @@ fn open_node(cfg: &V4l2Config) -> Result<(Node, Negotiated, String)> {
             reason: format!("the driver granted {} mmap buffers, 2 needed", rb.count),
         });
     }
+    let mut stamps = Timestamps::Driver;
     for index in 0..rb.count {
         let mut b: sys::Buffer = sys::zeroed();
         b.type_ = sys::BUF_TYPE_VIDEO_CAPTURE;
@@ -600,6 +603,9 @@ fn open_node(cfg: &V4l2Config) -> Result<(Node, Negotiated, String)> {
         // SAFETY: a v4l2_buffer for VIDIOC_QUERYBUF.
         unsafe { sys::ioctl(fd, sys::VIDIOC_QUERYBUF, &mut b) }
             .map_err(|e| os_error(&device, "VIDIOC_QUERYBUF", e))?;
+        if b.flags & sys::BUF_FLAG_TIMESTAMP_MASK != sys::BUF_FLAG_TIMESTAMP_MONOTONIC {
+            stamps = Timestamps::Dequeue;
+        }
         // SAFETY: the offset member is the one set for MMAP buffers.
         let offset = unsafe { b.m.offset };
         // SAFETY: maps `length` bytes of the driver's buffer at the offset it gave.
@@ -625,13 +631,24 @@ fn open_node(cfg: &V4l2Config) -> Result<(Node, Negotiated, String)> {
     unsafe { sys::ioctl(fd, sys::VIDIOC_STREAMON, &mut t) }
         .map_err(|e| os_error(&device, "VIDIOC_STREAMON", e))?;
     node.streaming = true;
-    Ok((node, negotiated, card))
+    Ok((node, negotiated, card, stamps))
 }
 
 /// A live V4L2 camera (see the module docs).
 pub struct V4l2Camera {
     capture: Capture<Node>,
     card: String,
+}
+
+impl fmt::Display for Timestamps {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Timestamps::Driver => "driver capture timestamps",
+            Timestamps::Dequeue => {
+                "dequeue-time timestamps (the driver gives no monotonic capture time)"
+            }
+        })
+    }
 }
 
 impl fmt::Debug for V4l2Camera {
@@ -648,12 +665,11 @@ impl fmt::Debug for V4l2Camera {
 impl V4l2Camera {
     /// Open and start the camera; frames are stamped on `clock`.
     pub fn open(cfg: &V4l2Config, clock: Arc<dyn Clock>) -> Result<Self> {
-        let (node, format, card) = open_node(cfg)?;
+        let (node, format, card, stamps) = open_node(cfg)?;
         let device = cfg.device.display().to_string();
-        Ok(Self {
-            capture: Capture::new(node, device, format, cfg.timeout, clock),
-            card,
-        })
+        let mut capture = Capture::new(node, device, format, cfg.timeout, clock);
+        capture.timestamps = Some(stamps);
+        Ok(Self { capture, card })
     }
 
     /// The device path.
@@ -671,9 +687,10 @@ impl V4l2Camera {
         &self.card
     }
 
-    /// Where the last frame's capture time came from (`None` before the first frame).
-    pub fn timestamps(&self) -> Option<Timestamps> {
-        self.capture.timestamps
+    /// Where the last frame's capture time came from (before the first frame: what the
+    /// driver announced for its buffers at `VIDIOC_QUERYBUF`).
+    pub fn timestamps(&self) -> Timestamps {
+        self.capture.timestamps.unwrap_or(Timestamps::Dequeue)
     }
 
     /// The camera's counters.

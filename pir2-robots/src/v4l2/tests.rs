@@ -259,6 +259,14 @@ fn a_timeout_a_vanished_device_and_a_failed_poll_are_errors_naming_the_device() 
         "{e}"
     );
 
+    // EIO: UVC marks its queue failed when the camera is unplugged.
+    let fake = Fake::new(2, vec![], vec![Step::Arrive(vec![Ready::Errno(libc::EIO)])]);
+    let (mut cap, _) = capture(fake, yuyv_4x2());
+    assert!(matches!(
+        cap.next_frame().unwrap_err(),
+        Error::CameraGone { .. }
+    ));
+
     let (mut cap, _) = capture(Fake::new(2, vec![], vec![Step::WaitFailed]), yuyv_4x2());
     assert!(matches!(
         cap.next_frame().unwrap_err(),
