@@ -200,7 +200,7 @@ enum Cmd {
         tls: TlsArgs,
     },
     /// Run a policy stack on a robot (or its emulators).
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Servers for the remote slow channel and the remote action head (feature `remote`).
     Serve {
         #[command(subcommand)]
@@ -715,7 +715,7 @@ fn main() -> Result<()> {
             }),
             resume,
         }),
-        Cmd::Run(args) => run::run_command(&args.into(), ctrl_c_flag()),
+        Cmd::Run(args) => run::run_command(&(*args).into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
         Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),
         Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),
