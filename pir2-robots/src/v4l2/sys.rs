@@ -324,10 +324,27 @@ impl std::fmt::Debug for Buffer {
     }
 }
 
-/// An all-zero value of a plain-old-data V4L2 struct (every field of these structs is an
-/// integer or an array or union of integers, for which zero is valid).
-pub fn zeroed<T: Copy>() -> T {
-    // SAFETY: only instantiated with the `repr(C)` integer-only structs of this module.
+/// The structs of this module for which all-zero bytes are a valid value.
+///
+/// # Safety
+/// Only for `repr(C)` types whose fields are integers, or arrays, structs or unions of
+/// integers (no references, no pointers that are dereferenced, no enums).
+pub(crate) unsafe trait Zeroable: Copy {}
+// SAFETY: every one of these is integers (and arrays/unions/structs of integers) only.
+unsafe impl Zeroable for Capability {}
+// SAFETY: as above.
+unsafe impl Zeroable for FmtDesc {}
+// SAFETY: as above.
+unsafe impl Zeroable for FrmSizeEnum {}
+// SAFETY: as above (the union's `align` member is a zero-length array).
+unsafe impl Zeroable for Format {}
+// SAFETY: as above (`libc::timeval` is two integers).
+unsafe impl Zeroable for Buffer {}
+
+/// An all-zero value of a V4L2 struct (the state the kernel API expects before the fields
+/// a call reads are set).
+pub(crate) fn zeroed<T: Zeroable>() -> T {
+    // SAFETY: `Zeroable` types accept all-zero bytes.
     unsafe { std::mem::zeroed() }
 }
 
