@@ -200,7 +200,7 @@ enum Cmd {
         tls: TlsArgs,
     },
     /// Run a policy stack on a robot (or its emulators).
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Servers for the remote slow channel and the remote action head (feature `remote`).
     Serve {
         #[command(subcommand)]
@@ -278,9 +278,20 @@ struct RunArgs {
     /// camera unless --remote-slow).
     #[arg(long)]
     emulate: bool,
-    /// Use the synthetic camera with real robots (no camera driver exists yet).
+    /// Use the synthetic camera with real robots.
     #[arg(long)]
     synthetic_camera: bool,
+    /// A live V4L2 (USB/UVC) camera, e.g. /dev/video0 (Linux): frames are stamped with the
+    /// driver's capture time, so the slow channel's age counts from the sensor.
+    #[arg(long, conflicts_with_all = ["frames", "remote_slow", "synthetic_camera"])]
+    camera: Option<PathBuf>,
+    /// With --camera: frame size WIDTHxHEIGHT, which the camera must offer (default: the
+    /// offered size nearest 640x480).
+    #[arg(long, requires = "camera")]
+    camera_size: Option<String>,
+    /// With --camera: pixel format (default: the best the camera offers at the size).
+    #[arg(long, requires = "camera", value_parser = ["mjpeg", "yuyv", "rgb24"])]
+    camera_format: Option<String>,
     /// Replay recorded frames as the camera: every .png/.jpg of this folder in file-name
     /// order, looping (GR00T's preprocessing applies as to a live camera).
     #[arg(long, conflicts_with_all = ["remote_slow", "synthetic_camera"])]
@@ -395,6 +406,9 @@ impl From<RunArgs> for RunOptions {
             synthetic_camera: a.synthetic_camera,
             frames: a.frames,
             frame_ms: a.frame_ms,
+            camera: a.camera,
+            camera_size: a.camera_size,
+            camera_format: a.camera_format,
             remote_slow: a.remote_slow,
             remote_policy: a.remote_policy,
             policy_timeout_ms: a.policy_timeout_ms,
@@ -701,7 +715,7 @@ fn main() -> Result<()> {
             }),
             resume,
         }),
-        Cmd::Run(args) => run::run_command(&args.into(), ctrl_c_flag()),
+        Cmd::Run(args) => run::run_command(&(*args).into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
         Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),
         Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),

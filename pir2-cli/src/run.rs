@@ -7,10 +7,13 @@
 //! the emulators started in-process (`--emulate`). A run is bounded by `--ticks` /
 //! `--seconds` or Ctrl-C; the robot is stopped on every exit path of the driver.
 //!
-//! Cameras: pir2 has no live camera driver yet. `--emulate` and `--synthetic-camera` use a
-//! synthetic 640×480 camera (`gr00t::testing::SyntheticCamera`); `--frames DIR` replays
-//! recorded frames (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT`
-//! takes the backbone features (camera + backbone on another machine) from `pir2 serve slow`.
+//! Cameras: `--camera /dev/videoN` is a live V4L2 camera (`pir2_robots::V4l2Camera`, Linux;
+//! `--camera-size WxH`, `--camera-format`), stamped with the driver's capture times;
+//! `--emulate` and `--synthetic-camera` use a synthetic 640×480 camera
+//! (`gr00t::testing::SyntheticCamera`); `--frames DIR` replays recorded frames
+//! (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT` takes the backbone features
+//! (camera + backbone on another machine) from `pir2 serve slow`. A local camera is opened
+//! before any robot is connected, so a wrong device fails while nothing is powered.
 //!
 //! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
 //! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
@@ -45,8 +48,15 @@ pub struct RunOptions {
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
     pub emulate: bool,
-    /// Use the synthetic camera with real robots (no camera driver exists yet).
+    /// Use the synthetic camera with real robots.
     pub synthetic_camera: bool,
+    /// A live V4L2 camera node (`/dev/videoN`, Linux) as the camera.
+    pub camera: Option<PathBuf>,
+    /// With `camera`: the frame size to ask for, `WIDTHxHEIGHT` (`None`: nearest 640×480).
+    pub camera_size: Option<String>,
+    /// With `camera`: the pixel format to ask for (`mjpeg`, `yuyv`, `rgb24`; `None`: the
+    /// camera's best at the size).
+    pub camera_format: Option<String>,
     /// Replay the recorded frames of this folder (`.png`/`.jpg`, file-name order, looping) as
     /// the camera, one per `frame_ms`.
     pub frames: Option<PathBuf>,
@@ -121,7 +131,7 @@ pub struct RunSummary {
     /// `SET_STATE 4` leaves it).
     #[serde(default)]
     pub arm_state: Option<u8>,
-    /// Frames the synthetic camera produced (local camera runs).
+    /// Frames the local camera delivered (synthetic, replayed or live; local camera runs).
     pub camera_frames: Option<u64>,
     /// Remote slow-channel counters (`--remote-slow` runs).
     #[cfg(feature = "remote")]
@@ -500,17 +510,29 @@ mod imp {
             && !args.emulate
             && !args.synthetic_camera
             && args.frames.is_none()
+            && args.camera.is_none()
         {
             bail!(
-                "no camera: pir2 has no live camera driver yet. Use --remote-slow ENDPOINT (camera \
-                 and backbone behind `pir2 serve slow`), --frames DIR to replay recorded frames, \
-                 or --synthetic-camera to run the real robot on a synthetic image"
+                "no camera: use --camera /dev/videoN for a live camera, --remote-slow ENDPOINT \
+                 (camera and backbone behind `pir2 serve slow`), --frames DIR to replay recorded \
+                 frames, or --synthetic-camera to run the real robot on a synthetic image"
             );
         }
-        if args.frames.is_some() && args.remote_slow.is_some() {
-            bail!("--frames and --remote-slow both give the camera: choose one");
+        let sources = [
+            args.frames.is_some(),
+            args.remote_slow.is_some(),
+            args.camera.is_some(),
+            args.synthetic_camera,
+        ];
+        if sources.iter().filter(|&&s| s).count() > 1 {
+            bail!(
+                "--camera, --frames, --remote-slow and --synthetic-camera each give the camera: \
+                 choose one"
+            );
         }
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        // The camera before any robot: a wrong device fails while nothing is powered.
+        let camera = local_camera(args, clock.clone())?;
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
         let safety = safety_config(&cfg)?;
         if let Some(g) = args.slow_grace_ms {
@@ -535,6 +557,7 @@ mod imp {
             let r = drive(
                 args,
                 head,
+                camera,
                 max_ticks,
                 slow_timeout,
                 source,
@@ -580,6 +603,7 @@ mod imp {
         let r = drive(
             args,
             head,
+            camera,
             max_ticks,
             slow_timeout,
             source,
@@ -653,10 +677,103 @@ mod imp {
         }
     }
 
+    /// The run's local camera: what gives the frames, its delivered-frames counter and how
+    /// the summary names it.
+    struct Camera {
+        source: Box<dyn pir2_runtime::SlowSource>,
+        frames: Arc<std::sync::atomic::AtomicU64>,
+        what: String,
+    }
+
+    /// Open the local camera (`None` when the features come from `pir2 serve slow`).
+    fn local_camera(args: &RunOptions, clock: Arc<dyn Clock>) -> Result<Option<Camera>> {
+        if args.remote_slow.is_some() {
+            return Ok(None);
+        }
+        if let Some(dev) = &args.camera {
+            return v4l2_camera(args, dev, clock).map(Some);
+        }
+        Ok(Some(match &args.frames {
+            Some(dir) => {
+                let cam = pir2_robots::FolderCamera::open(
+                    dir,
+                    Duration::from_millis(args.frame_ms.max(1)),
+                    clock,
+                )
+                .with_context(|| format!("--frames {}", dir.display()))?;
+                let what = format!(
+                    "{} recorded frames from {} (one per {} ms, looping)",
+                    cam.len(),
+                    dir.display(),
+                    args.frame_ms.max(1)
+                );
+                Camera {
+                    frames: cam.frames(),
+                    source: Box::new(cam),
+                    what,
+                }
+            }
+            None => {
+                let cam = SyntheticCamera::new(clock, CAMERA_PERIOD);
+                Camera {
+                    frames: cam.frames(),
+                    source: Box::new(cam),
+                    what: "a synthetic camera".to_string(),
+                }
+            }
+        }))
+    }
+
+    /// How long one V4L2 capture may wait for a frame (a UVC camera's first frame after
+    /// starting can take most of a second while its exposure settles).
+    const CAMERA_TIMEOUT: Duration = Duration::from_secs(2);
+
+    #[cfg(target_os = "linux")]
+    fn v4l2_camera(
+        args: &RunOptions,
+        dev: &std::path::Path,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Camera> {
+        use pir2_robots::v4l2::{parse_size, FormatRequest, V4l2Camera, V4l2Config};
+        let request = FormatRequest {
+            format: args.camera_format.as_deref().map(str::parse).transpose()?,
+            size: args.camera_size.as_deref().map(parse_size).transpose()?,
+        };
+        let cfg = V4l2Config {
+            request,
+            timeout: CAMERA_TIMEOUT,
+            ..V4l2Config::new(dev)
+        };
+        let cam =
+            V4l2Camera::open(&cfg, clock).with_context(|| format!("--camera {}", dev.display()))?;
+        let what = format!(
+            "the camera {} ({}, {}, {}; asked {request})",
+            dev.display(),
+            cam.card(),
+            cam.format(),
+            cam.timestamps()
+        );
+        eprintln!("camera: {what}");
+        Ok(Camera {
+            frames: cam.frames(),
+            source: Box::new(cam),
+            what,
+        })
+    }
+
+    #[cfg(not(target_os = "linux"))]
+    fn v4l2_camera(_: &RunOptions, dev: &std::path::Path, _: Arc<dyn Clock>) -> Result<Camera> {
+        bail!(
+            "--camera {}: live V4L2 cameras need Linux; use --frames or --remote-slow",
+            dev.display()
+        )
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn drive<F: FastSource, A: Actuator>(
         args: &RunOptions,
         head: Head,
+        camera: Option<Camera>,
         max_ticks: Option<u64>,
         slow_timeout: Duration,
         source: F,
@@ -699,30 +816,14 @@ mod imp {
         let mut summary = if let Some(endpoint) = &args.remote_slow {
             remote_slow(args, endpoint, source, actuator, clock, opts, robot).with_context(ctx)?
         } else {
-            let (camera, frames, what): (Box<dyn pir2_runtime::SlowSource>, _, String) =
-                match &args.frames {
-                    Some(dir) => {
-                        let cam = pir2_robots::FolderCamera::open(
-                            dir,
-                            Duration::from_millis(args.frame_ms.max(1)),
-                            clock,
-                        )
-                        .with_context(|| format!("--frames {}", dir.display()))?;
-                        let what = format!(
-                            "{} recorded frames from {} (one per {} ms, looping)",
-                            cam.len(),
-                            dir.display(),
-                            args.frame_ms.max(1)
-                        );
-                        let frames = cam.frames();
-                        (Box::new(cam), frames, what)
-                    }
-                    None => {
-                        let cam = SyntheticCamera::new(clock, CAMERA_PERIOD);
-                        let frames = cam.frames();
-                        (Box::new(cam), frames, "a synthetic camera".to_string())
-                    }
-                };
+            let Some(Camera {
+                source: camera,
+                frames,
+                what: camera_what,
+            }) = camera
+            else {
+                bail!("no local camera was opened")
+            };
             let report =
                 run_gr00t_report(&args.checkpoint, &args.task, source, actuator, camera, opts)
                     .with_context(ctx)?;
@@ -732,7 +833,7 @@ mod imp {
                 mode: report.mode,
                 robot: robot.to_string(),
                 slow: format!(
-                    "backbone.onnx on {what} (local slow worker), prompt tokenised by {}",
+                    "backbone.onnx on {camera_what} (local slow worker), prompt tokenised by {}",
                     report.tokenizer
                 ),
                 head: String::new(),

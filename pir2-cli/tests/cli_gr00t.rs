@@ -385,3 +385,58 @@ fn a_replayed_frame_folder_drives_a_run_end_to_end() {
     assert!(!text.contains("warm-up done"), "{text}");
     std::fs::remove_dir_all(&ck).ok();
 }
+
+/// `--camera /dev/videoN`: a path that is no camera is one error naming it, before any robot
+/// is connected (the xArm address is unreachable, yet the error is the camera's); the camera
+/// options are checked by the argument parser (no camera is needed: CI has none).
+#[test]
+fn a_bad_camera_device_is_one_error_naming_it_before_any_robot() {
+    let ck = checkpoint("camera", "");
+    let robot = ["--xarm", "127.0.0.1:1", "--xhand", "/nonexistent/ttyUSB9"];
+    for (dev, why) in [
+        ("/dev/video-pir2-missing", "No such file"),
+        ("/dev/null", "not a V4L2 device"),
+    ] {
+        let mut args = vec!["--task", "catch_book", "--camera", dev];
+        args.extend(robot);
+        let (out, text) = run(&ck, &args);
+        eprintln!("{text}");
+        assert!(!out.status.success(), "{text}");
+        assert!(
+            text.contains(&format!("camera {dev}")) && text.contains(why),
+            "{text}"
+        );
+        assert!(!text.contains("connecting to the xArm"), "{text}");
+        assert!(!text.contains("panicked"), "{text}");
+    }
+    let refused = [
+        vec!["--camera", "/dev/video0", "--frames", "/tmp"],
+        vec!["--camera", "/dev/video0", "--synthetic-camera"],
+        vec!["--camera-size", "640x480"],
+        vec!["--camera", "/dev/video0", "--camera-format", "h264"],
+    ];
+    for extra in refused {
+        let mut args = vec!["--task", "catch_book"];
+        args.extend(robot);
+        args.extend(&extra);
+        let (out, text) = run(&ck, &args);
+        assert!(!out.status.success(), "{extra:?}: {text}");
+        assert!(
+            text.contains("error:") && !text.contains("connecting to the xArm"),
+            "{extra:?}: {text}"
+        );
+    }
+    let mut args = vec![
+        "--task",
+        "catch_book",
+        "--camera",
+        "/dev/null",
+        "--camera-size",
+        "640",
+    ];
+    args.extend(robot);
+    let (out, text) = run(&ck, &args);
+    assert!(!out.status.success());
+    assert!(text.contains("camera size \"640\""), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}

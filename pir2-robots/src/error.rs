@@ -130,6 +130,63 @@ pub enum Error {
         reason: String,
     },
 
+    // ---- cameras (V4L2) ----
+    /// A V4L2 call on a camera failed (open, an ioctl, mmap, poll).
+    #[error("camera {device}: {op} failed: {source}")]
+    CameraIo {
+        /// The device path.
+        device: String,
+        /// The call (e.g. "VIDIOC_S_FMT").
+        op: &'static str,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The camera is not usable as a streaming capture device.
+    #[error("camera {device}: {reason}")]
+    CameraUnsupported {
+        /// The device path.
+        device: String,
+        /// What is missing.
+        reason: String,
+    },
+    /// No pixel format and size both the camera and pir2 support.
+    #[error("camera {device}: cannot capture {asked}; offered: {offered}")]
+    CameraFormat {
+        /// The device path.
+        device: String,
+        /// What was asked.
+        asked: String,
+        /// What the device (or its driver) offered.
+        offered: String,
+    },
+    /// The camera delivered no frame in time.
+    #[error("camera {device}: no frame within {waited_ms} ms")]
+    CameraTimeout {
+        /// The device path.
+        device: String,
+        /// How long the capture waited.
+        waited_ms: u64,
+    },
+    /// The camera disappeared (unplugged, driver unbound).
+    #[error("camera {device}: device disappeared ({reason})")]
+    CameraGone {
+        /// The device path.
+        device: String,
+        /// What showed it.
+        reason: String,
+    },
+    /// A frame was corrupt, truncated, of the wrong size or not newer than the last one.
+    #[error("camera {device}: bad frame {sequence}: {reason}")]
+    CameraFrame {
+        /// The device path.
+        device: String,
+        /// The driver's frame counter.
+        sequence: u32,
+        /// What was wrong.
+        reason: String,
+    },
+
     // ---- robot / configuration ----
     /// A slice had the wrong length.
     #[error("{what}: expected {expected} values, got {got}")]

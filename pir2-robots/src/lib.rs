@@ -19,6 +19,8 @@
 //!   return its device path.
 //! - [`connect_arm_hand`]: the xArm6 + XHand composite behind the safety layer, ready for
 //!   [`split`].
+//! - Cameras for the slow channel: [`FolderCamera`] (recorded frames) and, on Linux,
+//!   `V4l2Camera` (a live USB/V4L2 camera with driver capture timestamps, module `v4l2`).
 #![warn(missing_docs)]
 
 pub mod camera;
@@ -28,6 +30,8 @@ pub mod error;
 pub mod robot;
 pub mod safety;
 pub mod threaded;
+#[cfg(target_os = "linux")]
+pub mod v4l2;
 pub mod xarm;
 pub mod xhand;
 
@@ -43,6 +47,8 @@ pub use robot::{
 };
 pub use safety::{SafetyConfig, SafetyLayer, SafetyStats};
 pub use threaded::{Threaded, ThreadedConfig, ThreadedStats};
+#[cfg(target_os = "linux")]
+pub use v4l2::{V4l2Camera, V4l2Config};
 pub use xarm::{XArm6, XArm6Config};
 pub use xhand::{XHand, XHandConfig};
 
