@@ -50,6 +50,10 @@
 //! another size than negotiated, or not newer than the previous frame
 //! ([`Error::CameraFrame`]). A stale frame is never returned as a new one. `EINTR` is
 //! retried within the same timeout.
+//!
+//! One file on purpose (ioctl layouts, negotiation and pixel conversion are submodules): the
+//! capture loop, the device node it drives and the open sequence share one buffer-ownership
+//! rule (every dequeued buffer goes back to the driver on every path), checked in one place.
 
 pub mod convert;
 pub mod negotiate;
