@@ -334,10 +334,26 @@ where
             .collect()
     });
     let mut out: Vec<Option<T>> = (0..jobs.len()).map(|_| None).collect();
+    let mut errors = Vec::new();
     for r in results {
-        for (j, t) in r? {
-            out[j] = Some(t);
+        match r {
+            Ok(done) => {
+                for (j, t) in done {
+                    out[j] = Some(t);
+                }
+            }
+            Err(e) => errors.push(e),
         }
+    }
+    // Every worker's error is reported (two policies stopped by one Ctrl-C each saved a
+    // state, and the message must name both), in one error.
+    let mut errors = errors.into_iter();
+    if let Some(first) = errors.next() {
+        let rest: Vec<String> = errors.map(|e| format!("{e:#}")).collect();
+        if rest.is_empty() {
+            return Err(first);
+        }
+        bail!("{first:#}; and {}", rest.join("; and "));
     }
     Ok(out.into_iter().map(|t| t.expect("every job ran")).collect())
 }
@@ -628,7 +644,26 @@ impl ProgressMeter {
 
 #[cfg(test)]
 mod tests {
-    use super::ProgressMeter;
+    use super::{train_jobs, ProgressMeter};
+
+    #[test]
+    fn every_failed_training_job_is_named_in_the_one_error() {
+        let jobs = [(0u8, 0u64), (1, 0), (2, 0)];
+        let r = train_jobs(&jobs, 3, |_, p, _| {
+            if p == 1 {
+                Ok(p)
+            } else {
+                anyhow::bail!("job {p} interrupted (state saved in interrupted-{p})")
+            }
+        });
+        let e = format!("{:#}", r.unwrap_err());
+        assert!(
+            e.contains("interrupted-0") && e.contains("interrupted-2") && e.contains("; and "),
+            "{e}"
+        );
+        let ok = train_jobs(&jobs, 2, |_, p, _| Ok(p)).unwrap();
+        assert_eq!(ok, vec![0, 1, 2]);
+    }
     use std::time::{Duration, Instant};
 
     #[test]
