@@ -206,3 +206,45 @@ fn the_committed_study_config_is_the_papers_protocol() {
         assert!(cfg.policies.contains(&p), "{p:?}");
     }
 }
+
+#[test]
+fn diagnostic_rows_add_the_pir2_checkpoint_as_sync_flow_without_touching_other_cells() {
+    use pir2_cli::study::evaluate::config_fingerprint;
+    let off = LeapStudyConfig::default();
+    let on = LeapStudyConfig {
+        diagnostic_rows: true,
+        ..LeapStudyConfig::default()
+    };
+    // Off (the default): no diagnostic row.
+    let base = task(off.clone()).deployment_study();
+    assert!(!base.rows.iter().any(|r| r.row.label.contains("diagnostic")));
+    // On: one more row, the πR² checkpoint acting as sync flow with the flow baselines' K,
+    // swept like the sync-flow row; every other row is unchanged.
+    let diag = task(on.clone()).deployment_study();
+    assert_eq!(diag.rows.len(), base.rows.len() + 1);
+    assert_eq!(&diag.rows[..base.rows.len()], &base.rows[..]);
+    let extra = diag.rows.last().unwrap();
+    assert!(
+        extra.row.label.starts_with("diagnostic:"),
+        "{}",
+        extra.row.label
+    );
+    assert_eq!(extra.row.policy, Policy::PiR2);
+    assert_eq!(extra.row.mode, Mode::SyncFlow { steps: 15, h: 1 });
+    assert_eq!(extra.sweep, Sweep::UnitDelaySync);
+    // Without the πR² policy there is nothing to diagnose.
+    let no_pir2 = task(LeapStudyConfig {
+        policies: vec![Policy::Flow],
+        ..on.clone()
+    });
+    assert!(!no_pir2
+        .deployment_study()
+        .rows
+        .iter()
+        .any(|r| r.row.label.contains("diagnostic")));
+    // The switch only adds rows: logged cells of the other rows stay valid.
+    assert_eq!(
+        config_fingerprint(&off).unwrap(),
+        config_fingerprint(&on).unwrap()
+    );
+}

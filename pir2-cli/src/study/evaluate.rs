@@ -30,8 +30,16 @@ pub const CELL_LOG: &str = "cells.jsonl";
 
 /// Config fields a cell does not depend on (left out of [`config_fingerprint`]): which
 /// policies, seeds and columns are evaluated (the key names the cell's own), the
-/// best-of-last depth and the thread count.
-const NOT_IN_FINGERPRINT: [&str; 6] = ["policies", "seeds", "d0s", "hs", "best_of_last", "threads"];
+/// best-of-last depth, whether the diagnostic rows are added, and the thread count.
+const NOT_IN_FINGERPRINT: [&str; 7] = [
+    "policies",
+    "seeds",
+    "d0s",
+    "hs",
+    "best_of_last",
+    "threads",
+    "diagnostic_rows",
+];
 
 /// A short, stable fingerprint of what in `config` a cell depends on: the config as TOML
 /// without the fields in `NOT_IN_FINGERPRINT`, hashed (FNV-1a, 64 bits).

@@ -119,6 +119,12 @@ pub struct LeapStudyConfig {
     /// (optimistic: it selects on the evaluation episodes). Costs k times the evaluation.
     /// 0: off.
     pub best_of_last: usize,
+    /// Add diagnostic rows to the deployment study (not in the paper): the πR² checkpoint run
+    /// as a sync-flow policy (`flow_steps` steps on one shared `τ`, which its warm-up branch
+    /// trains; `h = d`, holding the robot during each call), next to the flow baseline's
+    /// sync row. It separates what the network learned from what the staircase inference
+    /// does with it. Off by default; it adds rows without changing any other cell.
+    pub diagnostic_rows: bool,
 }
 
 impl Default for LeapStudyConfig {
@@ -151,6 +157,7 @@ impl Default for LeapStudyConfig {
             slow_frames: 2,
             te_row: true,
             best_of_last: 0,
+            diagnostic_rows: false,
         }
     }
 }
@@ -261,6 +268,22 @@ impl LeapCubeTask {
                     sweep: Sweep::UnitDelaySync,
                 },
             );
+        }
+        if self.cfg.diagnostic_rows && self.cfg.policies.contains(&Policy::PiR2) {
+            study.rows.push(StudyRow {
+                row: Row {
+                    label: format!(
+                        "diagnostic: πR² checkpoint as sync flow (K = {}, h = d)",
+                        self.cfg.flow_steps
+                    ),
+                    policy: Policy::PiR2,
+                    mode: Mode::SyncFlow {
+                        steps: self.cfg.flow_steps,
+                        h: 1,
+                    },
+                },
+                sweep: Sweep::UnitDelaySync,
+            });
         }
         study
     }
