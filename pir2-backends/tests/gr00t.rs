@@ -272,6 +272,77 @@ fn backbone_encodes_camera_frames_into_tokens() {
 }
 
 #[test]
+fn backbone_takes_one_image_per_camera_view_in_view_order() {
+    use pir2_runtime::{SlowEncoder, View};
+    let dir = fixture("views", "");
+    let files = CheckpointFiles::in_dir(&dir);
+    let mut cfg = embodiment();
+    cfg.prompt.chat.images = 2;
+    let tok = VocabTokenizer::load(&files.vocab).unwrap();
+    let mut bb = Gr00tBackbone::load(
+        &files,
+        &cfg.image,
+        &cfg.prompt,
+        &tok,
+        "catch the book",
+        Some((D_VL, PathBuf::from("dit.onnx"))),
+        &OrtOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(bb.views(), 2);
+    let view = |v: u8, (h, w): (usize, usize)| View {
+        image: (0..h * w * 3)
+            .map(|i| v.wrapping_add((i % 7) as u8))
+            .collect(),
+        hw: (h, w),
+    };
+    // Two cameras of different sizes: each view is preprocessed on its own.
+    let (top, wrist) = (view(10, (480, 640)), view(200, (240, 320)));
+    let a = bb
+        .encode_views(&[top.clone(), wrist.clone()])
+        .unwrap()
+        .to_vec();
+    assert_eq!(a.len(), 8 * D_VL);
+    let swapped = bb
+        .encode_views(&[wrist.clone(), top.clone()])
+        .unwrap()
+        .to_vec();
+    assert_ne!(a, swapped, "the view order reaches the features");
+    let other = bb
+        .encode_views(&[top.clone(), view(90, (240, 320))])
+        .unwrap()
+        .to_vec();
+    assert_ne!(a, other, "the second view reaches the features");
+    // Through the slow channel's encoder trait: the frame's views, in order.
+    let frame = SlowFrame {
+        t_capture: 7,
+        views: vec![top.clone(), wrist.clone()],
+        ..Default::default()
+    };
+    let f = pollster_like(bb.encode(frame)).unwrap();
+    assert_eq!((f.t_capture, f.tokens, f.dim), (7, 8, D_VL));
+    assert_eq!(f.data, a);
+    // A frame with another number of views is one error naming both counts and the config.
+    let e = bb.encode_views(&[top]).unwrap_err().to_string();
+    assert!(
+        e.contains("camera views") && e.contains('2') && e.contains("prompt.chat.images"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Run a future that never waits on I/O to completion.
+fn pollster_like<F: std::future::Future>(f: F) -> F::Output {
+    let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+    let mut f = std::pin::pin!(f);
+    loop {
+        if let std::task::Poll::Ready(v) = f.as_mut().poll(&mut cx) {
+            return v;
+        }
+    }
+}
+
+#[test]
 fn backbone_with_tokenizer_json_feeds_gr00ts_chat_template() {
     use pir2_backends::gr00t::testing::{add_bpe_tokenizer, BPE_TEXT_TOKENS};
     use pir2_backends::gr00t::{load_tokenizer, EmbodimentConfig};

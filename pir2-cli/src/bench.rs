@@ -189,13 +189,20 @@ pub fn gr00t(
             .with_context(|| format!("loading the backbone of {}", checkpoint.display()))?;
         let (h, w) = (480usize, 640usize);
         let image: Vec<u8> = (0..h * w * 3).map(|i| (i % 251) as u8).collect();
+        let views: Vec<pir2_runtime::View> = (0..bb.views())
+            .map(|_| pir2_runtime::View {
+                image: image.clone(),
+                hw: (h, w),
+            })
+            .collect();
         let enc = time_calls(seconds, || {
-            bb.encode_image(&image, (h, w))
+            bb.encode_views(&views)
                 .map(|_| ())
                 .map_err(anyhow::Error::from)
         })?;
         out += &format!(
-            "  backbone, one 640×480 frame: median {:.2} ms, p90 {:.2} ms ({:.1} ticks of feature age at 25 Hz)\n",
+            "  backbone, one frame of {} 640×480 view(s): median {:.2} ms, p90 {:.2} ms ({:.1} ticks of feature age at 25 Hz)\n",
+            views.len(),
             enc.median_ms,
             enc.p90_ms,
             enc.median_ms / 40.0

@@ -282,20 +282,22 @@ struct RunArgs {
     #[arg(long)]
     synthetic_camera: bool,
     /// A live V4L2 (USB/UVC) camera, e.g. /dev/video0 (Linux): frames are stamped with the
-    /// driver's capture time, so the slow channel's age counts from the sensor.
+    /// driver's capture time, so the slow channel's age counts from the sensor. Repeat it
+    /// once per camera view of the embodiment (`prompt.chat.images`), in its view order.
     #[arg(long, conflicts_with_all = ["frames", "remote_slow", "synthetic_camera"])]
-    camera: Option<PathBuf>,
+    camera: Vec<PathBuf>,
     /// With --camera: frame size WIDTHxHEIGHT, which the camera must offer (default: the
-    /// offered size nearest 640x480).
+    /// offered size nearest 640x480); the same for every camera.
     #[arg(long, requires = "camera")]
     camera_size: Option<String>,
     /// With --camera: pixel format (default: the best the camera offers at the size).
     #[arg(long, requires = "camera", value_parser = ["mjpeg", "yuyv", "rgb24"])]
     camera_format: Option<String>,
     /// Replay recorded frames as the camera: every .png/.jpg of this folder in file-name
-    /// order, looping (GR00T's preprocessing applies as to a live camera).
+    /// order, looping (GR00T's preprocessing applies as to a live camera). Repeat it once per
+    /// camera view, in the embodiment's view order.
     #[arg(long, conflicts_with_all = ["remote_slow", "synthetic_camera"])]
-    frames: Option<PathBuf>,
+    frames: Vec<PathBuf>,
     /// With --frames: ms between frames.
     #[arg(long, default_value_t = 33)]
     frame_ms: u64,

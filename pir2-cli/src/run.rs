@@ -50,16 +50,17 @@ pub struct RunOptions {
     pub emulate: bool,
     /// Use the synthetic camera with real robots.
     pub synthetic_camera: bool,
-    /// A live V4L2 camera node (`/dev/videoN`, Linux) as the camera.
-    pub camera: Option<PathBuf>,
+    /// Live V4L2 camera nodes (`/dev/videoN`, Linux), one per camera view of the embodiment
+    /// (`prompt.chat.images`), in view order.
+    pub camera: Vec<PathBuf>,
     /// With `camera`: the frame size to ask for, `WIDTHxHEIGHT` (`None`: nearest 640×480).
     pub camera_size: Option<String>,
     /// With `camera`: the pixel format to ask for (`mjpeg`, `yuyv`, `rgb24`; `None`: the
     /// camera's best at the size).
     pub camera_format: Option<String>,
-    /// Replay the recorded frames of this folder (`.png`/`.jpg`, file-name order, looping) as
-    /// the camera, one per `frame_ms`.
-    pub frames: Option<PathBuf>,
+    /// Replay the recorded frames of these folders (`.png`/`.jpg`, file-name order, looping)
+    /// as the cameras, one folder per view in view order, one frame per `frame_ms`.
+    pub frames: Vec<PathBuf>,
     /// With `frames`: ms between replayed frames.
     pub frame_ms: u64,
     /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
@@ -509,8 +510,8 @@ mod imp {
         if args.remote_slow.is_none()
             && !args.emulate
             && !args.synthetic_camera
-            && args.frames.is_none()
-            && args.camera.is_none()
+            && args.frames.is_empty()
+            && args.camera.is_empty()
         {
             bail!(
                 "no camera: use --camera /dev/videoN for a live camera, --remote-slow ENDPOINT \
@@ -519,9 +520,9 @@ mod imp {
             );
         }
         let sources = [
-            args.frames.is_some(),
+            !args.frames.is_empty(),
             args.remote_slow.is_some(),
-            args.camera.is_some(),
+            !args.camera.is_empty(),
             args.synthetic_camera,
         ];
         if sources.iter().filter(|&&s| s).count() > 1 {
@@ -532,7 +533,7 @@ mod imp {
         }
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         // The camera before any robot: a wrong device fails while nothing is powered.
-        let camera = local_camera(args, clock.clone())?;
+        let camera = local_camera(args, cfg.prompt.chat.images, clock.clone())?;
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
         let safety = safety_config(&cfg)?;
         if let Some(g) = args.slow_grace_ms {
@@ -685,42 +686,77 @@ mod imp {
         what: String,
     }
 
-    /// Open the local camera (`None` when the features come from `pir2 serve slow`).
-    fn local_camera(args: &RunOptions, clock: Arc<dyn Clock>) -> Result<Option<Camera>> {
+    /// Open the local cameras, one per camera view of the embodiment (`views`), joined into
+    /// one multi-view source (`None` when the features come from `pir2 serve slow`). Another
+    /// number of `--camera` or `--frames` than views is one error naming both.
+    fn local_camera(
+        args: &RunOptions,
+        views: usize,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Option<Camera>> {
         if args.remote_slow.is_some() {
             return Ok(None);
         }
-        if let Some(dev) = &args.camera {
-            return v4l2_camera(args, dev, clock).map(Some);
-        }
-        Ok(Some(match &args.frames {
-            Some(dir) => {
-                let cam = pir2_robots::FolderCamera::open(
-                    dir,
-                    Duration::from_millis(args.frame_ms.max(1)),
-                    clock,
-                )
-                .with_context(|| format!("--frames {}", dir.display()))?;
-                let what = format!(
-                    "{} recorded frames from {} (one per {} ms, looping)",
-                    cam.len(),
-                    dir.display(),
-                    args.frame_ms.max(1)
+        let given = [
+            ("--camera", args.camera.len()),
+            ("--frames", args.frames.len()),
+        ]
+        .into_iter()
+        .find(|&(_, n)| n > 0);
+        if let Some((flag, n)) = given {
+            if n != views {
+                bail!(
+                    "{n} {flag} given, but the embodiment has {views} camera view(s) \
+                     (prompt.chat.images): give one {flag} per view, in its view order"
                 );
-                Camera {
-                    frames: cam.frames(),
-                    source: Box::new(cam),
-                    what,
-                }
             }
-            None => {
-                let cam = SyntheticCamera::new(clock, CAMERA_PERIOD);
-                Camera {
-                    frames: cam.frames(),
-                    source: Box::new(cam),
-                    what: "a synthetic camera".to_string(),
-                }
-            }
+        }
+        let mut cams = Vec::with_capacity(views);
+        for dev in &args.camera {
+            cams.push(v4l2_camera(args, dev, clock.clone())?);
+        }
+        for dir in &args.frames {
+            let cam = pir2_robots::FolderCamera::open(
+                dir,
+                Duration::from_millis(args.frame_ms.max(1)),
+                clock.clone(),
+            )
+            .with_context(|| format!("--frames {}", dir.display()))?;
+            let what = format!(
+                "{} recorded frames from {} (one per {} ms, looping)",
+                cam.len(),
+                dir.display(),
+                args.frame_ms.max(1)
+            );
+            cams.push(Camera {
+                frames: cam.frames(),
+                source: Box::new(cam),
+                what,
+            });
+        }
+        if cams.is_empty() {
+            let cam = SyntheticCamera::with_views(clock, CAMERA_PERIOD, views);
+            return Ok(Some(Camera {
+                frames: cam.frames(),
+                source: Box::new(cam),
+                what: format!("a synthetic camera ({views} view(s))"),
+            }));
+        }
+        if cams.len() == 1 {
+            return Ok(cams.pop());
+        }
+        let frames = cams[0].frames.clone();
+        let what = cams
+            .iter()
+            .enumerate()
+            .map(|(k, c)| format!("view {k}: {}", c.what))
+            .collect::<Vec<_>>()
+            .join("; ");
+        let joined = pir2_runtime::Views::new(cams.into_iter().map(|c| c.source).collect())?;
+        Ok(Some(Camera {
+            source: Box::new(joined),
+            frames,
+            what,
         }))
     }
 

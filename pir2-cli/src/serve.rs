@@ -406,7 +406,11 @@ mod imp {
             .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
         let (t, d) = bb.output_shape();
         Ok((
-            Box::new(SyntheticCamera::new(clock.clone(), period)),
+            Box::new(SyntheticCamera::with_views(
+                clock.clone(),
+                period,
+                bb.views(),
+            )),
             Box::new(bb),
             format!(
                 "GR00T backbone.onnx [{t}×{d}] of {} on {}, synthetic camera, prompt {prompt:?}",

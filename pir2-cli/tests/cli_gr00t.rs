@@ -342,7 +342,7 @@ fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay()
         "on CPU",
         "one NFE (batch 1): median",
         "at 25 Hz: πR² (one NFE per call) d = ",
-        "backbone, one 640×480 frame",
+        "backbone, one frame of 1 640×480 view(s)",
     ] {
         assert!(text.contains(part), "`{part}` missing: {text}");
     }
@@ -383,6 +383,54 @@ fn a_replayed_frame_folder_drives_a_run_end_to_end() {
         "{text}"
     );
     assert!(!text.contains("warm-up done"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}
+
+/// One `--frames` folder per camera view: a two-view checkpoint runs on two replayed cameras
+/// joined into one slow frame, and a count that is not the embodiment's views is one error
+/// naming both, before any robot.
+#[test]
+fn one_replayed_camera_per_view_drives_a_multi_view_run() {
+    use pir2_backends::gr00t::EmbodimentConfig;
+    let ck = checkpoint("views", "");
+    let frames =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/data/gr00t_image");
+    let f = frames.to_str().unwrap();
+    // The one-view checkpoint refuses two cameras.
+    let (out, text) = emulated(&ck, "catch the book", 5, &["--frames", f, "--frames", f]);
+    assert!(!out.status.success(), "{text}");
+    assert!(
+        text.contains("2 --frames given")
+            && text.contains("1 camera view")
+            && text.contains("prompt.chat.images"),
+        "{text}"
+    );
+    assert!(!text.contains("warm-up done"), "{text}");
+    // A two-view embodiment: two folders run; one is refused.
+    let path = ck.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path).unwrap();
+    cfg.prompt.chat.images = 2;
+    std::fs::write(&path, cfg.to_toml().unwrap()).unwrap();
+    let (v, _) = emulated_json(
+        &ck,
+        "catch the book",
+        40,
+        &["--frames", f, "--frames", f, "--frame-ms", "20"],
+    );
+    let slow = v["slow"].as_str().unwrap();
+    assert!(slow.contains("view 0: 4 recorded frames"), "{v}");
+    assert!(slow.contains("view 1: 4 recorded frames"), "{v}");
+    assert!(v["camera_frames"].as_u64().unwrap() >= 2, "{v}");
+    assert_eq!(v["trace"]["ticks"], 40);
+    let (out, text) = emulated(&ck, "catch the book", 5, &["--frames", f]);
+    assert!(!out.status.success(), "{text}");
+    assert!(
+        text.contains("1 --frames given") && text.contains("2 camera view"),
+        "{text}"
+    );
+    // The synthetic camera of --emulate gives every view.
+    let (v, _) = emulated_json(&ck, "catch the book", 20, &[]);
+    assert!(v["slow"].as_str().unwrap().contains("2 view(s)"), "{v}");
     std::fs::remove_dir_all(&ck).ok();
 }
 

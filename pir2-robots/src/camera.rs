@@ -131,12 +131,7 @@ impl SlowSource for FolderCamera {
         let (image, image_hw) = Self::decode(&self.files[self.next])?;
         self.next += 1;
         self.delivered.fetch_add(1, Ordering::Relaxed);
-        Ok(SlowFrame {
-            t_capture: self.clock.now(),
-            image,
-            image_hw,
-            ..Default::default()
-        })
+        Ok(SlowFrame::image(self.clock.now(), image, image_hw))
     }
 }
 
@@ -181,14 +176,17 @@ mod tests {
         let mut cam = FolderCamera::open(&d, Duration::ZERO, clock).unwrap();
         assert_eq!(cam.len(), 3);
         let f = block_on(cam.capture()).unwrap();
-        assert_eq!((f.image_hw, &f.image[..3]), ((5, 3), &[9u8, 9, 9][..]));
+        assert_eq!(
+            (f.views[0].hw, &f.views[0].image[..3]),
+            ((5, 3), &[9u8, 9, 9][..])
+        );
         let f = block_on(cam.capture()).unwrap();
-        assert_eq!((f.image_hw, f.image.len()), ((2, 4), 24));
-        assert_eq!(&f.image[..3], &[1, 2, 3]);
+        assert_eq!((f.views[0].hw, f.views[0].image.len()), ((2, 4), 24));
+        assert_eq!(&f.views[0].image[..3], &[1, 2, 3]);
         let f = block_on(cam.capture()).unwrap();
-        assert_eq!(&f.image[..3], &[7, 8, 9]);
+        assert_eq!(&f.views[0].image[..3], &[7, 8, 9]);
         let f = block_on(cam.capture()).unwrap();
-        assert_eq!(f.image_hw, (5, 3), "loops to the first frame");
+        assert_eq!(f.views[0].hw, (5, 3), "loops to the first frame");
         assert_eq!(cam.delivered(), 4);
         std::fs::remove_dir_all(&d).unwrap();
     }

@@ -28,19 +28,39 @@ pub trait Actuator: Send {
     fn stop(&mut self) -> Result<()>;
 }
 
-/// One raw frame of the slow channel: an image and/or a prompt, with its capture time.
+/// One camera image of the slow channel.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct View {
+    /// Image bytes (layout defined by the source, e.g. HWC `u8` RGB).
+    pub image: Vec<u8>,
+    /// Image height and width.
+    pub hw: (usize, usize),
+}
+
+/// One raw frame of the slow channel: camera images and/or a prompt, with its capture time.
 #[derive(Debug, Clone, Default)]
 pub struct SlowFrame {
-    /// Capture time on the runtime's clock.
+    /// Capture time on the runtime's clock. A frame joined from several cameras carries the
+    /// oldest view's time, so the slow channel's age `d_vis` is never understated.
     pub t_capture: Nanos,
-    /// Image bytes (layout defined by the source, e.g. HWC u8 RGB), may be empty.
-    pub image: Vec<u8>,
-    /// Image height and width, if an image is present.
-    pub image_hw: (usize, usize),
+    /// Camera images, one per view in the order the encoder expects (empty when the slow
+    /// channel carries none).
+    pub views: Vec<View>,
     /// Raw slow observation values (e.g. a camera-estimated object pose), may be empty.
     pub values: Vec<f32>,
     /// The language prompt, may be empty.
     pub prompt: String,
+}
+
+impl SlowFrame {
+    /// A frame of one camera image captured at `t_capture`.
+    pub fn image(t_capture: Nanos, image: Vec<u8>, hw: (usize, usize)) -> Self {
+        SlowFrame {
+            t_capture,
+            views: vec![View { image, hw }],
+            ..Default::default()
+        }
+    }
 }
 
 /// Encoded slow features with the capture time of the frame they were computed from.
@@ -67,6 +87,72 @@ pub trait SlowSource: Send {
 impl SlowSource for Box<dyn SlowSource> {
     async fn capture(&mut self) -> Result<SlowFrame> {
         (**self).capture().await
+    }
+}
+
+/// Several camera sources joined into one multi-view frame: each capture takes one frame
+/// from every source in turn and returns their views in source order. The joined frame
+/// carries the **oldest** view's capture time (so `d_vis` counts from the stalest image),
+/// the sources' values concatenated, and the first non-empty prompt. A source's error ends
+/// the capture with that error (a stale or missing view never passes as a fresh frame),
+/// and a source that delivers no image is an error naming its position.
+pub struct Views<S> {
+    sources: Vec<S>,
+}
+
+impl<S> std::fmt::Debug for Views<S> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Views")
+            .field("sources", &self.sources.len())
+            .finish()
+    }
+}
+
+impl<S: SlowSource> Views<S> {
+    /// Join `sources` (at least one), in view order.
+    pub fn new(sources: Vec<S>) -> Result<Self> {
+        if sources.is_empty() {
+            return Err(crate::Error::Config(
+                "a multi-view slow source needs at least one camera".into(),
+            ));
+        }
+        Ok(Self { sources })
+    }
+
+    /// Number of joined sources.
+    pub fn len(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Never true (a `Views` holds at least one source).
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
+    }
+}
+
+#[async_trait::async_trait]
+impl<S: SlowSource> SlowSource for Views<S> {
+    async fn capture(&mut self) -> Result<SlowFrame> {
+        let mut out = SlowFrame {
+            t_capture: Nanos::MAX,
+            ..Default::default()
+        };
+        for (k, src) in self.sources.iter_mut().enumerate() {
+            let f = src.capture().await?;
+            if f.views.is_empty() {
+                return Err(crate::Error::Io {
+                    device: format!("camera view {k}"),
+                    message: "delivered a frame without an image".into(),
+                });
+            }
+            out.t_capture = out.t_capture.min(f.t_capture);
+            out.views.extend(f.views);
+            out.values.extend(f.values);
+            if out.prompt.is_empty() {
+                out.prompt = f.prompt;
+            }
+        }
+        Ok(out)
     }
 }
 
@@ -256,5 +342,100 @@ mod slow_frames_tests {
         env.reset(1);
         env.observe(&mut f, &mut s);
         assert_eq!(s, [1.0, 10.0, 1.0, 10.0, 1.0, 10.0]);
+    }
+}
+
+#[cfg(test)]
+mod views_tests {
+    use super::*;
+
+    /// Frames of one fixed-size image filled with `fill`, captured at `t`, `t + step`, ...
+    struct Scripted {
+        fill: u8,
+        t: Nanos,
+        step: Nanos,
+        fail_at: Option<usize>,
+        n: usize,
+        empty: bool,
+    }
+
+    #[async_trait::async_trait]
+    impl SlowSource for Scripted {
+        async fn capture(&mut self) -> Result<SlowFrame> {
+            self.n += 1;
+            if self.fail_at == Some(self.n) {
+                return Err(crate::Error::Io {
+                    device: format!("cam{}", self.fill),
+                    message: "unplugged".into(),
+                });
+            }
+            let t = self.t + self.step * (self.n as Nanos - 1);
+            if self.empty {
+                return Ok(SlowFrame {
+                    t_capture: t,
+                    ..Default::default()
+                });
+            }
+            let mut f = SlowFrame::image(t, vec![self.fill; 2 * 3 * 3], (2, 3));
+            f.values = vec![f32::from(self.fill)];
+            Ok(f)
+        }
+    }
+
+    fn cam(fill: u8, t: Nanos) -> Scripted {
+        Scripted {
+            fill,
+            t,
+            step: 100,
+            fail_at: None,
+            n: 0,
+            empty: false,
+        }
+    }
+
+    fn block_on<F: std::future::Future>(f: F) -> F::Output {
+        let waker = std::task::Waker::noop();
+        let mut cx = std::task::Context::from_waker(waker);
+        let mut f = std::pin::pin!(f);
+        loop {
+            if let std::task::Poll::Ready(v) = f.as_mut().poll(&mut cx) {
+                return v;
+            }
+        }
+    }
+
+    #[test]
+    fn views_come_in_source_order_with_the_oldest_capture_time() {
+        let mut v = Views::new(vec![cam(1, 5_000), cam(2, 4_000), cam(3, 6_000)]).unwrap();
+        assert_eq!(v.len(), 3);
+        let f = block_on(v.capture()).unwrap();
+        let fills: Vec<u8> = f.views.iter().map(|v| v.image[0]).collect();
+        assert_eq!(fills, [1, 2, 3]);
+        assert!(f.views.iter().all(|v| v.hw == (2, 3)));
+        assert_eq!(f.t_capture, 4_000, "the stalest view's time");
+        assert_eq!(f.values, [1.0, 2.0, 3.0]);
+        let f = block_on(v.capture()).unwrap();
+        assert_eq!(f.t_capture, 4_100);
+    }
+
+    #[test]
+    fn a_failing_or_imageless_view_fails_the_whole_frame() {
+        let mut bad = cam(2, 0);
+        bad.fail_at = Some(2);
+        let mut v = Views::new(vec![cam(1, 0), bad]).unwrap();
+        assert!(block_on(v.capture()).is_ok());
+        let e = block_on(v.capture()).unwrap_err().to_string();
+        assert!(e.contains("cam2") && e.contains("unplugged"), "{e}");
+
+        let mut empty = cam(9, 0);
+        empty.empty = true;
+        let mut v = Views::new(vec![cam(1, 0), empty]).unwrap();
+        let e = block_on(v.capture()).unwrap_err().to_string();
+        assert!(
+            e.contains("camera view 1") && e.contains("without an image"),
+            "{e}"
+        );
+
+        assert!(Views::<Scripted>::new(Vec::new()).is_err());
     }
 }

@@ -39,7 +39,7 @@ pub use error::{panic_message, Error, Result};
 pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
 pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,
-    SlowFrames, SlowSource,
+    SlowFrames, SlowSource, View, Views,
 };
 pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};

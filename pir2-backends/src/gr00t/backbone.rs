@@ -1,12 +1,13 @@
-//! The slow channel: image + prompt → backbone tokens `[T, D_vl]`.
+//! The slow channel: camera images + prompt → backbone tokens `[T, D_vl]`.
 //!
 //! [`Gr00tBackbone`] implements the runtime's [`SlowEncoder`], so the real-time driver runs it
 //! on its own thread (`SlowChannel::Async`) and caches its output with the frame's capture
 //! time. Its pipeline:
 //!
-//! 1. [`preprocess_image`]: HWC `u8` RGB → GR00T N1.7's transform ([`super::image`]: letterbox,
-//!    `INTER_AREA` resize to `image.shortest_edge`, centre crop 0.95, resize back) →
-//!    `(x/255 − mean)/std` → `[1, 3, s, s]`;
+//! 1. [`preprocess_image`], for each of the frame's `V` camera views (`prompt.chat.images`,
+//!    in the embodiment's view order): HWC `u8` RGB → GR00T N1.7's transform
+//!    ([`super::image`]: letterbox, `INTER_AREA` resize to `image.shortest_edge`, centre crop
+//!    0.95, resize back) → `(x/255 − mean)/std`, stacked → `pixel_values [V, 3, s, s]`;
 //! 2. [`build_sequence`]: with the VLM's `tokenizer.json`, the prompt rendered through GR00T
 //!    N1.7's chat template around the image placeholders and padded to `T` (see
 //!    [`super::tokenizer`]); with a `vocab.txt`, `image_tokens` image placeholders, then the
@@ -27,7 +28,7 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame};
+use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame, View};
 
 use super::config::{CheckpointFiles, ImageConfig, ImagePipeline, PromptConfig};
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
@@ -327,7 +328,9 @@ pub struct Gr00tBackbone {
     image: ImageConfig,
     seq: Sequence,
     d_vl: usize,
+    views: usize,
     pixels: Vec<f32>,
+    view_pixels: Vec<f32>,
     feats: Vec<f32>,
     encoded: u64,
 }
@@ -389,6 +392,11 @@ impl Gr00tBackbone {
             seq.ids.len(),
             "<embodiment config: prompt.image_tokens + text_tokens>",
         );
+        b.bind(
+            "images",
+            prompt_cfg.chat.images,
+            "<embodiment config: prompt.chat.images (camera views)>",
+        );
         if let Some((d, src)) = d_vl {
             b.bind("D_vl", d, src);
         }
@@ -416,7 +424,9 @@ impl Gr00tBackbone {
             image: image.clone(),
             seq,
             d_vl,
+            views: prompt_cfg.chat.images,
             pixels: Vec::new(),
+            view_pixels: Vec::new(),
             feats: Vec::new(),
             encoded: 0,
         })
@@ -442,12 +452,45 @@ impl Gr00tBackbone {
         self.encoded
     }
 
-    /// Encode one image (HWC `u8` RGB) into `[T, D_vl]` tokens.
+    /// Camera views each frame must carry (`prompt.chat.images`).
+    pub fn views(&self) -> usize {
+        self.views
+    }
+
+    /// Encode one image (HWC `u8` RGB) into `[T, D_vl]` tokens (a one-view backbone).
     pub fn encode_image(&mut self, rgb: &[u8], hw: (usize, usize)) -> Result<&[f32]> {
-        preprocess_image(rgb, hw, &self.image, &mut self.pixels)?;
+        self.encode(&[(rgb, hw)])
+    }
+
+    /// Encode the camera views of one frame (HWC `u8` RGB each, in the embodiment's view
+    /// order) into `[T, D_vl]` tokens: each view is preprocessed on its own and the backbone
+    /// gets them stacked as `pixel_values` `[V, 3, s, s]`. A frame with another number of
+    /// views than the prompt's image blocks is one error naming both.
+    pub fn encode_views(&mut self, views: &[View]) -> Result<&[f32]> {
+        let views: Vec<(&[u8], (usize, usize))> =
+            views.iter().map(|v| (v.image.as_slice(), v.hw)).collect();
+        self.encode(&views)
+    }
+
+    fn encode(&mut self, views: &[(&[u8], (usize, usize))]) -> Result<&[f32]> {
+        if views.len() != self.views {
+            return Err(Gr00tError::input(
+                "camera views of a slow frame",
+                format!(
+                    "{} (prompt.chat.images of the embodiment config)",
+                    self.views
+                ),
+                views.len(),
+            ));
+        }
+        self.pixels.clear();
+        for &(rgb, hw) in views {
+            preprocess_image(rgb, hw, &self.image, &mut self.view_pixels)?;
+            self.pixels.extend_from_slice(&self.view_pixels);
+        }
         let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.pixel_side());
         let mut feeds = vec![
-            feed("pixel_values", &[1, 3, c, c], &self.pixels)?,
+            feed("pixel_values", &[views.len(), 3, c, c], &self.pixels)?,
             feed("input_ids", &[1, t], &self.seq.ids)?,
         ];
         if self.backbone.declared.has("attention_mask") {
@@ -496,7 +539,7 @@ impl Gr00tBackbone {
 impl SlowEncoder for Gr00tBackbone {
     async fn encode(&mut self, frame: SlowFrame) -> pir2_runtime::Result<SlowFeatures> {
         let (t, d) = self.output_shape();
-        let data = self.encode_image(&frame.image, frame.image_hw)?.to_vec();
+        let data = self.encode_views(&frame.views)?.to_vec();
         Ok(SlowFeatures {
             t_capture: frame.t_capture,
             data,

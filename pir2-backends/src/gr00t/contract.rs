@@ -176,7 +176,7 @@ pub const BACKBONE: GraphSpec = GraphSpec {
         t(
             "pixel_values",
             F32,
-            &[Batch, Fixed(3), Static("crop"), Static("crop")],
+            &[Dynamic("images"), Fixed(3), Static("crop"), Static("crop")],
         ),
         t("input_ids", I64, &[Batch, Dynamic("T")]),
         opt("attention_mask", I64, &[Batch, Dynamic("T")]),

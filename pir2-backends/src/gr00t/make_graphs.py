@@ -154,7 +154,10 @@ def main(out, variant):
         {"W": w(D_HID, A_MAX, scale=0.5), "slots": w(SLOTS, A_MAX, scale=0.1), "ax1": np.array([1], np.int64)},
     )
 
-    # backbone: embed[input_ids] * attention + mean_pixels @ Wp
+    # backbone: embed[input_ids] * attention + pooled_pixels @ Wp, where the pixels of the
+    # V views (`images`, first axis) are pooled order-sensitively (mean over views of their
+    # running sum: earlier views weigh more), so a swapped view order changes the output;
+    # with one view this is the plain pixel mean.
     save(
         f"{out}/backbone.onnx",
         [
@@ -164,13 +167,15 @@ def main(out, variant):
             helper.make_node("Cast", ["attention_mask"], ["af"], to=F),
             helper.make_node("Unsqueeze", ["af", "axm1"], ["au"]),
             helper.make_node("Mul", ["tok", "au"], ["tm"]),
-            helper.make_node("ReduceMean", ["pixel_values", "ax23"], ["pm"], keepdims=0),  # [b,3]
-            helper.make_node("MatMul", ["pm", "Wp"], ["pv"]),  # [b,D_VL]
+            helper.make_node("ReduceMean", ["pixel_values", "ax23"], ["pm0"], keepdims=0),  # [V,3]
+            helper.make_node("CumSum", ["pm0", "ax0s"], ["pc"]),  # [V,3]
+            helper.make_node("ReduceMean", ["pc", "ax0"], ["pm"], keepdims=1),  # [1,3]
+            helper.make_node("MatMul", ["pm", "Wp"], ["pv"]),  # [1,D_VL]
             helper.make_node("Unsqueeze", ["pv", "ax1"], ["pu"]),
             helper.make_node("Add", ["tm", "pu"], ["embeddings"]),
         ],
         [
-            vi("pixel_values", F, ["batch", 3, CROP, CROP]),
+            vi("pixel_values", F, ["images", 3, CROP, CROP]),
             vi("input_ids", I, ["batch", "T"]),
             vi("attention_mask", I, ["batch", "T"]),
         ],
@@ -182,6 +187,8 @@ def main(out, variant):
             "axm1": np.array([-1], np.int64),
             "ax1": np.array([1], np.int64),
             "ax23": np.array([2, 3], np.int64),
+            "ax0": np.array([0], np.int64),
+            "ax0s": np.array(0, np.int64),
         },
     )
 

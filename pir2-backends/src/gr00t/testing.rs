@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use pir2_runtime::{Clock, SlowFrame, SlowSource};
+use pir2_runtime::{Clock, SlowFrame, SlowSource, View};
 
 use super::config::EmbodimentConfig;
 use super::error::{Gr00tError, Result};
@@ -172,11 +172,13 @@ pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result
 }
 
 /// A synthetic 640×480 RGB camera: a horizontal gradient whose brightness changes every
-/// frame, one frame per `period`, stamped on `clock`. Stands in for a camera driver (none
-/// exists in pir2 yet) in tests and in `pir2 run … --emulate`.
+/// frame, one frame per `period`, stamped on `clock`, with one image per view (each view's
+/// gradient offset differently). Stands in for the cameras in tests and in
+/// `pir2 run … --emulate`.
 pub struct SyntheticCamera {
     clock: Arc<dyn Clock>,
     period: Duration,
+    views: usize,
     frames: Arc<AtomicU64>,
 }
 
@@ -190,11 +192,17 @@ impl std::fmt::Debug for SyntheticCamera {
 }
 
 impl SyntheticCamera {
-    /// A camera producing one frame per `period`.
+    /// A camera producing one frame (one view) per `period`.
     pub fn new(clock: Arc<dyn Clock>, period: Duration) -> Self {
+        Self::with_views(clock, period, 1)
+    }
+
+    /// A camera producing one frame of `views` images per `period`.
+    pub fn with_views(clock: Arc<dyn Clock>, period: Duration, views: usize) -> Self {
         Self {
             clock,
             period,
+            views,
             frames: Arc::new(AtomicU64::new(0)),
         }
     }
@@ -211,14 +219,18 @@ impl SlowSource for SyntheticCamera {
         std::thread::sleep(self.period);
         let k = self.frames.fetch_add(1, Ordering::Relaxed);
         let (h, w) = (480, 640);
-        let mut image = vec![0u8; h * w * 3];
-        for (i, px) in image.iter_mut().enumerate() {
-            *px = ((i / 3 % w) as u64 * 255 / w as u64 + k * 40) as u8;
-        }
+        let views = (0..self.views as u64)
+            .map(|v| {
+                let mut image = vec![0u8; h * w * 3];
+                for (i, px) in image.iter_mut().enumerate() {
+                    *px = ((i / 3 % w) as u64 * 255 / w as u64 + k * 40 + v * 97) as u8;
+                }
+                View { image, hw: (h, w) }
+            })
+            .collect();
         Ok(SlowFrame {
             t_capture: self.clock.now(),
-            image,
-            image_hw: (h, w),
+            views,
             ..Default::default()
         })
     }

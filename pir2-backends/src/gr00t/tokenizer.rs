@@ -81,7 +81,10 @@ pub struct ChatTemplate {
     /// The padding token (one id in the tokenizer).
     pub pad_token: String,
     /// Image blocks in the turn (GR00T: camera views × frames); `prompt.image_tokens` is
-    /// split evenly between them.
+    /// split evenly between them. pir2 feeds one frame per view, so this is the number of
+    /// camera views: every slow frame must carry that many images (one `--camera` or
+    /// `--frames` per view, in this order), and `backbone.onnx` receives them stacked as
+    /// `pixel_values` `[images, 3, s, s]`.
     pub images: usize,
     /// Lower-case the instruction and drop what is neither a word character nor whitespace
     /// (GR00T's `formalize_language`, on by default).

@@ -332,12 +332,7 @@ impl<D: Device> Capture<D> {
         } else {
             Timestamps::Dequeue
         });
-        Ok(SlowFrame {
-            t_capture,
-            image,
-            image_hw: (h, w),
-            ..Default::default()
-        })
+        Ok(SlowFrame::image(t_capture, image, (h, w)))
     }
 }
 

@@ -178,8 +178,8 @@ fn driver_timestamps_give_the_capture_time_on_the_runtime_clock_and_the_newest_f
     let f = cap.next_frame().unwrap();
     // Captured 30 ms before the dequeue: 100 ms − 30 ms on the runtime clock.
     assert_eq!(f.t_capture, NOW - 30 * MS);
-    assert_eq!(f.image_hw, (2, 4));
-    assert_eq!(f.image, vec![rgb_of(200); 24]);
+    assert_eq!(f.views[0].hw, (2, 4));
+    assert_eq!(f.views[0].image, vec![rgb_of(200); 24]);
     assert_eq!(cap.counters.skipped.load(Ordering::Relaxed), 1);
     assert!(cap.dev.all_queued());
     assert_eq!(cap.timestamps, Some(Timestamps::Driver));
@@ -187,7 +187,7 @@ fn driver_timestamps_give_the_capture_time_on_the_runtime_clock_and_the_newest_f
     clock.set(NOW + 40 * MS);
     let f = cap.next_frame().unwrap();
     assert_eq!(f.t_capture, NOW + 40 * MS - (MS + 9 * MS));
-    assert_eq!(f.image[0], rgb_of(120));
+    assert_eq!(f.views[0].image[0], rgb_of(120));
     assert_eq!(cap.counters.delivered.load(Ordering::Relaxed), 2);
     assert!(cap.dev.all_queued());
     // The mapping itself: age = monotonic now − stamp; a stamp from the future is age 0.
@@ -225,7 +225,7 @@ fn eintr_is_retried_and_flagged_buffers_are_dropped() {
     );
     let (mut cap, _) = capture(fake, yuyv_4x2());
     let f = cap.next_frame().unwrap();
-    assert_eq!(f.image[0], rgb_of(150));
+    assert_eq!(f.views[0].image[0], rgb_of(150));
     assert_eq!(cap.counters.flagged.load(Ordering::Relaxed), 1);
     assert!(cap.dev.all_queued());
 }
@@ -347,7 +347,10 @@ fn a_stale_short_or_corrupt_frame_is_an_error_and_its_buffer_goes_back() {
     assert!(e.to_string().contains("truncated JPEG"), "{e}");
     // The camera goes on with the next good frame.
     let f = cap.next_frame().unwrap();
-    assert_eq!((f.image_hw, f.image.len()), ((32, 48), 48 * 32 * 3));
+    assert_eq!(
+        (f.views[0].hw, f.views[0].image.len()),
+        ((32, 48), 48 * 32 * 3)
+    );
     assert!(cap.dev.all_queued());
 }
 
