@@ -35,14 +35,18 @@ impl Case {
             &Device::Cpu,
         )
         .unwrap();
-        let io =
-            candle_core::safetensors::load(dir.join(format!("{name}.io.safetensors")), &Device::Cpu)
-                .unwrap();
+        let io = candle_core::safetensors::load(
+            dir.join(format!("{name}.io.safetensors")),
+            &Device::Cpu,
+        )
+        .unwrap();
         Case { head, io }
     }
 
     fn get(&self, k: &str) -> &Tensor {
-        self.io.get(k).unwrap_or_else(|| panic!("fixture lacks {k}"))
+        self.io
+            .get(k)
+            .unwrap_or_else(|| panic!("fixture lacks {k}"))
     }
 
     /// The processed VL tokens and the state features, computed by the candle head.
@@ -80,7 +84,10 @@ fn rel_err(a: &Tensor, b: &Tensor) -> f32 {
 fn check(case: &str, what: &str, got: &Tensor, want: &Tensor) {
     let e = rel_err(got, want);
     println!("{case:>5} {what:<16} relative error {e:.2e}");
-    assert!(e <= TOL, "{case}: {what} differs from the reference by {e:.2e} (> {TOL:.0e})");
+    assert!(
+        e <= TOL,
+        "{case}: {what} differs from the reference by {e:.2e} (> {TOL:.0e})"
+    );
 }
 
 #[test]
@@ -94,17 +101,29 @@ fn matches_reference_implementation() {
         let (b, h, _) = c.get("in.actions").dims3().unwrap();
         let t = c.get("in.timesteps");
         let t_bh = t.reshape((b, 1)).unwrap().broadcast_as((b, h)).unwrap();
-        let a = c.head.encode_actions(c.get("in.actions"), &t_bh, emb).unwrap();
+        let a = c
+            .head
+            .encode_actions(c.get("in.actions"), &t_bh, emb)
+            .unwrap();
         check(name, "action_features", &a, c.get("out.action_features"));
         let sa = Tensor::cat(&[&s, &a], 1).unwrap();
         let out = c.head.dit(&sa, &c.vl(&vl), t).unwrap();
         check(name, "dit_output", &out, c.get("out.dit_output"));
         let v = c
             .head
-            .velocity(&s, c.get("in.actions"), Timesteps::Shared(t), &c.vl(&vl), emb)
+            .velocity(
+                &s,
+                c.get("in.actions"),
+                Timesteps::Shared(t),
+                &c.vl(&vl),
+                emb,
+            )
             .unwrap();
         check(name, "velocity", &v, c.get("out.velocity"));
-        let x = c.head.sample(&s, c.get("in.noise"), &c.vl(&vl), emb).unwrap();
+        let x = c
+            .head
+            .sample(&s, c.get("in.noise"), &c.vl(&vl), emb)
+            .unwrap();
         check(name, "get_action", &x, c.get("out.action_pred"));
     }
 }
@@ -145,10 +164,18 @@ fn per_position_timesteps_all_equal_reproduce_the_shared_case() {
 
         // Different timesteps per position do reach the per-token path: moving only the last
         // position's timestep changes the velocity.
-        let mut tv = tokens.to_dtype(DType::F32).unwrap().to_vec2::<f32>().unwrap();
+        let mut tv = tokens
+            .to_dtype(DType::F32)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
         tv[0][h] = 999.0;
         let tokens2 = Tensor::new(tv, &Device::Cpu).unwrap();
-        let mut av = actions.to_dtype(DType::F32).unwrap().to_vec2::<f32>().unwrap();
+        let mut av = actions
+            .to_dtype(DType::F32)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
         av[0][h - 1] = 999.0;
         let actions2 = Tensor::new(av, &Device::Cpu).unwrap();
         let moved = c
@@ -164,7 +191,10 @@ fn per_position_timesteps_all_equal_reproduce_the_shared_case() {
                 emb,
             )
             .unwrap();
-        assert!(rel_err(&moved, &shared) > 1e-3, "{name}: per-position timestep ignored");
+        assert!(
+            rel_err(&moved, &shared) > 1e-3,
+            "{name}: per-position timestep ignored"
+        );
     }
 }
 
@@ -227,12 +257,18 @@ fn loads_a_sharded_checkpoint_with_a_backbone() {
     save(&shards[1], &dir.0.join("model-00002-of-00002.safetensors"));
     let idx = serde_json::json!({ "metadata": {}, "weight_map": index });
     std::fs::write(dir.0.join("model.safetensors.index.json"), idx.to_string()).unwrap();
-    std::fs::copy(fixtures().join("alt.config.json"), dir.0.join("config.json")).unwrap();
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        dir.0.join("config.json"),
+    )
+    .unwrap();
 
     let sharded = Gr00tN17Head::load(&dir.0, &Device::Cpu).unwrap();
     let c = Case::load("alt");
     let emb = c.get("in.embodiment_id");
-    let vl = sharded.process_backbone(c.get("in.backbone_features")).unwrap();
+    let vl = sharded
+        .process_backbone(c.get("in.backbone_features"))
+        .unwrap();
     let s = sharded.encode_state(c.get("in.state"), emb).unwrap();
     let v = sharded
         .velocity(
@@ -282,7 +318,10 @@ fn missing_misshaped_and_unexpected_tensors_are_named() {
         }
         other => panic!("expected TensorShape, got {other:?}"),
     }
-    assert!(err.to_string().contains("action_head.action_encoder.W2.W"), "{err}");
+    assert!(
+        err.to_string().contains("action_head.action_encoder.W2.W"),
+        "{err}"
+    );
 
     // A configuration without the VL self-attention does not silently drop its weights.
     let mut cfg = alt_config();

@@ -239,8 +239,7 @@ impl Gr00tN17Config {
                     output_dim: f.usize("output_dim", 26)?,
                     interleave_self_attention: f.bool("interleave_self_attention", false)?,
                     sinusoidal_positions: pos.is_some(),
-                    max_num_positional_embeddings: f
-                        .usize("max_num_positional_embeddings", 512)?,
+                    max_num_positional_embeddings: f.usize("max_num_positional_embeddings", 512)?,
                     norm_eps: f.f64("norm_eps", 1e-5)?,
                 }
             }
@@ -268,14 +267,14 @@ impl Gr00tN17Config {
                     num_attention_heads: f.usize("num_attention_heads", 8)?,
                     attention_head_dim: f.usize("attention_head_dim", 64)?,
                     sinusoidal_positions: pos.is_some(),
-                    max_num_positional_embeddings: f
-                        .usize("max_num_positional_embeddings", 512)?,
+                    max_num_positional_embeddings: f.usize("max_num_positional_embeddings", 512)?,
                 };
                 (c.num_layers > 0).then_some(c)
             }
         };
         let cfg = Self {
-            backbone_embedding_dim: top.usize("backbone_embedding_dim", d.backbone_embedding_dim)?,
+            backbone_embedding_dim: top
+                .usize("backbone_embedding_dim", d.backbone_embedding_dim)?,
             max_state_dim: top.usize("max_state_dim", d.max_state_dim)?,
             max_action_dim: top.usize("max_action_dim", d.max_action_dim)?,
             action_horizon: top.usize("action_horizon", d.action_horizon)?,
@@ -348,7 +347,10 @@ impl Gr00tN17Config {
             ("max_num_embodiments", self.max_num_embodiments),
             ("action_horizon", self.action_horizon),
             ("num_timestep_buckets", self.num_timestep_buckets),
-            ("diffusion_model_cfg.num_attention_heads", self.dit.num_attention_heads),
+            (
+                "diffusion_model_cfg.num_attention_heads",
+                self.dit.num_attention_heads,
+            ),
         ];
         if let Some((k, _)) = zero.iter().find(|(_, v)| *v == 0) {
             return Err(bad(format!("`{k}` must be at least 1")));

@@ -345,9 +345,7 @@ impl Block {
             Some(n) => n.forward(&x)?,
             None => layer_norm(&x, self.eps)?,
         };
-        let f = self
-            .ff_out
-            .forward(&self.ff_in.forward(&n3)?.gelu()?)?;
+        let f = self.ff_out.forward(&self.ff_in.forward(&n3)?.gelu()?)?;
         Ok((x + f)?)
     }
 }

@@ -208,8 +208,14 @@ impl Gr00tN17Head {
                 )?);
             }
         }
-        let state_encoder =
-            CategoryMlp::load(&mut l, "state_encoder", n_emb, c.state_input_dim(), hid, d_in)?;
+        let state_encoder = CategoryMlp::load(
+            &mut l,
+            "state_encoder",
+            n_emb,
+            c.state_input_dim(),
+            hid,
+            d_in,
+        )?;
         let action_encoder = ActionEncoder {
             w1: l.category_linear("action_encoder.W1", n_emb, c.max_action_dim, d_in)?,
             w2: l.category_linear("action_encoder.W2", n_emb, 2 * d_in, d_in)?,
@@ -243,8 +249,16 @@ impl Gr00tN17Head {
             cross.push(is_cross);
         }
         let dit = Dit {
-            time_1: l.linear("model.timestep_encoder.timestep_embedder.linear_1", 256, d_in)?,
-            time_2: l.linear("model.timestep_encoder.timestep_embedder.linear_2", d_in, d_in)?,
+            time_1: l.linear(
+                "model.timestep_encoder.timestep_embedder.linear_1",
+                256,
+                d_in,
+            )?,
+            time_2: l.linear(
+                "model.timestep_encoder.timestep_embedder.linear_2",
+                d_in,
+                d_in,
+            )?,
             blocks,
             cross,
             proj_out_1: l.linear("model.proj_out_1", d_in, 2 * d_in)?,
@@ -350,7 +364,11 @@ impl Gr00tN17Head {
             _ => return Err(shape_err("actions", ("B", "H", c.max_action_dim), actions)),
         };
         if c.add_pos_embed && h > c.max_seq_len {
-            return Err(shape_err("actions", ("B", c.max_seq_len, c.max_action_dim), actions));
+            return Err(shape_err(
+                "actions",
+                ("B", c.max_seq_len, c.max_action_dim),
+                actions,
+            ));
         }
         let t = values("action timesteps", timesteps, &[b, h])?;
         let ids = self.embodiment(embodiment_id, b)?;
@@ -386,7 +404,13 @@ impl Gr00tN17Head {
         let c = &self.cfg;
         let (b, n) = match sa_embs.dims() {
             [b, n, d] if *d == c.input_embedding_dim => (*b, *n),
-            _ => return Err(shape_err("sa_embs", ("B", "N", c.input_embedding_dim), sa_embs)),
+            _ => {
+                return Err(shape_err(
+                    "sa_embs",
+                    ("B", "N", c.input_embedding_dim),
+                    sa_embs,
+                ))
+            }
         };
         let temb = match timestep.dims() {
             [tb] if *tb == b => self.time_embedding(&values("timestep", timestep, &[b])?, b, 1)?,
@@ -425,7 +449,12 @@ impl Gr00tN17Head {
                 image
                     .iter()
                     .zip(&attn)
-                    .map(|(im, at)| im.iter().zip(at).map(|(&i, &a)| a && i == want_image).collect())
+                    .map(|(im, at)| {
+                        im.iter()
+                            .zip(at)
+                            .map(|(&i, &a)| a && i == want_image)
+                            .collect()
+                    })
                     .collect()
             };
             let (text, img) = (pick(false), pick(true));

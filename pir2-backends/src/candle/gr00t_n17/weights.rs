@@ -52,7 +52,10 @@ fn read_header(path: &Path) -> Result<BTreeMap<String, Entry>> {
         .map_err(|_| st_err(path, "file too short for a safetensors header"))?;
     let n = u64::from_le_bytes(len);
     if n > 100_000_000 || 8 + n > file_len {
-        return Err(st_err(path, format!("header length {n} does not fit the file")));
+        return Err(st_err(
+            path,
+            format!("header length {n} does not fit the file"),
+        ));
     }
     let mut header = vec![0u8; n as usize];
     f.read_exact(&mut header).map_err(|e| Error::io(path, e))?;
@@ -151,7 +154,10 @@ impl TensorIndex {
                     path: source.clone(),
                     message: format!("`weight_map.{name}` is not a file name"),
                 })?;
-                shards.entry(file.to_string()).or_default().push(name.clone());
+                shards
+                    .entry(file.to_string())
+                    .or_default()
+                    .push(name.clone());
             }
             for (file, names) in shards {
                 let shard = dir.join(&file);
@@ -160,7 +166,9 @@ impl TensorIndex {
                     let e = header.remove(&name).ok_or_else(|| {
                         st_err(
                             &shard,
-                            format!("tensor `{name}` is listed in {INDEX_FILE} but not in this shard"),
+                            format!(
+                                "tensor `{name}` is listed in {INDEX_FILE} but not in this shard"
+                            ),
                         )
                     })?;
                     entries.insert(name, e);
