@@ -236,7 +236,7 @@ fn save(map: &HashMap<String, Tensor>, path: &Path) {
 fn loads_a_sharded_checkpoint_with_a_backbone() {
     let dir = Scratch::new("sharded");
     let all = weights("alt");
-    // Two shards, both also holding backbone tensors (never read by the head), BF16 in one.
+    // Two shards; the first also holds a backbone tensor (never read by the head).
     let mut shards: [HashMap<String, Tensor>; 2] = Default::default();
     let mut index = serde_json::Map::new();
     for (i, (k, v)) in all.iter().enumerate() {
@@ -280,6 +280,44 @@ fn loads_a_sharded_checkpoint_with_a_backbone() {
         )
         .unwrap();
     check("alt", "sharded velocity", &v, c.get("out.velocity"));
+}
+
+#[test]
+fn bf16_weights_are_widened_to_f32() {
+    let dir = Scratch::new("bf16");
+    let w = weights("alt");
+    let bf16: HashMap<String, Tensor> = w
+        .iter()
+        .map(|(k, v)| (k.clone(), v.to_dtype(DType::BF16).unwrap()))
+        .collect();
+    let rounded: HashMap<String, Tensor> = bf16
+        .iter()
+        .map(|(k, v)| (k.clone(), v.to_dtype(DType::F32).unwrap()))
+        .collect();
+    save(&bf16, &dir.0.join("bf16.safetensors"));
+    save(&rounded, &dir.0.join("f32.safetensors"));
+    let c = Case::load("alt");
+    let emb = c.get("in.embodiment_id");
+    let run = |file: &str| {
+        let head =
+            Gr00tN17Head::load_weights(&dir.0.join(file), alt_config(), &Device::Cpu).unwrap();
+        let vl = head
+            .process_backbone(c.get("in.backbone_features"))
+            .unwrap();
+        let s = head.encode_state(c.get("in.state"), emb).unwrap();
+        head.velocity(
+            &s,
+            c.get("in.actions"),
+            Timesteps::Shared(c.get("in.timesteps")),
+            &c.vl(&vl),
+            emb,
+        )
+        .unwrap()
+    };
+    let (a, b) = (run("bf16.safetensors"), run("f32.safetensors"));
+    assert_eq!(rel_err(&a, &b), 0.0);
+    // and the rounding did change the weights (the comparison above is not vacuous)
+    assert!(rel_err(&b, c.get("out.velocity")) > 1e-4);
 }
 
 #[test]
