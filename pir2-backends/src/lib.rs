@@ -6,7 +6,9 @@
 //! trainer ([`train`]). Native backends sit behind their own features: ONNX Runtime (`ort`,
 //! `ort::OrtModel`) and libtorch (`tch`, `tch::TchModel`). ONNX export ([`export`]) is pure
 //! Rust and always available. The GR00T-N1.7 xArm6 + XHand stack is behind feature `gr00t`
-//! (module `gr00t`, `docs/gr00t-contract.md`).
+//! (module `gr00t`, `docs/gr00t-contract.md`). GR00T N1.7's action head itself also runs in
+//! candle ([`candle::gr00t_n17`]), loaded straight from a GR00T checkpoint's safetensors,
+//! with πR²'s per-position timesteps.
 //!
 //! Models work in normalised action space; see [`config`].
 #![warn(missing_docs)]

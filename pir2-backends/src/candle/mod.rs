@@ -20,6 +20,7 @@
 
 pub(crate) mod dit;
 pub mod export;
+pub mod gr00t_n17;
 pub(crate) mod kernels;
 pub(crate) mod layers;
 pub(crate) mod mlp;

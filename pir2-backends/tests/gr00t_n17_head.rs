@@ -1,0 +1,374 @@
+//! The candle GR00T N1.7 action head against NVIDIA's reference implementation.
+//!
+//! The fixtures in `tests/fixtures/gr00t_n17_head/` were written by `make_fixture.py` there,
+//! which runs Isaac-GR00T's own `Gr00tN1d7ActionHead` (tiny random configurations, fixed
+//! seed) and saves its weights under their real tensor names, its inputs and its outputs.
+//! `alt` is N1.7's layout (alternating text/image DiT, vlln, position embedding) plus a
+//! VL self-attention layer; `plain` is the plain DiT with sinusoidal positions.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use pir2_backends::candle::gr00t_n17::{Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens};
+use pir2_backends::Error;
+
+const CASES: [&str; 2] = ["alt", "plain"];
+const TOL: f32 = 1e-4;
+
+fn fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/gr00t_n17_head")
+}
+
+struct Case {
+    head: Gr00tN17Head,
+    io: HashMap<String, Tensor>,
+}
+
+impl Case {
+    fn load(name: &str) -> Case {
+        let dir = fixtures();
+        let cfg = Gr00tN17Config::from_json_file(&dir.join(format!("{name}.config.json"))).unwrap();
+        let head = Gr00tN17Head::load_weights(
+            &dir.join(format!("{name}.weights.safetensors")),
+            cfg,
+            &Device::Cpu,
+        )
+        .unwrap();
+        let io = candle_core::safetensors::load(
+            dir.join(format!("{name}.io.safetensors")),
+            &Device::Cpu,
+        )
+        .unwrap();
+        Case { head, io }
+    }
+
+    fn get(&self, k: &str) -> &Tensor {
+        self.io
+            .get(k)
+            .unwrap_or_else(|| panic!("fixture lacks {k}"))
+    }
+
+    /// The processed VL tokens and the state features, computed by the candle head.
+    fn prefix(&self) -> (Tensor, Tensor) {
+        let vl = self
+            .head
+            .process_backbone(self.get("in.backbone_features"))
+            .unwrap();
+        let s = self
+            .head
+            .encode_state(self.get("in.state"), self.get("in.embodiment_id"))
+            .unwrap();
+        (vl, s)
+    }
+
+    fn vl<'a>(&'a self, emb: &'a Tensor) -> VlTokens<'a> {
+        VlTokens {
+            embeddings: emb,
+            attention_mask: Some(self.get("in.backbone_attention_mask")),
+            image_mask: Some(self.get("in.image_mask")),
+        }
+    }
+}
+
+/// `max |a − b| / max |b|`.
+fn rel_err(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims(), "shapes differ");
+    let a = a.to_dtype(DType::F32).unwrap().flatten_all().unwrap();
+    let b = b.to_dtype(DType::F32).unwrap().flatten_all().unwrap();
+    let d = (&a - &b).unwrap().abs().unwrap().max(0).unwrap();
+    let m = b.abs().unwrap().max(0).unwrap();
+    d.to_scalar::<f32>().unwrap() / m.to_scalar::<f32>().unwrap()
+}
+
+fn check(case: &str, what: &str, got: &Tensor, want: &Tensor) {
+    let e = rel_err(got, want);
+    println!("{case:>5} {what:<16} relative error {e:.2e}");
+    assert!(
+        e <= TOL,
+        "{case}: {what} differs from the reference by {e:.2e} (> {TOL:.0e})"
+    );
+}
+
+#[test]
+fn matches_reference_implementation() {
+    for name in CASES {
+        let c = Case::load(name);
+        let emb = c.get("in.embodiment_id");
+        let (vl, s) = c.prefix();
+        check(name, "vl_embs", &vl, c.get("out.vl_embs"));
+        check(name, "state_features", &s, c.get("out.state_features"));
+        let (b, h, _) = c.get("in.actions").dims3().unwrap();
+        let t = c.get("in.timesteps");
+        let t_bh = t.reshape((b, 1)).unwrap().broadcast_as((b, h)).unwrap();
+        let a = c
+            .head
+            .encode_actions(c.get("in.actions"), &t_bh, emb)
+            .unwrap();
+        check(name, "action_features", &a, c.get("out.action_features"));
+        let sa = Tensor::cat(&[&s, &a], 1).unwrap();
+        let out = c.head.dit(&sa, &c.vl(&vl), t).unwrap();
+        check(name, "dit_output", &out, c.get("out.dit_output"));
+        let v = c
+            .head
+            .velocity(
+                &s,
+                c.get("in.actions"),
+                Timesteps::Shared(t),
+                &c.vl(&vl),
+                emb,
+            )
+            .unwrap();
+        check(name, "velocity", &v, c.get("out.velocity"));
+        let x = c
+            .head
+            .sample(&s, c.get("in.noise"), &c.vl(&vl), emb)
+            .unwrap();
+        check(name, "get_action", &x, c.get("out.action_pred"));
+    }
+}
+
+#[test]
+fn per_position_timesteps_all_equal_reproduce_the_shared_case() {
+    for name in CASES {
+        let c = Case::load(name);
+        let emb = c.get("in.embodiment_id");
+        let (vl, s) = c.prefix();
+        let x = c.get("in.actions");
+        let (b, h, _) = x.dims3().unwrap();
+        let t = c.get("in.timesteps");
+        let shared = c
+            .head
+            .velocity(&s, x, Timesteps::Shared(t), &c.vl(&vl), emb)
+            .unwrap();
+        let t2 = t.reshape((b, 1)).unwrap();
+        let actions = t2.broadcast_as((b, h)).unwrap().contiguous().unwrap();
+        let tokens = t2.broadcast_as((b, 1 + h)).unwrap().contiguous().unwrap();
+        let per = c
+            .head
+            .velocity(
+                &s,
+                x,
+                Timesteps::PerPosition {
+                    actions: &actions,
+                    tokens: &tokens,
+                },
+                &c.vl(&vl),
+                emb,
+            )
+            .unwrap();
+        let e = rel_err(&per, &shared);
+        println!("{name}: per-position (all equal) vs shared: {e:.2e}");
+        assert!(e <= 1e-6, "{name}: {e:.2e}");
+        check(name, "per-position", &per, c.get("out.velocity"));
+
+        // Different timesteps per position do reach the per-token path: moving only the last
+        // position's timestep changes the velocity.
+        let mut tv = tokens
+            .to_dtype(DType::F32)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+        tv[0][h] = 999.0;
+        let tokens2 = Tensor::new(tv, &Device::Cpu).unwrap();
+        let mut av = actions
+            .to_dtype(DType::F32)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+        av[0][h - 1] = 999.0;
+        let actions2 = Tensor::new(av, &Device::Cpu).unwrap();
+        let moved = c
+            .head
+            .velocity(
+                &s,
+                x,
+                Timesteps::PerPosition {
+                    actions: &actions2,
+                    tokens: &tokens2,
+                },
+                &c.vl(&vl),
+                emb,
+            )
+            .unwrap();
+        assert!(
+            rel_err(&moved, &shared) > 1e-3,
+            "{name}: per-position timestep ignored"
+        );
+    }
+}
+
+/// A scratch directory removed on drop.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new(tag: &str) -> Scratch {
+        let p = std::env::temp_dir().join(format!("pir2-gr00t-n17-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Scratch(p)
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn weights(name: &str) -> HashMap<String, Tensor> {
+    candle_core::safetensors::load(
+        fixtures().join(format!("{name}.weights.safetensors")),
+        &Device::Cpu,
+    )
+    .unwrap()
+}
+
+fn alt_config() -> Gr00tN17Config {
+    Gr00tN17Config::from_json_file(&fixtures().join("alt.config.json")).unwrap()
+}
+
+fn save(map: &HashMap<String, Tensor>, path: &Path) {
+    candle_core::safetensors::save(map, path).unwrap();
+}
+
+#[test]
+fn loads_a_sharded_checkpoint_with_a_backbone() {
+    let dir = Scratch::new("sharded");
+    let all = weights("alt");
+    // Two shards; the first also holds a backbone tensor (never read by the head).
+    let mut shards: [HashMap<String, Tensor>; 2] = Default::default();
+    let mut index = serde_json::Map::new();
+    for (i, (k, v)) in all.iter().enumerate() {
+        let s = i % 2;
+        let file = format!("model-0000{}-of-00002.safetensors", s + 1);
+        index.insert(k.clone(), file.into());
+        shards[s].insert(k.clone(), v.clone());
+    }
+    shards[0].insert(
+        "backbone.model.embed_tokens.weight".into(),
+        Tensor::zeros((5, 3), DType::F32, &Device::Cpu).unwrap(),
+    );
+    index.insert(
+        "backbone.model.embed_tokens.weight".into(),
+        "model-00001-of-00002.safetensors".into(),
+    );
+    save(&shards[0], &dir.0.join("model-00001-of-00002.safetensors"));
+    save(&shards[1], &dir.0.join("model-00002-of-00002.safetensors"));
+    let idx = serde_json::json!({ "metadata": {}, "weight_map": index });
+    std::fs::write(dir.0.join("model.safetensors.index.json"), idx.to_string()).unwrap();
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        dir.0.join("config.json"),
+    )
+    .unwrap();
+
+    let sharded = Gr00tN17Head::load(&dir.0, &Device::Cpu).unwrap();
+    let c = Case::load("alt");
+    let emb = c.get("in.embodiment_id");
+    let vl = sharded
+        .process_backbone(c.get("in.backbone_features"))
+        .unwrap();
+    let s = sharded.encode_state(c.get("in.state"), emb).unwrap();
+    let v = sharded
+        .velocity(
+            &s,
+            c.get("in.actions"),
+            Timesteps::Shared(c.get("in.timesteps")),
+            &c.vl(&vl),
+            emb,
+        )
+        .unwrap();
+    check("alt", "sharded velocity", &v, c.get("out.velocity"));
+}
+
+#[test]
+fn bf16_weights_are_widened_to_f32() {
+    let dir = Scratch::new("bf16");
+    let w = weights("alt");
+    let bf16: HashMap<String, Tensor> = w
+        .iter()
+        .map(|(k, v)| (k.clone(), v.to_dtype(DType::BF16).unwrap()))
+        .collect();
+    let rounded: HashMap<String, Tensor> = bf16
+        .iter()
+        .map(|(k, v)| (k.clone(), v.to_dtype(DType::F32).unwrap()))
+        .collect();
+    save(&bf16, &dir.0.join("bf16.safetensors"));
+    save(&rounded, &dir.0.join("f32.safetensors"));
+    let c = Case::load("alt");
+    let emb = c.get("in.embodiment_id");
+    let run = |file: &str| {
+        let head =
+            Gr00tN17Head::load_weights(&dir.0.join(file), alt_config(), &Device::Cpu).unwrap();
+        let vl = head
+            .process_backbone(c.get("in.backbone_features"))
+            .unwrap();
+        let s = head.encode_state(c.get("in.state"), emb).unwrap();
+        head.velocity(
+            &s,
+            c.get("in.actions"),
+            Timesteps::Shared(c.get("in.timesteps")),
+            &c.vl(&vl),
+            emb,
+        )
+        .unwrap()
+    };
+    let (a, b) = (run("bf16.safetensors"), run("f32.safetensors"));
+    assert_eq!(rel_err(&a, &b), 0.0);
+    // and the rounding did change the weights (the comparison above is not vacuous)
+    assert!(rel_err(&b, c.get("out.velocity")) > 1e-4);
+}
+
+#[test]
+fn missing_misshaped_and_unexpected_tensors_are_named() {
+    let dir = Scratch::new("bad");
+    let path = dir.0.join("model.safetensors");
+
+    let mut w = weights("alt");
+    w.remove("action_head.model.proj_out_2.weight");
+    save(&w, &path);
+    match Gr00tN17Head::load_weights(&path, alt_config(), &Device::Cpu) {
+        Err(Error::MissingTensor { name, path: p }) => {
+            assert_eq!(name, "action_head.model.proj_out_2.weight");
+            assert_eq!(p, path);
+        }
+        other => panic!("expected MissingTensor, got {other:?}"),
+    }
+
+    let mut w = weights("alt");
+    w.insert(
+        "action_head.action_encoder.W2.W".into(),
+        Tensor::zeros((3, 24, 24), DType::F32, &Device::Cpu).unwrap(),
+    );
+    save(&w, &path);
+    let err = Gr00tN17Head::load_weights(&path, alt_config(), &Device::Cpu).unwrap_err();
+    match &err {
+        Error::TensorShape {
+            name,
+            expected,
+            got,
+            ..
+        } => {
+            assert_eq!(name, "action_head.action_encoder.W2.W");
+            assert_eq!(expected, &[3, 48, 24]);
+            assert_eq!(got, &[3, 24, 24]);
+        }
+        other => panic!("expected TensorShape, got {other:?}"),
+    }
+    assert!(
+        err.to_string().contains("action_head.action_encoder.W2.W"),
+        "{err}"
+    );
+
+    // A configuration without the VL self-attention does not silently drop its weights.
+    let mut cfg = alt_config();
+    cfg.vl_self_attention = None;
+    save(&weights("alt"), &path);
+    match Gr00tN17Head::load_weights(&path, cfg, &Device::Cpu) {
+        Err(Error::UnexpectedTensor { name, .. }) => {
+            assert!(name.starts_with("action_head.vl_self_attention."), "{name}")
+        }
+        other => panic!("expected UnexpectedTensor, got {other:?}"),
+    }
+}
