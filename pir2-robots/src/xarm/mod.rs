@@ -246,11 +246,12 @@ impl XArm6 {
         let mut threads = Vec::new();
         if let Some(addr) = cfg.report_addr {
             let reader = ReportReader::connect(addr, ReportKind::Real, cfg.timeout)?;
-            let (shared, halt, clock) = (shared.clone(), halt.clone(), clock.clone());
+            let (client, shared, halt, clock) =
+                (client.clone(), shared.clone(), halt.clone(), clock.clone());
             threads.push(
                 std::thread::Builder::new()
                     .name("xarm-report".into())
-                    .spawn(move || report_loop(reader, shared, halt, clock))
+                    .spawn(move || report_loop(reader, client, shared, halt, clock))
                     .map_err(|e| Error::io("xArm report thread", e))?,
             );
         }
@@ -377,6 +378,7 @@ fn read_joints(client: &mut XArmClient, fw: &FirmwareVersion) -> Result<([f32; 7
 
 fn report_loop(
     mut reader: ReportReader,
+    client: Arc<Mutex<XArmClient>>,
     shared: Arc<Mutex<Shared>>,
     halt: Arc<AtomicBool>,
     clock: Arc<dyn Clock>,
@@ -385,16 +387,29 @@ fn report_loop(
         match reader.poll() {
             Ok(Some(r)) => {
                 let t = clock.now();
-                let mut s = lock(&shared);
-                s.q.copy_from_slice(&r.angles[..6]);
-                s.tau.copy_from_slice(&r.torques[..6]);
-                s.t_state = t;
-                // States 4 (stop) and 5 are "not ready" (SDK report handler): an emergency
-                // stop or a controller-side stop. Servo-j is ignored from then on.
-                if r.state == proto::state::STOP || r.state == 5 {
-                    s.fault.get_or_insert_with(|| {
-                        format!("controller reports state {} (stopped)", r.state)
-                    });
+                let stopped = {
+                    let mut s = lock(&shared);
+                    s.q.copy_from_slice(&r.angles[..6]);
+                    s.tau.copy_from_slice(&r.torques[..6]);
+                    s.t_state = t;
+                    // States 4 (stop) and 5 are "not ready" (SDK report handler): an
+                    // emergency stop or a controller-side stop. Servo-j is ignored from then on.
+                    s.fault.is_none() && (r.state == proto::state::STOP || r.state == 5)
+                };
+                if stopped {
+                    // The real-time report carries no error code: ask the command port once,
+                    // so the one error names the controller's code when it has one (the
+                    // `shared` lock is not held here: the servo thread takes the client first).
+                    let codes = lock(&client).error_codes();
+                    let reason = match codes {
+                        Ok((error, warning)) if error != 0 => format!(
+                            "controller error code {error} (warning {warning}); controller \
+                             reports state {} (stopped)",
+                            r.state
+                        ),
+                        _ => format!("controller reports state {} (stopped)", r.state),
+                    };
+                    lock(&shared).fault.get_or_insert(reason);
                 }
             }
             Ok(None) => {}
