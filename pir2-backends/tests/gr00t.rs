@@ -224,22 +224,31 @@ fn contract_violations_name_the_file_and_the_tensor() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The backbone of `files` with its `vocab.txt` tokenizer and the prompt "catch the book",
+/// checked against a DiT of width `d_vl`.
+fn vocab_backbone(
+    files: &CheckpointFiles,
+    cfg: &pir2_backends::gr00t::EmbodimentConfig,
+    d_vl: usize,
+) -> pir2_backends::gr00t::Result<Gr00tBackbone> {
+    let tok = VocabTokenizer::load(&files.vocab)?;
+    Gr00tBackbone::load(
+        files,
+        &cfg.image,
+        &cfg.prompt,
+        &tok,
+        "catch the book",
+        Some((d_vl, PathBuf::from("dit.onnx"))),
+        &OrtOptions::default(),
+    )
+}
+
 #[test]
 fn backbone_encodes_camera_frames_into_tokens() {
     let dir = fixture("backbone", "");
     let files = CheckpointFiles::in_dir(&dir);
     let cfg = embodiment();
-    let tok = VocabTokenizer::load(&files.vocab).unwrap();
-    let mut bb = Gr00tBackbone::load(
-        &files,
-        &cfg.image,
-        &cfg.prompt,
-        &tok,
-        "catch the book",
-        Some((D_VL, PathBuf::from("dit.onnx"))),
-        &OrtOptions::default(),
-    )
-    .unwrap();
+    let mut bb = vocab_backbone(&files, &cfg, D_VL).unwrap();
     assert_eq!(bb.output_shape(), (8, D_VL));
     assert_eq!(bb.sequence().ids, vec![2, 2, 2, 2, 3, 4, 5, 0]);
     let a = bb
@@ -253,17 +262,9 @@ fn backbone_encodes_camera_frames_into_tokens() {
     assert_eq!(a.len(), 8 * D_VL);
     assert_ne!(a, b, "the image reaches the features");
     // A backbone width that disagrees with the DiT is a contract error naming both.
-    let e = Gr00tBackbone::load(
-        &files,
-        &cfg.image,
-        &cfg.prompt,
-        &tok,
-        "catch the book",
-        Some((D_VL + 1, PathBuf::from("dit.onnx"))),
-        &OrtOptions::default(),
-    )
-    .unwrap_err()
-    .to_string();
+    let e = vocab_backbone(&files, &cfg, D_VL + 1)
+        .unwrap_err()
+        .to_string();
     assert!(
         e.contains("backbone.onnx") && e.contains("D_vl") && e.contains("dit.onnx"),
         "{e}"
@@ -278,17 +279,7 @@ fn backbone_takes_one_image_per_camera_view_in_view_order() {
     let files = CheckpointFiles::in_dir(&dir);
     let mut cfg = embodiment();
     cfg.prompt.chat.images = 2;
-    let tok = VocabTokenizer::load(&files.vocab).unwrap();
-    let mut bb = Gr00tBackbone::load(
-        &files,
-        &cfg.image,
-        &cfg.prompt,
-        &tok,
-        "catch the book",
-        Some((D_VL, PathBuf::from("dit.onnx"))),
-        &OrtOptions::default(),
-    )
-    .unwrap();
+    let mut bb = vocab_backbone(&files, &cfg, D_VL).unwrap();
     assert_eq!(bb.views(), 2);
     let view = |v: u8, (h, w): (usize, usize)| View {
         image: (0..h * w * 3)
@@ -319,7 +310,7 @@ fn backbone_takes_one_image_per_camera_view_in_view_order() {
         views: vec![top.clone(), wrist.clone()],
         ..Default::default()
     };
-    let f = pollster_like(bb.encode(frame)).unwrap();
+    let f = pir2_runtime::realtime::block_on(bb.encode(frame)).unwrap();
     assert_eq!((f.t_capture, f.tokens, f.dim), (7, 8, D_VL));
     assert_eq!(f.data, a);
     // A frame with another number of views is one error naming both counts and the config.
@@ -329,17 +320,6 @@ fn backbone_takes_one_image_per_camera_view_in_view_order() {
         "{e}"
     );
     std::fs::remove_dir_all(&dir).ok();
-}
-
-/// Run a future that never waits on I/O to completion.
-fn pollster_like<F: std::future::Future>(f: F) -> F::Output {
-    let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
-    let mut f = std::pin::pin!(f);
-    loop {
-        if let std::task::Poll::Ready(v) = f.as_mut().poll(&mut cx) {
-            return v;
-        }
-    }
 }
 
 #[test]

@@ -348,6 +348,7 @@ mod slow_frames_tests {
 #[cfg(test)]
 mod views_tests {
     use super::*;
+    use crate::realtime::block_on;
 
     /// Frames of one fixed-size image filled with `fill`, captured at `t`, `t + step`, ...
     struct Scripted {
@@ -390,17 +391,6 @@ mod views_tests {
             fail_at: None,
             n: 0,
             empty: false,
-        }
-    }
-
-    fn block_on<F: std::future::Future>(f: F) -> F::Output {
-        let waker = std::task::Waker::noop();
-        let mut cx = std::task::Context::from_waker(waker);
-        let mut f = std::pin::pin!(f);
-        loop {
-            if let std::task::Poll::Ready(v) = f.as_mut().poll(&mut cx) {
-                return v;
-            }
         }
     }
 

@@ -459,7 +459,7 @@ impl Gr00tBackbone {
 
     /// Encode one image (HWC `u8` RGB) into `[T, D_vl]` tokens (a one-view backbone).
     pub fn encode_image(&mut self, rgb: &[u8], hw: (usize, usize)) -> Result<&[f32]> {
-        self.encode(&[(rgb, hw)])
+        self.encode(std::iter::once((rgb, hw)))
     }
 
     /// Encode the camera views of one frame (HWC `u8` RGB each, in the embodiment's view
@@ -467,30 +467,34 @@ impl Gr00tBackbone {
     /// gets them stacked as `pixel_values` `[V, 3, s, s]`. A frame with another number of
     /// views than the prompt's image blocks is one error naming both.
     pub fn encode_views(&mut self, views: &[View]) -> Result<&[f32]> {
-        let views: Vec<(&[u8], (usize, usize))> =
-            views.iter().map(|v| (v.image.as_slice(), v.hw)).collect();
-        self.encode(&views)
+        self.encode(views.iter().map(|v| (v.image.as_slice(), v.hw)))
     }
 
-    fn encode(&mut self, views: &[(&[u8], (usize, usize))]) -> Result<&[f32]> {
-        if views.len() != self.views {
+    /// Encode the views `(HWC u8 RGB, (h, w))` of one frame (no per-frame allocation beyond
+    /// the reused pixel buffers).
+    fn encode<'a>(
+        &mut self,
+        views: impl ExactSizeIterator<Item = (&'a [u8], (usize, usize))>,
+    ) -> Result<&[f32]> {
+        let n = views.len();
+        if n != self.views {
             return Err(Gr00tError::input(
                 "camera views of a slow frame",
                 format!(
                     "{} (prompt.chat.images of the embodiment config)",
                     self.views
                 ),
-                views.len(),
+                n,
             ));
         }
         self.pixels.clear();
-        for &(rgb, hw) in views {
+        for (rgb, hw) in views {
             preprocess_image(rgb, hw, &self.image, &mut self.view_pixels)?;
             self.pixels.extend_from_slice(&self.view_pixels);
         }
         let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.pixel_side());
         let mut feeds = vec![
-            feed("pixel_values", &[views.len(), 3, c, c], &self.pixels)?,
+            feed("pixel_values", &[n, 3, c, c], &self.pixels)?,
             feed("input_ids", &[1, t], &self.seq.ids)?,
         ];
         if self.backbone.declared.has("attention_mask") {

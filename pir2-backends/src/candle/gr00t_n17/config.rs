@@ -130,30 +130,35 @@ impl Fields<'_> {
             message: format!("`{}{key}`: {message}", self.prefix),
         }
     }
-    fn usize(&self, key: &str, default: usize) -> Result<usize> {
+    /// The value of `key` read by `read` (`default` when absent or null); a value `read`
+    /// rejects is an error saying it expected `expected`.
+    fn typed<T>(
+        &self,
+        key: &str,
+        default: T,
+        read: impl FnOnce(&Value) -> Option<T>,
+        expected: &str,
+    ) -> Result<T> {
         match self.map.get(key) {
             None | Some(Value::Null) => Ok(default),
-            Some(v) => v
-                .as_u64()
-                .map(|n| n as usize)
-                .ok_or_else(|| self.err(key, format!("expected a non-negative integer, got {v}"))),
+            Some(v) => {
+                read(v).ok_or_else(|| self.err(key, format!("expected {expected}, got {v}")))
+            }
         }
+    }
+    fn usize(&self, key: &str, default: usize) -> Result<usize> {
+        self.typed(
+            key,
+            default,
+            |v| v.as_u64().map(|n| n as usize),
+            "a non-negative integer",
+        )
     }
     fn bool(&self, key: &str, default: bool) -> Result<bool> {
-        match self.map.get(key) {
-            None | Some(Value::Null) => Ok(default),
-            Some(v) => v
-                .as_bool()
-                .ok_or_else(|| self.err(key, format!("expected true or false, got {v}"))),
-        }
+        self.typed(key, default, Value::as_bool, "true or false")
     }
     fn f64(&self, key: &str, default: f64) -> Result<f64> {
-        match self.map.get(key) {
-            None | Some(Value::Null) => Ok(default),
-            Some(v) => v
-                .as_f64()
-                .ok_or_else(|| self.err(key, format!("expected a number, got {v}"))),
-        }
+        self.typed(key, default, Value::as_f64, "a number")
     }
     /// A string option; `None` for JSON null.
     fn opt_str(&self, key: &str, default: Option<&str>) -> Result<Option<String>> {
