@@ -178,11 +178,7 @@ impl std::fmt::Display for RunSummary {
         }
         writeln!(f, "calls per d: {d:?}; per d_vis: {:?}", self.d_vis_counts)?;
         if !self.relative_actions.is_empty() {
-            writeln!(
-                f,
-                "relative actions: {}",
-                self.relative_actions.join(", ")
-            )?;
+            writeln!(f, "relative actions: {}", self.relative_actions.join(", "))?;
         }
         if let Some(n) = self.camera_frames {
             writeln!(f, "camera frames: {n}")?;

@@ -519,7 +519,10 @@ fn relative_arm_actions_run_on_the_emulators() {
             text.contains("relative actions: arm_joints → arm_joints"),
             "{mode}: {text}"
         );
-        assert_eq!(v["relative_actions"][0], "arm_joints → arm_joints", "{mode}");
+        assert_eq!(
+            v["relative_actions"][0], "arm_joints → arm_joints",
+            "{mode}"
+        );
         assert_eq!(v["trace"]["ticks"], 40, "{mode}");
         assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1, "{mode}");
         assert!(v["hand_commands"].as_u64().unwrap() >= 40, "{mode}");

@@ -499,7 +499,10 @@ impl EmbodimentConfig {
     pub fn action_reference(&self) -> Vec<Option<usize>> {
         let mut out = Vec::with_capacity(self.action_dim());
         for g in &self.action {
-            let first = g.relative.then(|| self.state_offset(g.reference_key())).flatten();
+            let first = g
+                .relative
+                .then(|| self.state_offset(g.reference_key()))
+                .flatten();
             out.extend((0..g.dim).map(|k| first.map(|f| f + k)));
         }
         out

@@ -50,9 +50,8 @@ pub use backbone::{
 };
 pub use config::{
     policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupFormat,
-    GroupLimits,
-    ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection, SafetySection,
-    DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
+    GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection,
+    SafetySection, DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

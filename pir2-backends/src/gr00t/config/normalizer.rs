@@ -125,46 +125,47 @@ impl Normalizer {
         })?;
         let horizon = cfg.horizon;
         // A statistic as rows × dim values; `[H, D]` only where `per_slot`.
-        let get = |modality: &str, g: &Group, stat: &str, per_slot: bool| -> Result<(usize, Vec<f64>)> {
-            let v = emb
-                .get(modality)
-                .and_then(|m| m.get(&g.name))
-                .and_then(|s| s.get(stat))
-                .ok_or_else(|| err(modality, &g.name, stat, "is missing".to_string()))?;
-            let (rows, flat) = match v {
-                Stat::Flat(v) if v.len() == g.dim => (1, v.clone()),
-                Stat::Flat(v) if !per_slot => {
-                    return Err(err(
-                        modality,
-                        &g.name,
-                        stat,
-                        format!("has {} values, the group has dim {}", v.len(), g.dim),
-                    ))
+        let get =
+            |modality: &str, g: &Group, stat: &str, per_slot: bool| -> Result<(usize, Vec<f64>)> {
+                let v = emb
+                    .get(modality)
+                    .and_then(|m| m.get(&g.name))
+                    .and_then(|s| s.get(stat))
+                    .ok_or_else(|| err(modality, &g.name, stat, "is missing".to_string()))?;
+                let (rows, flat) = match v {
+                    Stat::Flat(v) if v.len() == g.dim => (1, v.clone()),
+                    Stat::Flat(v) if !per_slot => {
+                        return Err(err(
+                            modality,
+                            &g.name,
+                            stat,
+                            format!("has {} values, the group has dim {}", v.len(), g.dim),
+                        ))
+                    }
+                    Stat::Table(t)
+                        if per_slot && t.len() == horizon && t.iter().all(|r| r.len() == g.dim) =>
+                    {
+                        (horizon, t.concat())
+                    }
+                    other => {
+                        let want = if per_slot {
+                            format!("[{horizon}, {d}] (per chunk slot) or [{d}]", d = g.dim)
+                        } else {
+                            format!("[{}]", g.dim)
+                        };
+                        return Err(err(
+                            modality,
+                            &g.name,
+                            stat,
+                            format!("has shape {}, expected {want}", other.shape()),
+                        ));
+                    }
+                };
+                if flat.iter().any(|x| !x.is_finite()) {
+                    return Err(err(modality, &g.name, stat, "is not finite".to_string()));
                 }
-                Stat::Table(t)
-                    if per_slot && t.len() == horizon && t.iter().all(|r| r.len() == g.dim) =>
-                {
-                    (horizon, t.concat())
-                }
-                other => {
-                    let want = if per_slot {
-                        format!("[{horizon}, {d}] (per chunk slot) or [{d}]", d = g.dim)
-                    } else {
-                        format!("[{}]", g.dim)
-                    };
-                    return Err(err(
-                        modality,
-                        &g.name,
-                        stat,
-                        format!("has shape {}, expected {want}", other.shape()),
-                    ));
-                }
+                Ok((rows, flat))
             };
-            if flat.iter().any(|x| !x.is_finite()) {
-                return Err(err(modality, &g.name, stat, "is not finite".to_string()));
-            }
-            Ok((rows, flat))
-        };
         let affine = |modality: &str, g: &Group| -> Result<GroupAffine> {
             let per_slot = modality == "relative_action";
             let mut out = GroupAffine {
@@ -181,8 +182,10 @@ impl Normalizer {
                     } else {
                         ("q01", "q99")
                     };
-                    let ((rl, lo), (rh, hi)) =
-                        (get(modality, g, lo, per_slot)?, get(modality, g, hi, per_slot)?);
+                    let ((rl, lo), (rh, hi)) = (
+                        get(modality, g, lo, per_slot)?,
+                        get(modality, g, hi, per_slot)?,
+                    );
                     out.rows = rl.max(rh);
                     out.clip = true;
                     for i in 0..out.rows * g.dim {
@@ -194,8 +197,10 @@ impl Normalizer {
                     }
                 }
                 Norm::MeanStd => {
-                    let ((rm, mean), (rs, std)) =
-                        (get(modality, g, "mean", per_slot)?, get(modality, g, "std", per_slot)?);
+                    let ((rm, mean), (rs, std)) = (
+                        get(modality, g, "mean", per_slot)?,
+                        get(modality, g, "std", per_slot)?,
+                    );
                     out.rows = rm.max(rs);
                     for i in 0..out.rows * g.dim {
                         let (m, sd) = (mean[i % (rm * g.dim)], std[i % (rs * g.dim)]);
@@ -227,7 +232,16 @@ impl Normalizer {
         let actions = cfg
             .action
             .iter()
-            .map(|g| affine(if g.relative { "relative_action" } else { "action" }, g))
+            .map(|g| {
+                affine(
+                    if g.relative {
+                        "relative_action"
+                    } else {
+                        "action"
+                    },
+                    g,
+                )
+            })
             .collect::<Result<Vec<_>>>()?;
         // Per chunk slot as soon as one group has per-slot statistics.
         let rows = actions.iter().map(|m| m.rows).max().unwrap_or(1);

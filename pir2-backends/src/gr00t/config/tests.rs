@@ -360,7 +360,10 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     // `relative` and `state_key` survive the TOML round trip; absent, they are not written.
     let text = c.to_toml().unwrap();
     assert_eq!(text.matches("relative = true").count(), 1, "{text}");
-    assert!(!text.contains("state_key") && !text.contains("format"), "{text}");
+    assert!(
+        !text.contains("state_key") && !text.contains("format"),
+        "{text}"
+    );
     assert_eq!(toml::from_str::<EmbodimentConfig>(&text).unwrap(), c);
 
     let per_slot = serde_json::json!([[-0.1, -0.2], [-0.2, -0.4], [-0.3, -0.6]]);
@@ -398,9 +401,10 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     let want = [0.6, -0.6, 0.75];
     let mut a = x;
     n.decode_action(1, &state, &mut a);
-    for k in 0..3 {
-        assert!((a[k] - want[k]).abs() < 1e-6, "{a:?} vs {want:?}");
-    }
+    assert!(
+        a.iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-6),
+        "{a:?} vs {want:?}"
+    );
     // The runtime's output map decodes the same chunk slot the same way.
     let map = n.action_output_map();
     assert_eq!(map.reference, [Some(1), Some(2), None]);
@@ -408,9 +412,10 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     let (mut r, mut u) = ([0.0; 3], [0.0; 3]);
     map.fill_reference(&state, &mut r);
     map.decode(&x, 1, &r, &mut u);
-    for k in 0..3 {
-        assert!((u[k] - want[k]).abs() < 1e-6, "{u:?} vs {want:?}");
-    }
+    assert!(
+        u.iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-6),
+        "{u:?} vs {want:?}"
+    );
     // Slot 2 uses its own statistics: arm₀ = 0.75·0.6 − 0.3 + 0.5.
     map.decode(&x, 2, &r, &mut u);
     assert!((u[0] - 0.65).abs() < 1e-6, "{u:?}");
@@ -418,14 +423,20 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     // `[D]` statistics: the same range at every slot.
     std::fs::write(
         &p,
-        stats(serde_json::json!([-0.2, -0.4]), serde_json::json!([0.2, 0.4])),
+        stats(
+            serde_json::json!([-0.2, -0.4]),
+            serde_json::json!([0.2, 0.4]),
+        ),
     )
     .unwrap();
     let n = Normalizer::load(&p, &c).unwrap();
     assert!(!n.per_slot());
     let mut a = x;
     n.decode_action(2, &state, &mut a);
-    assert!((a[0] - 0.6).abs() < 1e-6 && (a[1] + 0.6).abs() < 1e-6, "{a:?}");
+    assert!(
+        (a[0] - 0.6).abs() < 1e-6 && (a[1] + 0.6).abs() < 1e-6,
+        "{a:?}"
+    );
 
     // Wrong shapes: one error naming the key and both shapes.
     let short = serde_json::json!([[-0.1, -0.2], [-0.2, -0.4]]);
@@ -439,15 +450,22 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     );
     std::fs::write(
         &p,
-        stats(serde_json::json!([-0.2, -0.4, 0.0]), serde_json::json!([0.2, 0.4])),
+        stats(
+            serde_json::json!([-0.2, -0.4, 0.0]),
+            serde_json::json!([0.2, 0.4]),
+        ),
     )
     .unwrap();
     let e = Normalizer::load(&p, &c).unwrap_err().to_string();
-    assert!(e.contains("relative_action.arm.min") && e.contains("[3]"), "{e}");
+    assert!(
+        e.contains("relative_action.arm.min") && e.contains("[3]"),
+        "{e}"
+    );
     // A per-slot table is only for relative groups.
     let mut abs = c.clone();
     abs.action[0].relative = false;
-    let mut v: serde_json::Value = serde_json::from_str(&stats(per_slot.clone(), neg(&per_slot))).unwrap();
+    let mut v: serde_json::Value =
+        serde_json::from_str(&stats(per_slot.clone(), neg(&per_slot))).unwrap();
     v["new_embodiment"]["action"]["arm"]["min"] = per_slot.clone();
     std::fs::write(&p, v.to_string()).unwrap();
     let e = Normalizer::load(&p, &abs).unwrap_err().to_string();
@@ -459,7 +477,10 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     v["new_embodiment"]["relative_action"] = serde_json::json!({});
     std::fs::write(&p, v.to_string()).unwrap();
     let e = Normalizer::load(&p, &c).unwrap_err().to_string();
-    assert!(e.contains("relative_action.arm.min") && e.contains("missing"), "{e}");
+    assert!(
+        e.contains("relative_action.arm.min") && e.contains("missing"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -488,9 +509,15 @@ fn relative_groups_are_checked_by_name() {
     );
     bad(
         &|c| c.action[0].state_key = Some("arm_joints".into()),
-        &["`arm_joints`", "state_key is only used with relative = true"],
+        &[
+            "`arm_joints`",
+            "state_key is only used with relative = true",
+        ],
     );
-    bad(&|c| c.state[0].relative = true, &["state group `arm_joints`"]);
+    bad(
+        &|c| c.state[0].relative = true,
+        &["state group `arm_joints`"],
+    );
     bad(
         &|c| {
             c.action[0] = Group {
@@ -500,7 +527,11 @@ fn relative_groups_are_checked_by_name() {
             };
             c.state[0].dim = 9;
         },
-        &["`arm_joints`", "relative end-effector poses", "not supported yet"],
+        &[
+            "`arm_joints`",
+            "relative end-effector poses",
+            "not supported yet",
+        ],
     );
     bad(
         &|c| c.action[0].format = GroupFormat::XyzRot6d,
@@ -515,5 +546,8 @@ fn relative_groups_are_checked_by_name() {
     c.action[0].format = GroupFormat::Default;
     c.action[0].state_key = Some("arm_joints".into());
     c.validate().unwrap();
-    assert_eq!(c.action_reference()[..7], [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), None]);
+    assert_eq!(
+        c.action_reference()[..7],
+        [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), None]
+    );
 }
