@@ -297,3 +297,31 @@ impl VelocityModel for Wobbly {
         Ok(())
     }
 }
+
+/// A reference outside the fast observation, or statistics of the wrong size, are refused
+/// by the head before anything runs, naming the field.
+#[test]
+fn a_relative_map_that_does_not_fit_the_head_is_refused_by_name() {
+    let mode = Mode::TrainTimeRtc { steps: 2 };
+    let sp = spec(3);
+    let mut head = ActionHead::new(
+        Wobbly,
+        sp,
+        mode.head_mode(2),
+        LatencyWindow::new(20, 0, PERIOD, sp.d_max),
+        1,
+    )
+    .unwrap();
+    let mut m = relative_map();
+    m.reference[1] = Some(F);
+    let e = head.set_output(&m).unwrap_err().to_string();
+    assert!(
+        e.contains("output.reference[1] = 3") && e.contains("fast_dim = 3"),
+        "{e}"
+    );
+    let mut m = relative_map();
+    m.scale.pop();
+    let e = head.set_output(&m).unwrap_err().to_string();
+    assert!(e.contains("output.scale has 31 entries"), "{e}");
+    head.set_output(&relative_map()).unwrap();
+}
