@@ -126,6 +126,10 @@ pub struct RunSummary {
     pub head: String,
     /// Calls per `d_vis` value fed through the delay embedding.
     pub d_vis_counts: Vec<u64>,
+    /// Action groups the policy predicts relative to the robot's state, as `group → state
+    /// group` (each chunk decoded against the state at its snapshot; empty: all absolute).
+    #[serde(default)]
+    pub relative_actions: Vec<String>,
     /// Commands the emulated hand received (emulated runs).
     pub hand_commands: Option<u64>,
     /// Motion state of the emulated arm at the end (emulated runs; 4 = stopped, as the run's
@@ -173,6 +177,9 @@ impl std::fmt::Display for RunSummary {
             d[c.d.min(7)] += 1;
         }
         writeln!(f, "calls per d: {d:?}; per d_vis: {:?}", self.d_vis_counts)?;
+        if !self.relative_actions.is_empty() {
+            writeln!(f, "relative actions: {}", self.relative_actions.join(", "))?;
+        }
         if let Some(n) = self.camera_frames {
             writeln!(f, "camera frames: {n}")?;
         }
@@ -874,6 +881,7 @@ mod imp {
                 ),
                 head: String::new(),
                 d_vis_counts: report.d_vis_counts,
+                relative_actions: report.embodiment.relative_groups(),
                 hand_commands: None,
                 arm_state: None,
                 camera_frames: Some(frames.load(Ordering::Relaxed)),
@@ -954,6 +962,7 @@ mod imp {
             slow: format!("pir2 serve slow at {endpoint}"),
             head: String::new(),
             d_vis_counts: report.d_vis_counts,
+            relative_actions: report.embodiment.relative_groups(),
             hand_commands: None,
             arm_state: None,
             camera_frames: None,

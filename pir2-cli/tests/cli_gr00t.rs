@@ -488,3 +488,60 @@ fn a_bad_camera_device_is_one_error_naming_it_before_any_robot() {
     assert!(text.contains("camera size \"640\""), "{text}");
     std::fs::remove_dir_all(&ck).ok();
 }
+
+/// Relative actions (GR00T N1.7's `use_relative_action`) on the emulators: the arm group
+/// made relative to the arm state with per-slot `relative_action` statistics runs in πR²
+/// async, train-time RTC and naive async with temporal ensembling, and the summary and
+/// `--json` name the relative group; a statistic of the wrong shape is one error naming the
+/// key and both shapes, before any robot is connected.
+#[test]
+fn relative_arm_actions_run_on_the_emulators() {
+    use pir2_backends::gr00t::testing::make_relative;
+    let ck = checkpoint("relative", "");
+    make_relative(&ck, &["arm_joints"]).unwrap();
+    let toml_path = ck.join("embodiment.toml");
+    let original = std::fs::read_to_string(&toml_path).unwrap();
+    assert!(original.contains("relative = true"), "{original}");
+    for (trained, mode, extra) in [
+        ("pi_r2", "pir2_async", &[][..]),
+        ("rtc", "rtc", &[][..]),
+        ("flow", "naive_async", &["--ensemble", "0.1"][..]),
+    ] {
+        std::fs::write(
+            &toml_path,
+            original.replace("trained = \"pi_r2\"", &format!("trained = \"{trained}\"")),
+        )
+        .unwrap();
+        let mut args = vec!["--mode", mode];
+        args.extend_from_slice(extra);
+        let (v, text) = emulated_json(&ck, "catch_book", 40, &args);
+        assert!(
+            text.contains("relative actions: arm_joints → arm_joints"),
+            "{mode}: {text}"
+        );
+        assert_eq!(
+            v["relative_actions"][0], "arm_joints → arm_joints",
+            "{mode}"
+        );
+        assert_eq!(v["trace"]["ticks"], 40, "{mode}");
+        assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1, "{mode}");
+        assert!(v["hand_commands"].as_u64().unwrap() >= 40, "{mode}");
+    }
+
+    let stats_path = ck.join("statistics.json");
+    let mut stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats_path).unwrap()).unwrap();
+    let min = &mut stats["new_embodiment"]["relative_action"]["arm_joints"]["min"];
+    min.as_array_mut().unwrap().truncate(16);
+    std::fs::write(&stats_path, stats.to_string()).unwrap();
+    std::fs::write(&toml_path, &original).unwrap();
+    let (out, text) = emulated(&ck, "catch_book", 5, &[]);
+    assert!(!out.status.success());
+    assert!(
+        text.contains("new_embodiment.relative_action.arm_joints.min")
+            && text.contains("has shape [16, 6], expected [50, 6]"),
+        "{text}"
+    );
+    assert!(!text.contains("warm-up done"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}

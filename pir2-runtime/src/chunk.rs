@@ -18,6 +18,10 @@ pub struct Chunk {
     pub xhat: Vec<f32>,
     /// `clean[p]` ⇔ `τ_p = 1`.
     pub clean: Vec<bool>,
+    /// The reference of relative actions, `[A]`: per action dimension, the value of the
+    /// snapshot's newest fast observation the action is relative to (0 for an absolute
+    /// dimension; see [`OutputMap`](crate::OutputMap)). Set by the action head.
+    pub reference: Vec<f32>,
     /// Tick of the snapshot the chunk was computed from.
     pub snapshot_tick: u64,
     /// The call that produced it.
@@ -34,6 +38,7 @@ impl Chunk {
             x: vec![0.0; horizon * action_dim],
             xhat: vec![0.0; horizon * action_dim],
             clean: vec![false; horizon],
+            reference: vec![0.0; action_dim],
             snapshot_tick: 0,
             call: CallRecord::default(),
         }
@@ -66,6 +71,7 @@ impl Chunk {
         self.x.copy_from_slice(&other.x);
         self.xhat.copy_from_slice(&other.xhat);
         self.clean.copy_from_slice(&other.clean);
+        self.reference.copy_from_slice(&other.reference);
         self.snapshot_tick = other.snapshot_tick;
         self.call = other.call;
     }

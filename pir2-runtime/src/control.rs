@@ -27,22 +27,39 @@ pub enum CallPolicy {
     },
 }
 
-/// Affine map from model action space to robot commands: `u = c(x)·scale + offset`, where
-/// `c` clips `x` to `[-1, 1]` on the dimensions marked in `clip` (a min/max-normalised action,
-/// as GR00T decodes it) and is the identity elsewhere.
+/// Map from model action space to robot commands. For action dimension `j` at slot `i` of
+/// its chunk: `u_j = c(x_j)·scale[i, j] + offset[i, j] + r_j`, where
+/// - `c` clips `x` to `[-1, 1]` on the dimensions marked in `clip` (a min/max-normalised
+///   action, as GR00T decodes it) and is the identity elsewhere;
+/// - `scale`/`offset` hold either one value per dimension (`[A]`, the same for every slot)
+///   or one per slot and dimension (`[H, A]`, slot-major: per-position statistics, as GR00T's
+///   relative-action statistics are);
+/// - `r_j` is the chunk's reference for a relative dimension (`reference[j] = Some(k)`: the
+///   action is relative to value `k` of the newest fast observation at the chunk's
+///   snapshot, see [`Chunk::reference`]) and 0 for an absolute one.
+///
+/// A map with per-slot statistics or relative dimensions ([`OutputMap::per_slot`]) is
+/// decoded per chunk before temporal ensembling, and the action head rebases the actions it
+/// carries from call to call onto the new reference and slot ([`OutputMap::rebase`]).
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct OutputMap {
-    /// Per-dimension scale (empty = 1).
+    /// Scale, `[A]` or `[H, A]` (empty = 1).
     pub scale: Vec<f32>,
-    /// Per-dimension offset (empty = 0).
+    /// Offset, `[A]` or `[H, A]` (empty = 0).
     pub offset: Vec<f32>,
     /// Per-dimension clip to `[-1, 1]` before the scale (empty = none).
     #[serde(default)]
     pub clip: Vec<bool>,
+    /// Per dimension, the fast-observation value the action is relative to (`None` =
+    /// absolute; empty = every dimension absolute).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub reference: Vec<Option<usize>>,
 }
 
 impl OutputMap {
-    /// Map one action `x` into `out`.
+    /// Map one action `x` into `out` with the slot-0 statistics and no reference (the map
+    /// of an absolute, per-dimension output; see [`decode`](Self::decode) for the general
+    /// one).
     pub fn apply(&self, x: &[f32], out: &mut [f32]) {
         for (j, (o, &v)) in out.iter_mut().zip(x).enumerate() {
             let v = if self.clip.get(j).copied().unwrap_or(false) {
@@ -53,6 +70,137 @@ impl OutputMap {
             let s = self.scale.get(j).copied().unwrap_or(1.0);
             let b = self.offset.get(j).copied().unwrap_or(0.0);
             *o = v * s + b;
+        }
+    }
+
+    /// Check the sizes against `H` and `A`; the error names the field.
+    pub fn validate(&self, horizon: usize, action_dim: usize) -> Result<()> {
+        let a = action_dim;
+        for (name, v) in [
+            ("output.scale", &self.scale),
+            ("output.offset", &self.offset),
+        ] {
+            if !v.is_empty() && v.len() != a && v.len() != horizon * a {
+                return Err(Error::Config(format!(
+                    "{name} has {} entries, expected action_dim = {a} or horizon × action_dim = {}",
+                    v.len(),
+                    horizon * a
+                )));
+            }
+        }
+        for (name, n) in [
+            ("output.clip", self.clip.len()),
+            ("output.reference", self.reference.len()),
+        ] {
+            if n != 0 && n != a {
+                return Err(Error::Config(format!(
+                    "{name} has {n} entries, expected action_dim = {a}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Does decoding depend on the slot or on the chunk's reference (per-slot statistics or
+    /// a relative dimension)? Such a map is decoded chunk by chunk, and carried actions are
+    /// rebased between calls.
+    pub fn per_slot(&self, action_dim: usize) -> bool {
+        self.scale.len() > action_dim
+            || self.offset.len() > action_dim
+            || self.reference.iter().any(Option::is_some)
+    }
+
+    /// Is dimension `j` relative?
+    pub fn is_relative(&self, j: usize) -> bool {
+        self.reference.get(j).copied().flatten().is_some()
+    }
+
+    fn stat(v: &[f32], slot: usize, j: usize, a: usize, default: f32) -> f32 {
+        if v.len() > a {
+            v[slot * a + j]
+        } else {
+            v.get(j).copied().unwrap_or(default)
+        }
+    }
+
+    /// The scale and offset of dimension `j` at `slot`.
+    fn affine(&self, slot: usize, j: usize, a: usize) -> (f32, f32) {
+        (
+            Self::stat(&self.scale, slot, j, a, 1.0),
+            Self::stat(&self.offset, slot, j, a, 0.0),
+        )
+    }
+
+    /// The reference of a chunk whose snapshot's newest fast observation is `obs`: per
+    /// action dimension, the referenced value (0 for an absolute dimension). `obs` must be
+    /// longer than every index in `reference` (checked by the action head).
+    pub fn fill_reference(&self, obs: &[f32], out: &mut [f32]) {
+        for (j, r) in out.iter_mut().enumerate() {
+            *r = match self.reference.get(j).copied().flatten() {
+                Some(k) => obs[k],
+                None => 0.0,
+            };
+        }
+    }
+
+    /// Decode one action `x` at `slot` of a chunk with reference `reference` (`[A]`, see
+    /// [`fill_reference`](Self::fill_reference)) into the command `out`.
+    pub fn decode(&self, x: &[f32], slot: usize, reference: &[f32], out: &mut [f32]) {
+        let a = x.len();
+        for (j, (o, &v)) in out.iter_mut().zip(x).enumerate() {
+            let v = if self.clip.get(j).copied().unwrap_or(false) {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
+            };
+            let (s, b) = self.affine(slot, j, a);
+            let u = v * s + b;
+            *o = if self.is_relative(j) {
+                u + reference[j]
+            } else {
+                u
+            };
+        }
+    }
+
+    /// Rebase one carried action: `z` was at slot `from_slot` of a chunk with reference
+    /// `from_ref`; `out` receives the model-space value at slot `to_slot` relative to
+    /// `to_ref` that decodes to the same command, `z′ = (u − r′ − offset′)/scale′` with `u`
+    /// the command `z` decoded to. A dimension whose statistics and reference do not change
+    /// is copied bit for bit; so is one whose new scale is 0 (a degenerate statistic: every
+    /// value decodes to the same command). A command outside the new slot's clip range
+    /// cannot be represented and decodes clipped.
+    pub fn rebase(
+        &self,
+        z: &[f32],
+        from_slot: usize,
+        from_ref: &[f32],
+        to_slot: usize,
+        to_ref: &[f32],
+        out: &mut [f32],
+    ) {
+        let a = z.len();
+        for (j, (o, &v)) in out.iter_mut().zip(z).enumerate() {
+            let rel = self.is_relative(j);
+            let (s0, b0) = self.affine(from_slot, j, a);
+            let (s1, b1) = self.affine(to_slot, j, a);
+            let same_ref = !rel || from_ref[j].to_bits() == to_ref[j].to_bits();
+            if (same_ref && s0.to_bits() == s1.to_bits() && b0.to_bits() == b1.to_bits())
+                || s1 == 0.0
+            {
+                *o = v;
+                continue;
+            }
+            let c = if self.clip.get(j).copied().unwrap_or(false) {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
+            };
+            let mut u = c * s0 + b0;
+            if rel {
+                u += from_ref[j] - to_ref[j];
+            }
+            *o = (u - b1) / s1;
         }
     }
 }
@@ -87,6 +235,11 @@ pub struct ControlState {
     out: Vec<f32>,
     in_flight: bool,
     executed_since_swap: usize,
+    /// The output map decodes per chunk ([`OutputMap::per_slot`]).
+    per_slot: bool,
+    /// A command was produced from a chunk (per-slot maps: a hold repeats it).
+    sent: bool,
+    scratch: Vec<f32>,
     /// Metrics of the run.
     pub metrics: RunMetrics,
 }
@@ -100,23 +253,7 @@ impl ControlState {
                 "horizon ({h}) and action_dim ({a}) must be positive"
             )));
         }
-        for (name, v) in [
-            ("output.scale", &cfg.output.scale),
-            ("output.offset", &cfg.output.offset),
-        ] {
-            if !v.is_empty() && v.len() != a {
-                return Err(Error::Config(format!(
-                    "{name} has {} entries, expected action_dim = {a}",
-                    v.len()
-                )));
-            }
-        }
-        let clip = cfg.output.clip.len();
-        if clip != 0 && clip != a {
-            return Err(Error::Config(format!(
-                "output.clip has {clip} entries, expected action_dim = {a}"
-            )));
-        }
+        cfg.output.validate(h, a)?;
         if let CallPolicy::Sync { h: he } = cfg.policy {
             if he == 0 || he > h {
                 return Err(Error::Config(format!(
@@ -137,6 +274,9 @@ impl ControlState {
             out: vec![0.0; a],
             in_flight: false,
             executed_since_swap: 0,
+            per_slot: cfg.output.per_slot(a),
+            sent: false,
+            scratch: vec![0.0; a],
             metrics: RunMetrics {
                 calls: Vec::with_capacity(TRACE_CAPACITY),
                 ..RunMetrics::default()
@@ -155,7 +295,9 @@ impl ControlState {
         self.tick
     }
 
-    /// Set the last-action memory (what a hold sends), e.g. the robot's current targets.
+    /// Set the last-action memory in model space (what a hold sends before any chunk was
+    /// executed; with an absolute per-dimension map, what every hold sends until the next
+    /// action), e.g. the robot's current targets.
     pub fn set_hold(&mut self, action: &[f32]) {
         self.last.copy_from_slice(action);
     }
@@ -209,7 +351,16 @@ impl ControlState {
 
     /// The command for the current tick (already mapped through the output map), then
     /// advance to the next tick.
+    ///
+    /// With an absolute, per-dimension output map the model-space action is chosen (from
+    /// the current chunk, or the ensemble's weighted mean of model values) and mapped. With
+    /// a per-slot map (per-slot statistics or relative dimensions) each chunk's action is
+    /// decoded against that chunk's reference and at its own slot, temporal ensembling
+    /// averages the decoded commands, and a hold repeats the last command sent.
     pub fn action(&mut self) -> &[f32] {
+        if self.per_slot {
+            return self.action_per_slot();
+        }
         let t = self.tick;
         self.metrics.ticks += 1;
         let held = self.in_flight && matches!(self.cfg.policy, CallPolicy::Sync { .. });
@@ -240,9 +391,76 @@ impl ControlState {
         &self.out
     }
 
-    /// The last action in model space (what a hold repeats).
+    fn action_per_slot(&mut self) -> &[f32] {
+        let t = self.tick;
+        self.metrics.ticks += 1;
+        let held = self.in_flight && matches!(self.cfg.policy, CallPolicy::Sync { .. });
+        let mut produced = false;
+        if !held {
+            if let Some(m) = self.cfg.ensemble {
+                produced = self.ensemble_decoded_at(t, m);
+            } else if self.has_current {
+                let c = &self.current;
+                if let (Some(i), Some((v, clean))) = (c.index_of(t), c.action_at(t)) {
+                    self.last.copy_from_slice(v);
+                    self.cfg.output.decode(v, i, &c.reference, &mut self.out);
+                    if !clean {
+                        self.metrics.overruns += 1;
+                    }
+                    produced = true;
+                } else {
+                    self.metrics.overruns += 1;
+                }
+            }
+        }
+        if !produced {
+            self.metrics.holds += 1;
+            if !self.sent {
+                // Nothing executed yet: the hold action, at slot 0 with no reference.
+                self.cfg.output.apply(&self.last, &mut self.out);
+            }
+        } else {
+            self.sent = true;
+            self.executed_since_swap += 1;
+        }
+        self.tick += 1;
+        &self.out
+    }
+
+    /// The last action in model space (with an absolute per-dimension map, what a hold
+    /// repeats; with a per-slot map a hold repeats the last command, and the ensemble does
+    /// not update this).
     pub fn last_action(&self) -> &[f32] {
         &self.last
+    }
+
+    /// Temporal ensembling of decoded commands (per-slot maps): each chunk's action at `t`
+    /// is decoded with its reference and slot, then weighted.
+    fn ensemble_decoded_at(&mut self, t: u64, m: f32) -> bool {
+        let cap = self.ring.len();
+        let n = (0..self.ring_len)
+            .filter(|i| self.ring[(self.ring_head + i) % cap].index_of(t).is_some())
+            .count();
+        if n == 0 {
+            return false;
+        }
+        pir2_schedule::baselines::ensemble_weights(m, &mut self.weights[..n]);
+        self.out.fill(0.0);
+        let mut k = 0;
+        for i in 0..self.ring_len {
+            let c = &self.ring[(self.ring_head + i) % cap];
+            if let (Some(slot), Some((v, _))) = (c.index_of(t), c.action_at(t)) {
+                self.cfg
+                    .output
+                    .decode(v, slot, &c.reference, &mut self.scratch);
+                let w = self.weights[k];
+                for (o, u) in self.out.iter_mut().zip(&self.scratch) {
+                    *o += w * u;
+                }
+                k += 1;
+            }
+        }
+        true
     }
 
     fn ensemble_at(&mut self, t: u64, m: f32) -> bool {
@@ -271,5 +489,62 @@ impl ControlState {
             }
         }
         true
+    }
+}
+
+#[cfg(test)]
+mod output_map_tests {
+    use super::*;
+
+    /// `[H = 3, A = 2]` statistics; dimension 0 relative to fast value 4, dimension 1
+    /// absolute with the same statistics at every slot.
+    fn map() -> OutputMap {
+        OutputMap {
+            scale: vec![0.5, 2.0, 0.75, 2.0, 1.0, 2.0],
+            offset: vec![0.1, -1.0, 0.2, -1.0, 0.3, -1.0],
+            clip: vec![true, true],
+            reference: vec![Some(4), None],
+        }
+    }
+
+    #[test]
+    fn a_clean_rebase_is_exact_and_the_identity_when_nothing_moves() {
+        let m = map();
+        let mut r = [0.0; 2];
+        m.fill_reference(&[9.0, 9.0, 9.0, 9.0, 0.6], &mut r);
+        assert_eq!(r, [0.6, 0.0]);
+        // Slot 2 on reference 0.6 → slot 1 on reference 0.9 decodes to the same command.
+        let z = [0.4, -0.3];
+        let mut z2 = [0.0; 2];
+        m.rebase(&z, 2, &[0.6, 0.0], 1, &[0.9, 0.0], &mut z2);
+        let (mut u, mut u2) = ([0.0; 2], [0.0; 2]);
+        m.decode(&z, 2, &[0.6, 0.0], &mut u);
+        m.decode(&z2, 1, &[0.9, 0.0], &mut u2);
+        // By hand: 0.4·1.0 + 0.3 + 0.6 = 1.3 = z′·0.75 + 0.2 + 0.9 ⇒ z′ = 0.2/0.75.
+        assert!((u[0] - 1.3).abs() < 1e-6 && (u2[0] - 1.3).abs() < 1e-6);
+        assert!((z2[0] - 0.2 / 0.75).abs() < 1e-6);
+        // The absolute dimension with equal statistics is copied bit for bit.
+        assert_eq!(z2[1].to_bits(), z[1].to_bits());
+        // Nothing moves: every bit stays.
+        let odd = [1.7, -0.0];
+        m.rebase(&odd, 1, &[0.6, 0.0], 1, &[0.6, 0.0], &mut z2);
+        assert_eq!(z2.map(f32::to_bits), odd.map(f32::to_bits));
+        // The model's output is clipped before decoding, as GR00T does.
+        m.decode(&[3.0, -5.0], 0, &[0.6, 0.0], &mut u);
+        assert_eq!(u, [0.5 + 0.1 + 0.6, -2.0 - 1.0]);
+        assert!(m.per_slot(2) && !OutputMap::default().per_slot(2));
+    }
+
+    #[test]
+    fn output_map_sizes_are_checked_by_name() {
+        let mut m = map();
+        m.validate(3, 2).unwrap();
+        let e = m.validate(4, 2).unwrap_err().to_string();
+        assert!(e.contains("output.scale has 6 entries"), "{e}");
+        m.scale.truncate(2);
+        m.offset.truncate(2);
+        m.reference.push(None);
+        let e = m.validate(4, 2).unwrap_err().to_string();
+        assert!(e.contains("output.reference has 3 entries"), "{e}");
     }
 }

@@ -11,6 +11,7 @@ use pir2_schedule::{Alignment, FrontMode, Rng, StreamBuffer, StreamConfig};
 
 use crate::chunk::Chunk;
 use crate::clock::Nanos;
+use crate::control::OutputMap;
 use crate::error::{Error, Result};
 use crate::metrics::CallRecord;
 use crate::model::{ModelInput, SlowInput, VelocityModel};
@@ -104,6 +105,8 @@ enum State {
         buf: StreamBuffer,
         offset: u64,
         warm_k: usize,
+        /// The reference the buffer's actions are relative to (per-slot output maps).
+        carried: Vec<f32>,
     },
     Flow {
         flow: StandardFlow,
@@ -129,6 +132,9 @@ pub struct ActionHead<M> {
     eps: Vec<f32>,
     forced_delay: Option<usize>,
     slow_grace: Option<Nanos>,
+    output: OutputMap,
+    rebase: bool,
+    reference: Vec<f32>,
 }
 
 impl<M: VelocityModel> ActionHead<M> {
@@ -165,6 +171,7 @@ impl<M: VelocityModel> ActionHead<M> {
                     buf: StreamBuffer::new(cfg, seed)?,
                     offset: 0,
                     warm_k: warm_start_steps.max(1),
+                    carried: vec![0.0; a],
                 }
             }
             HeadMode::Flow { steps } => State::Flow {
@@ -198,7 +205,42 @@ impl<M: VelocityModel> ActionHead<M> {
             eps: vec![0.0; h * a],
             forced_delay: None,
             slow_grace: None,
+            output: OutputMap::default(),
+            rebase: false,
+            reference: vec![0.0; a],
         })
+    }
+
+    /// Tell the head how actions are decoded (the drivers pass their control
+    /// configuration's map before the warm start). With a per-slot map
+    /// ([`OutputMap::per_slot`]: relative dimensions or per-slot statistics) every chunk
+    /// records its reference (the relative dimensions' values in the snapshot's newest fast
+    /// observation), and the actions carried from call to call (πR²'s buffer, train-time
+    /// RTC's committed front) are rebased onto each call's reference and slot
+    /// ([`OutputMap::rebase`]; through `x̂` for a partly denoised πR² slot, its noise kept).
+    /// An absolute per-dimension map changes nothing. Errors name a size or a reference
+    /// index outside the fast observation.
+    pub fn set_output(&mut self, output: &OutputMap) -> Result<()> {
+        let (h, a, f) = (self.spec.horizon, self.spec.action_dim, self.spec.fast_dim);
+        output.validate(h, a)?;
+        if let Some((j, k)) = output
+            .reference
+            .iter()
+            .enumerate()
+            .find_map(|(j, r)| r.filter(|&k| k >= f).map(|k| (j, k)))
+        {
+            return Err(Error::Config(format!(
+                "output.reference[{j}] = {k} is outside the fast observation (fast_dim = {f})"
+            )));
+        }
+        self.output = output.clone();
+        self.rebase = self.output.per_slot(a);
+        Ok(())
+    }
+
+    /// The newest fast observation of `snap`.
+    fn newest<'s>(spec: &HeadSpec, snap: &'s Snapshot) -> &'s [f32] {
+        &snap.fast[(spec.n_obs - 1) * spec.fast_dim..]
     }
 
     /// The spec.
@@ -320,13 +362,17 @@ impl<M: VelocityModel> ActionHead<M> {
         let d_vis = self.d_vis(snap) as u32;
         let d0 = self.clamp_delay(d0);
         let spec = self.spec;
+        self.output
+            .fill_reference(Self::newest(&spec, snap), &mut self.reference);
         let (model, x, tau, v) = (&mut self.model, &mut self.x, &mut self.tau, &mut self.v);
         match &mut self.state {
             State::PiR2 {
                 buf,
                 offset,
                 warm_k,
+                carried,
             } => {
+                carried.copy_from_slice(&self.reference);
                 buf.warm_start_with(d0, *warm_k, |xs: &[f32], ts: &[f32], vs: &mut [f32]| {
                     Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
                 })?;
@@ -343,6 +389,7 @@ impl<M: VelocityModel> ActionHead<M> {
                 out.x.copy_from_slice(x);
                 out.xhat.copy_from_slice(x);
                 out.clean.fill(true);
+                out.reference.copy_from_slice(&self.reference);
                 if let State::Rtc { prev, has_prev, .. } = &mut self.state {
                     prev.copy_from(out);
                     prev.base = snap.tick;
@@ -352,6 +399,7 @@ impl<M: VelocityModel> ActionHead<M> {
         }
         out.base = snap.tick;
         out.snapshot_tick = snap.tick;
+        out.reference.copy_from_slice(&self.reference);
         out.call = CallRecord {
             tick: snap.tick,
             latency: 0,
@@ -370,6 +418,9 @@ impl<M: VelocityModel> ActionHead<M> {
         let d_vis = self.d_vis(snap);
         let spec = self.spec;
         let (h, a) = (spec.horizon, spec.action_dim);
+        self.output
+            .fill_reference(Self::newest(&spec, snap), &mut self.reference);
+        out.reference.copy_from_slice(&self.reference);
         let (model, x, tau, v, eps) = (
             &mut self.model,
             &mut self.x,
@@ -377,13 +428,27 @@ impl<M: VelocityModel> ActionHead<M> {
             &mut self.v,
             &mut self.eps,
         );
+        let (output, reference, rebase) = (&self.output, &self.reference, self.rebase);
         match &mut self.state {
-            State::PiR2 { buf, offset, .. } => {
+            State::PiR2 {
+                buf,
+                offset,
+                carried,
+                ..
+            } => {
                 // Slide to the snapshot: everything before `snap.tick` has been executed.
                 let slot0 = *offset + buf.index();
                 let k = (snap.tick.saturating_sub(slot0) as usize).min(h);
                 buf.slide(k)?;
                 *offset = snap.tick - buf.index();
+                if rebase {
+                    // Slot p was slot p + k of the previous call (an appended slot holds
+                    // the estimate of the previous last slot), relative to `carried`.
+                    buf.remap(|p, z, out| {
+                        output.rebase(z, (p + k).min(h - 1), carried, p, reference, out)
+                    });
+                    carried.copy_from_slice(reference);
+                }
                 buf.plan(d)?;
                 Self::eval(
                     model,
@@ -421,16 +486,23 @@ impl<M: VelocityModel> ActionHead<M> {
                 let front = d.min(h - 1);
                 for p in 0..front {
                     let t = snap.tick + p as u64;
-                    let src = if *has_prev { prev.action_at(t) } else { None };
-                    match src {
-                        Some((vals, _)) => x[p * a..(p + 1) * a].copy_from_slice(vals),
-                        None => {
-                            // Past the previous chunk: hold its last slot.
-                            let last = (h - 1) * a;
-                            for j in 0..a {
-                                x[p * a + j] = prev.x[last + j];
-                            }
-                        }
+                    let src = if *has_prev {
+                        prev.index_of(t).zip(prev.action_at(t))
+                    } else {
+                        None
+                    };
+                    // Past the previous chunk: hold its last slot.
+                    let (q, vals) = match src {
+                        Some((q, (vals, _))) => (q, vals),
+                        None => (h - 1, &prev.x[(h - 1) * a..]),
+                    };
+                    let dst = &mut x[p * a..(p + 1) * a];
+                    if rebase {
+                        // Committed in the previous chunk's coordinates: move it onto this
+                        // call's reference and slot (the command stays the same).
+                        output.rebase(vals, q, &prev.reference, p, reference, dst);
+                    } else {
+                        dst.copy_from_slice(vals);
                     }
                 }
                 let dt = 1.0 / *steps as f32;

@@ -102,7 +102,9 @@ impl LockstepDriver {
         }
     }
 
-    /// Map model actions to environment commands (e.g. denormalise: `u = x·scale + offset`).
+    /// Map model actions to environment commands (e.g. denormalise: `u = x·scale + offset`;
+    /// relative actions and per-slot statistics too, see [`OutputMap`]). The head is given
+    /// the same map at the start of each episode ([`ActionHead::set_output`]).
     pub fn with_output(mut self, output: OutputMap) -> Self {
         self.output = output;
         self
@@ -163,6 +165,7 @@ impl LockstepDriver {
             ensemble: mode.ensemble(),
             output: self.output.clone(),
         })?;
+        head.set_output(&self.output)?;
         env.reset(seed);
         let (f, s, n_obs) = (spec.fast_dim, spec.slow_dim, spec.n_obs);
         // Histories: fast keeps n_obs frames; slow keeps slow_delay + 1 frames.

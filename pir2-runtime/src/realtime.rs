@@ -469,6 +469,7 @@ where
             cfg.period, spec.period
         )));
     }
+    head.set_output(&control.output)?;
     let shared = Shared::new(spec.n_obs, spec.fast_dim, spec.horizon, spec.action_dim);
     let mut lp = ControlLoop::new(ControlState::new(control)?, spec.n_obs, spec.fast_dim);
     let (slow_async, mut slow_inline) = match slow {

@@ -379,6 +379,38 @@ impl StreamBuffer {
         })
     }
 
+    /// Change the action coordinates of every slot, keeping each slot's noise: `map(p, x̂_p,
+    /// out)` writes slot `p`'s clean estimate in the new coordinates into `out` (it starts
+    /// as a copy of `x̂_p`). A clean slot (`τ = 1`) becomes exactly the mapped value; a
+    /// partly denoised slot `x = τ·z + (1−τ)·ε` has its signal part moved through its clean
+    /// estimate, `x += τ·(z′ − x̂)`, with `ε` left as it is; `x̂` becomes `z′`. A value the
+    /// map leaves unchanged (bit for bit) is not touched, so the identity map changes
+    /// nothing. Used to rebase relative actions onto a new reference state between calls;
+    /// call it before [`plan`](Self::plan) (it drops a pending plan).
+    pub fn remap(&mut self, mut map: impl FnMut(usize, &[f32], &mut [f32])) {
+        let a = self.cfg.action_dim;
+        for p in 0..self.cfg.horizon {
+            let (lo, hi) = (p * a, (p + 1) * a);
+            let out = &mut self.scratch[..a];
+            out.copy_from_slice(&self.xhat[lo..hi]);
+            map(p, &self.xhat[lo..hi], out);
+            let t = self.tau[p];
+            for j in 0..a {
+                let (z, old) = (out[j], self.xhat[lo + j]);
+                if z.to_bits() == old.to_bits() {
+                    continue;
+                }
+                if t >= 1.0 {
+                    self.x[lo + j] = z;
+                } else {
+                    self.x[lo + j] += t * (z - old);
+                }
+                self.xhat[lo + j] = z;
+            }
+        }
+        self.plan = None;
+    }
+
     /// Slide left by `k` executed slots and append `k` fresh-noise slots (`τ = 0`).
     /// The `x̂` of an appended slot holds the last slot's estimate until a call updates it
     /// (so a severe overrun executes a held estimate, never raw noise).
@@ -422,6 +454,36 @@ mod tests {
             max_delay,
             ..Default::default()
         }
+    }
+
+    /// `remap` moves clean slots exactly, keeps a noisy slot's noise (`x − τ·x̂` is
+    /// unchanged), and the identity map changes no bit.
+    #[test]
+    fn remap_moves_the_signal_and_keeps_the_noise() {
+        let mut b = StreamBuffer::new(cfg(8, Some(2), 2), 3).unwrap();
+        b.warm_start(1, &[0.25; 16]).unwrap();
+        let (x0, h0, tau) = (b.x().to_vec(), b.xhat().to_vec(), b.tau().to_vec());
+        b.remap(|_, _, _| {});
+        assert_eq!((b.x(), b.xhat()), (&x0[..], &h0[..]));
+        b.remap(|p, h, out| {
+            for (o, v) in out.iter_mut().zip(h) {
+                *o = v + 0.5 + p as f32;
+            }
+        });
+        for p in 0..8 {
+            for j in 0..2 {
+                let i = p * 2 + j;
+                let z = 0.25 + 0.5 + p as f32;
+                assert_eq!(b.xhat()[i], z);
+                if tau[p] >= 1.0 {
+                    assert_eq!(b.x()[i], z);
+                }
+                let noise_before = x0[i] - tau[p] * h0[i];
+                let noise_after = b.x()[i] - tau[p] * b.xhat()[i];
+                assert!((noise_before - noise_after).abs() < 1e-5, "slot {p}");
+            }
+        }
+        assert!(b.step(&[0.0; 16]).is_err(), "remap drops the plan");
     }
 
     #[test]

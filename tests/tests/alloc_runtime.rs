@@ -12,8 +12,18 @@ static ALLOC: CountingAlloc = CountingAlloc;
 
 #[test]
 fn control_tick_allocates_nothing() {
-    for ensemble in [None, Some(0.1)] {
-        let (h, a, f, n_obs) = (16, 3, 6, 2);
+    let (h, a, f, n_obs) = (16, 3, 6, 2);
+    // Absolute, and relative with per-slot statistics (decoded per chunk).
+    let relative = OutputMap {
+        scale: vec![0.5; h * a],
+        offset: vec![0.1; h * a],
+        clip: vec![true; a],
+        reference: vec![Some(0), None, Some(2)],
+    };
+    let cases = [None, Some(0.1)]
+        .into_iter()
+        .flat_map(|e| [(e, OutputMap::default()), (e, relative.clone())]);
+    for (ensemble, output) in cases {
         let clock: Arc<dyn Clock> = Arc::new(MockClock::new());
         let mut robot = FakeRobot::new(a, clock);
         let shared = Shared::new(n_obs, f, h, a);
@@ -22,7 +32,7 @@ fn control_tick_allocates_nothing() {
             action_dim: a,
             policy: CallPolicy::Async,
             ensemble,
-            output: Default::default(),
+            output,
         };
         let mut lp = ControlLoop::new(ControlState::new(cfg).unwrap(), n_obs, f);
         let mut first = Chunk::new(h, a);

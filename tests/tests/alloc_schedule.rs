@@ -1,4 +1,4 @@
-//! One inference call (plan + step + slide, with a d change) allocates nothing.
+//! One inference call (plan + step + slide + remap, with a d change) allocates nothing.
 
 use pir2_schedule::{Alignment, FrontMode, StreamBuffer, StreamConfig};
 use pir2_tests::{count_allocations, CountingAlloc};
@@ -36,6 +36,8 @@ fn inference_call_allocates_nothing() {
                     std::hint::black_box(x);
                     buf.step(&v).unwrap();
                     buf.slide(d).unwrap();
+                    // A relative policy's rebase onto the next call's reference.
+                    buf.remap(|p, z, out| out[0] = z[0] + 0.01 * p as f32);
                 }
             });
             assert_eq!(

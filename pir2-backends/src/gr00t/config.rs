@@ -68,7 +68,36 @@ pub enum Norm {
     SinCos,
 }
 
+/// What the values of an action group are (GR00T's `ActionFormat`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GroupFormat {
+    /// Independent values (joint angles, gripper): a relative action is `a − s` per value.
+    #[default]
+    Default,
+    /// An end-effector pose: position and a 6-d rotation (9 values).
+    XyzRot6d,
+    /// An end-effector pose: position and a rotation vector (6 values).
+    XyzRotvec,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
+}
+
+fn is_default_format(f: &GroupFormat) -> bool {
+    *f == GroupFormat::Default
+}
+
 /// One named slice of the state or action vector.
+///
+/// ```toml
+/// [[action]]
+/// name = "arm_joints"
+/// dim = 6
+/// relative = true          # GR00T's use_relative_action for this key
+/// state_key = "arm_joints" # the state group it is relative to (default: the same name)
+/// ```
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Group {
     /// The key in `statistics.json` (GR00T's modality key).
@@ -78,6 +107,24 @@ pub struct Group {
     /// Normalisation.
     #[serde(default)]
     pub norm: Norm,
+    /// Action groups only: the model predicts this group relative to the robot's state
+    /// (GR00T's `ActionRepresentation.RELATIVE`): the chunk made from an observation is
+    /// `a − s`, with `s` the newest raw state of the observation window's
+    /// [`state_key`](Self::state_key) group; its statistics are
+    /// `relative_action.<name>` (per chunk slot, `[H, D]`, or `[D]`) in place of
+    /// `action.<name>`. The runtime decodes every executed action against the state of the
+    /// chunk it comes from and rebases what it carries between calls (see
+    /// `pir2_runtime::OutputMap`).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub relative: bool,
+    /// The state group a relative action group is taken against (default: the state group
+    /// of the same name; it must have the same width).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state_key: Option<String>,
+    /// Action groups only: what the values are. Relative end-effector poses (`xyz_rot6d`,
+    /// `xyz_rotvec`) are not supported yet.
+    #[serde(default, skip_serializing_if = "is_default_format")]
+    pub format: GroupFormat,
 }
 
 impl Group {
@@ -86,7 +133,15 @@ impl Group {
             name: name.to_string(),
             dim,
             norm: Norm::MinMax,
+            relative: false,
+            state_key: None,
+            format: GroupFormat::Default,
         }
+    }
+
+    /// The state group a relative action group refers to.
+    pub fn reference_key(&self) -> &str {
+        self.state_key.as_deref().unwrap_or(&self.name)
     }
 }
 
@@ -439,6 +494,46 @@ impl EmbodimentConfig {
             .sum()
     }
 
+    /// Per action dimension, the raw state index a relative action is taken against
+    /// (`None`: absolute). Assumes a validated configuration.
+    pub fn action_reference(&self) -> Vec<Option<usize>> {
+        let mut out = Vec::with_capacity(self.action_dim());
+        for g in &self.action {
+            let first = g
+                .relative
+                .then(|| self.state_offset(g.reference_key()))
+                .flatten();
+            out.extend((0..g.dim).map(|k| first.map(|f| f + k)));
+        }
+        out
+    }
+
+    /// The relative action groups as `group → state group`, for logs and run summaries.
+    pub fn relative_groups(&self) -> Vec<String> {
+        self.action
+            .iter()
+            .filter(|g| g.relative)
+            .map(|g| format!("{} → {}", g.name, g.reference_key()))
+            .collect()
+    }
+
+    /// Whether any action group is relative.
+    pub fn has_relative_actions(&self) -> bool {
+        self.action.iter().any(|g| g.relative)
+    }
+
+    /// First raw state index of the state group `name`.
+    fn state_offset(&self, name: &str) -> Option<usize> {
+        let mut at = 0;
+        for s in &self.state {
+            if s.name == name {
+                return Some(at);
+            }
+            at += s.dim;
+        }
+        None
+    }
+
     /// Action width (sum of the action groups).
     pub fn action_dim(&self) -> usize {
         self.action.iter().map(|g| g.dim).sum()
@@ -500,6 +595,17 @@ impl EmbodimentConfig {
                     return bad(format!("{what} group `{}` has dim 0", g.name));
                 }
             }
+            if what == "state" {
+                if let Some(g) = groups.iter().find(|g| {
+                    g.relative || g.state_key.is_some() || g.format != GroupFormat::Default
+                }) {
+                    return bad(format!(
+                        "state group `{}`: relative, state_key and format are action-group \
+                         settings",
+                        g.name
+                    ));
+                }
+            }
             if what == "action" {
                 if let Some(g) = groups.iter().find(|g| g.norm == Norm::SinCos) {
                     return bad(format!(
@@ -513,6 +619,54 @@ impl EmbodimentConfig {
                 return bad(format!(
                     "{what} groups: at most {MAX_SIZE} groups of at most {MAX_SIZE} values"
                 ));
+            }
+        }
+        for g in &self.action {
+            let want = match g.format {
+                GroupFormat::Default => None,
+                GroupFormat::XyzRot6d => Some(9),
+                GroupFormat::XyzRotvec => Some(6),
+            };
+            if let Some(w) = want.filter(|&w| w != g.dim) {
+                return bad(format!(
+                    "action group `{}`: format {:?} has {w} values, the group has dim {}",
+                    g.name, g.format, g.dim
+                ));
+            }
+            if !g.relative {
+                if g.state_key.is_some() {
+                    return bad(format!(
+                        "action group `{}`: state_key is only used with relative = true",
+                        g.name
+                    ));
+                }
+                continue;
+            }
+            if g.format != GroupFormat::Default {
+                return bad(format!(
+                    "action group `{}`: relative end-effector poses ({:?}) are not supported yet \
+                     (relative joint groups are)",
+                    g.name, g.format
+                ));
+            }
+            let key = g.reference_key();
+            match self.state.iter().find(|s| s.name == key) {
+                None => {
+                    return bad(format!(
+                        "action group `{}` is relative to state group `{key}`, which does not \
+                         exist (state groups: {:?})",
+                        g.name,
+                        self.state.iter().map(|s| &s.name).collect::<Vec<_>>()
+                    ))
+                }
+                Some(s) if s.dim != g.dim => {
+                    return bad(format!(
+                        "action group `{}` (dim {}) is relative to state group `{key}` of dim {}: \
+                         the widths must agree",
+                        g.name, g.dim, s.dim
+                    ))
+                }
+                Some(_) => {}
             }
         }
         for (what, v) in [

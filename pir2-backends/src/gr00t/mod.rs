@@ -49,9 +49,9 @@ pub use backbone::{
     build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
 };
 pub use config::{
-    policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupLimits,
-    ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection, SafetySection,
-    DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
+    policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupFormat,
+    GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection,
+    SafetySection, DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

@@ -88,8 +88,10 @@ pub fn tiny_embodiment() -> EmbodimentConfig {
     c
 }
 
-/// A GR00T `statistics.json` for `cfg` with plausible ranges; `drop` (e.g.
-/// `"state.fingertip_forces.min"`) leaves one statistic out.
+/// A GR00T `statistics.json` for `cfg` with plausible ranges, and `relative_action`
+/// statistics of shape `[H, D]` for its relative action groups; `drop` (e.g.
+/// `"state.fingertip_forces.min"`, `"relative_action.arm_joints.max"`) leaves one statistic
+/// out.
 pub fn statistics_json(cfg: &EmbodimentConfig, drop: Option<&str>) -> String {
     let mut emb = serde_json::Map::new();
     for (m, groups) in [("state", &cfg.state), ("action", &cfg.action)] {
@@ -113,7 +115,46 @@ pub fn statistics_json(cfg: &EmbodimentConfig, drop: Option<&str>) -> String {
         }
         emb.insert(m.into(), gm.into());
     }
+    // Relative groups: per chunk slot, widening with the slot (2 mrad per slot).
+    let mut rel = serde_json::Map::new();
+    for g in cfg.action.iter().filter(|g| g.relative) {
+        let row = |p: usize, sign: f64| vec![sign * 0.002 * (p + 1) as f64; g.dim];
+        let table = |sign: f64| (0..cfg.horizon).map(|p| row(p, sign)).collect::<Vec<_>>();
+        let mut s = serde_json::Map::new();
+        for (k, v) in [
+            ("min", table(-1.0)),
+            ("max", table(1.0)),
+            ("mean", table(0.0)),
+            ("std", table(0.5)),
+        ] {
+            if drop != Some(&format!("relative_action.{}.{k}", g.name)) {
+                s.insert(k.into(), serde_json::json!(v));
+            }
+        }
+        rel.insert(g.name.clone(), s.into());
+    }
+    if !rel.is_empty() {
+        emb.insert("relative_action".into(), rel.into());
+    }
     serde_json::json!({ &cfg.embodiment_tag: emb }).to_string()
+}
+
+/// Make the action groups `groups` of the checkpoint in `dir` relative to the state groups
+/// of the same name: rewrites its `embodiment.toml` and its `statistics.json` (with
+/// per-slot `relative_action` statistics, see [`statistics_json`]).
+pub fn make_relative(dir: &Path, groups: &[&str]) -> Result<()> {
+    let path = dir.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path)?;
+    for g in cfg.action.iter_mut() {
+        g.relative = groups.contains(&g.name.as_str());
+    }
+    cfg.validate()?;
+    let write = |name: &str, text: String| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).map_err(io("writing", &p))
+    };
+    write("embodiment.toml", cfg.to_toml()?)?;
+    write("statistics.json", statistics_json(&cfg, None))
 }
 
 fn io<'a>(what: &'a str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Gr00tError + 'a {

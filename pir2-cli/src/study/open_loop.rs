@@ -224,6 +224,7 @@ mod tests {
                     scale: vec![2.0, 4.0],
                     offset: vec![0.0, -4.0],
                     clip: Vec::new(),
+                    reference: Vec::new(),
                 },
                 windows: 6,
                 seed: 1,

@@ -137,6 +137,7 @@ pub fn output_map(m: &CandleModel) -> OutputMap {
         scale: n.std.clone(),
         offset: n.mean.clone(),
         clip: Vec::new(),
+        reference: Vec::new(),
     }
 }
 

@@ -4,6 +4,8 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use serde::Deserialize;
+
 use super::super::error::{Gr00tError, Result};
 use super::{EmbodimentConfig, Group, Norm};
 
@@ -19,19 +21,54 @@ pub struct Normalizer {
     state_clip: Vec<bool>,
     /// The state groups in order: `(first raw dimension, width, sin/cos encoded)`.
     state_groups: Vec<(usize, usize, bool)>,
-    /// `raw = scale · clip(x) + offset`, per action dimension.
+    /// `raw = scale · clip(x) + offset (+ reference)`, per action dimension (`[A]`), or per
+    /// chunk slot and action dimension (`[H, A]`) when a relative group has per-slot
+    /// statistics.
     action_scale: Vec<f32>,
     action_offset: Vec<f32>,
     /// Clip the model's action to `[-1, 1]` before denormalising (min/max and percentile).
     action_clip: Vec<bool>,
+    /// Per action dimension, the raw state index a relative action is added to.
+    action_reference: Vec<Option<usize>>,
 }
 
-/// The groups' affine maps, per dimension: `(offset, scale, clip, to_zero)` with
-/// `norm = (x − offset)/scale` and `raw = scale·norm + offset`; `to_zero` marks a degenerate
-/// min/max dimension, which normalises to 0.
-type Affine = (Vec<f32>, Vec<f32>, Vec<bool>, Vec<bool>);
+/// One statistic as `statistics.json` holds it: `[D]`, or `[H, D]` (per chunk slot, GR00T's
+/// `relative_action` statistics).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+enum Stat {
+    Flat(Vec<f64>),
+    Table(Vec<Vec<f64>>),
+}
 
-type StatsFile = BTreeMap<String, BTreeMap<String, BTreeMap<String, BTreeMap<String, Vec<f64>>>>>;
+impl Stat {
+    fn shape(&self) -> String {
+        match self {
+            Stat::Flat(v) => format!("[{}]", v.len()),
+            Stat::Table(t) => {
+                let w = t.first().map_or(0, Vec::len);
+                if t.iter().all(|r| r.len() == w) {
+                    format!("[{}, {w}]", t.len())
+                } else {
+                    format!("[{}, rows of unequal length]", t.len())
+                }
+            }
+        }
+    }
+}
+
+/// A group's affine map per row (one row, or one per chunk slot) and dimension:
+/// `norm = (x − offset)/scale`, `raw = scale·norm + offset`; `zero` marks a degenerate
+/// min/max dimension, which normalises to 0.
+struct GroupAffine {
+    rows: usize,
+    offset: Vec<f32>,
+    scale: Vec<f32>,
+    clip: bool,
+    zero: Vec<bool>,
+}
+
+type StatsFile = BTreeMap<String, BTreeMap<String, BTreeMap<String, BTreeMap<String, Stat>>>>;
 
 impl Normalizer {
     /// The identity (no statistics).
@@ -44,11 +81,14 @@ impl Normalizer {
             action_scale: vec![1.0; action_dim],
             action_offset: vec![0.0; action_dim],
             action_clip: vec![false; action_dim],
+            action_reference: vec![None; action_dim],
         }
     }
 
     /// Load GR00T's `statistics.json` for `cfg` (every group and statistic its norm needs
-    /// must be present with the group's width; the error names the missing key).
+    /// must be present with the group's width; the error names the missing key). A relative
+    /// action group reads `relative_action.<group>`, of shape `[H, D]` (per chunk slot) or
+    /// `[D]`; another shape is one error naming the key and both shapes.
     pub fn load(path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
             path: path.to_path_buf(),
@@ -57,7 +97,8 @@ impl Normalizer {
         let stats: StatsFile = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
             path: path.to_path_buf(),
             message: format!(
-                "expected {{embodiment: {{modality: {{group: {{stat: [numbers]}}}}}}}}: {e}"
+                "expected {{embodiment: {{modality: {{group: {{stat: [numbers] or \
+                 [[numbers]]}}}}}}}}: {e}"
             ),
         })?;
         Self::from_stats(&stats, path, cfg)
@@ -82,76 +123,138 @@ impl Normalizer {
                 ),
             )
         })?;
-        // (offset, scale) per dim: norm = (x − offset)/scale; raw = scale·norm + offset.
-        let affine = |modality: &str, groups: &[Group]| -> Result<Affine> {
-            let (mut off, mut scale, mut clip, mut zero) =
-                (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-            for g in groups {
-                let get = |stat: &str| -> Result<Vec<f64>> {
-                    let v = emb
-                        .get(modality)
-                        .and_then(|m| m.get(&g.name))
-                        .and_then(|s| s.get(stat))
-                        .ok_or_else(|| err(modality, &g.name, stat, "is missing".to_string()))?;
-                    if v.len() != g.dim {
+        let horizon = cfg.horizon;
+        // A statistic as rows × dim values; `[H, D]` only where `per_slot`.
+        let get =
+            |modality: &str, g: &Group, stat: &str, per_slot: bool| -> Result<(usize, Vec<f64>)> {
+                let v = emb
+                    .get(modality)
+                    .and_then(|m| m.get(&g.name))
+                    .and_then(|s| s.get(stat))
+                    .ok_or_else(|| err(modality, &g.name, stat, "is missing".to_string()))?;
+                let (rows, flat) = match v {
+                    Stat::Flat(v) if v.len() == g.dim => (1, v.clone()),
+                    Stat::Flat(v) if !per_slot => {
                         return Err(err(
                             modality,
                             &g.name,
                             stat,
                             format!("has {} values, the group has dim {}", v.len(), g.dim),
+                        ))
+                    }
+                    Stat::Table(t)
+                        if per_slot && t.len() == horizon && t.iter().all(|r| r.len() == g.dim) =>
+                    {
+                        (horizon, t.concat())
+                    }
+                    other => {
+                        let want = if per_slot {
+                            format!("[{horizon}, {d}] (per chunk slot) or [{d}]", d = g.dim)
+                        } else {
+                            format!("[{}]", g.dim)
+                        };
+                        return Err(err(
+                            modality,
+                            &g.name,
+                            stat,
+                            format!("has shape {}, expected {want}", other.shape()),
                         ));
                     }
-                    if v.iter().any(|x| !x.is_finite()) {
-                        return Err(err(modality, &g.name, stat, "is not finite".to_string()));
-                    }
-                    Ok(v.clone())
                 };
-                match g.norm {
-                    Norm::MinMax | Norm::Q01Q99 => {
-                        let (lo, hi) = if g.norm == Norm::MinMax {
-                            ("min", "max")
-                        } else {
-                            ("q01", "q99")
-                        };
-                        let (lo, hi) = (get(lo)?, get(hi)?);
-                        for (l, h) in lo.iter().zip(&hi) {
-                            // numpy's isclose(max, min): such a dimension normalises to 0.
-                            zero.push((h - l).abs() <= 1e-8 + 1e-5 * l.abs());
-                            off.push(((l + h) / 2.0) as f32);
-                            scale.push(((h - l) / 2.0) as f32);
-                            clip.push(true);
-                        }
-                    }
-                    Norm::MeanStd => {
-                        let (mean, std) = (get("mean")?, get("std")?);
-                        for (m, sd) in mean.iter().zip(&std) {
-                            // GR00T passes a zero-std dimension through unchanged.
-                            let (o, sc) = if *sd == 0.0 { (0.0, 1.0) } else { (*m, *sd) };
-                            off.push(o as f32);
-                            scale.push(sc as f32);
-                            clip.push(false);
-                            zero.push(false);
-                        }
-                    }
-                    Norm::None | Norm::SinCos => {
-                        for _ in 0..g.dim {
-                            off.push(0.0);
-                            scale.push(1.0);
-                            clip.push(false);
-                            zero.push(false);
-                        }
+                if flat.iter().any(|x| !x.is_finite()) {
+                    return Err(err(modality, &g.name, stat, "is not finite".to_string()));
+                }
+                Ok((rows, flat))
+            };
+        let affine = |modality: &str, g: &Group| -> Result<GroupAffine> {
+            let per_slot = modality == "relative_action";
+            let mut out = GroupAffine {
+                rows: 1,
+                offset: Vec::new(),
+                scale: Vec::new(),
+                clip: false,
+                zero: Vec::new(),
+            };
+            match g.norm {
+                Norm::MinMax | Norm::Q01Q99 => {
+                    let (lo, hi) = if g.norm == Norm::MinMax {
+                        ("min", "max")
+                    } else {
+                        ("q01", "q99")
+                    };
+                    let ((rl, lo), (rh, hi)) = (
+                        get(modality, g, lo, per_slot)?,
+                        get(modality, g, hi, per_slot)?,
+                    );
+                    out.rows = rl.max(rh);
+                    out.clip = true;
+                    for i in 0..out.rows * g.dim {
+                        let (l, h) = (lo[i % (rl * g.dim)], hi[i % (rh * g.dim)]);
+                        // numpy's isclose(max, min): such a dimension normalises to 0.
+                        out.zero.push((h - l).abs() <= 1e-8 + 1e-5 * l.abs());
+                        out.offset.push(((l + h) / 2.0) as f32);
+                        out.scale.push(((h - l) / 2.0) as f32);
                     }
                 }
+                Norm::MeanStd => {
+                    let ((rm, mean), (rs, std)) = (
+                        get(modality, g, "mean", per_slot)?,
+                        get(modality, g, "std", per_slot)?,
+                    );
+                    out.rows = rm.max(rs);
+                    for i in 0..out.rows * g.dim {
+                        let (m, sd) = (mean[i % (rm * g.dim)], std[i % (rs * g.dim)]);
+                        // GR00T passes a zero-std dimension through unchanged.
+                        let (o, sc) = if sd == 0.0 { (0.0, 1.0) } else { (m, sd) };
+                        out.offset.push(o as f32);
+                        out.scale.push(sc as f32);
+                        out.zero.push(false);
+                    }
+                }
+                Norm::None | Norm::SinCos => {
+                    out.offset = vec![0.0; g.dim];
+                    out.scale = vec![1.0; g.dim];
+                    out.zero = vec![false; g.dim];
+                }
             }
-            Ok((off, scale, clip, zero))
+            Ok(out)
         };
-        let (so, ss, sc, sz) = affine("state", &cfg.state)?;
-        let (ao, ascale, aclip, _) = affine("action", &cfg.action)?;
+        let (mut so, mut ss, mut sc, mut sz) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut state_groups = Vec::with_capacity(cfg.state.len());
-        let mut first = 0;
         for g in &cfg.state {
-            state_groups.push((first, g.dim, g.norm == Norm::SinCos));
-            first += g.dim;
+            let m = affine("state", g)?;
+            state_groups.push((so.len(), g.dim, g.norm == Norm::SinCos));
+            so.extend(m.offset);
+            ss.extend(m.scale);
+            sc.extend(std::iter::repeat_n(m.clip, g.dim));
+            sz.extend(m.zero);
+        }
+        let actions = cfg
+            .action
+            .iter()
+            .map(|g| {
+                affine(
+                    if g.relative {
+                        "relative_action"
+                    } else {
+                        "action"
+                    },
+                    g,
+                )
+            })
+            .collect::<Result<Vec<_>>>()?;
+        // Per chunk slot as soon as one group has per-slot statistics.
+        let rows = actions.iter().map(|m| m.rows).max().unwrap_or(1);
+        let (mut ao, mut ascale, mut aclip) = (Vec::new(), Vec::new(), Vec::new());
+        for p in 0..rows {
+            for (g, m) in cfg.action.iter().zip(&actions) {
+                let r = if m.rows == 1 { 0 } else { p };
+                ao.extend_from_slice(&m.offset[r * g.dim..(r + 1) * g.dim]);
+                ascale.extend_from_slice(&m.scale[r * g.dim..(r + 1) * g.dim]);
+                if p == 0 {
+                    aclip.extend(std::iter::repeat_n(m.clip, g.dim));
+                }
+            }
         }
         Ok(Normalizer {
             state_offset: so,
@@ -165,6 +268,7 @@ impl Normalizer {
             action_scale: ascale,
             action_offset: ao,
             action_clip: aclip,
+            action_reference: cfg.action_reference(),
         })
     }
 
@@ -209,7 +313,18 @@ impl Normalizer {
         }
     }
 
-    /// Denormalise one action vector in place (what the runtime's output map does).
+    /// Action width.
+    pub fn action_dim(&self) -> usize {
+        self.action_clip.len()
+    }
+
+    /// Whether the action statistics are per chunk slot (`[H, A]`).
+    pub fn per_slot(&self) -> bool {
+        self.action_scale.len() > self.action_dim()
+    }
+
+    /// Denormalise one absolute action vector in place with the first slot's statistics
+    /// (relative groups get no reference: see [`decode_action`](Self::decode_action)).
     pub fn denormalize_action(&self, a: &mut [f32]) {
         for (i, x) in a.iter_mut().enumerate() {
             let v = if self.action_clip[i] {
@@ -221,12 +336,40 @@ impl Normalizer {
         }
     }
 
-    /// The runtime's output map that turns model actions into absolute joint targets.
+    /// GR00T's decoding of the action at `slot` of a chunk made from an observation whose
+    /// newest raw state is `state`: denormalise with that slot's statistics (clipping the
+    /// min/max and percentile groups first), then add the reference state to the relative
+    /// groups. In place.
+    pub fn decode_action(&self, slot: usize, state: &[f32], a: &mut [f32]) {
+        let n = self.action_dim();
+        let row = if self.per_slot() { slot * n } else { 0 };
+        for (i, x) in a.iter_mut().enumerate() {
+            let v = if self.action_clip[i] {
+                x.clamp(-1.0, 1.0)
+            } else {
+                *x
+            };
+            let mut u = self.action_scale[row + i] * v + self.action_offset[row + i];
+            if let Some(k) = self.action_reference[i] {
+                u += state[k];
+            }
+            *x = u;
+        }
+    }
+
+    /// The runtime's output map that turns model actions into absolute joint targets
+    /// (per-slot statistics and the relative groups' state indices included).
     pub fn action_output_map(&self) -> pir2_runtime::OutputMap {
+        let reference = if self.action_reference.iter().any(Option::is_some) {
+            self.action_reference.clone()
+        } else {
+            Vec::new()
+        };
         pir2_runtime::OutputMap {
             scale: self.action_scale.clone(),
             offset: self.action_offset.clone(),
             clip: self.action_clip.clone(),
+            reference,
         }
     }
 }

@@ -270,9 +270,8 @@ fn every_row_of_the_robot_table_resolves_from_the_policy_table() {
 fn normalisation_follows_gr00ts_edge_cases_and_sin_cos_encoding() {
     let mut c = EmbodimentConfig::xarm6_xhand();
     let group = |name: &str, dim, norm| Group {
-        name: name.into(),
-        dim,
         norm,
+        ..Group::new(name, dim)
     };
     c.state = vec![
         group("pos", 3, Norm::MinMax),
@@ -336,4 +335,219 @@ fn normalisation_follows_gr00ts_edge_cases_and_sin_cos_encoding() {
         "{e}"
     );
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A relative joint group (GR00T's `use_relative_action`): its statistics are
+/// `relative_action.<group>`, per chunk slot (`[H, D]`) or `[D]`; decoding a slot clips,
+/// denormalises with that slot's statistics and adds the newest raw state of the group's
+/// `state_key`, as GR00T's `unapply` does. Expected values worked by hand. A wrong shape is
+/// one error naming the key and both shapes.
+#[test]
+fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    c.horizon = 3;
+    c.d_max = 1;
+    c.state = vec![Group::new("hand", 1), Group::new("arm", 2)];
+    c.action = vec![
+        Group {
+            relative: true,
+            ..Group::new("arm", 2)
+        },
+        Group::new("hand", 1),
+    ];
+    c.validate().unwrap();
+    assert_eq!(c.action_reference(), [Some(1), Some(2), None]);
+    // `relative` and `state_key` survive the TOML round trip; absent, they are not written.
+    let text = c.to_toml().unwrap();
+    assert_eq!(text.matches("relative = true").count(), 1, "{text}");
+    assert!(
+        !text.contains("state_key") && !text.contains("format"),
+        "{text}"
+    );
+    assert_eq!(toml::from_str::<EmbodimentConfig>(&text).unwrap(), c);
+
+    let per_slot = serde_json::json!([[-0.1, -0.2], [-0.2, -0.4], [-0.3, -0.6]]);
+    let stats = |rel_min: serde_json::Value, rel_max: serde_json::Value| {
+        serde_json::json!({ "new_embodiment": {
+            "state": {
+                "arm": { "min": [-3.0, -3.0], "max": [3.0, 3.0] },
+                "hand": { "min": [0.0], "max": [1.0] },
+            },
+            "action": {
+                "hand": { "min": [0.0], "max": [1.0] },
+                // The absolute statistics of a relative group are not used.
+                "arm": { "min": [-9.0, -9.0], "max": [9.0, 9.0] },
+            },
+            "relative_action": { "arm": { "min": rel_min, "max": rel_max } },
+        }})
+        .to_string()
+    };
+    let neg = |v: &serde_json::Value| -> serde_json::Value {
+        serde_json::from_str(&v.to_string().replace('-', "")).unwrap()
+    };
+    let dir = std::env::temp_dir().join(format!("pir2-gr00t-rel-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let p = dir.join("statistics.json");
+    std::fs::write(&p, stats(per_slot.clone(), neg(&per_slot))).unwrap();
+    let n = Normalizer::load(&p, &c).unwrap();
+    assert!(n.per_slot());
+
+    // Raw state [hand, arm₀, arm₁] = [0.3, 0.5, −1.0]; the model's action at slot 1.
+    let state = [0.3, 0.5, -1.0];
+    let x = [0.5, 2.0, 0.5];
+    // arm₀: (0.5 + 1)/2·(0.2 − (−0.2)) − 0.2 = 0.1, + 0.5 → 0.6
+    // arm₁: clip(2) = 1 → (1 + 1)/2·0.8 − 0.4 = 0.4, − 1.0 → −0.6
+    // hand (absolute): (0.5 + 1)/2·1 + 0 = 0.75
+    let want = [0.6, -0.6, 0.75];
+    let mut a = x;
+    n.decode_action(1, &state, &mut a);
+    assert!(
+        a.iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-6),
+        "{a:?} vs {want:?}"
+    );
+    // The runtime's output map decodes the same chunk slot the same way.
+    let map = n.action_output_map();
+    assert_eq!(map.reference, [Some(1), Some(2), None]);
+    assert_eq!((map.scale.len(), map.clip.len()), (9, 3));
+    let (mut r, mut u) = ([0.0; 3], [0.0; 3]);
+    map.fill_reference(&state, &mut r);
+    map.decode(&x, 1, &r, &mut u);
+    assert!(
+        u.iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-6),
+        "{u:?} vs {want:?}"
+    );
+    // Slot 2 uses its own statistics: arm₀ = 0.75·0.6 − 0.3 + 0.5.
+    map.decode(&x, 2, &r, &mut u);
+    assert!((u[0] - 0.65).abs() < 1e-6, "{u:?}");
+
+    // `[D]` statistics: the same range at every slot.
+    std::fs::write(
+        &p,
+        stats(
+            serde_json::json!([-0.2, -0.4]),
+            serde_json::json!([0.2, 0.4]),
+        ),
+    )
+    .unwrap();
+    let n = Normalizer::load(&p, &c).unwrap();
+    assert!(!n.per_slot());
+    let mut a = x;
+    n.decode_action(2, &state, &mut a);
+    assert!(
+        (a[0] - 0.6).abs() < 1e-6 && (a[1] + 0.6).abs() < 1e-6,
+        "{a:?}"
+    );
+
+    // Wrong shapes: one error naming the key and both shapes.
+    let short = serde_json::json!([[-0.1, -0.2], [-0.2, -0.4]]);
+    std::fs::write(&p, stats(short.clone(), neg(&short))).unwrap();
+    let e = Normalizer::load(&p, &c).unwrap_err().to_string();
+    assert!(
+        e.contains("new_embodiment.relative_action.arm.min")
+            && e.contains("has shape [2, 2]")
+            && e.contains("expected [3, 2] (per chunk slot) or [2]"),
+        "{e}"
+    );
+    std::fs::write(
+        &p,
+        stats(
+            serde_json::json!([-0.2, -0.4, 0.0]),
+            serde_json::json!([0.2, 0.4]),
+        ),
+    )
+    .unwrap();
+    let e = Normalizer::load(&p, &c).unwrap_err().to_string();
+    assert!(
+        e.contains("relative_action.arm.min") && e.contains("[3]"),
+        "{e}"
+    );
+    // A per-slot table is only for relative groups.
+    let mut abs = c.clone();
+    abs.action[0].relative = false;
+    let mut v: serde_json::Value =
+        serde_json::from_str(&stats(per_slot.clone(), neg(&per_slot))).unwrap();
+    v["new_embodiment"]["action"]["arm"]["min"] = per_slot.clone();
+    std::fs::write(&p, v.to_string()).unwrap();
+    let e = Normalizer::load(&p, &abs).unwrap_err().to_string();
+    assert!(
+        e.contains("new_embodiment.action.arm.min") && e.contains("has shape [3, 2], expected [2]"),
+        "{e}"
+    );
+    // A missing relative statistic is named.
+    v["new_embodiment"]["relative_action"] = serde_json::json!({});
+    std::fs::write(&p, v.to_string()).unwrap();
+    let e = Normalizer::load(&p, &c).unwrap_err().to_string();
+    assert!(
+        e.contains("relative_action.arm.min") && e.contains("missing"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The configuration errors of relative groups, each naming the group.
+#[test]
+fn relative_groups_are_checked_by_name() {
+    let bad = |edit: &dyn Fn(&mut EmbodimentConfig), want: &[&str]| {
+        let mut c = EmbodimentConfig::xarm6_xhand();
+        edit(&mut c);
+        let e = c.validate().unwrap_err().to_string();
+        assert!(want.iter().all(|w| e.contains(w)), "{e}");
+    };
+    bad(
+        &|c| {
+            c.action[0].relative = true;
+            c.action[0].state_key = Some("wrist".into());
+        },
+        &["`arm_joints`", "state group `wrist`", "does not exist"],
+    );
+    bad(
+        &|c| {
+            c.action[1].relative = true;
+            c.action[1].state_key = Some("arm_joints".into());
+        },
+        &["`hand_joints` (dim 12)", "`arm_joints` of dim 6"],
+    );
+    bad(
+        &|c| c.action[0].state_key = Some("arm_joints".into()),
+        &[
+            "`arm_joints`",
+            "state_key is only used with relative = true",
+        ],
+    );
+    bad(
+        &|c| c.state[0].relative = true,
+        &["state group `arm_joints`"],
+    );
+    bad(
+        &|c| {
+            c.action[0] = Group {
+                relative: true,
+                format: GroupFormat::XyzRot6d,
+                ..Group::new("arm_joints", 9)
+            };
+            c.state[0].dim = 9;
+        },
+        &[
+            "`arm_joints`",
+            "relative end-effector poses",
+            "not supported yet",
+        ],
+    );
+    bad(
+        &|c| c.action[0].format = GroupFormat::XyzRot6d,
+        &["`arm_joints`", "9 values", "dim 6"],
+    );
+    // An absolute pose group is only numbers to normalise: fine.
+    let mut c = EmbodimentConfig::xarm6_xhand();
+    c.action[0].format = GroupFormat::XyzRotvec;
+    c.validate().unwrap();
+    // A relative group with its state key spelled out.
+    c.action[0].relative = true;
+    c.action[0].format = GroupFormat::Default;
+    c.action[0].state_key = Some("arm_joints".into());
+    c.validate().unwrap();
+    assert_eq!(
+        c.action_reference()[..7],
+        [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), None]
+    );
 }
