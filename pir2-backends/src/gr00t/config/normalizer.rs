@@ -24,6 +24,8 @@ pub struct Normalizer {
     action_offset: Vec<f32>,
     /// Clip the model's action to `[-1, 1]` before denormalising (min/max and percentile).
     action_clip: Vec<bool>,
+    /// A degenerate min/max (or percentile) action dimension: normalises to 0.
+    action_zero: Vec<bool>,
 }
 
 /// The groups' affine maps, per dimension: `(offset, scale, clip, to_zero)` with
@@ -44,6 +46,7 @@ impl Normalizer {
             action_scale: vec![1.0; action_dim],
             action_offset: vec![0.0; action_dim],
             action_clip: vec![false; action_dim],
+            action_zero: vec![false; action_dim],
         }
     }
 
@@ -146,7 +149,7 @@ impl Normalizer {
             Ok((off, scale, clip, zero))
         };
         let (so, ss, sc, sz) = affine("state", &cfg.state)?;
-        let (ao, ascale, aclip, _) = affine("action", &cfg.action)?;
+        let (ao, ascale, aclip, azero) = affine("action", &cfg.action)?;
         let mut state_groups = Vec::with_capacity(cfg.state.len());
         let mut first = 0;
         for g in &cfg.state {
@@ -165,6 +168,7 @@ impl Normalizer {
             action_scale: ascale,
             action_offset: ao,
             action_clip: aclip,
+            action_zero: azero,
         })
     }
 
@@ -206,6 +210,25 @@ impl Normalizer {
                 };
             }
             o += width;
+        }
+    }
+
+    /// Normalise one raw action vector in place, as GR00T's processor does for training
+    /// targets: `(x − offset)/scale`, clipped to `[-1, 1]` for the min/max and percentile
+    /// groups; a degenerate min/max dimension maps to 0. [`Self::denormalize_action`] inverts
+    /// it inside the clip range.
+    pub fn normalize_action(&self, a: &mut [f32]) {
+        for (i, x) in a.iter_mut().enumerate() {
+            if self.action_zero[i] {
+                *x = 0.0;
+                continue;
+            }
+            let n = (*x - self.action_offset[i]) / self.action_scale[i];
+            *x = if self.action_clip[i] {
+                n.clamp(-1.0, 1.0)
+            } else {
+                n
+            };
         }
     }
 
