@@ -784,7 +784,7 @@ impl<'a> Gr00tTrainer<'a> {
                     } else {
                         let p = out.join(format!("{INTERRUPTED_PREFIX}{step:06}"));
                         if !p.exists() {
-                            st.save_step(&write_model, &p, batcher.rng.state(), &names, &cfg)?;
+                            st.save_step(write_model, &p, batcher.rng.state(), &names, &cfg)?;
                         }
                         resume_point = Some(p);
                     }
@@ -890,7 +890,7 @@ impl<'a> Gr00tTrainer<'a> {
                     dir: Some(dir.clone()),
                 });
                 log.flush().map_err(|e| Error::io(&log_path, e))?;
-                st.save_step(&write_model, &dir, batcher.rng.state(), &names, &cfg)?;
+                st.save_step(write_model, &dir, batcher.rng.state(), &names, &cfg)?;
             }
         }
         {
