@@ -147,8 +147,8 @@ enum Cmd {
         /// gr00t: the embodiment file (embodiment.toml).
         #[arg(long)]
         embodiment: Option<PathBuf>,
-        /// gr00t: the backbone's outputs per frame (safetensors: embeddings [N,T,D_vl],
-        /// image_mask [N,T], optional attention_mask [N,T]).
+        /// gr00t: the backbone's outputs per frame (safetensors: `embeddings` `[N,T,D_vl]`,
+        /// `image_mask` `[N,T]`, optional `attention_mask` `[N,T]`).
         #[arg(long)]
         features: Option<PathBuf>,
         /// gr00t: optimiser steps.
