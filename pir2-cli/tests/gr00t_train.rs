@@ -245,6 +245,30 @@ fn trains_resumes_bit_identically_and_loads_back() {
     );
     assert_eq!(second.report.losses.len(), 6);
 
+    // Ctrl-C after step 2 (no step checkpoint there): the exact state is saved as
+    // `interrupted-000002`, the run continues from it bit-identically and removes it.
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut o = options(&i, "stopped");
+    o.stop = Some(flag.clone());
+    let e = train(&o, |p| {
+        if p.step == 2 {
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    })
+    .unwrap_err();
+    assert!(format!("{e:#}").contains("interrupted"), "{e:#}");
+    assert!(o.out.join("interrupted-000002").is_dir());
+    o.stop = None;
+    o.resume = true;
+    train(&o, |_| {}).unwrap();
+    assert!(!o.out.join("interrupted-000002").exists());
+    assert!(
+        bytes(&out_full.join("step-000006/model.safetensors"))
+            == bytes(&o.out.join("step-000006/model.safetensors")),
+        "resume from an interrupted state differs"
+    );
+    assert_eq!(full, state_losses(&o.out));
+
     // The step checkpoint is a GR00T head with a trained delay table.
     let head = Gr00tN17Head::load(&out_full.join("step-000006"), &Device::Cpu).unwrap();
     let table = head.delay_embedding().expect("delay table");
