@@ -23,6 +23,9 @@
 //! file, never a stale one. [`PrecomputedFeatures`] reads backbone outputs a user computed
 //! with the real backbone.
 //!
+//! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
+//! optimiser state and update are on the host. Only the CPU has been run.
+//!
 //! Not done here: GR00T's dropout (0.2 in the DiT) is not applied, so the training forward is
 //! the deterministic inference forward; EMA, self-rollout and validation hooks of
 //! [`super::Trainer`] are refused by name.
@@ -347,7 +350,7 @@ impl VlCache {
             while first < features.frames {
                 let count = chunk.min(features.frames - first);
                 let (emb, image, attn) = features.rows(first, count)?;
-                let x = Tensor::from_vec(emb, (count, t, d), &Device::Cpu)?;
+                let x = Tensor::from_vec(emb, (count, t, d), head.device())?;
                 let y = head.process_backbone(&x)?.flatten_all()?.to_vec1::<f32>()?;
                 for i in 0..count {
                     for v in &y[i * t * d..(i + 1) * t * d] {
@@ -696,7 +699,9 @@ impl<'a> Gr00tTrainer<'a> {
                 .map_err(|e| Error::io(&log_path, e))?,
         );
 
-        let dev = Device::Cpu;
+        // The head's device: every per-step tensor lives there; the AdamW update runs on
+        // the host copies, as in the U-Net trainer.
+        let dev = head.device().clone();
         let vars: Vec<Var> = head
             .trainable_vars()
             .iter()

@@ -475,6 +475,11 @@ impl Gr00tN17Head {
         &self.cfg
     }
 
+    /// The device the parameters live on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
     /// Embodiment slots `[B]` as `u32`, checked against the configuration.
     fn embodiment(&self, ids: &Tensor, b: usize) -> Result<Tensor> {
         let v = values("embodiment_id", ids, &[b])?;
