@@ -22,3 +22,6 @@ if echo "$doc_log" | grep -q -- "--> pir2-backends/src/gr00t/"; then
 fi
 # The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests.
 cargo test -p pir2-backends --features gr00t --lib --test gr00t -- --test-threads=1
+# `pir2 train gr00t` end to end (candle, CPU; needs no ONNX Runtime at run time): a synthetic
+# N1.7-shaped checkpoint, dataset and backbone features; resume bit-identity; input errors.
+cargo test -p pir2-cli --features gr00t --test gr00t_train

@@ -40,6 +40,7 @@ use crate::error::{Error, Result};
 
 mod batcher;
 mod data;
+pub mod gr00t;
 mod optim;
 mod state;
 
@@ -443,7 +444,13 @@ impl<'a> Trainer<'a> {
                             if stale {
                                 model.set_host_params(&st.params)?;
                             }
-                            st.save_step(model, &p, batcher.rng.state(), &names, &cfg)?;
+                            st.save_step(
+                                |dir| model.write_files(dir),
+                                &p,
+                                batcher.rng.state(),
+                                &names,
+                                &cfg,
+                            )?;
                         }
                         resume_point = Some(p);
                     }
@@ -598,7 +605,13 @@ impl<'a> Trainer<'a> {
             if let (Some(d), Some(p)) = (out_dir.as_deref(), &step_dir) {
                 // Flush the log first: a resumed run appends after what is on disk.
                 log_line(None, &mut self)?;
-                st.save_step(model, p, batcher.rng.state(), &names, &cfg)?;
+                st.save_step(
+                    |dir| model.write_files(dir),
+                    p,
+                    batcher.rng.state(),
+                    &names,
+                    &cfg,
+                )?;
                 if score.is_some() && st.report.best.as_ref().is_some_and(|b| b.step == done) {
                     let path = d.join("best.json");
                     let text = serde_json::to_string_pretty(&st.report.best).map_err(|e| {

@@ -67,6 +67,7 @@ impl Case {
             embeddings: emb,
             attention_mask: Some(self.get("in.backbone_attention_mask")),
             image_mask: Some(self.get("in.image_mask")),
+            d_vis: None,
         }
     }
 }
@@ -371,4 +372,143 @@ fn missing_misshaped_and_unexpected_tensors_are_named() {
         }
         other => panic!("expected UnexpectedTensor, got {other:?}"),
     }
+}
+
+/// πR² fine-tuning starts from the checkpoint's head exactly: loaded trainable (its trained
+/// tensors as `Var`s, a zero delay table), the head computes the base head's velocity bit for
+/// bit, for shared and for per-position timesteps that are all equal, at every `d_vis`; a
+/// gradient step then reaches the delay table and the shared AdaLN weights, and the saved
+/// weights load back as a head with the trained delay table.
+#[test]
+fn trainable_head_starts_as_the_base_head() {
+    let dir = Scratch::new("trainable");
+    let mut all = weights("alt");
+    all.insert(
+        "backbone.some.weight".into(),
+        Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap(),
+    );
+    save(&all, &dir.0.join("model.safetensors"));
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        dir.0.join("config.json"),
+    )
+    .unwrap();
+    let base = Case::load("alt");
+    let d_vis_max = 5;
+    let train = Gr00tN17Head::load_trainable(&dir.0, d_vis_max, &Device::Cpu).unwrap();
+    let table = train.delay_embedding().expect("a delay table");
+    assert_eq!(table.dims(), [d_vis_max + 1, 24]);
+    let names: Vec<&str> = train
+        .trainable_vars()
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .collect();
+    assert!(names.contains(&"action_head.delay_embedding.weight"));
+    assert!(names.contains(&"action_head.model.transformer_blocks.0.norm1.linear.weight"));
+    assert!(names.contains(&"action_head.position_embedding.weight"));
+    assert!(!names
+        .iter()
+        .any(|n| n.contains("vlln") || n.contains("vl_self_attention")));
+
+    let emb = base.get("in.embodiment_id");
+    let (vl, s) = base.prefix();
+    let x = base.get("in.actions");
+    let (b, h, _) = x.dims3().unwrap();
+    let t = base.get("in.timesteps");
+    let t2 = t.reshape((b, 1)).unwrap();
+    let actions = t2.broadcast_as((b, h)).unwrap().contiguous().unwrap();
+    let tokens = t2.broadcast_as((b, 1 + h)).unwrap().contiguous().unwrap();
+    let per = Timesteps::PerPosition {
+        actions: &actions,
+        tokens: &tokens,
+    };
+    let vl_t = train
+        .process_backbone(base.get("in.backbone_features"))
+        .unwrap();
+    let s_t = train.encode_state(base.get("in.state"), emb).unwrap();
+    let bits = |t: &Tensor| -> Vec<u32> {
+        let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        v.iter().map(|x| x.to_bits()).collect()
+    };
+    for d in [0u32, 3, 9] {
+        let d_vis = Tensor::new(&[d, d], &Device::Cpu).unwrap();
+        let vl_train = VlTokens {
+            d_vis: Some(&d_vis),
+            ..base.vl(&vl_t)
+        };
+        for ts in [Timesteps::Shared(t), per] {
+            let want = base.head.velocity(&s, x, ts, &base.vl(&vl), emb).unwrap();
+            let got = train.velocity(&s_t, x, ts, &vl_train, emb).unwrap();
+            assert_eq!(bits(&got), bits(&want), "d_vis = {d}");
+        }
+    }
+    // The shared/per-position equivalence of the base head carries over (not bit for bit:
+    // the GEMMs differ in shape).
+    let d0 = Tensor::new(&[0u32, 0], &Device::Cpu).unwrap();
+    let vl_train = VlTokens {
+        d_vis: Some(&d0),
+        ..base.vl(&vl_t)
+    };
+    let got = train.velocity(&s_t, x, per, &vl_train, emb).unwrap();
+    check(
+        "alt",
+        "trainable, per-position",
+        &got,
+        base.get("out.velocity"),
+    );
+    // A head with a delay table refuses a call without d_vis.
+    assert!(train.velocity(&s_t, x, per, &base.vl(&vl_t), emb).is_err());
+
+    // One gradient step on a per-position loss reaches the delay table (row 2 only) and the
+    // shared AdaLN weights, and changes the velocity.
+    let d2 = Tensor::new(&[2u32, 2], &Device::Cpu).unwrap();
+    let vl2 = VlTokens {
+        d_vis: Some(&d2),
+        ..base.vl(&vl_t)
+    };
+    let v = train.velocity(&s_t, x, per, &vl2, emb).unwrap();
+    let loss = v.sqr().unwrap().mean_all().unwrap();
+    let grads = loss.backward().unwrap();
+    let var = |name: &str| {
+        train
+            .trainable_vars()
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, v)| v.clone())
+            .unwrap()
+    };
+    let delay = var("action_head.delay_embedding.weight");
+    let g = grads.get(delay.as_tensor()).expect("delay table gradient");
+    let rows = g.abs().unwrap().sum(1).unwrap().to_vec1::<f32>().unwrap();
+    assert!(rows[2] > 0.0, "{rows:?}");
+    assert!(
+        rows.iter().enumerate().all(|(i, &r)| i == 2 || r == 0.0),
+        "{rows:?}"
+    );
+    let ada = var("action_head.model.transformer_blocks.1.norm1.linear.weight");
+    assert!(grads.get(ada.as_tensor()).is_some());
+    let new = (delay.as_tensor() - (g * 10.0).unwrap()).unwrap();
+    delay.set(&new).unwrap();
+    let moved = train.velocity(&s_t, x, per, &vl2, emb).unwrap();
+    assert!(
+        rel_err(&moved, &v) > 1e-3,
+        "the step did not change the velocity"
+    );
+    let same_d0 = train.velocity(&s_t, x, per, &vl_train, emb).unwrap();
+    assert_eq!(bits(&same_d0), bits(&got), "row 0 must be untouched");
+
+    // Saved weights (+ config.json) load back as an inference head with the trained table.
+    let out = Scratch::new("trainable-out");
+    train
+        .save_weights(&out.0.join("model.safetensors"))
+        .unwrap();
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        out.0.join("config.json"),
+    )
+    .unwrap();
+    let back = Gr00tN17Head::load(&out.0, &Device::Cpu).unwrap();
+    assert!(back.trainable_vars().is_empty());
+    let again = back.velocity(&s_t, x, per, &vl2, emb).unwrap();
+    assert_eq!(bits(&again), bits(&moved));
 }

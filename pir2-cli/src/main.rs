@@ -108,10 +108,13 @@ enum Cmd {
     },
     /// Train one policy (candle MLP; leap-cube: U-Nets, the config's `policies` unless
     /// --policy) on a dataset; the checkpoint is picked in closed loop. With --task FILE: a
-    /// policy on any state-only LeRobotDataset v3.0, picked on held-out episodes.
+    /// policy on any state-only LeRobotDataset v3.0, picked on held-out episodes. `gr00t`:
+    /// πR² fine-tuning of a GR00T N1.7 checkpoint's action head (--checkpoint, --embodiment,
+    /// --features; needs a build with `--features gr00t`).
     Train {
-        /// The stock task (default ballplate; leap-cube needs a build with `--features mujoco`).
-        #[arg(value_parser = ["ballplate", "leap-cube"], conflicts_with = "task_file")]
+        /// The stock task (default ballplate; leap-cube needs a build with `--features mujoco`),
+        /// or `gr00t`.
+        #[arg(value_parser = ["ballplate", "leap-cube", "gr00t"], conflicts_with = "task_file")]
         task: Option<String>,
         /// A task file (task.toml: fast/slow/action keys, horizon, n_obs, policy, model,
         /// optimiser, held-out episodes) for a user's own dataset.
@@ -138,6 +141,34 @@ enum Cmd {
         /// from their last step checkpoint (bit-identically to an uninterrupted run).
         #[arg(long)]
         resume: bool,
+        /// gr00t: the GR00T N1.7 checkpoint directory (config.json + model.safetensors).
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
+        /// gr00t: the embodiment file (embodiment.toml).
+        #[arg(long)]
+        embodiment: Option<PathBuf>,
+        /// gr00t: the backbone's outputs per frame (safetensors: `embeddings` `[N,T,D_vl]`,
+        /// `image_mask` `[N,T]`, optional `attention_mask` `[N,T]`).
+        #[arg(long)]
+        features: Option<PathBuf>,
+        /// gr00t: optimiser steps.
+        #[arg(long, default_value_t = 1000)]
+        steps: usize,
+        /// gr00t: samples per step (the paper: 512).
+        #[arg(long, default_value_t = 64)]
+        batch_size: usize,
+        /// gr00t: peak learning rate.
+        #[arg(long, default_value_t = 1e-4)]
+        lr: f64,
+        /// gr00t: a step checkpoint every this many steps (and at the end).
+        #[arg(long)]
+        checkpoint_every: Option<usize>,
+        /// gr00t: the dataset feature holding the state.
+        #[arg(long, default_value = "observation.state")]
+        state_key: String,
+        /// gr00t: the dataset feature holding the action.
+        #[arg(long, default_value = "action")]
+        action_key: String,
     },
     /// Evaluate a checkpoint in every mode that fits it, at each unit delay; leap-cube: run
     /// the deployment or horizon study (table, PNG, JSON).
@@ -605,6 +636,82 @@ enum RobotCmd {
 
 /// The stop flag of SIGINT and SIGTERM (a second signal runs the registered emergency stop
 /// and exits at once; see `pir2_cli::signals`).
+/// The arguments of `pir2 train gr00t`.
+#[cfg_attr(not(feature = "gr00t"), allow(dead_code))]
+struct Gr00tArgs {
+    data: PathBuf,
+    out: PathBuf,
+    seed: u64,
+    resume: bool,
+    checkpoint: Option<PathBuf>,
+    embodiment: Option<PathBuf>,
+    features: Option<PathBuf>,
+    steps: usize,
+    batch_size: usize,
+    lr: f64,
+    checkpoint_every: Option<usize>,
+    state_key: String,
+    action_key: String,
+    /// Options of the other tasks were given.
+    unused: bool,
+}
+
+#[cfg(feature = "gr00t")]
+fn train_gr00t(a: Gr00tArgs) -> Result<()> {
+    use pir2_cli::study::gr00t::{train, Gr00tTrainOptions};
+    if a.unused {
+        anyhow::bail!("--policy, --config and --task are not options of `pir2 train gr00t`");
+    }
+    let need = |v: Option<PathBuf>, flag: &str| {
+        v.ok_or_else(|| anyhow::anyhow!("`pir2 train gr00t` needs --{flag}"))
+    };
+    let mut o = Gr00tTrainOptions::new(
+        &need(a.checkpoint, "checkpoint")?,
+        &a.data,
+        &need(a.embodiment, "embodiment")?,
+        &need(a.features, "features")?,
+        &a.out,
+    );
+    o.steps = a.steps;
+    o.batch_size = a.batch_size;
+    o.lr = a.lr;
+    o.checkpoint_every = a.checkpoint_every;
+    o.seed = a.seed;
+    o.resume = a.resume;
+    o.state_key = a.state_key;
+    o.action_key = a.action_key;
+    o.stop = Some(ctrl_c_flag());
+    let steps = o.steps;
+    let s = train(&o, |p| {
+        if p.step % 10 == 0 || p.step == steps {
+            eprintln!(
+                "step {}/{}  loss {:.5}  lr {:.2e}",
+                p.step, p.steps, p.loss, p.lr
+            );
+        }
+    })?;
+    let (cache, built) = &s.cache;
+    println!(
+        "VL-token cache: {} ({})",
+        cache.display(),
+        if *built { "built" } else { "reused" }
+    );
+    if let Some((step, loss)) = s.report.losses.last() {
+        println!("step {step}: loss {loss:.5}");
+    }
+    for c in &s.report.checkpoints {
+        if let Some(d) = &c.dir {
+            println!("checkpoint: {}", d.display());
+        }
+    }
+    Ok(())
+}
+
+#[cfg(not(feature = "gr00t"))]
+fn train_gr00t(_: Gr00tArgs) -> Result<()> {
+    anyhow::bail!("`pir2 train gr00t` needs a build with `--features gr00t`")
+}
+
 fn ctrl_c_flag() -> Arc<AtomicBool> {
     pir2_cli::signals::stop_flag()
 }
@@ -668,6 +775,41 @@ fn main() -> Result<()> {
             config,
             seed,
             resume,
+            checkpoint,
+            embodiment,
+            features,
+            steps,
+            batch_size,
+            lr,
+            checkpoint_every,
+            state_key,
+            action_key,
+        } if t.as_deref() == Some("gr00t") => train_gr00t(Gr00tArgs {
+            data,
+            out,
+            seed,
+            resume,
+            checkpoint,
+            embodiment,
+            features,
+            steps,
+            batch_size,
+            lr,
+            checkpoint_every,
+            state_key,
+            action_key,
+            unused: policy.is_some() || config.is_some() || task_file.is_some(),
+        }),
+        Cmd::Train {
+            task: t,
+            task_file,
+            data,
+            policy,
+            out,
+            config,
+            seed,
+            resume,
+            ..
         } => commands::train(&TrainOptions {
             task: task(t.as_deref().unwrap_or("ballplate")),
             task_file,

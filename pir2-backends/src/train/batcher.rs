@@ -24,6 +24,9 @@ pub(super) struct Batcher {
     pub(super) fast: Vec<f32>,
     pub(super) slow: Vec<f32>,
     pub(super) dvis: Vec<u32>,
+    /// Per sample, the `(episode, frame)` whose slow features it sees (`t − d_vis`, clamped
+    /// at the episode start): for trainers that fetch slow features themselves.
+    pub(super) slow_frame: Vec<(usize, usize)>,
 }
 
 impl Batcher {
@@ -59,6 +62,7 @@ impl Batcher {
             fast: vec![0.0; b * spec.n_obs * spec.fast_dim],
             slow: vec![0.0; b * spec.slow.len()],
             dvis: vec![0; b],
+            slow_frame: vec![(0, 0); b],
         }
     }
 
@@ -85,6 +89,7 @@ impl Batcher {
             }
             let dv = self.rng.below(d_vis_max as u64 + 1) as usize;
             self.dvis[i] = dv as u32;
+            self.slow_frame[i] = (e, t.saturating_sub(dv));
             if sl > 0 {
                 self.slow[i * sl..(i + 1) * sl].copy_from_slice(data.slow(e, t.saturating_sub(dv)));
             }

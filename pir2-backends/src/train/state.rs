@@ -27,18 +27,19 @@ pub(super) struct StateMeta {
 }
 
 impl State {
-    /// Write the step checkpoint `dir` (model weights as evaluated + training state): into a
+    /// Write the step checkpoint `dir` (the model's files, written by `write_model` into the
+    /// directory it is given, + training state): into a
     /// uniquely named temp directory, every file fsynced, then renamed into place.
     pub(super) fn save_step(
         &self,
-        model: &CandleModel,
+        write_model: impl FnOnce(&Path) -> Result<()>,
         dir: &Path,
         rng: [u64; 4],
         names: &[String],
         cfg: &TrainConfig,
     ) -> Result<()> {
         crate::checkpoint::create_dir_durably(dir, |tmp| {
-            model.write_files(tmp)?;
+            write_model(tmp)?;
             let meta = StateMeta {
                 step: self.step,
                 adam_t: self.opt.t,

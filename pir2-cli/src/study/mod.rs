@@ -19,6 +19,8 @@ pub mod ballplate;
 pub mod cells;
 pub mod dataset;
 pub mod evaluate;
+#[cfg(feature = "gr00t")]
+pub mod gr00t;
 #[cfg(feature = "mujoco")]
 pub mod leap_cube;
 pub mod open_loop;

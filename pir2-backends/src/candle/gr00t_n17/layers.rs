@@ -1,6 +1,6 @@
 //! The building blocks of GR00T N1.7's action head, computed as the reference does them.
 
-use candle_core::{DType, Device, Module, Tensor, D};
+use candle_core::{DType, Device, Module, Tensor, Var, D};
 
 use super::weights::TensorIndex;
 use crate::candle::layers::layer_norm;
@@ -13,12 +13,26 @@ pub(super) struct Loader<'a> {
     pub(super) prefix: &'static str,
     pub(super) device: &'a Device,
     pub(super) used: Vec<String>,
+    /// Every tensor loaded, by its checkpoint name, in load order.
+    pub(super) loaded: Vec<(String, Tensor)>,
+    /// Make the tensors [`super::is_trained`] accepts trainable ([`Var`]s).
+    pub(super) trainable: bool,
+    /// The trainable tensors, by checkpoint name.
+    pub(super) vars: Vec<(String, Var)>,
 }
 
 impl Loader<'_> {
     pub(super) fn tensor(&mut self, name: &str, shape: &[usize]) -> Result<Tensor> {
         let full = format!("{}{name}", self.prefix);
-        let t = self.index.load(&full, shape, self.device)?;
+        let mut t = self.index.load(&full, shape, self.device)?;
+        if self.trainable && super::is_trained(name) {
+            // The network keeps the variable's own tensor: gradients reach it, and
+            // `Var::set` updates what the forward reads.
+            let v = Var::from_tensor(&t)?;
+            t = v.as_tensor().clone();
+            self.vars.push((full.clone(), v));
+        }
+        self.loaded.push((full.clone(), t.clone()));
         self.used.push(full);
         Ok(t)
     }
@@ -235,7 +249,8 @@ impl Attention {
         if let Some(bias) = bias {
             scores = scores.broadcast_add(bias)?;
         }
-        let p = candle_nn::ops::softmax_last_dim(&scores)?;
+        // The composed softmax (max-shifted, differentiable): the same code trains and infers.
+        let p = candle_nn::ops::softmax(&scores, D::Minus1)?;
         let o = p
             .matmul(&v)?
             .transpose(1, 2)?

@@ -13,6 +13,7 @@
 //! | `position_embedding` | `position_embedding.weight` `[max_seq_len, D_in]` | added to action token `p` |
 //! | `model` (DiT) | `model.timestep_encoder…`, `model.transformer_blocks.i.*`, `model.proj_out_{1,2}` | see below |
 //! | `action_decoder` | `action_decoder.layer{1,2}.{W,b}` | per-embodiment MLP `hidden → hidden → A_max`, ReLU |
+//! | `delay_embedding` (πR², optional) | `delay_embedding.weight` `[d_vis_max + 1, D_in]` | row `min(d_vis, d_vis_max)` added to every action token |
 //!
 //! Per-embodiment layers hold one matrix per slot (`W [slots, in, out]`, `b [slots, out]`).
 //!
@@ -33,6 +34,13 @@
 //! the output modulation use that token's own embedding. [`Timesteps::Shared`] is GR00T's
 //! behaviour and equals the per-position form with all entries equal.
 //!
+//! **Fine-tuning.** [`Gr00tN17Head::load_trainable`] loads the same network with its trained
+//! tensors ([`is_trained`]) as candle [`Var`]s and a zero-initialised delay table, so the
+//! training forward is [`Gr00tN17Head::velocity`] itself and the untrained head reproduces
+//! the checkpoint's. Per-position AdaLN here means every token's AdaLN and output modulation
+//! read that token's own timestep embedding through the pretrained (shared) `norm1.linear`
+//! and `proj_out_1` weights.
+//!
 //! Loading ([`Gr00tN17Head::load`]) reads `config.json` ([`Gr00tN17Config`]) and the
 //! `action_head.*` tensors of `model.safetensors` or of a sharded checkpoint
 //! (`model.safetensors.index.json`); the backbone's tensors are never read. A missing tensor
@@ -49,7 +57,7 @@
 //! let c = head.config();
 //! let vl = head.process_backbone(&Tensor::zeros((1, 64, c.backbone_embedding_dim), candle_core::DType::F32, &dev)?)?;
 //! let image = Tensor::ones((1, 64), candle_core::DType::U8, &dev)?;
-//! let vl = VlTokens { embeddings: &vl, attention_mask: None, image_mask: Some(&image) };
+//! let vl = VlTokens { embeddings: &vl, attention_mask: None, image_mask: Some(&image), d_vis: None };
 //! let emb = Tensor::new(&[0u32], &dev)?;
 //! let state = Tensor::zeros((1, c.state_history_length, c.max_state_dim), candle_core::DType::F32, &dev)?;
 //! let s = head.encode_state(&state, &emb)?;
@@ -65,7 +73,7 @@ mod weights;
 
 use std::path::Path;
 
-use candle_core::{DType, Device, Tensor, D};
+use candle_core::{DType, Device, Tensor, Var, D};
 
 pub use config::{DitConfig, Gr00tN17Config, VlSelfAttentionConfig};
 pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
@@ -78,6 +86,31 @@ use layers::{
 
 /// Prefix of the action head's tensors in a GR00T checkpoint.
 pub const PREFIX: &str = "action_head.";
+
+/// πR²'s delay table `[d_vis_max + 1, D_in]` under [`PREFIX`] (absent in GR00T's own
+/// checkpoints; written by πR² fine-tuning). Row `d` is added to every action token when the
+/// slow features are `d` control ticks old (older ones use the last row).
+pub const DELAY_EMBEDDING: &str = "delay_embedding.weight";
+
+/// Whether πR² fine-tuning trains the tensor `name` (relative to [`PREFIX`]): everything but
+/// the backbone post-processing (`vlln`, `vl_self_attention`), which stays frozen with the
+/// backbone, as in the paper's recipe (state/action projectors, position embedding, DiT,
+/// decoder, plus the delay table).
+pub fn is_trained(name: &str) -> bool {
+    !(name.starts_with("vlln.") || name.starts_with("vl_self_attention."))
+}
+
+/// GR00T's discrete timestep of the flow time `τ` (0 = noise, 1 = clean):
+/// `min(⌊clamp(τ, 0, 1) · buckets⌋, buckets − 1)`; a non-finite `τ` and a hidden front slot
+/// (`τ < 0`) map to 0. The same map as the ONNX stack's (`docs/gr00t-contract.md`).
+pub fn timestep_bucket(tau: f32, buckets: usize) -> u32 {
+    let t = if tau.is_finite() {
+        tau.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    ((t * buckets as f32).floor() as u32).min(buckets.saturating_sub(1) as u32)
+}
 
 /// Timesteps of one velocity evaluation (integers in `[0, num_timestep_buckets)`, any
 /// integer or float dtype).
@@ -105,6 +138,10 @@ pub struct VlTokens<'a> {
     /// `[B, T]`, nonzero = an image token (GR00T's `image_mask`); required by the
     /// alternating DiT (`use_alternate_vl_dit`), ignored otherwise.
     pub image_mask: Option<&'a Tensor>,
+    /// `[B]`, the age of these tokens in control ticks (πR²'s `d_vis`, non-negative
+    /// integers); required by a head with a delay table ([`Gr00tN17Head::delay_embedding`]),
+    /// ignored by one without.
+    pub d_vis: Option<&'a Tensor>,
 }
 
 #[derive(Debug, Clone)]
@@ -137,6 +174,12 @@ pub struct Gr00tN17Head {
     position_embedding: Option<Tensor>,
     dit: Dit,
     action_decoder: CategoryMlp,
+    /// πR²'s delay table `[rows, D_in]`, if the head has one.
+    delay_embedding: Option<Tensor>,
+    /// Every parameter by checkpoint name (computed tables excluded), in load order.
+    params: Vec<(String, Tensor)>,
+    /// The trainable parameters (empty for an inference head), sorted by name.
+    vars: Vec<(String, Var)>,
 }
 
 fn shape_err(what: &str, expected: impl std::fmt::Debug, got: &Tensor) -> Error {
@@ -166,14 +209,51 @@ impl Gr00tN17Head {
         Self::from_index(&index, cfg, device)
     }
 
-    /// Build the head from an opened [`TensorIndex`].
+    /// Build the head from an opened [`TensorIndex`]. A delay table
+    /// (`action_head.delay_embedding.weight`, written by πR² fine-tuning) is loaded when
+    /// present.
     pub fn from_index(index: &TensorIndex, cfg: Gr00tN17Config, device: &Device) -> Result<Self> {
+        Self::build(index, cfg, device, None)
+    }
+
+    /// Load a checkpoint directory (as [`Self::load`]) for πR² fine-tuning: the tensors
+    /// [`is_trained`] accepts become [`Var`]s ([`Self::trainable_vars`]), and the delay table
+    /// has `d_vis_max + 1` rows: the checkpoint's own if it has one (of another size it is
+    /// [`Error::TensorShape`]), else zeros, so that the untrained head computes exactly what
+    /// the checkpoint's head computes.
+    pub fn load_trainable(checkpoint: &Path, d_vis_max: usize, device: &Device) -> Result<Self> {
+        let cfg = Gr00tN17Config::from_json_file(&config::config_path(checkpoint))?;
+        let index = TensorIndex::open(checkpoint, PREFIX)?;
+        Self::build(&index, cfg, device, Some(d_vis_max))
+    }
+
+    /// [`Self::load_trainable`] from an opened [`TensorIndex`].
+    pub fn trainable_from_index(
+        index: &TensorIndex,
+        cfg: Gr00tN17Config,
+        d_vis_max: usize,
+        device: &Device,
+    ) -> Result<Self> {
+        Self::build(index, cfg, device, Some(d_vis_max))
+    }
+
+    /// `train`: `Some(d_vis_max)` makes the trained tensors variables and ensures a delay
+    /// table of `d_vis_max + 1` rows.
+    fn build(
+        index: &TensorIndex,
+        cfg: Gr00tN17Config,
+        device: &Device,
+        train: Option<usize>,
+    ) -> Result<Self> {
         cfg.validate(index.source())?;
         let mut l = Loader {
             index,
             prefix: PREFIX,
             device,
             used: Vec::new(),
+            loaded: Vec::new(),
+            trainable: train.is_some(),
+            vars: Vec::new(),
         };
         let c = &cfg;
         let (n_emb, d_in, hid) = (c.max_num_embodiments, c.input_embedding_dim, c.hidden_size);
@@ -266,6 +346,30 @@ impl Gr00tN17Head {
         };
         let action_decoder =
             CategoryMlp::load(&mut l, "action_decoder", n_emb, hid, hid, c.max_action_dim)?;
+        let delay_name = format!("{PREFIX}{DELAY_EMBEDDING}");
+        let mut delay_embedding = match index.shape(&delay_name) {
+            Some(shape) => {
+                let rows = shape.first().copied().unwrap_or(0);
+                if rows == 0 {
+                    return Err(Error::TensorShape {
+                        path: index.source().to_path_buf(),
+                        name: delay_name,
+                        expected: vec![1, d_in],
+                        got: shape.to_vec(),
+                    });
+                }
+                let want = train.map_or(rows, |d| d + 1);
+                Some(l.tensor(DELAY_EMBEDDING, &[want, d_in])?)
+            }
+            None => None,
+        };
+        if let (None, Some(d_vis_max)) = (&delay_embedding, train) {
+            // Zero-initialised: the untrained head is the checkpoint's head exactly.
+            let v = Var::zeros((d_vis_max + 1, d_in), DType::F32, device)?;
+            delay_embedding = Some(v.as_tensor().clone());
+            l.loaded.push((delay_name.clone(), v.as_tensor().clone()));
+            l.vars.push((delay_name, v));
+        }
         // Everything under the prefix must have been used, except the sinusoidal tables
         // (buffers computed here, as in the reference).
         let used: std::collections::HashSet<&str> = l.used.iter().map(String::as_str).collect();
@@ -278,6 +382,8 @@ impl Gr00tN17Head {
                 name: extra.to_string(),
             });
         }
+        let mut vars = std::mem::take(&mut l.vars);
+        vars.sort_by(|a, b| a.0.cmp(&b.0));
         Ok(Self {
             cfg,
             device: device.clone(),
@@ -288,12 +394,90 @@ impl Gr00tN17Head {
             position_embedding,
             dit,
             action_decoder,
+            delay_embedding,
+            params: std::mem::take(&mut l.loaded),
+            vars,
         })
+    }
+
+    /// The trainable parameters by checkpoint name (`action_head.…`), sorted by name; empty
+    /// for a head loaded for inference. They are the tensors the forward reads: `Var::set`
+    /// changes the network, and a loss's gradients reach them.
+    pub fn trainable_vars(&self) -> &[(String, Var)] {
+        &self.vars
+    }
+
+    /// Every parameter by checkpoint name (`action_head.…`; the sinusoidal tables, which
+    /// are computed, are not included), in load order.
+    pub fn parameters(&self) -> &[(String, Tensor)] {
+        &self.params
+    }
+
+    /// πR²'s delay table `[d_vis_max + 1, D_in]`, if the head has one.
+    pub fn delay_embedding(&self) -> Option<&Tensor> {
+        self.delay_embedding.as_ref()
+    }
+
+    /// Write every parameter under its checkpoint name as one `f32` safetensors file (the
+    /// head part of a GR00T checkpoint's `model.safetensors`; with the delay table if the
+    /// head has one). [`Self::load`] reads it back with the checkpoint's `config.json`.
+    pub fn save_weights(&self, path: &Path) -> Result<()> {
+        let mut data = Vec::with_capacity(self.params.len());
+        for (name, t) in &self.params {
+            data.push((
+                name.clone(),
+                t.dims().to_vec(),
+                t.flatten_all()?.to_vec1::<f32>()?,
+            ));
+        }
+        crate::checkpoint::write_tensors(
+            path,
+            data.iter()
+                .map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
+        )
+    }
+
+    /// Add the delay table's row `min(d_vis, rows − 1)` to every action token:
+    /// `action_tokens [B, H, D_in]`, `d_vis [B]`. A head without a table returns the tokens
+    /// unchanged; a head with one needs `d_vis`.
+    pub fn add_delay_embedding(
+        &self,
+        action_tokens: &Tensor,
+        d_vis: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let Some(table) = &self.delay_embedding else {
+            return Ok(action_tokens.clone());
+        };
+        let b = action_tokens.dim(0)?;
+        let d = d_vis.ok_or_else(|| {
+            Error::config(
+                "d_vis",
+                "this head has a delay table (πR²); give the age of the VL tokens",
+            )
+        })?;
+        let rows = table.dim(0)?;
+        let v = values("d_vis", d, &[b])?;
+        if let Some(bad) = v.iter().find(|&&x| x < 0.0 || x.fract() != 0.0) {
+            return Err(Error::shape("d_vis", "non-negative integers", bad));
+        }
+        let idx: Vec<u32> = v
+            .iter()
+            .map(|&x| (x as usize).min(rows - 1) as u32)
+            .collect();
+        let e = table
+            .index_select(&Tensor::from_vec(idx, b, &self.device)?, 0)?
+            .unsqueeze(1)?;
+        Ok(action_tokens.broadcast_add(&e)?)
     }
 
     /// The configuration.
     pub fn config(&self) -> &Gr00tN17Config {
         &self.cfg
+    }
+
+    /// The device the parameters live on.
+    pub fn device(&self) -> &Device {
+        &self.device
     }
 
     /// Embodiment slots `[B]` as `u32`, checked against the configuration.
@@ -559,6 +743,7 @@ impl Gr00tN17Head {
             }
         };
         let a = self.encode_actions(actions, &t_actions, embodiment_id)?;
+        let a = self.add_delay_embedding(&a, vl.d_vis)?;
         let sa = Tensor::cat(&[state_features, &a], 1)?;
         let out = self.dit(&sa, vl, &t_tokens)?;
         let pred = self.decode(&out, embodiment_id)?;

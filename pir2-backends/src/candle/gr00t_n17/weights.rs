@@ -191,9 +191,74 @@ impl TensorIndex {
         self.entries.keys().map(String::as_str)
     }
 
+    /// The shape of `name`, if present.
+    pub fn shape(&self, name: &str) -> Option<&[usize]> {
+        self.entries.get(name).map(|e| e.shape.as_slice())
+    }
+
     /// Whether `name` is present.
     pub fn contains(&self, name: &str) -> bool {
         self.entries.contains_key(name)
+    }
+
+    /// Read rows `first .. first + count` of the first dimension of `name` as `f32` values
+    /// (row-major), without reading the rest of the tensor. Float (F32, BF16, F16), integer
+    /// (I64, I32, U8) and BOOL tensors are accepted.
+    pub fn read_rows(&self, name: &str, first: usize, count: usize) -> Result<Vec<f32>> {
+        let e = self.entries.get(name).ok_or_else(|| Error::MissingTensor {
+            path: self.source.clone(),
+            name: name.to_string(),
+        })?;
+        let width: usize = match e.dtype.as_str() {
+            "F32" | "I32" => 4,
+            "BF16" | "F16" => 2,
+            "I64" => 8,
+            "U8" | "BOOL" => 1,
+            other => {
+                return Err(st_err(
+                    &e.file,
+                    format!("tensor `{name}` has dtype {other}; expected a float, integer or bool"),
+                ))
+            }
+        };
+        let rows = e.shape.first().copied().unwrap_or(1);
+        let row: usize = e.shape.iter().skip(1).product();
+        let total: usize = e.shape.iter().product();
+        if e.end - e.start != (total * width) as u64 || first + count > rows {
+            return Err(st_err(
+                &e.file,
+                format!(
+                    "tensor `{name}` {:?} ({}): rows {first}..{} are not in it",
+                    e.shape,
+                    e.dtype,
+                    first + count
+                ),
+            ));
+        }
+        let mut f = File::open(&e.file).map_err(|err| Error::io(&e.file, err))?;
+        f.seek(SeekFrom::Start(e.start + (first * row * width) as u64))
+            .map_err(|err| Error::io(&e.file, err))?;
+        let mut bytes = vec![0u8; count * row * width];
+        f.read_exact(&mut bytes)
+            .map_err(|err| Error::io(&e.file, err))?;
+        if e.dtype == "F16" {
+            let n = bytes.len() / 2;
+            let t = Tensor::from_raw_buffer(&bytes, DType::F16, &[n], &Device::Cpu)?;
+            return Ok(t.to_dtype(DType::F32)?.to_vec1::<f32>()?);
+        }
+        let c = |b: &[u8]| -> f32 {
+            match e.dtype.as_str() {
+                "F32" => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+                "I32" => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+                // bf16 is the upper half of an f32.
+                "BF16" => f32::from_bits(u32::from(u16::from_le_bytes([b[0], b[1]])) << 16),
+                "I64" => {
+                    i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as f32
+                }
+                _ => b[0] as f32,
+            }
+        };
+        Ok(bytes.chunks_exact(width).map(c).collect())
     }
 
     /// Read `name` as an `f32` tensor of exactly `shape` (F32, BF16 and F16 are accepted).

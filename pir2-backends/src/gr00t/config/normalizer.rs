@@ -30,6 +30,9 @@ pub struct Normalizer {
     action_clip: Vec<bool>,
     /// Per action dimension, the raw state index a relative action is added to.
     action_reference: Vec<Option<usize>>,
+    /// A degenerate min/max (or percentile) action dimension of the first slot's statistics:
+    /// normalises to 0.
+    action_zero: Vec<bool>,
 }
 
 /// One statistic as `statistics.json` holds it: `[D]`, or `[H, D]` (per chunk slot, GR00T's
@@ -82,6 +85,7 @@ impl Normalizer {
             action_offset: vec![0.0; action_dim],
             action_clip: vec![false; action_dim],
             action_reference: vec![None; action_dim],
+            action_zero: vec![false; action_dim],
         }
     }
 
@@ -245,7 +249,8 @@ impl Normalizer {
             .collect::<Result<Vec<_>>>()?;
         // Per chunk slot as soon as one group has per-slot statistics.
         let rows = actions.iter().map(|m| m.rows).max().unwrap_or(1);
-        let (mut ao, mut ascale, mut aclip) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut ao, mut ascale, mut aclip, mut azero) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for p in 0..rows {
             for (g, m) in cfg.action.iter().zip(&actions) {
                 let r = if m.rows == 1 { 0 } else { p };
@@ -253,6 +258,7 @@ impl Normalizer {
                 ascale.extend_from_slice(&m.scale[r * g.dim..(r + 1) * g.dim]);
                 if p == 0 {
                     aclip.extend(std::iter::repeat_n(m.clip, g.dim));
+                    azero.extend_from_slice(&m.zero[..g.dim]);
                 }
             }
         }
@@ -269,6 +275,7 @@ impl Normalizer {
             action_offset: ao,
             action_clip: aclip,
             action_reference: cfg.action_reference(),
+            action_zero: azero,
         })
     }
 
@@ -321,6 +328,26 @@ impl Normalizer {
     /// Whether the action statistics are per chunk slot (`[H, A]`).
     pub fn per_slot(&self) -> bool {
         self.action_scale.len() > self.action_dim()
+    }
+
+    /// Normalise one raw absolute action vector in place with the first slot's statistics, as
+    /// GR00T's processor does for training targets: `(x − offset)/scale`, clipped to `[-1, 1]`
+    /// for the min/max and percentile groups; a degenerate min/max dimension maps to 0.
+    /// [`Self::denormalize_action`] inverts it inside the clip range. Relative groups are not
+    /// referenced here (their targets depend on the chunk's start state).
+    pub fn normalize_action(&self, a: &mut [f32]) {
+        for (i, x) in a.iter_mut().enumerate() {
+            if self.action_zero[i] {
+                *x = 0.0;
+                continue;
+            }
+            let n = (*x - self.action_offset[i]) / self.action_scale[i];
+            *x = if self.action_clip[i] {
+                n.clamp(-1.0, 1.0)
+            } else {
+                n
+            };
+        }
     }
 
     /// Denormalise one absolute action vector in place with the first slot's statistics

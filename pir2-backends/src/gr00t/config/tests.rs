@@ -327,6 +327,18 @@ fn normalisation_follows_gr00ts_edge_cases_and_sin_cos_encoding() {
     n.action_output_map().apply(&[2.0, 0.3, 0.25], &mut u);
     assert_eq!(u, a);
 
+    // Encoding training targets: (x − mid)/half-range clipped, max = min → 0, std 0 → x;
+    // decoding inverts it inside the clip range.
+    let mut t = [0.5, 7.0, 0.25];
+    n.normalize_action(&mut t);
+    assert_eq!(t, [0.5, 0.0, 0.25]);
+    let mut far = [5.0, 3.0, -4.0];
+    n.normalize_action(&mut far);
+    assert_eq!(far, [1.0, 0.0, -4.0]);
+    let mut back = [0.5, 0.0, 0.25];
+    n.denormalize_action(&mut back);
+    assert_eq!(back, [0.5, 3.0, 0.25]);
+
     // sin/cos is a state encoding only.
     c.action[1].norm = Norm::SinCos;
     let e = c.validate().unwrap_err().to_string();

@@ -1,0 +1,396 @@
+//! `pir2 train gr00t`: πR² fine-tuning of a GR00T N1.7 checkpoint's action head on a
+//! LeRobotDataset v3.0, on CPU with candle (feature `gr00t`).
+//!
+//! Inputs:
+//! - `--checkpoint N17_DIR`: GR00T N1.7's `config.json` and its `model.safetensors` (or
+//!   sharded index); only the `action_head.*` tensors are read;
+//! - `--data DATASET`: the demonstrations; the state is one float vector feature
+//!   (`observation.state` by default) holding the embodiment's state groups in order, the
+//!   action one (`action`) holding its action groups;
+//! - `--embodiment embodiment.toml`: groups, norms, `H`, `d_max`, `d_vis_max`, `n_obs`, the
+//!   embodiment slot, the state token's timestep and `[policy]` (what the head is trained as:
+//!   the draws follow it, `pi_r2` with `nfe` by default);
+//! - `--features FILE.safetensors`: the frozen backbone's outputs per frame
+//!   ([`PrecomputedFeatures`]: `embeddings [N, T, D_vl]`, `image_mask [N, T]`, optional
+//!   `attention_mask`), `N` = the dataset's frames in episode order.
+//!
+//! Output directory: `statistics.json` (GR00T's layout, computed from the dataset, per
+//! group: min, max, mean, std, q01, q99), `embodiment.toml`, `gr00t_run.json` (the inputs'
+//! digests), `vl-cache/` (the processed VL tokens, keyed by dataset + features + frozen head),
+//! `loss.jsonl`, and `step-NNNNNN/` checkpoints (`model.safetensors` with GR00T's tensor names
+//! and the delay table, `config.json`, the training state). The paper's robot recipe is the
+//! default: AdamW, lr 1e-4 with 5 % warm-up and cosine decay, weight decay 1e-5, clip 1.0,
+//! `d ~ U{1..d_max}`, `d_vis ~ U{0..d_vis_max}`, α = 0.2.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use anyhow::{bail, Context, Result};
+use candle_core::Device;
+use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
+use pir2_backends::gr00t::{EmbodimentConfig, Normalizer};
+use pir2_backends::train::gr00t::{
+    head_fingerprint, tree_fingerprint, vl_cache_key, Gr00tTrainSpec, Gr00tTrainer,
+    PrecomputedFeatures, VlCache,
+};
+use pir2_backends::train::{Episode, Progress, TrainConfig, TrainReport};
+use pir2_runtime::{DelayLaw, Recipe};
+use pir2_sim::dataset::{check_selection, read_selected, FeatureSelection, FeatureStats};
+
+/// Options of `pir2 train gr00t`.
+#[derive(Debug, Clone)]
+pub struct Gr00tTrainOptions {
+    /// GR00T N1.7 checkpoint directory.
+    pub checkpoint: PathBuf,
+    /// LeRobotDataset v3.0 directory.
+    pub data: PathBuf,
+    /// Embodiment file.
+    pub embodiment: PathBuf,
+    /// Precomputed backbone outputs.
+    pub features: PathBuf,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Dataset feature holding the state.
+    pub state_key: String,
+    /// Dataset feature holding the action.
+    pub action_key: String,
+    /// Optimiser steps.
+    pub steps: usize,
+    /// Samples per step.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Step checkpoint every this many steps (and at the end).
+    pub checkpoint_every: Option<usize>,
+    /// Seed of every draw.
+    pub seed: u64,
+    /// Continue the run in `out`.
+    pub resume: bool,
+    /// Stop flag (Ctrl-C): the state is saved as `interrupted-*`.
+    pub stop: Option<Arc<AtomicBool>>,
+    /// Return after this many steps as if interrupted (tests, time slicing).
+    pub stop_after: Option<usize>,
+}
+
+impl Gr00tTrainOptions {
+    /// The paper's robot recipe with the given inputs (batch 512 as in the paper: set a
+    /// smaller one on a CPU).
+    pub fn new(
+        checkpoint: &Path,
+        data: &Path,
+        embodiment: &Path,
+        features: &Path,
+        out: &Path,
+    ) -> Self {
+        Self {
+            checkpoint: checkpoint.to_path_buf(),
+            data: data.to_path_buf(),
+            embodiment: embodiment.to_path_buf(),
+            features: features.to_path_buf(),
+            out: out.to_path_buf(),
+            state_key: "observation.state".into(),
+            action_key: "action".into(),
+            steps: 1000,
+            batch_size: 512,
+            lr: 1e-4,
+            checkpoint_every: None,
+            seed: 0,
+            resume: false,
+            stop: None,
+            stop_after: None,
+        }
+    }
+}
+
+/// What a run did.
+#[derive(Debug, Clone)]
+pub struct Gr00tTrainSummary {
+    /// Losses and checkpoints.
+    pub report: TrainReport,
+    /// The VL-token cache used, and whether this run built it.
+    pub cache: (PathBuf, bool),
+}
+
+fn group_list(groups: &[pir2_backends::gr00t::Group]) -> String {
+    groups
+        .iter()
+        .map(|g| format!("{} {}", g.name, g.dim))
+        .collect::<Vec<_>>()
+        .join(" + ")
+}
+
+/// GR00T's `statistics.json` for `emb` from the dataset's raw states and actions: per
+/// group `min`, `max`, `mean`, `std`, `q01`, `q99` (LeRobot's statistics, sliced by group).
+fn statistics_json(
+    emb: &EmbodimentConfig,
+    episodes: &[pir2_sim::dataset::Episode],
+) -> serde_json::Value {
+    let gather = |f: &dyn Fn(&pir2_sim::dataset::Episode) -> &[f32]| -> Vec<f64> {
+        episodes
+            .iter()
+            .flat_map(|e| f(e).iter().map(|&v| f64::from(v)))
+            .collect()
+    };
+    let state = FeatureStats::compute(&gather(&|e| &e.fast), emb.state_dim());
+    let action = FeatureStats::compute(&gather(&|e| &e.action), emb.action_dim());
+    let quantile = |s: &FeatureStats, name: &str| -> Vec<f64> {
+        let i = pir2_sim::dataset::QUANTILES
+            .iter()
+            .position(|(_, n)| *n == name)
+            .unwrap_or(0);
+        s.quantiles[i].clone()
+    };
+    let groups = |s: &FeatureStats, groups: &[pir2_backends::gr00t::Group]| {
+        let mut m = serde_json::Map::new();
+        let mut at = 0;
+        for g in groups {
+            let r = at..at + g.dim;
+            let q01 = quantile(s, "q01");
+            let q99 = quantile(s, "q99");
+            m.insert(
+                g.name.clone(),
+                serde_json::json!({
+                    "min": s.min[r.clone()],
+                    "max": s.max[r.clone()],
+                    "mean": s.mean[r.clone()],
+                    "std": s.std[r.clone()],
+                    "q01": q01[r.clone()],
+                    "q99": q99[r],
+                }),
+            );
+            at += g.dim;
+        }
+        serde_json::Value::Object(m)
+    };
+    serde_json::json!({
+        emb.embodiment_tag.clone(): {
+            "state": groups(&state, &emb.state),
+            "action": groups(&action, &emb.action),
+        }
+    })
+}
+
+/// Write `text` to `path`, or, when the file exists (a resumed run), check it is the same.
+fn write_or_check(path: &Path, text: &str, resume: bool) -> Result<()> {
+    if resume && path.exists() {
+        let old =
+            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        if old != text {
+            bail!(
+                "{} differs from what this run computes from its inputs; resume needs the same \
+                 dataset and embodiment",
+                path.display()
+            );
+        }
+        return Ok(());
+    }
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// `pir2 train gr00t` (see the module docs).
+pub fn train(
+    o: &Gr00tTrainOptions,
+    mut progress: impl FnMut(&Progress),
+) -> Result<Gr00tTrainSummary> {
+    let emb = EmbodimentConfig::load(&o.embodiment)
+        .with_context(|| format!("embodiment {}", o.embodiment.display()))?;
+    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &Device::Cpu)
+        .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
+    let c = head.config().clone();
+    let ck = o.checkpoint.display();
+    let ed = o.embodiment.display();
+    if let Some(g) = emb.action.iter().find(|g| g.relative) {
+        // Relative targets are the chunk's actions minus the state at its start, per chunk
+        // slot; the per-frame preprocessing below cannot express them yet.
+        bail!(
+            "embodiment {ed}: action group `{}` is relative; `pir2 train gr00t` trains absolute \
+             action groups only (relative groups run, but do not train yet)",
+            g.name
+        );
+    }
+    if emb.n_obs != c.state_history_length {
+        bail!(
+            "embodiment {ed}: n_obs = {} but the checkpoint {ck} has state_history_length = {}",
+            emb.n_obs,
+            c.state_history_length
+        );
+    }
+    if emb.encoded_state_dim() > c.max_state_dim {
+        bail!(
+            "embodiment {ed}: the state is {} values wide as the model sees it, the checkpoint {ck} \
+             takes max_state_dim = {}",
+            emb.encoded_state_dim(),
+            c.max_state_dim
+        );
+    }
+    if emb.action_dim() > c.max_action_dim {
+        bail!(
+            "embodiment {ed}: {} action values, the checkpoint {ck} has max_action_dim = {}",
+            emb.action_dim(),
+            c.max_action_dim
+        );
+    }
+    if emb.embodiment_id < 0 || emb.embodiment_id as usize >= c.max_num_embodiments {
+        bail!(
+            "embodiment {ed}: embodiment_id {} is not a slot of the checkpoint {ck} (0..{})",
+            emb.embodiment_id,
+            c.max_num_embodiments
+        );
+    }
+    if emb.num_timestep_buckets as usize != c.num_timestep_buckets {
+        bail!(
+            "embodiment {ed}: num_timestep_buckets = {}, the checkpoint {ck} has {}",
+            emb.num_timestep_buckets,
+            c.num_timestep_buckets
+        );
+    }
+    if c.add_pos_embed && emb.horizon > c.max_seq_len {
+        bail!(
+            "embodiment {ed}: horizon {} is longer than the checkpoint's position embedding ({ck}: max_seq_len = {})",
+            emb.horizon,
+            c.max_seq_len
+        );
+    }
+
+    // The dataset: widths first, against the embodiment.
+    let sel = FeatureSelection {
+        fast: vec![o.state_key.clone()],
+        slow: Vec::new(),
+        action: o.action_key.clone(),
+    };
+    let dd = o.data.display();
+    let feats = check_selection(&o.data, &sel).with_context(|| format!("dataset {dd}"))?;
+    for (key, want, groups) in [
+        (&o.state_key, emb.state_dim(), group_list(&emb.state)),
+        (&o.action_key, emb.action_dim(), group_list(&emb.action)),
+    ] {
+        if let Some(f) = feats.iter().find(|f| &f.key == key) {
+            if f.width != want {
+                bail!(
+                    "dataset {dd}: `{key}` has {} values per frame, the embodiment {ed} has {want} ({groups})",
+                    f.width
+                );
+            }
+        }
+    }
+    let ds = read_selected(&o.data, &sel).with_context(|| format!("dataset {dd}"))?;
+    let frames: usize = ds.episodes.iter().map(|e| e.len()).sum();
+    if frames == 0 {
+        bail!("dataset {dd} has no frames");
+    }
+
+    // Statistics → GR00T's normalisation, written for export and deployment.
+    std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
+    let stats_path = o.out.join("statistics.json");
+    let stats_text = serde_json::to_string_pretty(&statistics_json(&emb, &ds.episodes))?;
+    write_or_check(&stats_path, &stats_text, o.resume)?;
+    let emb_text = std::fs::read_to_string(&o.embodiment)?;
+    write_or_check(&o.out.join("embodiment.toml"), &emb_text, o.resume)?;
+    let norm = Normalizer::load(&stats_path, &emb)?;
+    let (sw, a) = (c.max_state_dim, emb.action_dim());
+    let enc = emb.encoded_state_dim();
+    let episodes: Vec<Episode> = ds
+        .episodes
+        .iter()
+        .map(|e| {
+            let mut out = Episode::new(sw, 0, a);
+            let mut s = vec![0f32; sw];
+            for t in 0..e.len() {
+                s.fill(0.0);
+                norm.normalize_state(e.fast(t), &mut s[..enc]);
+                let mut act = e.action(t).to_vec();
+                norm.normalize_action(&mut act);
+                out.push(&s, &[], &act);
+            }
+            out
+        })
+        .collect();
+
+    // The frozen backbone's tokens: cached once per frame, keyed by everything they depend on.
+    let features = PrecomputedFeatures::open(&o.features)
+        .with_context(|| format!("backbone features {}", o.features.display()))?;
+    if features.frames() != frames {
+        bail!(
+            "backbone features {}: {} frames, the dataset {dd} has {frames}",
+            o.features.display(),
+            features.frames()
+        );
+    }
+    if features.dim() != c.backbone_embedding_dim {
+        bail!(
+            "backbone features {}: tokens of width {}, the checkpoint {ck} has backbone_embedding_dim = {}",
+            o.features.display(),
+            features.dim(),
+            c.backbone_embedding_dim
+        );
+    }
+    let data_fp = tree_fingerprint(&o.data, &["meta", "data"])?;
+    let feat_fp = features.fingerprint()?;
+    let key = vl_cache_key(&head, &data_fp, &feat_fp)?;
+    let (mut cache, built) =
+        VlCache::open_or_build(&o.out.join("vl-cache"), &key, &head, &features)?;
+
+    let recipe = Recipe {
+        nfe: emb.policy.nfe,
+        flow_steps: emb.policy.flow_steps,
+        delays: DelayLaw::Uniform,
+        pir2_d_max: emb.d_max,
+        rtc_d_max: 10,
+        jitter: 0.0,
+        ..Recipe::default()
+    };
+    let cfg = TrainConfig {
+        steps: o.steps,
+        batch_size: o.batch_size,
+        lr: o.lr,
+        min_lr: 0.0,
+        warmup: o.steps / 20,
+        betas: (0.95, 0.999),
+        eps: 1e-8,
+        weight_decay: 1e-5,
+        grad_clip: Some(1.0),
+        ema: None,
+        seed: o.seed,
+        schedule: emb.policy.trained.schedule(&recipe),
+        checkpoint_every: o.checkpoint_every,
+        self_rollout: None,
+        log_every: 10,
+    };
+    let spec = Gr00tTrainSpec {
+        horizon: emb.horizon,
+        action_dim: a,
+        d_vis_max: emb.d_vis_max,
+        embodiment_id: emb.embodiment_id as u32,
+        state_timestep: emb.state_timestep() as u32,
+    };
+    let identity = serde_json::json!({
+        "checkpoint": head_fingerprint(&head)?,
+        "dataset": data_fp,
+        "features": feat_fp,
+        "vl_cache": key,
+        "embodiment": emb_text,
+        "state_key": o.state_key,
+        "action_key": o.action_key,
+    });
+    let config_json = std::fs::read(o.checkpoint.join("config.json"))?;
+    let mut trainer = Gr00tTrainer::new(cfg, spec, &o.out)
+        .resume(o.resume)
+        .identity(identity)
+        .checkpoint_file("config.json", config_json)
+        .on_progress(&mut progress);
+    if let Some(s) = &o.stop {
+        trainer = trainer.stop_on(s.clone());
+    }
+    if let Some(n) = o.stop_after {
+        trainer = trainer.stop_after(n);
+    }
+    let report = trainer.run(&head, &episodes, &mut cache)?;
+    Ok(Gr00tTrainSummary {
+        report,
+        cache: (cache.path().to_path_buf(), built),
+    })
+}
