@@ -11,7 +11,7 @@ use std::process::{Command, Output};
 
 use candle_core::{DType, Device, Tensor};
 use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
-use pir2_backends::gr00t::{EmbodimentConfig, Group, Norm};
+use pir2_backends::gr00t::{EmbodimentConfig, Group, GroupFormat, Norm};
 use pir2_cli::study::gr00t::{train, Gr00tTrainOptions};
 use pir2_sim::dataset::{DatasetSpec, DatasetWriter, Episode, FeatureKeys, WriteMode};
 
@@ -43,6 +43,9 @@ fn group(name: &str, dim: usize, norm: Norm) -> Group {
         name: name.into(),
         dim,
         norm,
+        relative: false,
+        state_key: None,
+        format: GroupFormat::Default,
     }
 }
 
