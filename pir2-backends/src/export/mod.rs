@@ -8,6 +8,8 @@
 
 pub mod contract;
 pub mod graph;
+#[cfg(feature = "candle")]
+pub mod gr00t_n17;
 pub mod models;
 pub mod ops;
 pub mod proto;

@@ -89,6 +89,8 @@ pub enum DataType {
     Float = 1,
     /// 64-bit signed integer.
     Int64 = 7,
+    /// Boolean (graph inputs only; no initializer of this type is written).
+    Bool = 9,
 }
 
 /// A constant tensor (`TensorProto`), stored little-endian in `raw_data`.
