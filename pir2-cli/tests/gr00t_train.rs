@@ -43,6 +43,9 @@ fn group(name: &str, dim: usize, norm: Norm) -> Group {
         name: name.into(),
         dim,
         norm,
+        relative: false,
+        state_key: None,
+        format: Default::default(),
     }
 }
 
