@@ -39,7 +39,8 @@ struct Scratch(PathBuf);
 
 impl Scratch {
     fn new(tag: &str) -> Scratch {
-        let p = std::env::temp_dir().join(format!("pir2-gr00t-export-{tag}-{}", std::process::id()));
+        let p =
+            std::env::temp_dir().join(format!("pir2-gr00t-export-{tag}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&p);
         std::fs::create_dir_all(&p).unwrap();
         Scratch(p)
@@ -260,7 +261,10 @@ fn exported_head_matches_candle_through_the_onnx_stack() {
     other.d_vis = vec![0, 0];
     let moved = candle_velocity(&head, &norm, &cfg, &other);
     let sens = rel_err(&moved, &want);
-    assert!(sens > 100.0 * TOL, "d_vis moved the velocity by only {sens:.3e}");
+    assert!(
+        sens > 100.0 * TOL,
+        "d_vis moved the velocity by only {sens:.3e}"
+    );
     // ... and so does one τ (per-position timesteps reach both graphs).
     let mut other = inputs(a, d_vl);
     other.tau[3] = 0.9;

@@ -88,10 +88,13 @@ impl Weights {
     }
 
     fn get(&self, name: &str, shape: &[usize]) -> Result<&[f32], ExportError> {
-        let (s, d) = self.map.get(name).ok_or_else(|| ExportError::MissingWeight {
-            model: MODEL,
-            name: format!("{PREFIX}{name}"),
-        })?;
+        let (s, d) = self
+            .map
+            .get(name)
+            .ok_or_else(|| ExportError::MissingWeight {
+                model: MODEL,
+                name: format!("{PREFIX}{name}"),
+            })?;
         if s.as_slice() != shape {
             return Err(ExportError::WeightShape {
                 model: MODEL,
@@ -339,9 +342,8 @@ fn action_encoder(c: &Gr00tN17Config, w: &Weights, h: usize) -> Result<ModelProt
         DataType::Float,
         vec![batch(), fixed(h), fixed(c.max_action_dim)],
     );
-    let t = e
-        .g
-        .input("timesteps", DataType::Int64, vec![batch(), fixed(h)]);
+    let t =
+        e.g.input("timesteps", DataType::Int64, vec![batch(), fixed(h)]);
     let ids = e.g.input("embodiment_id", DataType::Int64, vec![batch()]);
     let a = e.category_linear(&x, &ids, "action_encoder.W1", slots, c.max_action_dim, d)?;
     // [sin(t·ω), cos(t·ω)], ω as the reference computes it.
@@ -375,22 +377,22 @@ fn dit(c: &Gr00tN17Config, w: &Weights, h: usize) -> Result<ModelProto, ExportEr
     let (d, d_vl, n) = (c.input_embedding_dim, c.backbone_embedding_dim, 1 + h);
     let dc = &c.dit;
     let t_dim = || Dim::Symbolic("T".into());
-    let sa = e
-        .g
-        .input("sa_embs", DataType::Float, vec![batch(), fixed(n), fixed(d)]);
+    let sa = e.g.input(
+        "sa_embs",
+        DataType::Float,
+        vec![batch(), fixed(n), fixed(d)],
+    );
     let vl = e.g.input(
         "vl_embs",
         DataType::Float,
         vec![batch(), t_dim(), fixed(d_vl)],
     );
-    let t = e
-        .g
-        .input("timestep", DataType::Int64, vec![batch(), fixed(n)]);
+    let t =
+        e.g.input("timestep", DataType::Int64, vec![batch(), fixed(n)]);
     // Text and image biases of the alternating DiT, `[B, 1, 1, T]`.
     let biases = if c.use_alternate_vl_dit {
-        let img = e
-            .g
-            .input("image_mask", DataType::Bool, vec![batch(), t_dim()]);
+        let img =
+            e.g.input("image_mask", DataType::Bool, vec![batch(), t_dim()]);
         let att = e.g.input(
             "backbone_attention_mask",
             DataType::Bool,
@@ -433,9 +435,7 @@ fn dit(c: &Gr00tN17Config, w: &Weights, h: usize) -> Result<ModelProto, ExportEr
     )?;
     let positions = if dc.sinusoidal_positions {
         let rows = dc.max_num_positional_embeddings;
-        Some(
-            e.g.const_f32(&[rows, d], &sinusoidal_table_values(rows, d)),
-        )
+        Some(e.g.const_f32(&[rows, d], &sinusoidal_table_values(rows, d)))
     } else {
         None
     };
@@ -529,9 +529,7 @@ fn vl_self_attention(c: &Gr00tN17Config, w: &Weights) -> Result<Option<ModelProt
     );
     let positions = if sa.sinusoidal_positions {
         let rows = sa.max_num_positional_embeddings;
-        Some(
-            e.g.const_f32(&[rows, d], &sinusoidal_table_values(rows, d)),
-        )
+        Some(e.g.const_f32(&[rows, d], &sinusoidal_table_values(rows, d)))
     } else {
         None
     };

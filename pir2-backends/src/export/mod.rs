@@ -7,9 +7,9 @@
 //! input/output names and shapes.
 
 pub mod contract;
-pub mod graph;
 #[cfg(feature = "candle")]
 pub mod gr00t_n17;
+pub mod graph;
 pub mod models;
 pub mod ops;
 pub mod proto;

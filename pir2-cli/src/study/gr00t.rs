@@ -467,7 +467,10 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
         }
     }
     if !step.is_dir() {
-        bail!("{} is not a directory (a `pir2 train gr00t` step directory)", step.display());
+        bail!(
+            "{} is not a directory (a `pir2 train gr00t` step directory)",
+            step.display()
+        );
     }
     let root = step.parent().unwrap_or(step);
     let emb_path = find_in(&[step, root], "embodiment.toml", "embodiment")?;

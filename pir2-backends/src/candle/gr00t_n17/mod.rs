@@ -76,8 +76,8 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor, Var, D};
 
 pub use config::{DitConfig, Gr00tN17Config, VlSelfAttentionConfig};
-pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 pub(crate) use layers::{action_time_frequencies, dit_time_frequencies, sinusoidal_table_values};
+pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 
 use crate::error::{Error, Result};
 use layers::{
@@ -163,7 +163,10 @@ pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
     cat(&mut v, "action_encoder.W2", 2 * d_in, d_in);
     cat(&mut v, "action_encoder.W3", d_in, d_in);
     if c.add_pos_embed {
-        v.push(("position_embedding.weight".into(), vec![c.max_seq_len, d_in]));
+        v.push((
+            "position_embedding.weight".into(),
+            vec![c.max_seq_len, d_in],
+        ));
     }
     let dc = &c.dit;
     for i in 0..dc.num_layers {
@@ -173,8 +176,18 @@ pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
         let source = if is_cross { d_vl } else { d_in };
         block(&mut v, &mut lin, &n, d_in, inner, source, true);
     }
-    lin(&mut v, "model.timestep_encoder.timestep_embedder.linear_1", 256, d_in);
-    lin(&mut v, "model.timestep_encoder.timestep_embedder.linear_2", d_in, d_in);
+    lin(
+        &mut v,
+        "model.timestep_encoder.timestep_embedder.linear_1",
+        256,
+        d_in,
+    );
+    lin(
+        &mut v,
+        "model.timestep_encoder.timestep_embedder.linear_2",
+        d_in,
+        d_in,
+    );
     lin(&mut v, "model.proj_out_1", d_in, 2 * d_in);
     lin(&mut v, "model.proj_out_2", d_in, dc.output_dim);
     cat(&mut v, "action_decoder.layer1", hid, hid);
