@@ -1,10 +1,11 @@
 //! The GR00T N1.7 ONNX export (`pir2_backends::export::gr00t_n17`) against the candle head it
-//! was exported from: NVIDIA's reference fixture `alt` (real tensor names, tiny sizes) with a
-//! nonzero delay table, exported, loaded by the ONNX GR00T stack (`Gr00tActionHead`: the
-//! contract checks, the side weights, the per-position timesteps) and run with ONNX Runtime
-//! on the inputs candle's `velocity` gets; the backbone post-processing (`vlln` from the side
-//! weights + `vl_self_attention.onnx`) against candle's `process_backbone`. Needs
-//! `ORT_DYLIB_PATH` (`source .native/env.sh`).
+//! was exported from: NVIDIA's reference fixtures `alt` (N1.7's layout) and `plain` (plain
+//! DiT with sinusoidal positions), real tensor names and tiny sizes, each with a nonzero delay
+//! table, exported, loaded by the ONNX GR00T stack (`Gr00tActionHead`: the contract checks,
+//! the side weights, the per-position timesteps) and run with ONNX Runtime on the inputs
+//! candle's `velocity` gets; and the backbone post-processing (`vlln` from the side weights +
+//! `vl_self_attention.onnx`) against candle's `process_backbone`. Needs `ORT_DYLIB_PATH`
+//! (`source .native/env.sh`).
 #![cfg(feature = "gr00t")]
 
 use std::collections::HashMap;
@@ -12,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
 use pir2_backends::candle::gr00t_n17::{
-    timestep_bucket, Gr00tN17Head, Timesteps, VlTokens, DELAY_EMBEDDING, PREFIX,
+    timestep_bucket, Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens, DELAY_EMBEDDING, PREFIX,
 };
 use pir2_backends::export::gr00t_n17::export_gr00t_n17;
 use pir2_backends::gr00t::contract::{feed, Bindings, Graph, VL_SELF_ATTENTION};
@@ -59,29 +60,42 @@ fn noise(n: usize, seed: u64, s: f32) -> Vec<f32> {
     (0..n).map(|_| rng.uniform_range(-s, s)).collect()
 }
 
-/// The `alt` fixture as a fine-tuned step directory: its weights plus a random (nonzero)
-/// delay table of `D_VIS_MAX + 1` rows.
-fn step_dir(dir: &Path) {
-    let dev = Device::Cpu;
-    let mut all: HashMap<String, Tensor> =
-        candle_core::safetensors::load(fixtures().join("alt.weights.safetensors"), &dev).unwrap();
-    let rows = D_VIS_MAX + 1;
-    all.insert(
-        format!("{PREFIX}{DELAY_EMBEDDING}"),
-        Tensor::from_vec(noise(rows * 24, 5, 0.5), (rows, 24), &dev).unwrap(),
-    );
-    candle_core::safetensors::save(&all, dir.join("model.safetensors")).unwrap();
-    std::fs::copy(fixtures().join("alt.config.json"), dir.join("config.json")).unwrap();
+fn config(case: &str) -> Gr00tN17Config {
+    Gr00tN17Config::from_json_file(&fixtures().join(format!("{case}.config.json"))).unwrap()
 }
 
-/// 4 state values (`max_state_dim` 6, 2 history steps), 4 actions (`A_max` 5), H = 8, slot 1.
-fn embodiment() -> EmbodimentConfig {
+/// A fixture (`alt`, `plain`) as a fine-tuned step directory: its weights plus a random
+/// (nonzero) delay table of `D_VIS_MAX + 1` rows.
+fn step_dir(case: &str, dir: &Path) {
+    let dev = Device::Cpu;
+    let mut all: HashMap<String, Tensor> = candle_core::safetensors::load(
+        fixtures().join(format!("{case}.weights.safetensors")),
+        &dev,
+    )
+    .unwrap();
+    let (rows, d_in) = (D_VIS_MAX + 1, config(case).input_embedding_dim);
+    all.insert(
+        format!("{PREFIX}{DELAY_EMBEDDING}"),
+        Tensor::from_vec(noise(rows * d_in, 5, 0.5), (rows, d_in), &dev).unwrap(),
+    );
+    candle_core::safetensors::save(&all, dir.join("model.safetensors")).unwrap();
+    std::fs::copy(
+        fixtures().join(format!("{case}.config.json")),
+        dir.join("config.json"),
+    )
+    .unwrap();
+}
+
+/// 4 state values, `min(3, A_max − 1) + 1` actions, the fixture's history length, H = 8,
+/// slot 1.
+fn embodiment(case: &str) -> EmbodimentConfig {
+    let c = config(case);
     let mut e = EmbodimentConfig::xarm6_xhand();
     e.name = "tiny".into();
     e.horizon = H;
     e.d_max = 2;
     e.d_vis_max = D_VIS_MAX;
-    e.n_obs = 2;
+    e.n_obs = c.state_history_length;
     e.embodiment_id = SLOT;
     let g = |name: &str, dim: usize, norm: Norm| {
         let mut x = e.state[0].clone();
@@ -91,7 +105,8 @@ fn embodiment() -> EmbodimentConfig {
         x
     };
     let state = vec![g("arm", 3, Norm::MinMax), g("grip", 1, Norm::MeanStd)];
-    let action = vec![g("arm", 3, Norm::MinMax), g("grip", 1, Norm::MeanStd)];
+    let arm = 3.min(c.max_action_dim - 1);
+    let action = vec![g("arm", arm, Norm::MinMax), g("grip", 1, Norm::MeanStd)];
     e.state = state;
     e.action = action;
     e.validate().unwrap();
@@ -109,12 +124,16 @@ fn rel_err(got: &[f32], want: &[f32]) -> f32 {
 }
 
 /// The graphs and the side file written, loaded by the ONNX stack.
-fn exported(dir: &Path, cfg: &EmbodimentConfig) -> (Gr00tN17Head, Gr00tActionHead, Normalizer) {
+fn exported(
+    case: &str,
+    dir: &Path,
+    cfg: &EmbodimentConfig,
+) -> (Gr00tN17Head, Gr00tActionHead, Normalizer) {
     let step = dir.join("step");
     let out = dir.join("export");
     std::fs::create_dir_all(&step).unwrap();
     std::fs::create_dir_all(&out).unwrap();
-    step_dir(&step);
+    step_dir(case, &step);
     let head = Gr00tN17Head::load(&step, &Device::Cpu).unwrap();
     export_gr00t_n17(&head, H).unwrap().write(&out).unwrap();
     std::fs::write(out.join("statistics.json"), statistics_json(cfg, None)).unwrap();
@@ -136,7 +155,7 @@ struct Inputs {
     layout: VlLayout,
 }
 
-fn inputs(a: usize, d_vl: usize) -> Inputs {
+fn inputs(a: usize, n_obs: usize, d_vl: usize) -> Inputs {
     let b = 2;
     let mut tau = Vec::new();
     for bi in 0..b {
@@ -150,7 +169,7 @@ fn inputs(a: usize, d_vl: usize) -> Inputs {
     Inputs {
         x: noise(b * H * a, 1, 1.0),
         tau,
-        obs: noise(b * 2 * 4, 2, 2.5),
+        obs: noise(b * n_obs * 4, 2, 2.5),
         vl: noise(b * T * d_vl, 3, 1.5),
         d_vis: vec![1, 9],
         layout: VlLayout {
@@ -171,11 +190,12 @@ fn candle_velocity(
     let dev = Device::Cpu;
     let c = head.config();
     let (b, a, msd, a_max) = (2, cfg.action_dim(), c.max_state_dim, c.max_action_dim);
-    let mut state = vec![0f32; b * 2 * msd];
-    for k in 0..b * 2 {
+    let n_obs = cfg.n_obs;
+    let mut state = vec![0f32; b * n_obs * msd];
+    for k in 0..b * n_obs {
         norm.normalize_state(&i.obs[k * 4..(k + 1) * 4], &mut state[k * msd..k * msd + 4]);
     }
-    let state = Tensor::from_vec(state, (b, 2, msd), &dev).unwrap();
+    let state = Tensor::from_vec(state, (b, n_obs, msd), &dev).unwrap();
     let mut x = vec![0f32; b * H * a_max];
     for r in 0..b * H {
         x[r * a_max..r * a_max + a].copy_from_slice(&i.x[r * a..(r + 1) * a]);
@@ -219,7 +239,13 @@ fn candle_velocity(
         .unwrap()
 }
 
-fn onnx_velocity(onnx: &mut Gr00tActionHead, i: &Inputs, a: usize, d_vl: usize) -> Vec<f32> {
+fn onnx_velocity(
+    onnx: &mut Gr00tActionHead,
+    i: &Inputs,
+    a: usize,
+    n_obs: usize,
+    d_vl: usize,
+) -> Vec<f32> {
     onnx.set_vl_layout(i.layout.clone());
     let input = ModelInput {
         batch: 2,
@@ -228,7 +254,7 @@ fn onnx_velocity(onnx: &mut Gr00tActionHead, i: &Inputs, a: usize, d_vl: usize) 
         x: &i.x,
         tau: &i.tau,
         obs_fast: &i.obs,
-        n_obs: 2,
+        n_obs,
         fast_dim: 4,
         slow: SlowInput::Tokens {
             data: &i.vl,
@@ -242,40 +268,42 @@ fn onnx_velocity(onnx: &mut Gr00tActionHead, i: &Inputs, a: usize, d_vl: usize) 
     out
 }
 
-#[test]
-fn exported_head_matches_candle_through_the_onnx_stack() {
-    let dir = Scratch::new("parity");
-    let cfg = embodiment();
-    let (head, mut onnx, norm) = exported(&dir.0, &cfg);
-    let d_vl = head.config().backbone_embedding_dim;
+/// One fixture through export + the ONNX stack against candle; the comparison must see the
+/// delay table and the per-position timesteps.
+fn parity(case: &str) {
+    let dir = Scratch::new(case);
+    let cfg = embodiment(case);
+    let (head, mut onnx, norm) = exported(case, &dir.0, &cfg);
+    let c = head.config().clone();
+    let (d_vl, d_in, n_obs) = (c.backbone_embedding_dim, c.input_embedding_dim, cfg.n_obs);
     let a = cfg.action_dim();
-    let i = inputs(a, d_vl);
+    let i = inputs(a, n_obs, d_vl);
     let want = candle_velocity(&head, &norm, &cfg, &i);
-    let got = onnx_velocity(&mut onnx, &i, a, d_vl);
+    let got = onnx_velocity(&mut onnx, &i, a, n_obs, d_vl);
     let err = rel_err(&got, &want);
-    eprintln!("velocity: ONNX Runtime vs candle, relative error {err:.3e}");
-    assert!(err <= TOL, "relative error {err:.3e} > {TOL:e}");
+    eprintln!("{case}: velocity, ONNX Runtime vs candle, relative error {err:.3e}");
+    assert!(err <= TOL, "{case}: relative error {err:.3e} > {TOL:e}");
     // The comparison sees the delay table: another d_vis changes candle's answer by far more
     // than the tolerance (so a graph or side file that dropped it would fail above).
-    let mut other = inputs(a, d_vl);
+    let mut other = inputs(a, n_obs, d_vl);
     other.d_vis = vec![0, 0];
     let moved = candle_velocity(&head, &norm, &cfg, &other);
     let sens = rel_err(&moved, &want);
     assert!(
         sens > 100.0 * TOL,
-        "d_vis moved the velocity by only {sens:.3e}"
+        "{case}: d_vis moved the velocity by only {sens:.3e}"
     );
     // ... and so does one τ (per-position timesteps reach both graphs).
-    let mut other = inputs(a, d_vl);
+    let mut other = inputs(a, n_obs, d_vl);
     other.tau[3] = 0.9;
-    let got_t = onnx_velocity(&mut onnx, &other, a, d_vl);
+    let got_t = onnx_velocity(&mut onnx, &other, a, n_obs, d_vl);
     let want_t = candle_velocity(&head, &norm, &cfg, &other);
-    assert!(rel_err(&got_t, &want_t) <= TOL);
-    assert!(rel_err(&got_t, &got) > 100.0 * TOL);
+    assert!(rel_err(&got_t, &want_t) <= TOL, "{case}");
+    assert!(rel_err(&got_t, &got) > 100.0 * TOL, "{case}");
 
     // The side file holds the fine-tuned delay table, bit for bit.
     let side = SideWeights::load(&dir.0.join("export/pir2_gr00t.safetensors")).unwrap();
-    let table = side.delay_embedding(D_VIS_MAX, 24).unwrap();
+    let table = side.delay_embedding(D_VIS_MAX, d_in).unwrap();
     let want_table = head
         .delay_embedding()
         .unwrap()
@@ -286,11 +314,25 @@ fn exported_head_matches_candle_through_the_onnx_stack() {
     assert_eq!(table, want_table);
 }
 
+/// N1.7's layout: alternating text/image cross-attention with both masks, vlln, position
+/// embedding, 2 history steps, a VL self-attention layer.
+#[test]
+fn exported_alt_head_matches_candle_through_the_onnx_stack() {
+    parity("alt");
+}
+
+/// The plain DiT: every block cross-attends to all tokens (no masks in the graph),
+/// sinusoidal positions in the blocks, no position embedding, no vlln.
+#[test]
+fn exported_plain_head_matches_candle_through_the_onnx_stack() {
+    parity("plain");
+}
+
 #[test]
 fn exported_backbone_post_processing_matches_candle() {
     let dir = Scratch::new("vlsa");
-    let cfg = embodiment();
-    let (head, _, _) = exported(&dir.0, &cfg);
+    let cfg = embodiment("alt");
+    let (head, _, _) = exported("alt", &dir.0, &cfg);
     let d = head.config().backbone_embedding_dim;
     let raw = noise(T * d, 9, 2.0);
     let want = head
