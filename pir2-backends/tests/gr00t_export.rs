@@ -15,7 +15,7 @@ use candle_core::{Device, Tensor};
 use pir2_backends::candle::gr00t_n17::{
     timestep_bucket, Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens, DELAY_EMBEDDING, PREFIX,
 };
-use pir2_backends::export::gr00t_n17::export_gr00t_n17;
+use pir2_backends::export::gr00t_n17::{export_gr00t_n17, WeightStorage};
 use pir2_backends::gr00t::contract::{feed, Bindings, Graph, VL_SELF_ATTENTION};
 use pir2_backends::gr00t::testing::statistics_json;
 use pir2_backends::gr00t::weights::SideWeights;
@@ -128,6 +128,7 @@ fn exported(
     case: &str,
     dir: &Path,
     cfg: &EmbodimentConfig,
+    storage: WeightStorage,
 ) -> (Gr00tN17Head, Gr00tActionHead, Normalizer) {
     let step = dir.join("step");
     let out = dir.join("export");
@@ -135,7 +136,12 @@ fn exported(
     std::fs::create_dir_all(&out).unwrap();
     step_dir(case, &step);
     let head = Gr00tN17Head::load(&step, &Device::Cpu).unwrap();
-    export_gr00t_n17(&head, H).unwrap().write(&out).unwrap();
+    let files = export_gr00t_n17(&head, H)
+        .unwrap()
+        .write(&out, storage)
+        .unwrap();
+    let external = files.iter().any(|f| f.ends_with(".onnx.data"));
+    assert_eq!(external, storage == WeightStorage::External, "{files:?}");
     std::fs::write(out.join("statistics.json"), statistics_json(cfg, None)).unwrap();
     let norm = Normalizer::load(&out.join("statistics.json"), cfg).unwrap();
     let files = CheckpointFiles::in_dir(&out);
@@ -270,10 +276,10 @@ fn onnx_velocity(
 
 /// One fixture through export + the ONNX stack against candle; the comparison must see the
 /// delay table and the per-position timesteps.
-fn parity(case: &str) {
-    let dir = Scratch::new(case);
+fn parity(case: &str, storage: WeightStorage) {
+    let dir = Scratch::new(&format!("{case}-{storage:?}"));
     let cfg = embodiment(case);
-    let (head, mut onnx, norm) = exported(case, &dir.0, &cfg);
+    let (head, mut onnx, norm) = exported(case, &dir.0, &cfg, storage);
     let c = head.config().clone();
     let (d_vl, d_in, n_obs) = (c.backbone_embedding_dim, c.input_embedding_dim, cfg.n_obs);
     let a = cfg.action_dim();
@@ -318,21 +324,28 @@ fn parity(case: &str) {
 /// embedding, 2 history steps, a VL self-attention layer.
 #[test]
 fn exported_alt_head_matches_candle_through_the_onnx_stack() {
-    parity("alt");
+    parity("alt", WeightStorage::Auto);
+}
+
+/// The same with every weight in ONNX external data (`onnx/*.onnx.data`), the layout the
+/// full-size DiT (over protobuf's 2 GiB) is written in.
+#[test]
+fn exported_head_with_external_weights_matches_candle() {
+    parity("alt", WeightStorage::External);
 }
 
 /// The plain DiT: every block cross-attends to all tokens (no masks in the graph),
 /// sinusoidal positions in the blocks, no position embedding, no vlln.
 #[test]
 fn exported_plain_head_matches_candle_through_the_onnx_stack() {
-    parity("plain");
+    parity("plain", WeightStorage::Auto);
 }
 
 #[test]
 fn exported_backbone_post_processing_matches_candle() {
     let dir = Scratch::new("vlsa");
     let cfg = embodiment("alt");
-    let (head, _, _) = exported("alt", &dir.0, &cfg);
+    let (head, _, _) = exported("alt", &dir.0, &cfg, WeightStorage::Auto);
     let d = head.config().backbone_embedding_dim;
     let raw = noise(T * d, 9, 2.0);
     let want = head

@@ -20,15 +20,16 @@
 //! alternates; a head that does not alternate attends to every token, as the candle head
 //! does). The masks turn into an additive `0 / −∞` bias. Float tensors are `float32`.
 //!
-//! Limitation: weights are stored inside the protobuf, so one graph must stay under
-//! protobuf's 2 GiB; the full-size N1.7 DiT (about 0.55 B parameters, 2.2 GB as `f32`) does
-//! not fit and is refused by name ([`MAX_GRAPH_BYTES`]).
+//! Weights are stored inside the protobuf, except for a graph whose weights exceed
+//! [`AUTO_EXTERNAL_BYTES`] (the full-size N1.7 DiT: about 0.55 B parameters, 2.2 GB as `f32`,
+//! over protobuf's 2 GiB): its large tensors go to `onnx/<graph>.onnx.data` in ONNX's
+//! external-data layout ([`WeightStorage`]).
 
 use std::collections::HashMap;
 use std::path::Path;
 
 use super::graph::{attr, GraphBuilder};
-use super::proto::{AttrValue, DataType, Dim, ModelProto};
+use super::proto::{AttrValue, DataType, Dim, ExternalData, ModelProto};
 use super::ExportError;
 use crate::candle::gr00t_n17::{
     action_time_frequencies, dit_time_frequencies, sinusoidal_table_values, Gr00tN17Config,
@@ -626,33 +627,98 @@ pub fn export_gr00t_n17(head: &Gr00tN17Head, horizon: usize) -> Result<Gr00tExpo
     })
 }
 
+/// How the exporter stores a graph's weights.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum WeightStorage {
+    /// Inside the protobuf, unless the graph's weights exceed [`AUTO_EXTERNAL_BYTES`]; then
+    /// as [`WeightStorage::External`].
+    #[default]
+    Auto,
+    /// Always inside the protobuf (a graph over [`MAX_GRAPH_BYTES`] is refused).
+    Inline,
+    /// Every weight of at least [`EXTERNAL_MIN_BYTES`] in `onnx/<graph>.onnx.data`, ONNX's
+    /// external-data layout (each tensor at a 4 KiB-aligned offset); ONNX Runtime reads it
+    /// next to the model file.
+    External,
+}
+
+/// [`WeightStorage::Auto`] stores a graph's weights externally above this many bytes (1 GiB).
+pub const AUTO_EXTERNAL_BYTES: usize = 1 << 30;
+/// Smaller tensors (shapes, scalars, biases) stay inside the protobuf.
+pub const EXTERNAL_MIN_BYTES: usize = 1024;
+const EXTERNAL_ALIGN: u64 = 4096;
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ExportError + '_ {
+    move |source| ExportError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Move the large initializers of `model` into `dir/<file>.data`; returns that file's name.
+fn externalize(model: &mut ModelProto, dir: &Path, file: &str) -> Result<String, ExportError> {
+    use std::io::Write;
+    let name = format!("{file}.data");
+    let path = dir.join(&name);
+    let f = std::fs::File::create(&path).map_err(io_err(&path))?;
+    let mut w = std::io::BufWriter::new(f);
+    let mut at = 0u64;
+    for t in model.graph.initializers.iter_mut() {
+        if t.raw_data.len() < EXTERNAL_MIN_BYTES {
+            continue;
+        }
+        let pad = (EXTERNAL_ALIGN - at % EXTERNAL_ALIGN) % EXTERNAL_ALIGN;
+        w.write_all(&vec![0u8; pad as usize])
+            .map_err(io_err(&path))?;
+        at += pad;
+        let bytes = std::mem::take(&mut t.raw_data);
+        w.write_all(&bytes).map_err(io_err(&path))?;
+        t.external = Some(ExternalData {
+            location: name.clone(),
+            offset: at,
+            length: bytes.len() as u64,
+        });
+        at += bytes.len() as u64;
+    }
+    w.flush().map_err(io_err(&path))?;
+    Ok(name)
+}
+
 impl Gr00tExport {
-    /// Write `onnx/*.onnx` and [`SIDE_WEIGHTS_FILE`] into `dir` (which must exist). A graph
-    /// over [`MAX_GRAPH_BYTES`] is refused by name before anything is written.
-    pub fn write(&self, dir: &Path) -> Result<(), ExportError> {
-        let mut encoded = Vec::with_capacity(self.graphs.len());
-        for (file, m) in &self.graphs {
+    /// Write `onnx/*.onnx` (with `onnx/*.onnx.data` for externally stored weights, see
+    /// [`WeightStorage`]) and [`SIDE_WEIGHTS_FILE`] into `dir` (which must exist); returns
+    /// the files written, relative to `dir`. An inline graph over [`MAX_GRAPH_BYTES`] is
+    /// refused by name.
+    pub fn write(self, dir: &Path, storage: WeightStorage) -> Result<Vec<String>, ExportError> {
+        let onnx = dir.join("onnx");
+        std::fs::create_dir_all(&onnx).map_err(io_err(&onnx))?;
+        let mut files = Vec::new();
+        for (file, mut m) in self.graphs {
+            let weight_bytes: usize = m.graph.initializers.iter().map(|t| t.raw_data.len()).sum();
+            let external = match storage {
+                WeightStorage::Inline => false,
+                WeightStorage::External => true,
+                WeightStorage::Auto => weight_bytes > AUTO_EXTERNAL_BYTES,
+            };
+            if external {
+                let data = externalize(&mut m, &onnx, file)?;
+                files.push(format!("onnx/{data}"));
+            }
             let bytes = m.encode();
+            drop(m);
             if bytes.len() > MAX_GRAPH_BYTES {
                 return Err(ExportError::Unsupported {
                     model: MODEL,
                     message: format!(
-                        "{file} would be {} bytes, over protobuf's 2 GiB limit (ONNX external \
-                         data is not written by this exporter)",
+                        "{file} would be {} bytes, over protobuf's 2 GiB limit; store its \
+                         weights externally (WeightStorage::External)",
                         bytes.len()
                     ),
                 });
             }
-            encoded.push((file, bytes));
-        }
-        let onnx = dir.join("onnx");
-        std::fs::create_dir_all(&onnx).map_err(|source| ExportError::Io {
-            path: onnx.clone(),
-            source,
-        })?;
-        for (file, bytes) in encoded {
             let path = onnx.join(file);
-            std::fs::write(&path, bytes).map_err(|source| ExportError::Io { path, source })?;
+            std::fs::write(&path, bytes).map_err(io_err(&path))?;
+            files.push(format!("onnx/{file}"));
         }
         let side = dir.join(SIDE_WEIGHTS_FILE);
         crate::checkpoint::write_tensors(
@@ -664,6 +730,8 @@ impl Gr00tExport {
         .map_err(|e| ExportError::Io {
             path: side.clone(),
             source: std::io::Error::other(e.to_string()),
-        })
+        })?;
+        files.push(SIDE_WEIGHTS_FILE.to_string());
+        Ok(files)
     }
 }

@@ -450,7 +450,7 @@ fn find_in(dirs: &[&Path], name: &str, what: &str) -> Result<PathBuf> {
 /// export leaves nothing behind. The backbone (`onnx/backbone.onnx`) and the tokenizer are
 /// not part of the head and are not written.
 pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
-    use pir2_backends::export::gr00t_n17::{export_gr00t_n17, SIDE_WEIGHTS_FILE};
+    use pir2_backends::export::gr00t_n17::{export_gr00t_n17, WeightStorage};
 
     if out.exists() {
         let empty = out.is_dir()
@@ -529,22 +529,14 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
         std::fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
     }
     std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    let d_vis_max = exported.d_vis_max;
     let written = (|| -> Result<Vec<String>> {
-        exported.write(&tmp)?;
+        let mut files = exported.write(&tmp, WeightStorage::Auto)?;
         std::fs::copy(&stats_path, tmp.join("statistics.json"))
             .with_context(|| format!("copying {}", stats_path.display()))?;
         std::fs::write(tmp.join("embodiment.toml"), emb.to_toml()?)
             .with_context(|| format!("writing {}", tmp.join("embodiment.toml").display()))?;
-        let mut files: Vec<String> = exported
-            .graphs
-            .iter()
-            .map(|(f, _)| format!("onnx/{f}"))
-            .collect();
-        files.extend([
-            SIDE_WEIGHTS_FILE.to_string(),
-            "statistics.json".into(),
-            "embodiment.toml".into(),
-        ]);
+        files.extend(["statistics.json".into(), "embodiment.toml".into()]);
         Ok(files)
     })();
     let files = match written {
@@ -564,7 +556,7 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
         out: out.to_path_buf(),
         files,
         horizon: emb.horizon,
-        d_vis_max: exported.d_vis_max,
+        d_vis_max,
         trained: pir2_backends::gr00t::policy_name(emb.policy.trained).to_string(),
     })
 }
