@@ -54,15 +54,28 @@ pub const VL_SELF_ATTENTION_FILE: &str = "vl_self_attention.onnx";
 /// The side weights file in the checkpoint root.
 pub const SIDE_WEIGHTS_FILE: &str = "pir2_gr00t.safetensors";
 
-/// The exported head: the graphs and the side weights, before they are written.
-#[derive(Debug)]
+/// The exported head before it is written: the head's weights (copied, so the head can be
+/// dropped), the side weights, and the graphs to build. Each graph is built only while it is
+/// written ([`Gr00tExport::write`]), so at most one graph is in memory at a time.
 pub struct Gr00tExport {
-    /// `(file name under onnx/, model)`.
-    pub graphs: Vec<(&'static str, ModelProto)>,
+    cfg: Gr00tN17Config,
+    weights: Weights,
+    horizon: usize,
     /// `(name, shape, values)` of `pir2_gr00t.safetensors`.
     pub side: Vec<(String, Vec<usize>, Vec<f32>)>,
     /// Rows of the delay table minus one.
     pub d_vis_max: usize,
+}
+
+impl std::fmt::Debug for Gr00tExport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Gr00tExport")
+            .field("graphs", &self.graph_files())
+            .field("horizon", &self.horizon)
+            .field("d_vis_max", &self.d_vis_max)
+            .field("weights", &self.weights.map.len())
+            .finish()
+    }
 }
 
 /// The head's parameters by name (without [`PREFIX`]), as `f32`.
@@ -611,20 +624,55 @@ pub fn export_gr00t_n17(head: &Gr00tN17Head, horizon: usize) -> Result<Gr00tExpo
             w.get("vlln.bias", &[dv])?.to_vec(),
         ));
     }
-    let mut graphs = vec![
-        (STATE_ENCODER_FILE, state_encoder(c, &w)?),
-        (ACTION_ENCODER_FILE, action_encoder(c, &w, horizon)?),
-        (DIT_FILE, dit(c, &w, horizon)?),
-        (ACTION_DECODER_FILE, action_decoder(c, &w, horizon)?),
-    ];
-    if let Some(g) = vl_self_attention(c, &w)? {
-        graphs.push((VL_SELF_ATTENTION_FILE, g));
-    }
     Ok(Gr00tExport {
-        graphs,
+        cfg: c.clone(),
+        weights: w,
+        horizon,
         side,
         d_vis_max: rows - 1,
     })
+}
+
+impl Gr00tExport {
+    /// The graph files under `onnx/` this export writes.
+    pub fn graph_files(&self) -> Vec<&'static str> {
+        let mut v = vec![
+            STATE_ENCODER_FILE,
+            ACTION_ENCODER_FILE,
+            DIT_FILE,
+            ACTION_DECODER_FILE,
+        ];
+        if self
+            .cfg
+            .vl_self_attention
+            .as_ref()
+            .is_some_and(|s| s.num_layers > 0)
+        {
+            v.push(VL_SELF_ATTENTION_FILE);
+        }
+        v
+    }
+
+    /// Build the graph written as `file` (one of [`Self::graph_files`]).
+    pub fn graph(&self, file: &str) -> Result<ModelProto, ExportError> {
+        let (c, w, h) = (&self.cfg, &self.weights, self.horizon);
+        match file {
+            STATE_ENCODER_FILE => state_encoder(c, w),
+            ACTION_ENCODER_FILE => action_encoder(c, w, h),
+            DIT_FILE => dit(c, w, h),
+            ACTION_DECODER_FILE => action_decoder(c, w, h),
+            VL_SELF_ATTENTION_FILE => {
+                vl_self_attention(c, w)?.ok_or_else(|| ExportError::Unsupported {
+                    model: MODEL,
+                    message: "the head has no VL self-attention stack".into(),
+                })
+            }
+            other => Err(ExportError::Unsupported {
+                model: MODEL,
+                message: format!("no graph `{other}`"),
+            }),
+        }
+    }
 }
 
 /// How the exporter stores a graph's weights.
@@ -689,11 +737,12 @@ impl Gr00tExport {
     /// [`WeightStorage`]) and [`SIDE_WEIGHTS_FILE`] into `dir` (which must exist); returns
     /// the files written, relative to `dir`. An inline graph over [`MAX_GRAPH_BYTES`] is
     /// refused by name.
-    pub fn write(self, dir: &Path, storage: WeightStorage) -> Result<Vec<String>, ExportError> {
+    pub fn write(&self, dir: &Path, storage: WeightStorage) -> Result<Vec<String>, ExportError> {
         let onnx = dir.join("onnx");
         std::fs::create_dir_all(&onnx).map_err(io_err(&onnx))?;
         let mut files = Vec::new();
-        for (file, mut m) in self.graphs {
+        for file in self.graph_files() {
+            let mut m = self.graph(file)?;
             let weight_bytes: usize = m.graph.initializers.iter().map(|t| t.raw_data.len()).sum();
             let external = match storage {
                 WeightStorage::Inline => false,

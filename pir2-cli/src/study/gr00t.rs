@@ -510,6 +510,8 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
     }
     let exported = export_gr00t_n17(&head, emb.horizon)
         .with_context(|| format!("exporting {}", step.display()))?;
+    // The export holds its own copy of the weights; at full size the head is gigabytes.
+    drop(head);
 
     // Write next to `out`, then move into place.
     let name = out
