@@ -106,6 +106,32 @@ pub fn is_trained(name: &str) -> bool {
 /// shapes, `model.safetensors` (names prefixed with [`PREFIX`]) and `cfg`'s `config.json` make
 /// a loadable synthetic checkpoint.
 pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
+    type Shapes = Vec<(String, Vec<usize>)>;
+    fn lin(v: &mut Shapes, n: &str, i: usize, o: usize) {
+        v.push((format!("{n}.weight"), vec![o, i]));
+        v.push((format!("{n}.bias"), vec![o]));
+    }
+    fn norm(v: &mut Shapes, n: &str, dim: usize) {
+        v.push((format!("{n}.weight"), vec![dim]));
+        v.push((format!("{n}.bias"), vec![dim]));
+    }
+    /// `(dim, inner, source)` widths; `ada`: AdaLN (DiT) or affine norms (VL stack).
+    fn block(v: &mut Shapes, n: &str, (dim, inner, source): (usize, usize, usize), ada: bool) {
+        if ada {
+            lin(v, &format!("{n}.norm1.linear"), dim, 2 * dim);
+        } else {
+            norm(v, &format!("{n}.norm1"), dim);
+        }
+        lin(v, &format!("{n}.attn1.to_q"), dim, inner);
+        lin(v, &format!("{n}.attn1.to_k"), source, inner);
+        lin(v, &format!("{n}.attn1.to_v"), source, inner);
+        lin(v, &format!("{n}.attn1.to_out.0"), inner, dim);
+        if !ada {
+            norm(v, &format!("{n}.norm3"), dim);
+        }
+        lin(v, &format!("{n}.ff.net.0.proj"), dim, 4 * dim);
+        lin(v, &format!("{n}.ff.net.2"), 4 * dim, dim);
+    }
     let c = cfg;
     let (n_emb, d_in, hid, d_vl) = (
         c.max_num_embodiments,
@@ -113,48 +139,19 @@ pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
         c.hidden_size,
         c.backbone_embedding_dim,
     );
-    let mut v: Vec<(String, Vec<usize>)> = Vec::new();
-    let mut lin = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
-        v.push((format!("{n}.weight"), vec![o, i]));
-        v.push((format!("{n}.bias"), vec![o]));
-    };
-    let cat = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
+    let cat = |v: &mut Shapes, n: &str, i: usize, o: usize| {
         v.push((format!("{n}.W"), vec![n_emb, i, o]));
         v.push((format!("{n}.b"), vec![n_emb, o]));
     };
-    let block = |v: &mut Vec<(String, Vec<usize>)>,
-                 lin: &mut dyn FnMut(&mut Vec<(String, Vec<usize>)>, &str, usize, usize),
-                 n: &str,
-                 dim: usize,
-                 inner: usize,
-                 source: usize,
-                 ada: bool| {
-        if ada {
-            lin(v, &format!("{n}.norm1.linear"), dim, 2 * dim);
-        } else {
-            v.push((format!("{n}.norm1.weight"), vec![dim]));
-            v.push((format!("{n}.norm1.bias"), vec![dim]));
-        }
-        lin(v, &format!("{n}.attn1.to_q"), dim, inner);
-        lin(v, &format!("{n}.attn1.to_k"), source, inner);
-        lin(v, &format!("{n}.attn1.to_v"), source, inner);
-        lin(v, &format!("{n}.attn1.to_out.0"), inner, dim);
-        if !ada {
-            v.push((format!("{n}.norm3.weight"), vec![dim]));
-            v.push((format!("{n}.norm3.bias"), vec![dim]));
-        }
-        lin(v, &format!("{n}.ff.net.0.proj"), dim, 4 * dim);
-        lin(v, &format!("{n}.ff.net.2"), 4 * dim, dim);
-    };
+    let mut v: Shapes = Vec::new();
     if c.use_vlln {
-        v.push(("vlln.weight".into(), vec![d_vl]));
-        v.push(("vlln.bias".into(), vec![d_vl]));
+        norm(&mut v, "vlln", d_vl);
     }
     if let Some(sa) = &c.vl_self_attention {
         for i in 0..sa.num_layers {
             let inner = sa.num_attention_heads * sa.attention_head_dim;
             let n = format!("vl_self_attention.transformer_blocks.{i}");
-            block(&mut v, &mut lin, &n, d_vl, inner, d_vl, false);
+            block(&mut v, &n, (d_vl, inner, d_vl), false);
         }
     }
     cat(&mut v, "state_encoder.layer1", c.state_input_dim(), hid);
@@ -174,7 +171,7 @@ pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
         let n = format!("model.transformer_blocks.{i}");
         let inner = dc.num_attention_heads * dc.attention_head_dim;
         let source = if is_cross { d_vl } else { d_in };
-        block(&mut v, &mut lin, &n, d_in, inner, source, true);
+        block(&mut v, &n, (d_in, inner, source), true);
     }
     lin(
         &mut v,
