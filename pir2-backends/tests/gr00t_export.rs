@@ -20,7 +20,7 @@ use pir2_backends::gr00t::contract::{feed, Bindings, Graph, VL_SELF_ATTENTION};
 use pir2_backends::gr00t::testing::statistics_json;
 use pir2_backends::gr00t::weights::SideWeights;
 use pir2_backends::gr00t::{
-    CheckpointFiles, EmbodimentConfig, Gr00tActionHead, Norm, Normalizer, VlLayout,
+    CheckpointFiles, EmbodimentConfig, Gr00tActionHead, Gr00tCandleHead, Norm, Normalizer, VlLayout,
 };
 use pir2_backends::ort::OrtOptions;
 use pir2_runtime::{ModelInput, SlowInput};
@@ -306,6 +306,37 @@ fn parity(case: &str, storage: WeightStorage) {
     let want_t = candle_velocity(&head, &norm, &cfg, &other);
     assert!(rel_err(&got_t, &want_t) <= TOL, "{case}");
     assert!(rel_err(&got_t, &got) > 100.0 * TOL, "{case}");
+
+    // The candle head behind the ONNX head's interface (`pir2 run --candle-head`): the same
+    // glue, so the same velocity.
+    let mut direct = Gr00tCandleHead::load(&dir.0.join("step"), &cfg, norm.clone(), SLOT).unwrap();
+    direct.set_vl_layout(i.layout.clone());
+    let mut got_c = vec![0f32; got.len()];
+    direct
+        .forward(
+            &ModelInput {
+                batch: 2,
+                horizon: H,
+                action_dim: a,
+                x: &i.x,
+                tau: &i.tau,
+                obs_fast: &i.obs,
+                n_obs,
+                fast_dim: 4,
+                slow: SlowInput::Tokens {
+                    data: &i.vl,
+                    tokens: T,
+                    dim: d_vl,
+                },
+                d_vis: &i.d_vis,
+            },
+            &mut got_c,
+        )
+        .unwrap();
+    let err_c = rel_err(&got_c, &got);
+    eprintln!("{case}: velocity, Gr00tCandleHead vs the ONNX stack, relative error {err_c:.3e}");
+    assert!(err_c <= TOL, "{case}: candle head vs ONNX {err_c:.3e}");
+    assert_eq!(direct.d_vis_counts(), &[0, 1, 1]);
 
     // The side file holds the fine-tuned delay table, bit for bit.
     let side = SideWeights::load(&dir.0.join("export/pir2_gr00t.safetensors")).unwrap();

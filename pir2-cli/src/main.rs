@@ -351,6 +351,12 @@ struct RunArgs {
     /// measured call latency, so `d` grows with the network.
     #[arg(long)]
     remote_policy: Option<String>,
+    /// Run the fine-tuned action head in candle from this `pir2 train gr00t` step directory
+    /// (model.safetensors + config.json) instead of the checkpoint's ONNX head graphs; the
+    /// checkpoint still gives the backbone, tokenizer, statistics and embodiment (the step's
+    /// run must have the same statistics.json and embodiment.toml).
+    #[arg(long, conflicts_with = "remote_policy")]
+    candle_head: Option<PathBuf>,
     /// With --remote-policy: how long one request may take before it is sent again, ms.
     #[arg(long, default_value_t = 200)]
     policy_timeout_ms: u64,
@@ -452,6 +458,7 @@ impl From<RunArgs> for RunOptions {
             camera_format: a.camera_format,
             remote_slow: a.remote_slow,
             remote_policy: a.remote_policy,
+            candle_head: a.candle_head,
             policy_timeout_ms: a.policy_timeout_ms,
             max_failed_calls: a.max_failed_calls,
             connect_timeout: a.connect_timeout,

@@ -271,6 +271,46 @@ fn trained_head_exports_and_runs_on_the_emulators() {
     assert_eq!(v["mode"]["kind"], "pi_r2_async", "{v}");
     assert_eq!(v["trace"]["ticks"], 25, "{v}");
     assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1, "{v}");
+    assert!(v["head"].as_str().unwrap().contains("ONNX"), "{v}");
+
+    // The same run with the head in candle, straight from the step directory.
+    let candle_run = |step: &Path| {
+        let _ = std::fs::remove_file(&json);
+        pir2(&[
+            OsStr::new("run"),
+            OsStr::new("gr00t-xarm-xhand"),
+            OsStr::new("--checkpoint"),
+            ck.as_os_str(),
+            OsStr::new("--candle-head"),
+            step.as_os_str(),
+            OsStr::new("--task"),
+            OsStr::new("catch_book"),
+            OsStr::new("--emulate"),
+            OsStr::new("--ticks"),
+            OsStr::new("25"),
+            OsStr::new("--json"),
+            json.as_os_str(),
+        ])
+    };
+    let (out, text) = candle_run(&step);
+    assert!(out.status.success(), "run --candle-head: {text}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["mode"]["kind"], "pi_r2_async", "{v}");
+    assert_eq!(v["trace"]["ticks"], 25, "{v}");
+    assert!(v["head"].as_str().unwrap().contains("candle"), "{v}");
+    // A step trained with other statistics than the checkpoint's: refused, naming both.
+    let stats = run.join("statistics.json");
+    let original = std::fs::read_to_string(&stats).unwrap();
+    std::fs::write(&stats, original.replacen("0.", "0.5", 1)).unwrap();
+    let (out, text) = candle_run(&step);
+    eprintln!("{text}");
+    assert!(!out.status.success());
+    assert!(
+        text.contains("statistics.json") && text.contains("differs"),
+        "{text}"
+    );
+    assert!(!text.contains("ticks 25"), "{text}");
 }
 
 #[test]
