@@ -333,7 +333,7 @@ pub fn load_candle_head(
 
 /// The action head a run drives.
 enum RunHead {
-    Onnx(Gr00tActionHead),
+    Onnx(Box<Gr00tActionHead>),
     #[cfg(feature = "candle")]
     Candle(Box<super::Gr00tCandleHead>),
     Custom(Box<dyn VelocityModel>, usize),
@@ -369,15 +369,15 @@ where
         HeadChoice::Local => {
             let embodiment_id = read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?
                 .unwrap_or(cfg.embodiment_id);
-            RunHead::Onnx(Gr00tActionHead::load(
+            RunHead::Onnx(Box::new(Gr00tActionHead::load(
                 &files,
                 &cfg,
                 norm.clone(),
                 embodiment_id,
                 &opts.ort,
-            )?)
+            )?))
         }
-        HeadChoice::Loaded(h) => RunHead::Onnx(*h),
+        HeadChoice::Loaded(h) => RunHead::Onnx(h),
         #[cfg(feature = "candle")]
         HeadChoice::Candle(h) => RunHead::Candle(h),
         HeadChoice::Custom { model, d_vl } => RunHead::Custom(model, d_vl),
@@ -501,7 +501,7 @@ where
     };
     let (metrics, d_vis_counts) = match local {
         RunHead::Onnx(model) => {
-            let (m, model) = drive(model, setup, fast, actuator)?;
+            let (m, model) = drive(*model, setup, fast, actuator)?;
             (m, model.d_vis_counts().to_vec())
         }
         #[cfg(feature = "candle")]
