@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
 source "${PIR2_NATIVE_ENV:-.native/env.sh}"
 rustfmt --check --edition 2021 pir2-backends/src/gr00t/*.rs pir2-backends/tests/gr00t.rs
 # Lib + the gr00t test target (other test targets belong to the backends/ortch owners).
-cargo clippy -p pir2-backends --lib --test gr00t --features gr00t -- -D warnings
+cargo clippy -p pir2-backends --lib --test gr00t --test gr00t_export --features gr00t -- -D warnings
 # Docs: fail on any rustdoc warning inside the gr00t module. (`-D warnings` on the whole crate
 # currently trips over lib.rs's `tch::TchModel` link when feature `tch` is off, which is not ours.)
 doc_log=$(cargo doc -p pir2-backends --features gr00t --no-deps 2>&1)
@@ -22,6 +22,12 @@ if echo "$doc_log" | grep -q -- "--> pir2-backends/src/gr00t/"; then
 fi
 # The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests.
 cargo test -p pir2-backends --features gr00t --lib --test gr00t -- --test-threads=1
+# The ONNX export of a fine-tuned N1.7 head against candle (ONNX Runtime, the reference
+# fixture `alt` with a nonzero delay table), < 1 s.
+cargo test -p pir2-backends --features gr00t --test gr00t_export
 # `pir2 train gr00t` end to end (candle, CPU; needs no ONNX Runtime at run time): a synthetic
 # N1.7-shaped checkpoint, dataset and backbone features; resume bit-identity; input errors.
 cargo test -p pir2-cli --features gr00t --test gr00t_train
+# Issue 20's chain: synthetic N1.7 checkpoint → pir2 train gr00t (2 steps) → pir2 export --gr00t
+# → pir2 run gr00t-xarm-xhand --emulate (25 ticks), and the export's input errors (~5 s).
+cargo test -p pir2-cli --features gr00t --test gr00t_export -- --test-threads=1

@@ -364,6 +364,32 @@ pub fn export(checkpoint: &Path, onnx: &Path) -> Result<()> {
     Ok(())
 }
 
+/// `pir2 export STEP_DIR --gr00t OUT` (see `pir2_cli::study::gr00t::export`).
+pub fn export_gr00t(step: &Path, out: &Path) -> Result<()> {
+    #[cfg(feature = "gr00t")]
+    {
+        let s = crate::study::gr00t::export(step, out)?;
+        println!(
+            "wrote {} (H = {}, d_vis_max = {}, trained as {}): {}",
+            s.out.display(),
+            s.horizon,
+            s.d_vis_max,
+            s.trained,
+            s.files.join(", ")
+        );
+        println!(
+            "add the backbone (onnx/backbone.onnx) and the VLM's tokenizer.json to run it \
+             (docs/gr00t-contract.md)"
+        );
+        Ok(())
+    }
+    #[cfg(not(feature = "gr00t"))]
+    {
+        let _ = (step, out);
+        bail!("export --gr00t needs a pir2 built with feature `gr00t` (--features gr00t)")
+    }
+}
+
 /// `pir2 bench`: `schedule`, `runtime` or `all`, real-time runs of `seconds`.
 pub fn bench(
     what: &str,

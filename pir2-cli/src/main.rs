@@ -245,13 +245,21 @@ enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Export a candle checkpoint (MLP or U-Net) to ONNX for ONNX Runtime deployment.
+    /// Export a candle checkpoint (MLP or U-Net) to ONNX for ONNX Runtime deployment, or
+    /// (`--gr00t`) a `pir2 train gr00t` step directory to the GR00T checkpoint layout.
     Export {
-        /// Checkpoint directory (config.json, stats.json, model.safetensors).
+        /// Checkpoint directory (config.json, stats.json, model.safetensors), or with
+        /// `--gr00t` a `pir2 train gr00t` step directory (model.safetensors + config.json;
+        /// statistics.json and embodiment.toml in the run directory above it).
         checkpoint: PathBuf,
         /// Output ONNX file (must not exist).
+        #[arg(long, required_unless_present = "gr00t", conflicts_with = "gr00t")]
+        onnx: Option<PathBuf>,
+        /// Output GR00T checkpoint directory (docs/gr00t-contract.md: the four action-head
+        /// graphs, pir2_gr00t.safetensors, statistics.json, embodiment.toml); must not exist
+        /// or be empty. Needs a build with `--features gr00t`.
         #[arg(long)]
-        onnx: PathBuf,
+        gr00t: Option<PathBuf>,
     },
     /// Benchmarks printed side by side (schedule, runtime).
     Bench {
@@ -343,6 +351,12 @@ struct RunArgs {
     /// measured call latency, so `d` grows with the network.
     #[arg(long)]
     remote_policy: Option<String>,
+    /// Run the fine-tuned action head in candle from this `pir2 train gr00t` step directory
+    /// (model.safetensors + config.json) instead of the checkpoint's ONNX head graphs; the
+    /// checkpoint still gives the backbone, tokenizer, statistics and embodiment (the step's
+    /// run must have the same statistics.json and embodiment.toml).
+    #[arg(long, conflicts_with = "remote_policy")]
+    candle_head: Option<PathBuf>,
     /// With --remote-policy: how long one request may take before it is sent again, ms.
     #[arg(long, default_value_t = 200)]
     policy_timeout_ms: u64,
@@ -444,6 +458,7 @@ impl From<RunArgs> for RunOptions {
             camera_format: a.camera_format,
             remote_slow: a.remote_slow,
             remote_policy: a.remote_policy,
+            candle_head: a.candle_head,
             policy_timeout_ms: a.policy_timeout_ms,
             max_failed_calls: a.max_failed_calls,
             connect_timeout: a.connect_timeout,
@@ -862,7 +877,15 @@ fn main() -> Result<()> {
         Cmd::Run(args) => run::run_command(&(*args).into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
         Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),
-        Cmd::Export { checkpoint, onnx } => commands::export(&checkpoint, &onnx),
+        Cmd::Export {
+            checkpoint,
+            onnx,
+            gr00t,
+        } => match (onnx, gr00t) {
+            (Some(onnx), None) => commands::export(&checkpoint, &onnx),
+            (None, Some(out)) => commands::export_gr00t(&checkpoint, &out),
+            _ => Err(anyhow::anyhow!("give exactly one of --onnx and --gr00t")),
+        },
         Cmd::Bench {
             what,
             seconds,

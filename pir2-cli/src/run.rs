@@ -72,6 +72,9 @@ pub struct RunOptions {
     /// head is checked before any robot is connected. Each call's round trip is part of the
     /// measured call latency, so `d` grows with the network.
     pub remote_policy: Option<String>,
+    /// Run the fine-tuned head in candle from this `pir2 train gr00t` step directory instead
+    /// of the checkpoint's ONNX head graphs (the checkpoint gives everything else).
+    pub candle_head: Option<PathBuf>,
     /// With --remote-policy: how long one request may take before it is sent again, ms.
     pub policy_timeout_ms: u64,
     /// With --remote-policy: requests in a row without a reply before the run stops the
@@ -312,8 +315,8 @@ mod imp {
 
     use pir2_backends::gr00t::testing::SyntheticCamera;
     use pir2_backends::gr00t::{
-        load_action_head, run_gr00t_report, CheckpointFiles, DeployKind, EmbodimentConfig,
-        Gr00tActionHead, Gr00tRunOptions, HeadChoice, ModeOverrides,
+        load_action_head, load_candle_head, run_gr00t_report, CheckpointFiles, DeployKind,
+        EmbodimentConfig, Gr00tActionHead, Gr00tRunOptions, HeadChoice, ModeOverrides,
     };
     use pir2_robots::emu::{EmulatedArmHand, EmulatedArmHandConfig};
     use pir2_robots::robot::SharedRobot;
@@ -507,7 +510,19 @@ mod imp {
         cfg.policy
             .mode(&mode_overrides(args)?)
             .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
-        let head = head(args, preflight(args)?)?;
+        let head = match &args.candle_head {
+            Some(step) => {
+                let (h, _) = load_candle_head(&args.checkpoint, step, &args.task)
+                    .with_context(|| format!("checking the candle head {}", step.display()))?;
+                Head {
+                    choice: HeadChoice::Candle(Box::new(h)),
+                    what: format!("candle (CPU), from {}", step.display()),
+                    #[cfg(feature = "remote")]
+                    stats: None,
+                }
+            }
+            None => head(args, preflight(args)?)?,
+        };
         let max_ticks = match (args.ticks, args.seconds) {
             (Some(t), _) => Some(t),
             (None, Some(s)) if s > 0.0 => Some((s * cfg.control_hz).round().max(1.0) as u64),

@@ -89,6 +89,8 @@ pub enum DataType {
     Float = 1,
     /// 64-bit signed integer.
     Int64 = 7,
+    /// Boolean (graph inputs only; no initializer of this type is written).
+    Bool = 9,
 }
 
 /// A constant tensor (`TensorProto`), stored little-endian in `raw_data`.
@@ -100,8 +102,22 @@ pub struct TensorProto {
     pub dims: Vec<i64>,
     /// Element type.
     pub data_type: DataType,
-    /// Little-endian element bytes.
+    /// Little-endian element bytes (empty when [`Self::external`] is set).
     pub raw_data: Vec<u8>,
+    /// ONNX external data: the bytes live in the file `location` (relative to the model
+    /// file) at `offset`, `length` bytes long, instead of in `raw_data`.
+    pub external: Option<ExternalData>,
+}
+
+/// Where a tensor's bytes live outside the protobuf (ONNX `external_data`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ExternalData {
+    /// File name relative to the model file.
+    pub location: String,
+    /// Byte offset in that file.
+    pub offset: u64,
+    /// Byte length.
+    pub length: u64,
 }
 
 impl TensorProto {
@@ -117,6 +133,7 @@ impl TensorProto {
             dims: dims.iter().map(|&d| d as i64).collect(),
             data_type: DataType::Float,
             raw_data: raw,
+            external: None,
         }
     }
 
@@ -132,6 +149,7 @@ impl TensorProto {
             dims: dims.iter().map(|&d| d as i64).collect(),
             data_type: DataType::Int64,
             raw_data: raw,
+            external: None,
         }
     }
 
@@ -139,8 +157,27 @@ impl TensorProto {
         put_packed_i64(buf, 1, &self.dims);
         put_int(buf, 2, self.data_type as i64);
         put_str(buf, 8, &self.name);
-        // raw_data must be present even for empty tensors so the type is unambiguous.
-        put_bytes(buf, 9, &self.raw_data);
+        match &self.external {
+            None => {
+                // raw_data must be present even for empty tensors so the type is unambiguous.
+                put_bytes(buf, 9, &self.raw_data);
+            }
+            Some(e) => {
+                // external_data (13): StringStringEntryProto {key = 1, value = 2};
+                // data_location (14): EXTERNAL = 1.
+                for (k, v) in [
+                    ("location", e.location.clone()),
+                    ("offset", e.offset.to_string()),
+                    ("length", e.length.to_string()),
+                ] {
+                    put_msg(buf, 13, |b| {
+                        put_str(b, 1, k);
+                        put_str(b, 2, &v);
+                    });
+                }
+                put_int(buf, 14, 1);
+            }
+        }
     }
 }
 

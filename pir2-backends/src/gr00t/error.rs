@@ -103,6 +103,14 @@ pub enum Gr00tError {
     /// An error of the runtime (driver, robot, camera).
     #[error(transparent)]
     Runtime(#[from] pir2_runtime::Error),
+    /// The candle action head (`Gr00tCandleHead`) failed to load or to run.
+    #[error("candle GR00T N1.7 head `{path}`: {source}")]
+    Candle {
+        /// The step / checkpoint directory of the head.
+        path: std::path::PathBuf,
+        /// What candle reported.
+        source: Box<crate::error::Error>,
+    },
 }
 
 impl Gr00tError {

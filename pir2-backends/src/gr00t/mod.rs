@@ -27,6 +27,8 @@
 //! - [`config`]: the embodiment ([`EmbodimentConfig::xarm6_xhand`]), GR00T statistics,
 //!   checkpoint layout;
 //! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
+//! - `candle_head` (feature `candle`): `Gr00tCandleHead`, the same interface over the candle
+//!   N1.7 head of a `pir2 train gr00t` step directory (no ONNX head graphs);
 //! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
 //!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
 //! - [`tokenizer`]: the VLM's `tokenizer.json` ([`HfTokenizer`]) and GR00T N1.7's chat
@@ -35,6 +37,8 @@
 //! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 pub mod backbone;
+#[cfg(feature = "candle")]
+pub mod candle_head;
 pub mod config;
 pub mod contract;
 pub mod error;
@@ -48,6 +52,8 @@ pub mod weights;
 pub use backbone::{
     build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
 };
+#[cfg(feature = "candle")]
+pub use candle_head::Gr00tCandleHead;
 pub use config::{
     policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupFormat,
     GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection,
@@ -55,6 +61,8 @@ pub use config::{
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
+#[cfg(feature = "candle")]
+pub use run::load_candle_head;
 pub use run::{
     load_action_head, run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport,
     HeadChoice,

@@ -82,6 +82,11 @@ pub enum HeadChoice {
     /// The checkpoint's action head, already loaded (e.g. by a pre-flight check before any
     /// robot was connected); its VL layout is set by the run.
     Loaded(Box<Gr00tActionHead>),
+    /// The fine-tuned head in candle ([`super::Gr00tCandleHead`], from a `pir2 train gr00t`
+    /// step directory, see [`load_candle_head`]) instead of the checkpoint's ONNX head
+    /// graphs; its VL layout is set by the run.
+    #[cfg(feature = "candle")]
+    Candle(Box<super::Gr00tCandleHead>),
     /// Any other model with the checkpoint's interface, e.g. a
     /// `pir2_runtime::remote::RemoteModel` talking to `pir2 serve policy --gr00t-checkpoint`
     /// on another machine. The checkpoint's embodiment and statistics are still read here
@@ -101,6 +106,8 @@ impl std::fmt::Debug for HeadChoice {
         match self {
             HeadChoice::Local => f.write_str("Local"),
             HeadChoice::Loaded(h) => f.debug_tuple("Loaded").field(h.dims()).finish(),
+            #[cfg(feature = "candle")]
+            HeadChoice::Candle(h) => f.debug_tuple("Candle").field(&h.path()).finish(),
             HeadChoice::Custom { model, d_vl } => f
                 .debug_struct("Custom")
                 .field("backend", &model.backend())
@@ -267,6 +274,71 @@ pub fn load_action_head(
     Ok((head, prompt))
 }
 
+/// [`load_action_head`] for the candle head of `step` (a `pir2 train gr00t` step directory)
+/// in place of the checkpoint's ONNX head graphs; the embodiment, statistics, slot and
+/// tokenizer are the checkpoint's. If the step's run (the step directory or the one above it)
+/// has a `statistics.json` or `embodiment.toml`, it must equal the checkpoint's: the head
+/// was trained on those normalisations, and another one would be silently wrong.
+#[cfg(feature = "candle")]
+pub fn load_candle_head(
+    checkpoint_dir: &Path,
+    step: &Path,
+    task: &str,
+) -> Result<(super::Gr00tCandleHead, String)> {
+    let files = CheckpointFiles::in_dir(checkpoint_dir);
+    let cfg = files.embodiment_config()?;
+    cfg.validate()?;
+    let prompt = cfg.prompt_for(task).to_string();
+    if prompt.trim().is_empty() {
+        return Err(Gr00tError::Config("empty task prompt".to_string()));
+    }
+    let root = step.parent().unwrap_or(step);
+    for (name, mine) in [
+        ("statistics.json", &files.statistics),
+        ("embodiment.toml", &files.embodiment),
+    ] {
+        for dir in [step, root] {
+            let theirs = dir.join(name);
+            if !theirs.is_file() {
+                continue;
+            }
+            let a = std::fs::read(&theirs).map_err(|source| Gr00tError::Read {
+                path: theirs.clone(),
+                source,
+            })?;
+            let same = match name {
+                // The run's TOML may differ in layout: compare the parsed configurations.
+                "embodiment.toml" => EmbodimentConfig::load(&theirs)? == cfg,
+                _ => std::fs::read(mine).map(|b| b == a).unwrap_or(false),
+            };
+            if !same {
+                return Err(Gr00tError::Config(format!(
+                    "`{}` differs from the checkpoint's `{}`: the candle head was trained with the former",
+                    theirs.display(),
+                    mine.display()
+                )));
+            }
+            break;
+        }
+    }
+    let norm = Normalizer::load(&files.statistics, &cfg)?;
+    let embodiment_id =
+        read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
+    let mut head = super::Gr00tCandleHead::load(step, &cfg, norm, embodiment_id)?;
+    let tok = load_tokenizer(&files, &cfg.prompt)?;
+    let layout = super::backbone::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
+    head.set_vl_layout(layout);
+    Ok((head, prompt))
+}
+
+/// The action head a run drives.
+enum RunHead {
+    Onnx(Box<Gr00tActionHead>),
+    #[cfg(feature = "candle")]
+    Candle(Box<super::Gr00tCandleHead>),
+    Custom(Box<dyn VelocityModel>, usize),
+}
+
 /// [`run_gr00t`] with the per-`d_vis` call counts and the resolved configuration.
 pub fn run_gr00t_report<F, A, C>(
     checkpoint_dir: &Path,
@@ -293,24 +365,28 @@ where
         return Err(Gr00tError::Config("empty task prompt".to_string()));
     }
     let norm = Normalizer::load(&files.statistics, &cfg)?;
-    let mut local = match opts.head {
+    let mut local: RunHead = match opts.head {
         HeadChoice::Local => {
             let embodiment_id = read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?
                 .unwrap_or(cfg.embodiment_id);
-            Ok(Gr00tActionHead::load(
+            RunHead::Onnx(Box::new(Gr00tActionHead::load(
                 &files,
                 &cfg,
                 norm.clone(),
                 embodiment_id,
                 &opts.ort,
-            )?)
+            )?))
         }
-        HeadChoice::Loaded(h) => Ok(*h),
-        HeadChoice::Custom { model, d_vl } => Err((model, d_vl)),
+        HeadChoice::Loaded(h) => RunHead::Onnx(h),
+        #[cfg(feature = "candle")]
+        HeadChoice::Candle(h) => RunHead::Candle(h),
+        HeadChoice::Custom { model, d_vl } => RunHead::Custom(model, d_vl),
     };
     let (d_vl, vl_tokens) = match &local {
-        Ok(h) => (h.dims().d_vl, h.dims().vl_tokens),
-        Err((_, d_vl)) => (*d_vl, None),
+        RunHead::Onnx(h) => (h.dims().d_vl, h.dims().vl_tokens),
+        #[cfg(feature = "candle")]
+        RunHead::Candle(h) => (h.d_vl(), None),
+        RunHead::Custom(_, d_vl) => (*d_vl, None),
     };
     let mut tokenizer_used = String::new();
     let (encoder, layout): (Box<dyn SlowEncoder>, VlLayout) = match opts.backbone {
@@ -321,8 +397,10 @@ where
             };
             tokenizer_used = tok.describe();
             let d_vl_source = match &local {
-                Ok(_) => files.dit.clone(),
-                Err(_) => "<the custom action head's D_vl>".into(),
+                RunHead::Onnx(_) => files.dit.clone(),
+                #[cfg(feature = "candle")]
+                RunHead::Candle(h) => h.path().join("config.json"),
+                RunHead::Custom(..) => "<the custom action head's D_vl>".into(),
             };
             let bb = Gr00tBackbone::load(
                 &files,
@@ -358,8 +436,11 @@ where
             });
         }
     }
-    if let Ok(h) = &mut local {
-        h.set_vl_layout(layout);
+    match &mut local {
+        RunHead::Onnx(h) => h.set_vl_layout(layout),
+        #[cfg(feature = "candle")]
+        RunHead::Candle(h) => h.set_vl_layout(layout),
+        RunHead::Custom(..) => {}
     }
     let period = cfg.period_ns();
     let spec = HeadSpec {
@@ -419,11 +500,16 @@ where
         stop: opts.stop,
     };
     let (metrics, d_vis_counts) = match local {
-        Ok(model) => {
-            let (m, model) = drive(model, setup, fast, actuator)?;
+        RunHead::Onnx(model) => {
+            let (m, model) = drive(*model, setup, fast, actuator)?;
             (m, model.d_vis_counts().to_vec())
         }
-        Err((inner, _)) => {
+        #[cfg(feature = "candle")]
+        RunHead::Candle(model) => {
+            let (m, model) = drive(*model, setup, fast, actuator)?;
+            (m, model.d_vis_counts().to_vec())
+        }
+        RunHead::Custom(inner, _) => {
             let model = CountDvis {
                 inner,
                 counts: vec![0; cfg.d_vis_max + 1],

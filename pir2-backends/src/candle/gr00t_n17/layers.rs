@@ -143,13 +143,31 @@ fn exp32(x: f32) -> f32 {
     (x as f64).exp() as f32
 }
 
+/// The angular frequencies `ω_k = exp(−k · ln(10⁴)/(w/2))`, `k < w/2`, of
+/// [`action_time_features`] (computed in `f32` as the reference does).
+pub(crate) fn action_time_frequencies(width: usize) -> Vec<f32> {
+    let half = width / 2;
+    let step = (10_000f32).ln() / half as f32;
+    (0..half).map(|k| exp32(-(k as f32) * step)).collect()
+}
+
+/// Half the width of the DiT's timestep features.
+pub(crate) const DIT_TIME_HALF: usize = 128;
+
+/// The angular frequencies `ω_k = exp(−ln(10⁴)·k/127)`, `k < 128`, of [`dit_time_features`].
+pub(crate) fn dit_time_frequencies() -> Vec<f32> {
+    let c = -(10_000f64.ln() as f32);
+    (0..DIT_TIME_HALF)
+        .map(|k| exp32(c * k as f32 / (DIT_TIME_HALF - 1) as f32))
+        .collect()
+}
+
 /// The action encoder's timestep features (GR00T's `SinusoidalPositionalEncoding`):
 /// `[sin(t·ω_k), cos(t·ω_k)]` with `ω_k = exp(−k · ln(10⁴)/(w/2))`, `k < w/2`, in `f32` as the
 /// reference computes them. `t` holds one timestep per row.
 pub(super) fn action_time_features(t: &[f32], width: usize, device: &Device) -> Result<Tensor> {
-    let half = width / 2;
-    let step = (10_000f32).ln() / half as f32;
-    let freqs: Vec<f32> = (0..half).map(|k| exp32(-(k as f32) * step)).collect();
+    let freqs = action_time_frequencies(width);
+    let half = freqs.len();
     let mut out = Vec::with_capacity(t.len() * 2 * half);
     for &tv in t {
         out.extend(freqs.iter().map(|&w| (tv * w).sin()));
@@ -161,11 +179,8 @@ pub(super) fn action_time_features(t: &[f32], width: usize, device: &Device) -> 
 /// The DiT's timestep features (diffusers' `Timesteps(256, flip_sin_to_cos=True,
 /// downscale_freq_shift=1)`): `[cos(t·ω_k), sin(t·ω_k)]`, `ω_k = exp(−ln(10⁴)·k/127)`, `k < 128`.
 pub(super) fn dit_time_features(t: &[f32], device: &Device) -> Result<Tensor> {
-    const HALF: usize = 128;
-    let c = -(10_000f64.ln() as f32);
-    let freqs: Vec<f32> = (0..HALF)
-        .map(|k| exp32(c * k as f32 / (HALF - 1) as f32))
-        .collect();
+    const HALF: usize = DIT_TIME_HALF;
+    let freqs = dit_time_frequencies();
     let mut out = Vec::with_capacity(t.len() * 2 * HALF);
     for &tv in t {
         out.extend(freqs.iter().map(|&w| (tv * w).cos()));
@@ -177,6 +192,15 @@ pub(super) fn dit_time_features(t: &[f32], device: &Device) -> Result<Tensor> {
 /// diffusers' `SinusoidalPositionalEmbedding` table `[rows, dim]`: even columns
 /// `sin(p·ω_j)`, odd columns `cos(p·ω_j)`, `ω_j = exp(2j · (−ln(10⁴)/dim))`.
 pub(super) fn sinusoidal_table(rows: usize, dim: usize, device: &Device) -> Result<Tensor> {
+    Ok(Tensor::from_vec(
+        sinusoidal_table_values(rows, dim),
+        (rows, dim),
+        device,
+    )?)
+}
+
+/// The values of [`sinusoidal_table`], row-major `[rows, dim]`.
+pub(crate) fn sinusoidal_table_values(rows: usize, dim: usize) -> Vec<f32> {
     let c = -(10_000f64.ln() / dim as f64) as f32;
     let div: Vec<f32> = (0..dim.div_ceil(2))
         .map(|j| exp32((2 * j) as f32 * c))
@@ -191,7 +215,7 @@ pub(super) fn sinusoidal_table(rows: usize, dim: usize, device: &Device) -> Resu
             }
         }
     }
-    Ok(Tensor::from_vec(out, (rows, dim), device)?)
+    out
 }
 
 /// diffusers' `Attention` (bias on every projection, no q/k norm): multi-head scaled

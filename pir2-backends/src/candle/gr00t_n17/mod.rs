@@ -76,6 +76,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor, Var, D};
 
 pub use config::{DitConfig, Gr00tN17Config, VlSelfAttentionConfig};
+pub(crate) use layers::{action_time_frequencies, dit_time_frequencies, sinusoidal_table_values};
 pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 
 use crate::error::{Error, Result};
@@ -98,6 +99,97 @@ pub const DELAY_EMBEDDING: &str = "delay_embedding.weight";
 /// decoder, plus the delay table).
 pub fn is_trained(name: &str) -> bool {
     !(name.starts_with("vlln.") || name.starts_with("vl_self_attention."))
+}
+
+/// The name and shape of every tensor the head of configuration `cfg` reads (relative to
+/// [`PREFIX`], without the optional delay table), in load order. With random values of these
+/// shapes, `model.safetensors` (names prefixed with [`PREFIX`]) and `cfg`'s `config.json` make
+/// a loadable synthetic checkpoint.
+pub fn head_tensor_shapes(cfg: &Gr00tN17Config) -> Vec<(String, Vec<usize>)> {
+    type Shapes = Vec<(String, Vec<usize>)>;
+    fn lin(v: &mut Shapes, n: &str, i: usize, o: usize) {
+        v.push((format!("{n}.weight"), vec![o, i]));
+        v.push((format!("{n}.bias"), vec![o]));
+    }
+    fn norm(v: &mut Shapes, n: &str, dim: usize) {
+        v.push((format!("{n}.weight"), vec![dim]));
+        v.push((format!("{n}.bias"), vec![dim]));
+    }
+    /// `(dim, inner, source)` widths; `ada`: AdaLN (DiT) or affine norms (VL stack).
+    fn block(v: &mut Shapes, n: &str, (dim, inner, source): (usize, usize, usize), ada: bool) {
+        if ada {
+            lin(v, &format!("{n}.norm1.linear"), dim, 2 * dim);
+        } else {
+            norm(v, &format!("{n}.norm1"), dim);
+        }
+        lin(v, &format!("{n}.attn1.to_q"), dim, inner);
+        lin(v, &format!("{n}.attn1.to_k"), source, inner);
+        lin(v, &format!("{n}.attn1.to_v"), source, inner);
+        lin(v, &format!("{n}.attn1.to_out.0"), inner, dim);
+        if !ada {
+            norm(v, &format!("{n}.norm3"), dim);
+        }
+        lin(v, &format!("{n}.ff.net.0.proj"), dim, 4 * dim);
+        lin(v, &format!("{n}.ff.net.2"), 4 * dim, dim);
+    }
+    let c = cfg;
+    let (n_emb, d_in, hid, d_vl) = (
+        c.max_num_embodiments,
+        c.input_embedding_dim,
+        c.hidden_size,
+        c.backbone_embedding_dim,
+    );
+    let cat = |v: &mut Shapes, n: &str, i: usize, o: usize| {
+        v.push((format!("{n}.W"), vec![n_emb, i, o]));
+        v.push((format!("{n}.b"), vec![n_emb, o]));
+    };
+    let mut v: Shapes = Vec::new();
+    if c.use_vlln {
+        norm(&mut v, "vlln", d_vl);
+    }
+    if let Some(sa) = &c.vl_self_attention {
+        for i in 0..sa.num_layers {
+            let inner = sa.num_attention_heads * sa.attention_head_dim;
+            let n = format!("vl_self_attention.transformer_blocks.{i}");
+            block(&mut v, &n, (d_vl, inner, d_vl), false);
+        }
+    }
+    cat(&mut v, "state_encoder.layer1", c.state_input_dim(), hid);
+    cat(&mut v, "state_encoder.layer2", hid, d_in);
+    cat(&mut v, "action_encoder.W1", c.max_action_dim, d_in);
+    cat(&mut v, "action_encoder.W2", 2 * d_in, d_in);
+    cat(&mut v, "action_encoder.W3", d_in, d_in);
+    if c.add_pos_embed {
+        v.push((
+            "position_embedding.weight".into(),
+            vec![c.max_seq_len, d_in],
+        ));
+    }
+    let dc = &c.dit;
+    for i in 0..dc.num_layers {
+        let is_cross = !(dc.interleave_self_attention && i % 2 == 1);
+        let n = format!("model.transformer_blocks.{i}");
+        let inner = dc.num_attention_heads * dc.attention_head_dim;
+        let source = if is_cross { d_vl } else { d_in };
+        block(&mut v, &n, (d_in, inner, source), true);
+    }
+    lin(
+        &mut v,
+        "model.timestep_encoder.timestep_embedder.linear_1",
+        256,
+        d_in,
+    );
+    lin(
+        &mut v,
+        "model.timestep_encoder.timestep_embedder.linear_2",
+        d_in,
+        d_in,
+    );
+    lin(&mut v, "model.proj_out_1", d_in, 2 * d_in);
+    lin(&mut v, "model.proj_out_2", d_in, dc.output_dim);
+    cat(&mut v, "action_decoder.layer1", hid, hid);
+    cat(&mut v, "action_decoder.layer2", hid, c.max_action_dim);
+    v
 }
 
 /// GR00T's discrete timestep of the flow time `τ` (0 = noise, 1 = clean):
