@@ -328,6 +328,7 @@ where
                 &files,
                 &cfg.image,
                 &cfg.prompt,
+                &cfg.vision,
                 tok.as_ref(),
                 &prompt,
                 Some((d_vl, d_vl_source)),
