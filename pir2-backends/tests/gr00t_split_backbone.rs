@@ -107,7 +107,10 @@ fn views() -> [View; 2] {
 
 fn max_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 #[test]
@@ -197,7 +200,10 @@ fn backbone_file_sets_are_one_form_or_one_error() {
     std::fs::write(&path, cfg.to_toml().unwrap()).unwrap();
     let e = load(&dir).unwrap_err().to_string();
     assert!(
-        e.contains("vit_fp32.onnx") && e.contains("pixel_values") && e.contains("96") && e.contains("48"),
+        e.contains("vit_fp32.onnx")
+            && e.contains("pixel_values")
+            && e.contains("96")
+            && e.contains("48"),
         "{e}"
     );
     std::fs::remove_dir_all(&dir).ok();

@@ -314,6 +314,12 @@ fn resize_crop(
     Ok(())
 }
 
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| p.display().to_string())
+}
+
 fn layer_norm(x: &mut [f32], d: usize, w: &[f32], b: &[f32]) {
     for row in x.chunks_exact_mut(d) {
         let mean = row.iter().sum::<f32>() / d as f32;
@@ -418,7 +424,9 @@ impl Gr00tBackbone {
             b.bind("D_vl", d, src);
         }
         let core = match files.backbone_form()? {
-            BackboneForm::Fused => Core::Fused(Graph::load(&files.backbone, BACKBONE, opts, &mut b)?),
+            BackboneForm::Fused => {
+                Core::Fused(Graph::load(&files.backbone, BACKBONE, opts, &mut b)?)
+            }
             BackboneForm::Split => Core::Split(Box::new(SplitBackbone::load(
                 files, image, prompt_cfg, vision, tokenizer, &seq, &mut b, opts,
             )?)),
@@ -548,6 +556,18 @@ impl Gr00tBackbone {
 }
 
 impl Gr00tBackbone {
+    /// The graphs run, for run summaries: `` `backbone.onnx` `` or GR00T's split export.
+    pub fn describe(&self) -> String {
+        match &self.core {
+            Core::Fused(g) => format!("`{}`", file_name(g.path())),
+            Core::Split(s) => format!(
+                "GR00T's split export `{}` + `{}` (glued in Rust)",
+                file_name(s.vit_path()),
+                file_name(s.llm_path())
+            ),
+        }
+    }
+
     /// Whether this backbone runs GR00T's split export (else the fused `backbone.onnx`).
     pub fn is_split(&self) -> bool {
         matches!(self.core, Core::Split(_))

@@ -920,7 +920,12 @@ impl CheckpointFiles {
             .and_then(Path::parent)
             .unwrap_or(Path::new("."))
             .to_path_buf();
-        let err = |problem: String| Err(Gr00tError::BackboneFiles { dir: dir.clone(), problem });
+        let err = |problem: String| {
+            Err(Gr00tError::BackboneFiles {
+                dir: dir.clone(),
+                problem,
+            })
+        };
         if fused && (vit || llm) {
             let split: Vec<String> = [(&self.vit, vit), (&self.llm, llm)]
                 .iter()

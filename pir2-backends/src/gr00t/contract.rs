@@ -195,7 +195,11 @@ pub const VIT: GraphSpec = GraphSpec {
         &[Static("patches"), Static("patch_dim")],
     )],
     outputs: &[
-        t("image_embeds", F32, &[Static("image_tokens"), Static("D_vl")]),
+        t(
+            "image_embeds",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
         t(
             "deepstack_features",
             F32,
@@ -217,9 +221,21 @@ pub const LLM: GraphSpec = GraphSpec {
         t("attention_mask", I64, &[Batch, Dynamic("T")]),
         t("position_ids", I64, &[Fixed(3), Batch, Dynamic("T")]),
         opt("visual_pos_masks", Bool, &[Batch, Dynamic("T")]),
-        opt("deepstack_0", F32, &[Static("image_tokens"), Static("D_vl")]),
-        opt("deepstack_1", F32, &[Static("image_tokens"), Static("D_vl")]),
-        opt("deepstack_2", F32, &[Static("image_tokens"), Static("D_vl")]),
+        opt(
+            "deepstack_0",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+        opt(
+            "deepstack_1",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+        opt(
+            "deepstack_2",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
     ],
     outputs: &[t("embeddings", F32, &[Batch, Dynamic("T"), Static("D_vl")])],
 };
@@ -501,7 +517,11 @@ impl Graph {
     }
 
     /// Run with `feeds` and copy each `f32` output `(name, out)` into its buffer.
-    pub fn run_many(&mut self, feeds: Vec<Feed<'_>>, outs: &mut [(&str, &mut Vec<f32>)]) -> Result<()> {
+    pub fn run_many(
+        &mut self,
+        feeds: Vec<Feed<'_>>,
+        outs: &mut [(&str, &mut Vec<f32>)],
+    ) -> Result<()> {
         let path = self.path.clone();
         let run_err = |m: String| Gr00tError::Run {
             path: path.clone(),

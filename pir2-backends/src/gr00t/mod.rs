@@ -53,9 +53,10 @@ pub use backbone::{
     build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
 };
 pub use config::{
-    policy_name, ActionLimits, BackboneForm, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupFormat,
-    GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection,
-    SafetySection, VisionConfig, DEFAULT_SLOW_GRACE_MS, EMBED_TOKENS_KEY, PAPER_TASKS,
+    policy_name, ActionLimits, BackboneForm, CheckpointFiles, DeployKind, EmbodimentConfig, Group,
+    GroupFormat, GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer,
+    PolicySection, SafetySection, VisionConfig, DEFAULT_SLOW_GRACE_MS, EMBED_TOKENS_KEY,
+    PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

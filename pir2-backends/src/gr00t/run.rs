@@ -197,6 +197,9 @@ pub struct Gr00tRunReport {
     pub prompt: String,
     /// The tokenizer the prompt went through (empty with a custom backbone).
     pub tokenizer: String,
+    /// The backbone graphs run (fused `backbone.onnx` or GR00T's split export; "a custom
+    /// encoder" with [`BackboneChoice::Custom`]).
+    pub backbone: String,
     /// The embodiment used.
     pub embodiment: EmbodimentConfig,
     /// The deployment mode run (mode and schedule).
@@ -313,6 +316,7 @@ where
         Err((_, d_vl)) => (*d_vl, None),
     };
     let mut tokenizer_used = String::new();
+    let mut backbone_used = String::from("a custom encoder");
     let (encoder, layout): (Box<dyn SlowEncoder>, VlLayout) = match opts.backbone {
         BackboneChoice::Onnx { tokenizer } => {
             let tok: Box<dyn PromptTokenizer> = match tokenizer {
@@ -334,6 +338,7 @@ where
                 Some((d_vl, d_vl_source)),
                 &opts.ort,
             )?;
+            backbone_used = bb.describe();
             let layout = bb.layout().clone();
             (Box::new(bb), layout)
         }
@@ -438,6 +443,7 @@ where
         d_vis_counts,
         prompt,
         tokenizer: tokenizer_used,
+        backbone: backbone_used,
         embodiment: cfg,
         mode: run_mode,
     })

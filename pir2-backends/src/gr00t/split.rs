@@ -402,6 +402,11 @@ impl SplitBackbone {
         self.vit.path()
     }
 
+    /// The LLM file.
+    pub fn llm_path(&self) -> &Path {
+        self.llm.path()
+    }
+
     /// Run the glue for one frame: `pixels` `[V, 3, s, s]`, the sequence's `attention`
     /// mask; the backbone features `[T, D]` go to `out`.
     pub fn run(&mut self, pixels: &[f32], attention: &[i64], out: &mut Vec<f32>) -> Result<()> {
@@ -457,7 +462,10 @@ impl SplitBackbone {
         self.llm.run_into(feeds, "embeddings", out)?;
         if out.len() != t * d {
             return Err(Gr00tError::input(
-                format!("`{}` output embeddings [1, T, D]", self.llm.path().display()),
+                format!(
+                    "`{}` output embeddings [1, T, D]",
+                    self.llm.path().display()
+                ),
                 t * d,
                 out.len(),
             ));
@@ -475,9 +483,7 @@ mod tests {
     /// grid, each inside vision_start/vision_end; text 2; image token 9, vision_start 7).
     #[test]
     fn position_ids_match_the_public_rule() {
-        let ids = [
-            0, 0, 1, 2, 3, 7, 9, 9, 9, 9, 8, 7, 9, 9, 9, 9, 8, 4, 5,
-        ];
+        let ids = [0, 0, 1, 2, 3, 7, 9, 9, 9, 9, 8, 7, 9, 9, 9, 9, 8, 4, 5];
         let att = [0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1];
         let got = mrope_position_ids(&ids, &att, 9, Some(7), &[(1, 4, 4), (1, 4, 4)], 2).unwrap();
         let golden: [[i64; 19]; 3] = GOLDEN;
@@ -507,7 +513,9 @@ mod tests {
             ..VisionConfig::default()
         };
         let px: Vec<f32> = (0..3)
-            .flat_map(|c| (0..4).flat_map(move |y| (0..4).map(move |x| (100 * c + 10 * y + x) as f32)))
+            .flat_map(|c| {
+                (0..4).flat_map(move |y| (0..4).map(move |x| (100 * c + 10 * y + x) as f32))
+            })
             .collect();
         let mut out = Vec::new();
         patchify(&px, 1, 4, &v, &mut out).unwrap();
