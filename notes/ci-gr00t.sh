@@ -9,9 +9,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # shellcheck disable=SC1091
 source "${PIR2_NATIVE_ENV:-.native/env.sh}"
-rustfmt --check --edition 2021 pir2-backends/src/gr00t/*.rs pir2-backends/tests/gr00t.rs
+rustfmt --check --edition 2021 pir2-backends/src/gr00t/*.rs pir2-backends/tests/gr00t.rs \
+  pir2-backends/tests/gr00t_split_backbone.rs
 # Lib + the gr00t test target (other test targets belong to the backends/ortch owners).
-cargo clippy -p pir2-backends --lib --test gr00t --test gr00t_export --features gr00t -- -D warnings
+cargo clippy -p pir2-backends --lib --test gr00t --test gr00t_export --test gr00t_split_backbone --features gr00t -- -D warnings
 # Docs: fail on any rustdoc warning inside the gr00t module. (`-D warnings` on the whole crate
 # currently trips over lib.rs's `tch::TchModel` link when feature `tch` is off, which is not ours.)
 doc_log=$(cargo doc -p pir2-backends --features gr00t --no-deps 2>&1)
@@ -20,8 +21,9 @@ if echo "$doc_log" | grep -q -- "--> pir2-backends/src/gr00t/"; then
   echo "rustdoc warnings in src/gr00t" >&2
   exit 1
 fi
-# The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests.
-cargo test -p pir2-backends --features gr00t --lib --test gr00t -- --test-threads=1
+# The crate's unit tests (candle, ONNX export, gr00t) and the gr00t integration tests; the
+# split backbone (GR00T's vit/llm export glued in Rust) against its fused composition.
+cargo test -p pir2-backends --features gr00t --lib --test gr00t --test gr00t_split_backbone -- --test-threads=1
 # The ONNX export of a fine-tuned N1.7 head against candle (ONNX Runtime, the reference
 # fixture `alt` with a nonzero delay table), < 1 s.
 cargo test -p pir2-backends --features gr00t --test gr00t_export

@@ -91,7 +91,8 @@ pub fn runtime(seconds: f64) -> Result<String> {
 
 /// `pir2 bench gr00t`: one-NFE latency of a GR00T export's action head (batch 1, on the
 /// execution provider asked for) and the `d` it implies at 25 Hz (the paper's robot rate)
-/// and at the embodiment's rate; with a `backbone.onnx`, the latency of one frame's features
+/// and at the embodiment's rate; with a backbone (`backbone.onnx`, or GR00T's split
+/// `vit_*.onnx` + `llm_*.onnx`), the latency of one frame's features
 /// too (the slow channel's age). Inputs are seeded pseudo-random values of the right shapes.
 #[cfg(feature = "gr00t")]
 pub fn gr00t(
@@ -184,7 +185,7 @@ pub fn gr00t(
             implied(&flow_calls, hz)
         );
     }
-    if files.backbone.exists() {
+    if files.backbone.exists() || files.vit.exists() || files.llm.exists() {
         let (mut bb, _) = Gr00tBackbone::for_checkpoint(checkpoint, task, &ort)
             .with_context(|| format!("loading the backbone of {}", checkpoint.display()))?;
         let (h, w) = (480usize, 640usize);
@@ -201,7 +202,8 @@ pub fn gr00t(
                 .map_err(anyhow::Error::from)
         })?;
         out += &format!(
-            "  backbone, one frame of {} 640×480 view(s): median {:.2} ms, p90 {:.2} ms ({:.1} ticks of feature age at 25 Hz)\n",
+            "  backbone ({}), one frame of {} 640×480 view(s): median {:.2} ms, p90 {:.2} ms ({:.1} ticks of feature age at 25 Hz)\n",
+            bb.describe(),
             views.len(),
             enc.median_ms,
             enc.p90_ms,

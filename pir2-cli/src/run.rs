@@ -891,8 +891,8 @@ mod imp {
                 mode: report.mode,
                 robot: robot.to_string(),
                 slow: format!(
-                    "backbone.onnx on {camera_what} (local slow worker), prompt tokenised by {}",
-                    report.tokenizer
+                    "{} on {camera_what} (local slow worker), prompt tokenised by {}",
+                    report.backbone, report.tokenizer
                 ),
                 head: String::new(),
                 d_vis_counts: report.d_vis_counts,

@@ -405,6 +405,7 @@ mod imp {
         let (bb, prompt) = Gr00tBackbone::for_checkpoint(dir, task, &ort)
             .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
         let (t, d) = bb.output_shape();
+        let what = bb.describe();
         Ok((
             Box::new(SyntheticCamera::with_views(
                 clock.clone(),
@@ -413,7 +414,8 @@ mod imp {
             )),
             Box::new(bb),
             format!(
-                "GR00T backbone.onnx [{t}×{d}] of {} on {}, synthetic camera, prompt {prompt:?}",
+                "GR00T backbone {} [{t}×{d}] of {} on {}, synthetic camera, prompt {prompt:?}",
+                what,
                 dir.display(),
                 ort.provider.describe()
             ),

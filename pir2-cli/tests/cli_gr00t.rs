@@ -7,7 +7,9 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+use pir2_backends::gr00t::testing::{
+    add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint,
+};
 
 fn checkpoint(name: &str, variant: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("pir2-cli-gr00t-{name}-{}", std::process::id()));
@@ -342,7 +344,7 @@ fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay()
         "on CPU",
         "one NFE (batch 1): median",
         "at 25 Hz: πR² (one NFE per call) d = ",
-        "backbone, one frame of 1 640×480 view(s)",
+        "backbone (`backbone.onnx`), one frame of 1 640×480 view(s)",
     ] {
         assert!(text.contains(part), "`{part}` missing: {text}");
     }
@@ -543,5 +545,56 @@ fn relative_arm_actions_run_on_the_emulators() {
         "{text}"
     );
     assert!(!text.contains("warm-up done"), "{text}");
+    std::fs::remove_dir_all(&ck).ok();
+}
+
+/// A checkpoint with GR00T's split backbone export (`vit_fp32.onnx` + `llm_fp32.onnx` + the
+/// token table in `model.safetensors`, tiny stand-ins) instead of a fused `backbone.onnx`:
+/// `pir2 run` and `pir2 bench gr00t` pick it by its files and say so; a half split set is one
+/// error naming the missing file, before any robot.
+#[test]
+fn run_gr00t_takes_gr00ts_split_backbone_export() {
+    use pir2_backends::gr00t::EmbodimentConfig;
+    let ck = checkpoint("split", "");
+    add_bpe_tokenizer(&ck).unwrap();
+    let path = ck.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path).unwrap();
+    cfg.vision.patch_size = 4;
+    std::fs::write(&path, cfg.to_toml().unwrap()).unwrap();
+    write_split_backbone(&ck, "catch the book", "", &python_from_env().unwrap()).unwrap();
+    let (v, text) = emulated_json(&ck, "catch the book", 30, &[]);
+    let slow = v["slow"].as_str().unwrap();
+    assert!(
+        slow.contains("split export `vit_fp32.onnx` + `llm_fp32.onnx`"),
+        "{slow}\n{text}"
+    );
+    assert!(v["camera_frames"].as_u64().unwrap() >= 1, "{v}");
+    assert_eq!(v["trace"]["ticks"], 30);
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args([
+            "bench",
+            "gr00t",
+            "--seconds",
+            "0.1",
+            "--task",
+            "catch the book",
+        ])
+        .arg("--checkpoint")
+        .arg(&ck)
+        .output()
+        .unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{text}");
+    assert!(text.contains("backbone (GR00T's split export"), "{text}");
+    std::fs::remove_file(ck.join("onnx/vit_fp32.onnx")).unwrap();
+    let (out, text) = emulated(&ck, "catch the book", 5, &[]);
+    assert!(!out.status.success(), "{text}");
+    assert!(
+        text.contains("vit_fp32.onnx")
+            && text.contains("missing")
+            && !text.contains("warm-up done"),
+        "{text}"
+    );
     std::fs::remove_dir_all(&ck).ok();
 }

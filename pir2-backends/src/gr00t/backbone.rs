@@ -13,7 +13,9 @@
 //!    [`super::tokenizer`]); with a `vocab.txt`, `image_tokens` image placeholders, then the
 //!    prompt's tokens padded / truncated to `text_tokens` → `input_ids [1, T]`,
 //!    `attention_mask [1, T]` and the [`VlLayout`] the DiT's masks need;
-//! 3. `backbone.onnx` (ViT + LLM, fused by the user: see `docs/gr00t-contract.md`) →
+//! 3. either `backbone.onnx` (ViT + LLM, fused by the user: see `docs/gr00t-contract.md`), or
+//!    GR00T's own `vit_*.onnx` + `llm_*.onnx` with the glue done in Rust ([`super::split`]),
+//!    picked by the files present ([`CheckpointFiles::backbone_form`]) →
 //!    `embeddings [1, T, D_vl]`;
 //! 4. GR00T's `vlln` LayerNorm (if the side weights carry it) and `vl_self_attention.onnx`
 //!    (if present; GR00T's exporter writes it unchanged).
@@ -30,11 +32,14 @@ use std::path::{Path, PathBuf};
 
 use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame, View};
 
-use super::config::{CheckpointFiles, ImageConfig, ImagePipeline, PromptConfig};
+use super::config::{
+    BackboneForm, CheckpointFiles, ImageConfig, ImagePipeline, PromptConfig, VisionConfig,
+};
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
 use super::error::{Gr00tError, Result};
 use super::head::VlLayout;
 use super::image::{gr00t_n17_transform, Rgb};
+use super::split::SplitBackbone;
 use super::tokenizer::{chat_sequence, ChatTemplate};
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
@@ -309,6 +314,12 @@ fn resize_crop(
     Ok(())
 }
 
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|n| n.to_string_lossy().to_string())
+        .unwrap_or_else(|| p.display().to_string())
+}
+
 fn layer_norm(x: &mut [f32], d: usize, w: &[f32], b: &[f32]) {
     for row in x.chunks_exact_mut(d) {
         let mean = row.iter().sum::<f32>() / d as f32;
@@ -320,9 +331,16 @@ fn layer_norm(x: &mut [f32], d: usize, w: &[f32], b: &[f32]) {
     }
 }
 
+/// The ONNX graphs of the backbone: fused, or GR00T's split export.
+#[derive(Debug)]
+enum Core {
+    Fused(Graph),
+    Split(Box<SplitBackbone>),
+}
+
 /// The ONNX backbone (see the module docs).
 pub struct Gr00tBackbone {
-    backbone: Graph,
+    core: Core,
     vl_self_attention: Option<Graph>,
     vlln: Option<(Vec<f32>, Vec<f32>)>,
     image: ImageConfig,
@@ -338,7 +356,7 @@ pub struct Gr00tBackbone {
 impl std::fmt::Debug for Gr00tBackbone {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Gr00tBackbone")
-            .field("backbone", &self.backbone)
+            .field("core", &self.core)
             .field("vl_self_attention", &self.vl_self_attention)
             .field("tokens", &self.seq.ids.len())
             .field("d_vl", &self.d_vl)
@@ -360,6 +378,7 @@ impl Gr00tBackbone {
             &files,
             &cfg.image,
             &cfg.prompt,
+            &cfg.vision,
             tok.as_ref(),
             &prompt,
             None,
@@ -368,13 +387,17 @@ impl Gr00tBackbone {
         Ok((bb, prompt))
     }
 
-    /// Load `backbone.onnx` (+ `vl_self_attention.onnx` if it exists, + `vlln` from the side
-    /// weights if present) and tokenise `prompt`. `d_vl`, when given (the DiT's `D_vl`), must
-    /// match the files.
+    /// Load the backbone graphs — `backbone.onnx`, or GR00T's split `vit_*.onnx` +
+    /// `llm_*.onnx` with the checkpoint's token-embedding table (`vision` says how; see
+    /// [`CheckpointFiles::backbone_form`]) — (+ `vl_self_attention.onnx` if it exists, +
+    /// `vlln` from the side weights if present) and tokenise `prompt`. `d_vl`, when given
+    /// (the DiT's `D_vl`), must match the files.
+    #[allow(clippy::too_many_arguments)]
     pub fn load(
         files: &CheckpointFiles,
         image: &ImageConfig,
         prompt_cfg: &PromptConfig,
+        vision: &VisionConfig,
         tokenizer: &dyn PromptTokenizer,
         prompt: &str,
         d_vl: Option<(usize, PathBuf)>,
@@ -400,7 +423,14 @@ impl Gr00tBackbone {
         if let Some((d, src)) = d_vl {
             b.bind("D_vl", d, src);
         }
-        let backbone = Graph::load(&files.backbone, BACKBONE, opts, &mut b)?;
+        let core = match files.backbone_form()? {
+            BackboneForm::Fused => {
+                Core::Fused(Graph::load(&files.backbone, BACKBONE, opts, &mut b)?)
+            }
+            BackboneForm::Split => Core::Split(Box::new(SplitBackbone::load(
+                files, image, prompt_cfg, vision, tokenizer, &seq, &mut b, opts,
+            )?)),
+        };
         let vl_self_attention = if files.vl_self_attention.exists() {
             Some(Graph::load(
                 &files.vl_self_attention,
@@ -418,7 +448,7 @@ impl Gr00tBackbone {
             None
         };
         Ok(Gr00tBackbone {
-            backbone,
+            core,
             vl_self_attention,
             vlln,
             image: image.clone(),
@@ -493,27 +523,13 @@ impl Gr00tBackbone {
             self.pixels.extend_from_slice(&self.view_pixels);
         }
         let (t, d, c) = (self.seq.ids.len(), self.d_vl, self.image.pixel_side());
-        let mut feeds = vec![
-            feed("pixel_values", &[n, 3, c, c], &self.pixels)?,
-            feed("input_ids", &[1, t], &self.seq.ids)?,
-        ];
-        if self.backbone.declared.has("attention_mask") {
-            feeds.push(feed("attention_mask", &[1, t], &self.seq.attention)?);
-        }
         let mut feats = std::mem::take(&mut self.feats);
-        let r = self.backbone.run_into(feeds, "embeddings", &mut feats);
+        let r = match &mut self.core {
+            Core::Fused(g) => Self::run_fused(g, &self.pixels, &self.seq, (n, c, t, d), &mut feats),
+            Core::Split(s) => s.run(&self.pixels, &self.seq.attention, &mut feats),
+        };
         self.feats = feats;
         r?;
-        if self.feats.len() != t * d {
-            return Err(Gr00tError::input(
-                format!(
-                    "`{}` output embeddings [1,T,D_vl]",
-                    self.backbone.path().display()
-                ),
-                t * d,
-                self.feats.len(),
-            ));
-        }
         if let Some((w, b)) = &self.vlln {
             layer_norm(&mut self.feats, d, w, b);
         }
@@ -536,6 +552,59 @@ impl Gr00tBackbone {
         }
         self.encoded += 1;
         Ok(&self.feats)
+    }
+}
+
+impl Gr00tBackbone {
+    /// The graphs run, for run summaries: `` `backbone.onnx` `` or GR00T's split export.
+    pub fn describe(&self) -> String {
+        match &self.core {
+            Core::Fused(g) => format!("`{}`", file_name(g.path())),
+            Core::Split(s) => format!(
+                "GR00T's split export `{}` + `{}` (glued in Rust)",
+                file_name(s.vit_path()),
+                file_name(s.llm_path())
+            ),
+        }
+    }
+
+    /// Whether this backbone runs GR00T's split export (else the fused `backbone.onnx`).
+    pub fn is_split(&self) -> bool {
+        matches!(self.core, Core::Split(_))
+    }
+
+    /// The multimodal positions the split backbone feeds its LLM (`[3, T]` row-major), or
+    /// `None` for a fused backbone.
+    pub fn position_ids(&self) -> Option<&[i64]> {
+        match &self.core {
+            Core::Split(s) => Some(s.position_ids()),
+            Core::Fused(_) => None,
+        }
+    }
+
+    fn run_fused(
+        g: &mut Graph,
+        pixels: &[f32],
+        seq: &Sequence,
+        (n, c, t, d): (usize, usize, usize, usize),
+        out: &mut Vec<f32>,
+    ) -> Result<()> {
+        let mut feeds = vec![
+            feed("pixel_values", &[n, 3, c, c], pixels)?,
+            feed("input_ids", &[1, t], &seq.ids)?,
+        ];
+        if g.declared.has("attention_mask") {
+            feeds.push(feed("attention_mask", &[1, t], &seq.attention)?);
+        }
+        g.run_into(feeds, "embeddings", out)?;
+        if out.len() != t * d {
+            return Err(Gr00tError::input(
+                format!("`{}` output embeddings [1,T,D_vl]", g.path().display()),
+                t * d,
+                out.len(),
+            ));
+        }
+        Ok(())
     }
 }
 

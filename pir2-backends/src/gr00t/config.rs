@@ -244,6 +244,46 @@ impl Default for PromptConfig {
     }
 }
 
+/// The GR00T checkpoint key of the VLM's token-embedding table (GR00T N1.7:
+/// `Gr00tN1d7.backbone` → `Qwen3Backbone.model` (Qwen3-VL for conditional generation) →
+/// `.model.language_model.embed_tokens`).
+pub const EMBED_TOKENS_KEY: &str = "backbone.model.model.language_model.embed_tokens.weight";
+
+/// How the split backbone turns `pixel_values` into the ViT's patch rows and where it finds
+/// the token-embedding table (the VLM's image processor and GR00T's checkpoint; the defaults
+/// are Cosmos-Reason2-2B's, a Qwen3-VL-2B).
+///
+/// ```toml
+/// [vision]
+/// patch_size = 16           # the image processor's patch_size
+/// temporal_patch_size = 2   # an image is repeated this many times along time
+/// merge_size = 2            # spatial_merge_size: merge_size² patches → one LLM token
+/// embed_tokens_key = "backbone.model.model.language_model.embed_tokens.weight"
+/// ```
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VisionConfig {
+    /// Side of one ViT patch, pixels.
+    pub patch_size: usize,
+    /// Frames per temporal patch (an image is repeated to fill it).
+    pub temporal_patch_size: usize,
+    /// Patches merged per side into one LLM token.
+    pub merge_size: usize,
+    /// Name of the token-embedding table in the checkpoint's safetensors.
+    pub embed_tokens_key: String,
+}
+
+impl Default for VisionConfig {
+    fn default() -> Self {
+        VisionConfig {
+            patch_size: 16,
+            temporal_patch_size: 2,
+            merge_size: 2,
+            embed_tokens_key: EMBED_TOKENS_KEY.to_string(),
+        }
+    }
+}
+
 /// The embodiment: sizes, timing, groups, prompts and the GR00T-specific constants.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EmbodimentConfig {
@@ -280,6 +320,11 @@ pub struct EmbodimentConfig {
     /// Prompt layout.
     #[serde(default)]
     pub prompt: PromptConfig,
+    /// The VLM's vision patching and token table, for the split backbone (GR00T's own
+    /// `vit_*.onnx` + `llm_*.onnx`, see [`super::split`]); unused with a fused
+    /// `backbone.onnx`.
+    #[serde(default)]
+    pub vision: VisionConfig,
     /// Robot-side safety settings (the stale-slow grace, per action group limits).
     #[serde(default)]
     pub safety: SafetySection,
@@ -391,6 +436,7 @@ impl EmbodimentConfig {
                 .collect(),
             image: ImageConfig::default(),
             prompt: PromptConfig::default(),
+            vision: VisionConfig::default(),
             safety: SafetySection::default(),
             policy: PolicySection::default(),
         }
@@ -776,6 +822,27 @@ pub fn read_embodiment_id(path: &Path, tag: &str) -> Result<Option<i64>> {
     Ok(map.get(tag).copied())
 }
 
+/// `onnx/NAME_fp32.onnx`, or `onnx/NAME_bf16.onnx` when only that one exists (GR00T's
+/// exporter names its files by precision; a bf16 file is refused by the contract check).
+fn precision_variant(onnx: &Path, name: &str) -> PathBuf {
+    let fp32 = onnx.join(format!("{name}_fp32.onnx"));
+    let bf16 = onnx.join(format!("{name}_bf16.onnx"));
+    if !fp32.exists() && bf16.exists() {
+        bf16
+    } else {
+        fp32
+    }
+}
+
+/// The two forms of the backbone (see [`CheckpointFiles::backbone_form`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BackboneForm {
+    /// `onnx/backbone.onnx`: ViT + LLM fused by the user.
+    Fused,
+    /// GR00T's own `vit_*.onnx` + `llm_*.onnx`, glued in Rust ([`super::split`]).
+    Split,
+}
+
 /// The files of a checkpoint directory (names relative to it; see `docs/gr00t-contract.md`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct CheckpointFiles {
@@ -793,8 +860,18 @@ pub struct CheckpointFiles {
     pub dit: PathBuf,
     /// Action decoder ONNX.
     pub action_decoder: PathBuf,
-    /// Backbone (ViT + LLM) ONNX.
+    /// Backbone (ViT + LLM) ONNX, fused.
     pub backbone: PathBuf,
+    /// GR00T's ViT export (`full_pipeline`): `onnx/vit_fp32.onnx`, or `onnx/vit_bf16.onnx`
+    /// when only that one exists.
+    pub vit: PathBuf,
+    /// GR00T's LLM export (`full_pipeline`): `onnx/llm_fp32.onnx`, or `onnx/llm_bf16.onnx`
+    /// when only that one exists.
+    pub llm: PathBuf,
+    /// GR00T's checkpoint weights (one file), which hold the VLM's token-embedding table.
+    pub model_weights: PathBuf,
+    /// GR00T's sharded checkpoint index (used instead of `model_weights` when present).
+    pub model_index: PathBuf,
     /// VL self-attention ONNX (optional).
     pub vl_self_attention: PathBuf,
     /// pir2 side weights: delay table, position embedding, `vlln`.
@@ -818,11 +895,79 @@ impl CheckpointFiles {
             dit: onnx.join("dit.onnx"),
             action_decoder: onnx.join("action_decoder.onnx"),
             backbone: onnx.join("backbone.onnx"),
+            vit: precision_variant(&onnx, "vit"),
+            llm: precision_variant(&onnx, "llm"),
+            model_weights: dir.join("model.safetensors"),
+            model_index: dir.join("model.safetensors.index.json"),
             vl_self_attention: onnx.join("vl_self_attention.onnx"),
             weights: dir.join("pir2_gr00t.safetensors"),
             tokenizer: dir.join("tokenizer.json"),
             vocab: dir.join("vocab.txt"),
         }
+    }
+
+    /// Which backbone the checkpoint carries: the fused `backbone.onnx`, or GR00T's split
+    /// ViT + LLM export with the checkpoint's safetensors (for the token-embedding table).
+    /// Both forms present, or a split set with a file missing, is one error naming the
+    /// files; with neither, the fused form is expected (its loader names the missing file).
+    pub fn backbone_form(&self) -> Result<BackboneForm> {
+        let fused = self.backbone.exists();
+        let (vit, llm) = (self.vit.exists(), self.llm.exists());
+        let table = self.model_index.exists() || self.model_weights.exists();
+        let dir = self
+            .backbone
+            .parent()
+            .and_then(Path::parent)
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
+        let err = |problem: String| {
+            Err(Gr00tError::BackboneFiles {
+                dir: dir.clone(),
+                problem,
+            })
+        };
+        if fused && (vit || llm) {
+            let split: Vec<String> = [(&self.vit, vit), (&self.llm, llm)]
+                .iter()
+                .filter(|(_, e)| *e)
+                .map(|(p, _)| format!("`{}`", p.display()))
+                .collect();
+            return err(format!(
+                "both the fused `{}` and the split {} are present; keep one form",
+                self.backbone.display(),
+                split.join(" and ")
+            ));
+        }
+        if !vit && !llm {
+            return Ok(BackboneForm::Fused);
+        }
+        let mut missing = Vec::new();
+        if !vit {
+            missing.push(format!("`{}` (ViT)", self.vit.display()));
+        }
+        if !llm {
+            missing.push(format!("`{}` (LLM)", self.llm.display()));
+        }
+        if !table {
+            missing.push(format!(
+                "`{}` or `{}` (the checkpoint's weights, for the token-embedding table)",
+                self.model_weights.display(),
+                self.model_index.display()
+            ));
+        }
+        if !missing.is_empty() {
+            let present: Vec<String> = [(&self.vit, vit), (&self.llm, llm)]
+                .iter()
+                .filter(|(_, e)| *e)
+                .map(|(p, _)| format!("`{}`", p.display()))
+                .collect();
+            return err(format!(
+                "the split backbone is incomplete: {} present, {} missing",
+                present.join(" and "),
+                missing.join(" and ")
+            ));
+        }
+        Ok(BackboneForm::Split)
     }
 
     /// The checkpoint's embodiment: its `embodiment.toml`, or the built-in xArm6 + XHand

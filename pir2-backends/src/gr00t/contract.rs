@@ -184,6 +184,62 @@ pub const BACKBONE: GraphSpec = GraphSpec {
     outputs: &[t("embeddings", F32, &[Batch, Dynamic("T"), Static("D_vl")])],
 };
 
+/// GR00T's ViT export (`export_onnx_n1d7.py`, `full_pipeline`: `vit_fp32.onnx`): the patch
+/// rows of all images in, the merged image tokens and the deepstack features out. Its grid
+/// is fixed at export, so every size is fixed.
+pub const VIT: GraphSpec = GraphSpec {
+    role: "ViT",
+    inputs: &[t(
+        "pixel_values",
+        F32,
+        &[Static("patches"), Static("patch_dim")],
+    )],
+    outputs: &[
+        t(
+            "image_embeds",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+        t(
+            "deepstack_features",
+            F32,
+            &[Static("deepstack"), Static("image_tokens"), Static("D_vl")],
+        ),
+    ],
+};
+
+/// Deepstack inputs the LLM export may declare, in layer order (GR00T's exporter writes at
+/// most three).
+pub const DEEPSTACK_INPUTS: [&str; 3] = ["deepstack_0", "deepstack_1", "deepstack_2"];
+
+/// GR00T's LLM export (`llm_*.onnx`): the text model cut at `select_layer`, without the
+/// token embedding, returning the last kept layer's hidden states (pre-norm).
+pub const LLM: GraphSpec = GraphSpec {
+    role: "LLM",
+    inputs: &[
+        t("inputs_embeds", F32, &[Batch, Dynamic("T"), Static("D_vl")]),
+        t("attention_mask", I64, &[Batch, Dynamic("T")]),
+        t("position_ids", I64, &[Fixed(3), Batch, Dynamic("T")]),
+        opt("visual_pos_masks", Bool, &[Batch, Dynamic("T")]),
+        opt(
+            "deepstack_0",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+        opt(
+            "deepstack_1",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+        opt(
+            "deepstack_2",
+            F32,
+            &[Static("image_tokens"), Static("D_vl")],
+        ),
+    ],
+    outputs: &[t("embeddings", F32, &[Batch, Dynamic("T"), Static("D_vl")])],
+};
+
 /// Named sizes collected across files, with the file each was first read from.
 #[derive(Debug, Clone, Default)]
 pub struct Bindings {
@@ -458,6 +514,34 @@ impl Graph {
     /// The file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Run with `feeds` and copy each `f32` output `(name, out)` into its buffer.
+    pub fn run_many(
+        &mut self,
+        feeds: Vec<Feed<'_>>,
+        outs: &mut [(&str, &mut Vec<f32>)],
+    ) -> Result<()> {
+        let path = self.path.clone();
+        let run_err = |m: String| Gr00tError::Run {
+            path: path.clone(),
+            message: m,
+        };
+        let outputs = self
+            .session
+            .run(feeds)
+            .map_err(|e| run_err(e.to_string()))?;
+        for (name, out) in outs.iter_mut() {
+            let v = outputs
+                .get(*name)
+                .ok_or_else(|| run_err(format!("no output `{name}`")))?;
+            let (_, data) = v
+                .try_extract_tensor::<f32>()
+                .map_err(|e| run_err(format!("output `{name}`: {e}")))?;
+            out.clear();
+            out.extend_from_slice(data);
+        }
+        Ok(())
     }
 
     /// Run with `feeds` and copy the `f32` output `name` into `out`; returns its shape.

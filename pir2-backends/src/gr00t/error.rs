@@ -56,6 +56,16 @@ pub enum Gr00tError {
         problem: String,
     },
 
+    /// The checkpoint's backbone files do not form one backbone: the fused `backbone.onnx`
+    /// and the split ViT + LLM set both present, or a split set with a file missing.
+    #[error("backbone files of `{dir}`: {problem}")]
+    BackboneFiles {
+        /// The checkpoint directory.
+        dir: PathBuf,
+        /// Which files are present and which are missing.
+        problem: String,
+    },
+
     // ---- ONNX contract ----
     /// An ONNX file does not meet the GR00T export contract (see `docs/gr00t-contract.md`).
     #[error("ONNX model `{path}` breaks the GR00T contract at `{tensor}`: {problem}")]

@@ -12,6 +12,7 @@
 //! | `onnx/dit.onnx`            | `sa_embs [B,1+H,D_in]`, `vl_embs [B,T*,D_vl]`, **`timestep i64 [B,1+H]`**, opt. `image_mask`/`backbone_attention_mask bool [B,T*]` | `output [B,1+H,D_hid]` |
 //! | `onnx/action_decoder.onnx` | `model_output [B,1+H,D_hid]`, `embodiment_id` | `output [B,1+H,A_max]` |
 //! | `onnx/backbone.onnx`       | `pixel_values f32 [B,3,crop,crop]`, `input_ids i64 [B,T*]`, opt. `attention_mask` | `embeddings [B,T*,D_vl]` |
+//! | or `onnx/vit_fp32.onnx` + `onnx/llm_fp32.onnx` + `model.safetensors` | GR00T's own split export, glued in Rust ([`split`]) | |
 //! | `onnx/vl_self_attention.onnx` (optional) | `hidden_states [B,T*,D_vl]` | `output [B,T*,D_vl]` |
 //!
 //! (`*`: may be dynamic.) Bold = the πR² change: timesteps per position instead of per sample
@@ -33,6 +34,8 @@
 //!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
 //! - [`tokenizer`]: the VLM's `tokenizer.json` ([`HfTokenizer`]) and GR00T N1.7's chat
 //!   template ([`ChatTemplate`]);
+//! - [`split`]: GR00T's own ViT + LLM export glued in Rust ([`split::SplitBackbone`]:
+//!   patches, token embedding, image-token scatter, multimodal positions, deepstack);
 //! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`;
 //! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
@@ -45,6 +48,7 @@ pub mod error;
 pub mod head;
 pub mod image;
 pub mod run;
+pub mod split;
 pub mod testing;
 pub mod tokenizer;
 pub mod weights;
@@ -55,9 +59,10 @@ pub use backbone::{
 #[cfg(feature = "candle")]
 pub use candle_head::Gr00tCandleHead;
 pub use config::{
-    policy_name, ActionLimits, CheckpointFiles, DeployKind, EmbodimentConfig, Group, GroupFormat,
-    GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer, PolicySection,
-    SafetySection, DEFAULT_SLOW_GRACE_MS, PAPER_TASKS,
+    policy_name, ActionLimits, BackboneForm, CheckpointFiles, DeployKind, EmbodimentConfig, Group,
+    GroupFormat, GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer,
+    PolicySection, SafetySection, VisionConfig, DEFAULT_SLOW_GRACE_MS, EMBED_TOKENS_KEY,
+    PAPER_TASKS,
 };
 pub use error::{Gr00tError, Result};
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};

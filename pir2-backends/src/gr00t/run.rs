@@ -204,6 +204,9 @@ pub struct Gr00tRunReport {
     pub prompt: String,
     /// The tokenizer the prompt went through (empty with a custom backbone).
     pub tokenizer: String,
+    /// The backbone graphs run (fused `backbone.onnx` or GR00T's split export; "a custom
+    /// encoder" with [`BackboneChoice::Custom`]).
+    pub backbone: String,
     /// The embodiment used.
     pub embodiment: EmbodimentConfig,
     /// The deployment mode run (mode and schedule).
@@ -389,6 +392,7 @@ where
         RunHead::Custom(_, d_vl) => (*d_vl, None),
     };
     let mut tokenizer_used = String::new();
+    let mut backbone_used = String::from("a custom encoder");
     let (encoder, layout): (Box<dyn SlowEncoder>, VlLayout) = match opts.backbone {
         BackboneChoice::Onnx { tokenizer } => {
             let tok: Box<dyn PromptTokenizer> = match tokenizer {
@@ -406,11 +410,13 @@ where
                 &files,
                 &cfg.image,
                 &cfg.prompt,
+                &cfg.vision,
                 tok.as_ref(),
                 &prompt,
                 Some((d_vl, d_vl_source)),
                 &opts.ort,
             )?;
+            backbone_used = bb.describe();
             let layout = bb.layout().clone();
             (Box::new(bb), layout)
         }
@@ -523,6 +529,7 @@ where
         d_vis_counts,
         prompt,
         tokenizer: tokenizer_used,
+        backbone: backbone_used,
         embodiment: cfg,
         mode: run_mode,
     })

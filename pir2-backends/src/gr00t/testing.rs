@@ -8,7 +8,10 @@
 //! stack (contract checks, action head, backbone, the real-time driver, the CLI) can be run end
 //! to end without weights. Used by `pir2-backends/tests/gr00t.rs` and the `pir2-cli` tests.
 //! [`add_bpe_tokenizer`] gives such a checkpoint a small BPE `tokenizer.json` (the format of
-//! GR00T's VLM tokenizer) in place of its `vocab.txt`.
+//! GR00T's VLM tokenizer) in place of its `vocab.txt`. [`write_split_backbone`] replaces its
+//! fused `backbone.onnx` with stand-ins of GR00T's split export (`vit_fp32.onnx`,
+//! `llm_fp32.onnx`, the token table in `model.safetensors`) and writes their fused
+//! composition next to them.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -17,7 +20,8 @@ use std::time::Duration;
 
 use pir2_runtime::{Clock, SlowFrame, SlowSource, View};
 
-use super::config::EmbodimentConfig;
+use super::backbone::build_sequence;
+use super::config::{CheckpointFiles, EmbodimentConfig};
 use super::error::{Gr00tError, Result};
 use super::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
 
@@ -210,6 +214,79 @@ pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result
             ("vlln.bias", vec![D_VL], vec![0.0; D_VL]),
         ],
     )
+}
+
+/// The split-backbone generator (`make_split_backbone.py SPEC.json OUTDIR [VARIANT]`).
+pub const MAKE_SPLIT_BACKBONE_PY: &str = include_str!("make_split_backbone.py");
+
+/// Rows of the synthetic token-embedding table (covers the BPE fixture's ids).
+pub const SPLIT_VOCAB: usize = 512;
+
+/// Give the tiny checkpoint in `dir` stand-ins of GR00T's split backbone export for the
+/// prompt `prompt` (its embodiment, tokenizer and `vision` section as they are in `dir`):
+/// `onnx/vit_fp32.onnx`, `onnx/llm_fp32.onnx` and `model.safetensors` (the token table under
+/// `vision.embed_tokens_key`), made by [`MAKE_SPLIT_BACKBONE_PY`] with `python`; removes
+/// `onnx/backbone.onnx` and writes the fused composition of the stand-ins, for that prompt's
+/// sequence, as `fused_backbone.onnx` in `dir` (move it to `onnx/backbone.onnx` for a fused
+/// checkpoint). `variant` `wrong_name` / `wrong_width` breaks the LLM. Returns the
+/// multimodal positions of the sequence by the generator's Python transcription of the
+/// public rule, `[3][T]`.
+pub fn write_split_backbone(
+    dir: &Path,
+    prompt: &str,
+    variant: &str,
+    python: &Path,
+) -> Result<Vec<Vec<i64>>> {
+    let files = CheckpointFiles::in_dir(dir);
+    let cfg = files.embodiment_config()?;
+    let tok = super::tokenizer::load_tokenizer(&files, &cfg.prompt)?;
+    let seq = build_sequence(tok.as_ref(), cfg.prompt_for(prompt), &cfg.prompt)?;
+    let vision_start = match tok.chat_template() {
+        Some(chat) => match tok.encode(&chat.image_begin)?[..] {
+            [id] => Some(id),
+            _ => None,
+        },
+        None => None,
+    };
+    let spec = serde_json::json!({
+        "ids": seq.ids,
+        "attention": seq.attention,
+        "image_token": tok.image_token_id(),
+        "vision_start": vision_start,
+        "views": cfg.prompt.chat.images,
+        "side": cfg.image.pixel_side(),
+        "patch": cfg.vision.patch_size,
+        "temporal": cfg.vision.temporal_patch_size,
+        "merge": cfg.vision.merge_size,
+        "d": D_VL,
+        "image_tokens": cfg.prompt.image_tokens,
+        "vocab": SPLIT_VOCAB,
+        "key": cfg.vision.embed_tokens_key,
+    });
+    let spec_path = dir.join("split_spec.json");
+    std::fs::write(&spec_path, spec.to_string()).map_err(io("writing", &spec_path))?;
+    let script = dir.join("make_split_backbone.py");
+    std::fs::write(&script, MAKE_SPLIT_BACKBONE_PY).map_err(io("writing", &script))?;
+    let out = std::process::Command::new(python)
+        .arg(&script)
+        .arg(&spec_path)
+        .arg(dir)
+        .arg(variant)
+        .output()
+        .map_err(|e| Gr00tError::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
+    let _ = std::fs::remove_file(&script);
+    let _ = std::fs::remove_file(&spec_path);
+    if !out.status.success() {
+        return Err(Gr00tError::Fixture(format!(
+            "make_split_backbone.py failed ({}): {}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        )));
+    }
+    let _ = std::fs::remove_file(&files.backbone);
+    let pos_path = dir.join("position_ids.json");
+    let text = std::fs::read_to_string(&pos_path).map_err(io("reading", &pos_path))?;
+    serde_json::from_str(&text).map_err(|e| Gr00tError::Fixture(format!("position_ids.json: {e}")))
 }
 
 /// A synthetic 640×480 RGB camera: a horizontal gradient whose brightness changes every

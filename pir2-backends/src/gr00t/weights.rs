@@ -161,3 +161,135 @@ pub fn write_f32(path: &Path, tensors: &[(&str, Vec<usize>, Vec<f32>)]) -> Resul
         message: e.to_string(),
     })
 }
+
+/// The rows `ids` of the `[vocab, D]` table `key` in a GR00T checkpoint's safetensors, as
+/// `f32` `[ids.len(), D]` (plus `D`). `index` (`model.safetensors.index.json`, used when it
+/// exists) names the shard holding `key`; else the table is read from `single`
+/// (`model.safetensors`). Only the header and the requested rows are read, so a
+/// 150k-token table costs `ids.len()` rows of memory. F32 and BF16 tables are accepted; an
+/// id outside the table is an error naming the id.
+pub fn read_table_rows(
+    index: &Path,
+    single: &Path,
+    key: &str,
+    ids: &[i64],
+) -> Result<(usize, Vec<f32>)> {
+    let file = if index.exists() {
+        let text = std::fs::read_to_string(index).map_err(|source| Gr00tError::Read {
+            path: index.to_path_buf(),
+            source,
+        })?;
+        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+            path: index.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        let shard = v
+            .get("weight_map")
+            .and_then(|m| m.get(key))
+            .and_then(|s| s.as_str())
+            .ok_or_else(|| Gr00tError::Weights {
+                path: index.to_path_buf(),
+                tensor: key.to_string(),
+                problem: "is not in the index's weight_map (set `vision.embed_tokens_key` of \
+                          the embodiment config to the table's name)"
+                    .into(),
+            })?;
+        if shard.contains("..") || Path::new(shard).is_absolute() {
+            return Err(Gr00tError::Parse {
+                path: index.to_path_buf(),
+                message: format!("shard `{shard}` of `{key}` is not a file next to the index"),
+            });
+        }
+        index.with_file_name(shard)
+    } else {
+        single.to_path_buf()
+    };
+    read_rows_from(&file, key, ids)
+}
+
+fn read_rows_from(path: &Path, key: &str, ids: &[i64]) -> Result<(usize, Vec<f32>)> {
+    use std::io::{Read, Seek, SeekFrom};
+    let io = |source| Gr00tError::Read {
+        path: path.to_path_buf(),
+        source,
+    };
+    let parse = |message: String| Gr00tError::Parse {
+        path: path.to_path_buf(),
+        message,
+    };
+    let bad = |problem: String| Gr00tError::Weights {
+        path: path.to_path_buf(),
+        tensor: key.to_string(),
+        problem,
+    };
+    let mut f = std::fs::File::open(path).map_err(io)?;
+    let file_len = f.metadata().map_err(io)?.len();
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n).map_err(io)?;
+    let header_len = u64::from_le_bytes(n);
+    if header_len > 100_000_000 || 8 + header_len > file_len {
+        return Err(parse(format!(
+            "safetensors header of {header_len} bytes does not fit the file"
+        )));
+    }
+    let mut header = vec![0u8; header_len as usize];
+    f.read_exact(&mut header).map_err(io)?;
+    let header: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| parse(format!("header: {e}")))?;
+    let entry = header.get(key).ok_or_else(|| {
+        bad("is missing (set `vision.embed_tokens_key` of the embodiment config to the table's name)".into())
+    })?;
+    let dtype = entry.get("dtype").and_then(|d| d.as_str()).unwrap_or("");
+    let shape: Vec<u64> = entry
+        .get("shape")
+        .and_then(|s| s.as_array())
+        .map(|a| a.iter().filter_map(|x| x.as_u64()).collect())
+        .unwrap_or_default();
+    let offsets: Vec<u64> = entry
+        .get("data_offsets")
+        .and_then(|s| s.as_array())
+        .map(|a| a.iter().filter_map(|x| x.as_u64()).collect())
+        .unwrap_or_default();
+    let width = match dtype {
+        "F32" => 4u64,
+        "BF16" => 2,
+        other => return Err(bad(format!("has dtype {other:?}, expected F32 or BF16"))),
+    };
+    let [rows, d] = shape[..] else {
+        return Err(bad(format!("has shape {shape:?}, expected [vocab, D]")));
+    };
+    let [start, end] = offsets[..] else {
+        return Err(parse(format!("tensor `{key}` has no data_offsets")));
+    };
+    let data_start = 8 + header_len + start;
+    if end < start || end - start != rows * d * width || data_start + (end - start) > file_len {
+        return Err(bad(format!(
+            "data [{start}, {end}) does not hold {rows}×{d} {dtype} values in the file"
+        )));
+    }
+    let d = d as usize;
+    let mut out = Vec::with_capacity(ids.len() * d);
+    let mut row = vec![0u8; d * width as usize];
+    for &id in ids {
+        if id < 0 || id as u64 >= rows {
+            return Err(bad(format!(
+                "has {rows} rows; token id {id} is outside it (tokenizer and checkpoint differ?)"
+            )));
+        }
+        f.seek(SeekFrom::Start(data_start + id as u64 * d as u64 * width))
+            .map_err(io)?;
+        f.read_exact(&mut row).map_err(io)?;
+        if width == 4 {
+            out.extend(
+                row.chunks_exact(4)
+                    .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+            );
+        } else {
+            out.extend(
+                row.chunks_exact(2)
+                    .map(|c| f32::from_bits((u16::from_le_bytes([c[0], c[1]]) as u32) << 16)),
+            );
+        }
+    }
+    Ok((d, out))
+}
