@@ -246,12 +246,7 @@ impl Gr00tCandleHead {
         })()
         .map_err(|e| self.candle(e))?;
         out.copy_from_slice(&v);
-        if let Some(i) = out.iter().position(|x| !x.is_finite()) {
-            return Err(Gr00tError::Runtime(pir2_runtime::Error::NonFinite {
-                index: i,
-            }));
-        }
-        Ok(())
+        super::head::ensure_finite(out)
     }
 }
 

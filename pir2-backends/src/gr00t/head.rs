@@ -489,12 +489,17 @@ impl Gr00tActionHead {
                     .copy_from_slice(&self.dec[src..src + a]);
             }
         }
-        if let Some(i) = out.iter().position(|x| !x.is_finite()) {
-            return Err(Gr00tError::Runtime(pir2_runtime::Error::NonFinite {
-                index: i,
-            }));
-        }
-        Ok(())
+        ensure_finite(out)
+    }
+}
+
+/// The velocity a head returns must be finite: the first bad index is one error.
+pub(super) fn ensure_finite(out: &[f32]) -> Result<()> {
+    match out.iter().position(|x| !x.is_finite()) {
+        Some(index) => Err(Gr00tError::Runtime(pir2_runtime::Error::NonFinite {
+            index,
+        })),
+        None => Ok(()),
     }
 }
 
