@@ -190,7 +190,7 @@ enum Cmd {
         /// the dataset's video features in view order.
         #[arg(long)]
         embodiment: Option<PathBuf>,
-        /// Output safetensors file (`embeddings` [N,T,D_vl], `image_mask`, `attention_mask`).
+        /// Output safetensors file (`embeddings` `[N,T,D_vl]`, `image_mask`, `attention_mask`).
         #[arg(long)]
         out: PathBuf,
         /// Continue an interrupted run (OUT.partial and OUT.partial.json).

@@ -22,7 +22,8 @@
 //! `frame.to_ndarray(format="rgb24")` (LeRobot's decoding backend) does, with the same
 //! libswscale defaults; the test compares both. FFmpeg decodes every codec LeRobot writes
 //! (AV1, its default since v3.0, through libdav1d; H.264 of older sets; HEVC), which no
-//! pure-Rust decoder does today. A missing `ffmpeg` is one [`Error::FfmpegMissing`].
+//! pure-Rust decoder does today. A missing `ffmpeg`, or one older than 5.1 (no
+//! `-fps_mode`), is one [`Error::FfmpegMissing`].
 //!
 //! Frames are read in order. A stream is started at a seek point shortly before the first
 //! frame asked for (`-ss`, input side) and read forward; asking for an earlier time or for
@@ -519,11 +520,33 @@ pub fn check_ffmpeg(program: &Path) -> Result<String> {
             source: std::io::Error::other(format!("`-version` exited with {}", out.status)),
         });
     }
-    Ok(String::from_utf8_lossy(&out.stdout)
+    let first = String::from_utf8_lossy(&out.stdout)
         .lines()
         .next()
         .unwrap_or("")
-        .to_string())
+        .to_string();
+    if let Some((major, minor)) = ffmpeg_version(&first) {
+        if (major, minor) < (5, 1) {
+            return Err(Error::FfmpegMissing {
+                program: program.to_path_buf(),
+                source: std::io::Error::other(format!(
+                    "it is version {major}.{minor}; at least 5.1 is needed (`-fps_mode`)"
+                )),
+            });
+        }
+    }
+    Ok(first)
+}
+
+/// `(major, minor)` of an `ffmpeg -version` first line (`ffmpeg version 5.1.9-0+deb12u1 …`);
+/// `None` for a version that is not numbered (a development build).
+fn ffmpeg_version(line: &str) -> Option<(u32, u32)> {
+    let v = line.split("version ").nth(1)?.split_whitespace().next()?;
+    let v = v.trim_start_matches('n');
+    let mut it = v.split(|c: char| !c.is_ascii_digit());
+    let major = it.next()?.parse().ok()?;
+    let minor = it.next().and_then(|m| m.parse().ok()).unwrap_or(0);
+    Some((major, minor))
 }
 
 enum Msg {
@@ -872,6 +895,26 @@ mod tests {
         };
         let ds = super::super::read_selected(&fixture(), &sel).unwrap();
         assert_eq!(ds.total_frames(), 12);
+    }
+
+    #[test]
+    fn ffmpeg_versions_are_read_from_the_version_line() {
+        assert_eq!(
+            ffmpeg_version("ffmpeg version 5.1.9-0+deb12u1 Copyright (c) 2000-2026"),
+            Some((5, 1))
+        );
+        assert_eq!(
+            ffmpeg_version("ffmpeg version n7.1 Copyright"),
+            Some((7, 1))
+        );
+        assert_eq!(
+            ffmpeg_version("ffmpeg version 4.4.2-0ubuntu0.22.04.1"),
+            Some((4, 4))
+        );
+        assert_eq!(
+            ffmpeg_version("ffmpeg version N-113441-g8b3d2b9 Copyright"),
+            None
+        );
     }
 
     #[test]
