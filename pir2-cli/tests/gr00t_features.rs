@@ -388,6 +388,45 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
         assert!(err < 1e-5, "token {tok_i}: deployment vs features {err}");
     }
 
+    // Bad inputs: one error each, naming what is wrong, and no output.
+    let bad = root.join("bad.safetensors");
+    let bad_emb = root.join("bad.toml");
+    let mut no_cams = cfg.clone();
+    no_cams.cameras.clear();
+    std::fs::write(&bad_emb, no_cams.to_toml().unwrap()).unwrap();
+    let mut a = args(&bad, &[]);
+    a[7] = bad_emb.clone().into();
+    let o = run(a.clone());
+    assert!(
+        !o.status.success() && text(&o).contains("`cameras` names no camera view"),
+        "{}",
+        text(&o)
+    );
+    let mut top = cfg.clone();
+    top.cameras[1] = "observation.images.top".into();
+    std::fs::write(&bad_emb, top.to_toml().unwrap()).unwrap();
+    let o = run(a);
+    let t = text(&o);
+    assert!(
+        !o.status.success() && t.contains("observation.images.top") && t.contains(VIEWS[1]),
+        "{t}"
+    );
+    let o = {
+        let a = args(&bad, &[]);
+        Command::new(env!("CARGO_BIN_EXE_pir2"))
+            .args(&a)
+            .env("PIR2_FFMPEG", root.join("no-such-ffmpeg"))
+            .output()
+            .unwrap()
+    };
+    let t = text(&o);
+    println!("{t}");
+    assert!(
+        !o.status.success() && t.contains("no-such-ffmpeg") && t.contains("FFmpeg"),
+        "{t}"
+    );
+    assert!(!bad.exists() && !partial_path(&bad).exists());
+
     // An existing output is not replaced without --overwrite; with it, the same bytes.
     let o = run(args(&feats, &[]));
     assert!(
