@@ -11,7 +11,10 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint_with_width};
+use pir2_backends::gr00t::testing::{
+    add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint,
+    write_tiny_checkpoint_with_width,
+};
 use pir2_backends::gr00t::{
     load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, Group, GroupFormat, Norm,
 };
@@ -503,4 +506,85 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
     println!("{t}");
     assert!(o.status.success(), "{t}");
     assert!(out.join("step-000002/model.safetensors").exists(), "{t}");
+}
+
+/// GR00T's split export (ViT + LLM glued in Rust) with the BPE tokenizer and the chat
+/// template, the embodiment taken from the checkpoint (no `--embodiment`): every row equals
+/// the split backbone run directly on the decoded frames with the episode's task (the prompt
+/// changes between the episodes: the token-table rows and positions are re-read).
+#[test]
+fn split_backbone_features_equal_the_split_backbone_on_the_frames() {
+    let dir = Scratch::new("gr00t-features-split");
+    let root = dir.path();
+    let python = python_from_env().unwrap();
+    let ck = root.join("ck");
+    write_tiny_checkpoint(&ck, "", &python).unwrap();
+    add_bpe_tokenizer(&ck).unwrap();
+    let path = ck.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path).unwrap();
+    cfg.prompt.chat.images = 2;
+    cfg.prompt.image_tokens = 8;
+    cfg.vision.patch_size = 4;
+    cfg.vision.temporal_patch_size = 2;
+    cfg.vision.merge_size = 2;
+    cfg.cameras = VIEWS.map(String::from).to_vec();
+    std::fs::write(&path, cfg.to_toml().unwrap()).unwrap();
+    write_split_backbone(&ck, "pick the cube", "", &python).unwrap();
+    let data_dir = root.join("data");
+    copy_dir(&fixture(), &data_dir);
+    let out = root.join("split.safetensors");
+    let s = extract(&Gr00tFeaturesOptions::new(&ck, &data_dir, &out), |_| {}).unwrap();
+    assert!(s.complete && s.backbone.contains("split export"), "{s:?}");
+    let tensors = candle_core::safetensors::load(&out, &candle_core::Device::Cpu).unwrap();
+    let (n, t, d) = s.shape;
+    assert_eq!(n, 12);
+    let rows: Vec<Vec<f32>> = tensors["embeddings"]
+        .reshape((n, t * d))
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+    let files = CheckpointFiles::in_dir(&ck);
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    let data = VideoDataset::open(&data_dir).unwrap();
+    let mut readers: Vec<FrameReader> = VIEWS
+        .iter()
+        .map(|_| FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S))
+        .collect();
+    let mut g = 0;
+    for ep in &data.episodes {
+        let mut bb = Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &cfg.vision,
+            tok.as_ref(),
+            data.task(ep, 0),
+            None,
+            &OrtOptions::default(),
+        )
+        .unwrap();
+        assert!(bb.is_split());
+        for f in 0..ep.len() {
+            let views: Vec<(Vec<u8>, (usize, usize))> = readers
+                .iter_mut()
+                .zip(VIEWS)
+                .map(|(r, k)| {
+                    let fr = r.frame(&data, k, ep, f).unwrap();
+                    (fr.rgb.clone(), fr.hw)
+                })
+                .collect();
+            let refs: Vec<(&[u8], (usize, usize))> =
+                views.iter().map(|(v, hw)| (v.as_slice(), *hw)).collect();
+            let want = bb.backbone_embeddings(&refs).unwrap();
+            assert!(
+                want.iter()
+                    .zip(&rows[g])
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "row {g} (episode {}, frame {f}) differs from the split backbone",
+                ep.episode_index
+            );
+            g += 1;
+        }
+    }
+    assert_eq!(g, n);
 }
