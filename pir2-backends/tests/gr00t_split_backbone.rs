@@ -155,6 +155,57 @@ fn split_backbone_equals_the_fused_composition() {
     std::fs::remove_dir_all(&fused_dir).ok();
 }
 
+/// `set_prompt` (a new task for an already loaded backbone, as `pir2 features gr00t` does
+/// between episodes) gives bit for bit what a backbone loaded with that prompt gives: the
+/// split form re-reads the token-table rows and recomputes the positions.
+#[test]
+fn a_new_prompt_equals_a_backbone_loaded_with_it() {
+    let (dir, _) = split_fixture("prompt", "", |_| {});
+    let files = CheckpointFiles::in_dir(&dir);
+    let cfg = files.embodiment_config().unwrap();
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    let other = "Put the ball in the bowl";
+    let load_with = |prompt: &str| {
+        Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &cfg.vision,
+            tok.as_ref(),
+            prompt,
+            None,
+            &OrtOptions::default(),
+        )
+        .unwrap()
+    };
+    let frame = views();
+    let px: Vec<(&[u8], (usize, usize))> =
+        frame.iter().map(|v| (v.image.as_slice(), v.hw)).collect();
+    let mut bb = load_with(PROMPT);
+    assert!(bb.is_split());
+    let a = bb.backbone_embeddings(&px).unwrap().to_vec();
+    let mut fresh = load_with(other);
+    let want = fresh.backbone_embeddings(&px).unwrap().to_vec();
+    bb.set_prompt(&files, &cfg.prompt, tok.as_ref(), other)
+        .unwrap();
+    assert_eq!(bb.sequence(), fresh.sequence());
+    assert_eq!(bb.position_ids(), fresh.position_ids());
+    let b = bb.backbone_embeddings(&px).unwrap().to_vec();
+    assert!(
+        b.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()),
+        "set_prompt differs from a fresh load"
+    );
+    assert!(max_diff(&a, &b) > 1e-3, "the prompt reaches the features");
+    bb.set_prompt(&files, &cfg.prompt, tok.as_ref(), PROMPT)
+        .unwrap();
+    assert_eq!(bb.backbone_embeddings(&px).unwrap(), a.as_slice());
+    // The deployment output is the backbone's with vlln and the VL self-attention on top.
+    let deployed = bb.encode_views(&frame).unwrap().to_vec();
+    assert_eq!(deployed.len(), a.len());
+    assert!(max_diff(&deployed, &a) > 1e-3);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn backbone_file_sets_are_one_form_or_one_error() {
     let (dir, _) = split_fixture("files", "", |_| {});

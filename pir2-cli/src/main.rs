@@ -170,6 +170,43 @@ enum Cmd {
         #[arg(long, default_value = "action")]
         action_key: String,
     },
+    /// Precompute a frozen backbone's features over a dataset's camera videos. `gr00t`: GR00T
+    /// N1.7's backbone (the checkpoint's ONNX backbone and tokenizer, run as `pir2 run` runs
+    /// them) on every frame of a LeRobotDataset v3.0, written as the `--features` file of
+    /// `pir2 train gr00t` (needs a build with `--features gr00t` and the `ffmpeg` program).
+    Features {
+        /// Which backbone.
+        #[arg(value_parser = ["gr00t"])]
+        what: String,
+        /// The GR00T checkpoint directory (docs/gr00t-contract.md): `onnx/backbone.onnx`, or
+        /// `onnx/vit_fp32.onnx` + `onnx/llm_fp32.onnx` + `model.safetensors`, and
+        /// `tokenizer.json` (a GR00T N1.7 directory with those added).
+        #[arg(long)]
+        checkpoint: PathBuf,
+        /// Dataset directory (LeRobotDataset v3.0 with the camera videos).
+        #[arg(long)]
+        data: PathBuf,
+        /// The embodiment file (default: the checkpoint's embodiment.toml); `cameras` names
+        /// the dataset's video features in view order.
+        #[arg(long)]
+        embodiment: Option<PathBuf>,
+        /// Output safetensors file (`embeddings` `[N,T,D_vl]`, `image_mask`, `attention_mask`).
+        #[arg(long)]
+        out: PathBuf,
+        /// Continue an interrupted run (OUT.partial and OUT.partial.json).
+        #[arg(long)]
+        resume: bool,
+        /// Replace an existing output file.
+        #[arg(long)]
+        overwrite: bool,
+        /// Largest distance between a frame's timestamp and the decoded video frame, s
+        /// (LeRobot's tolerance_s).
+        #[arg(long, default_value_t = 1e-4)]
+        tolerance_s: f64,
+        /// ONNX Runtime intra-op threads of the backbone.
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
+    },
     /// Evaluate a checkpoint in every mode that fits it, at each unit delay; leap-cube: run
     /// the deployment or horizon study (table, PNG, JSON).
     Eval {
@@ -727,6 +764,72 @@ fn train_gr00t(_: Gr00tArgs) -> Result<()> {
     anyhow::bail!("`pir2 train gr00t` needs a build with `--features gr00t`")
 }
 
+/// The arguments of `pir2 features gr00t`.
+#[cfg_attr(not(feature = "gr00t"), allow(dead_code))]
+struct FeaturesArgs {
+    checkpoint: PathBuf,
+    data: PathBuf,
+    embodiment: Option<PathBuf>,
+    out: PathBuf,
+    resume: bool,
+    overwrite: bool,
+    tolerance_s: f64,
+    threads: usize,
+}
+
+#[cfg(feature = "gr00t")]
+fn features_gr00t(a: FeaturesArgs) -> Result<()> {
+    use pir2_cli::study::gr00t_features::{extract, Gr00tFeaturesOptions};
+    let mut o = Gr00tFeaturesOptions::new(&a.checkpoint, &a.data, &a.out);
+    o.embodiment = a.embodiment;
+    o.resume = a.resume;
+    o.overwrite = a.overwrite;
+    o.tolerance_s = a.tolerance_s;
+    o.ort.intra_threads = a.threads.max(1);
+    o.stop = Some(ctrl_c_flag());
+    let mut last = std::time::Instant::now();
+    let s = extract(&o, |p| {
+        if p.done == p.total || last.elapsed().as_secs_f64() >= 2.0 {
+            last = std::time::Instant::now();
+            let rate = p.this_run as f64 / p.elapsed.max(1e-9);
+            let eta = (p.total - p.done) as f64 / rate.max(1e-9);
+            eprintln!(
+                "features: {}/{} frames ({:.1} %), episode {}, {:.2} frames/s, {:.0} s left",
+                p.done,
+                p.total,
+                100.0 * p.done as f64 / p.total as f64,
+                p.episode,
+                rate,
+                eta
+            );
+        }
+    })?;
+    let (n, t, d) = s.shape;
+    println!("backbone: {}", s.backbone);
+    println!("decoder: {}", s.decoder);
+    if s.resumed_from > 0 {
+        println!("resumed at frame {}", s.resumed_from);
+    }
+    if s.complete {
+        println!(
+            "features: {} (embeddings [{n}, {t}, {d}], image_mask, attention_mask)",
+            s.path.display()
+        );
+    } else {
+        println!(
+            "interrupted after {} of {n} frames; {} is kept: run again with --resume",
+            s.done,
+            s.path.display()
+        );
+    }
+    Ok(())
+}
+
+#[cfg(not(feature = "gr00t"))]
+fn features_gr00t(_: FeaturesArgs) -> Result<()> {
+    anyhow::bail!("`pir2 features gr00t` needs a build with `--features gr00t`")
+}
+
 fn ctrl_c_flag() -> Arc<AtomicBool> {
     pir2_cli::signals::stop_flag()
 }
@@ -780,6 +883,26 @@ fn main() -> Result<()> {
                 WriteMode::New
             },
             stop: ctrl_c_flag(),
+        }),
+        Cmd::Features {
+            what: _,
+            checkpoint,
+            data,
+            embodiment,
+            out,
+            resume,
+            overwrite,
+            tolerance_s,
+            threads,
+        } => features_gr00t(FeaturesArgs {
+            checkpoint,
+            data,
+            embodiment,
+            out,
+            resume,
+            overwrite,
+            tolerance_s,
+            threads,
         }),
         Cmd::Train {
             task: t,

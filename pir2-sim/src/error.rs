@@ -145,6 +145,42 @@ pub enum Error {
         /// What is wrong with it.
         reason: String,
     },
+    // ---- datasets: camera videos ----------------------------------------------------
+    /// The video decoder program (`ffmpeg`) could not be started.
+    #[error("cannot run the video decoder `{program}` ({source}): install FFmpeg (Debian/Ubuntu: `apt-get install ffmpeg`; scripts/setup-native.sh does) or point PIR2_FFMPEG at the program")]
+    FfmpegMissing {
+        /// The program that was run.
+        program: PathBuf,
+        /// Why it could not be started.
+        source: std::io::Error,
+    },
+    /// A video file could not be decoded.
+    #[error("video {path}: {reason}")]
+    Video {
+        /// The video file.
+        path: PathBuf,
+        /// What went wrong (the decoder's last messages included).
+        reason: String,
+    },
+    /// A camera frame the dataset's timestamps ask for is not in its video (LeRobot's rule:
+    /// the decoded frame nearest to `from_timestamp + timestamp` must lie within the
+    /// tolerance).
+    #[error("video {path}: no frame for episode {episode}, frame {frame} at {timestamp:.6} s (the nearest decoded frame is {nearest}; tolerance {tolerance} s)")]
+    VideoFrame {
+        /// The video file.
+        path: PathBuf,
+        /// `episode_index`.
+        episode: i64,
+        /// `frame_index` within the episode.
+        frame: usize,
+        /// The timestamp asked for, in the video file's time.
+        timestamp: f64,
+        /// The nearest decoded frame (its time and distance), or that none was decoded.
+        nearest: String,
+        /// The tolerance, s.
+        tolerance: f64,
+    },
+
     /// Episodes handed to the writer do not fit the dataset's features.
     #[error("episode {episode} does not fit the dataset: {reason}")]
     EpisodeShape {

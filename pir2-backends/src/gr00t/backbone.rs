@@ -462,6 +462,32 @@ impl Gr00tBackbone {
         })
     }
 
+    /// Encode `prompt` from now on (another task): the sequence is rebuilt with `tokenizer`
+    /// and `prompt_cfg` (the ones it was loaded with), and a split backbone reads the new
+    /// prompt's rows of the token table from `files`. The graphs stay loaded; `T` cannot
+    /// change (it is `image_tokens + text_tokens`).
+    pub fn set_prompt(
+        &mut self,
+        files: &CheckpointFiles,
+        prompt_cfg: &PromptConfig,
+        tokenizer: &dyn PromptTokenizer,
+        prompt: &str,
+    ) -> Result<()> {
+        let seq = build_sequence(tokenizer, prompt, prompt_cfg)?;
+        if seq.ids.len() != self.seq.ids.len() {
+            return Err(Gr00tError::input(
+                format!("the token count T of prompt {prompt:?}"),
+                self.seq.ids.len(),
+                seq.ids.len(),
+            ));
+        }
+        if let Core::Split(s) = &mut self.core {
+            s.set_sequence(files, tokenizer, &seq)?;
+        }
+        self.seq = seq;
+        Ok(())
+    }
+
     /// The token layout of this backbone's output.
     pub fn layout(&self) -> &VlLayout {
         &self.seq.layout
@@ -500,12 +526,54 @@ impl Gr00tBackbone {
         self.encode(views.iter().map(|v| (v.image.as_slice(), v.hw)))
     }
 
+    /// The backbone's own output for the camera views of one frame (HWC `u8` RGB each, in
+    /// the embodiment's view order): `[T, D_vl]`, the ViT + LLM features **before** `vlln`
+    /// and the VL self-attention. The same preprocessing, prompt and graphs as
+    /// [`Self::encode_views`], which applies those two frozen pieces of the action head on
+    /// top; this is what `pir2 train gr00t --features` takes (the trainer applies them
+    /// itself).
+    pub fn backbone_embeddings(&mut self, views: &[(&[u8], (usize, usize))]) -> Result<&[f32]> {
+        self.run_backbone(views.iter().copied())?;
+        Ok(&self.feats)
+    }
+
     /// Encode the views `(HWC u8 RGB, (h, w))` of one frame (no per-frame allocation beyond
     /// the reused pixel buffers).
     fn encode<'a>(
         &mut self,
         views: impl ExactSizeIterator<Item = (&'a [u8], (usize, usize))>,
     ) -> Result<&[f32]> {
+        self.run_backbone(views)?;
+        let (t, d) = (self.seq.ids.len(), self.d_vl);
+        if let Some((w, b)) = &self.vlln {
+            layer_norm(&mut self.feats, d, w, b);
+        }
+        if let Some(g) = self.vl_self_attention.as_mut() {
+            let input = std::mem::take(&mut self.feats);
+            let mut out = Vec::with_capacity(input.len());
+            g.run_into(
+                vec![feed("hidden_states", &[1, t, d], &input)?],
+                "output",
+                &mut out,
+            )?;
+            if out.len() != t * d {
+                return Err(Gr00tError::input(
+                    format!("`{}` output [1,T,D_vl]", g.path().display()),
+                    t * d,
+                    out.len(),
+                ));
+            }
+            self.feats = out;
+        }
+        self.encoded += 1;
+        Ok(&self.feats)
+    }
+
+    /// Preprocess the views and run the backbone graphs: `[T, D_vl]` into `self.feats`.
+    fn run_backbone<'a>(
+        &mut self,
+        views: impl ExactSizeIterator<Item = (&'a [u8], (usize, usize))>,
+    ) -> Result<()> {
         let n = views.len();
         if n != self.views {
             return Err(Gr00tError::input(
@@ -529,29 +597,7 @@ impl Gr00tBackbone {
             Core::Split(s) => s.run(&self.pixels, &self.seq.attention, &mut feats),
         };
         self.feats = feats;
-        r?;
-        if let Some((w, b)) = &self.vlln {
-            layer_norm(&mut self.feats, d, w, b);
-        }
-        if let Some(g) = self.vl_self_attention.as_mut() {
-            let input = std::mem::take(&mut self.feats);
-            let mut out = Vec::with_capacity(input.len());
-            g.run_into(
-                vec![feed("hidden_states", &[1, t, d], &input)?],
-                "output",
-                &mut out,
-            )?;
-            if out.len() != t * d {
-                return Err(Gr00tError::input(
-                    format!("`{}` output [1,T,D_vl]", g.path().display()),
-                    t * d,
-                    out.len(),
-                ));
-            }
-            self.feats = out;
-        }
-        self.encoded += 1;
-        Ok(&self.feats)
+        r
     }
 }
 

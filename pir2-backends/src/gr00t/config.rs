@@ -308,6 +308,11 @@ pub struct EmbodimentConfig {
     /// Timestep of the state token in the per-position `timestep [B, 1+H]`
     /// (default `buckets − 1`: the state is an observation, i.e. clean).
     pub state_token_timestep: Option<i64>,
+    /// The dataset's video features of the camera views, in view order (one per
+    /// `prompt.chat.images`), e.g. `["observation.images.ego_view"]`: which videos
+    /// `pir2 features gr00t` reads for each frame. Empty (the default): not named.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<String>,
     /// State groups, in vector order.
     pub state: Vec<Group>,
     /// Action groups, in vector order.
@@ -423,6 +428,7 @@ impl EmbodimentConfig {
             n_obs: 1,
             num_timestep_buckets: 1000,
             state_token_timestep: None,
+            cameras: Vec::new(),
             state: vec![
                 Group::new("arm_joints", 6),
                 Group::new("hand_joints", 12),
@@ -623,6 +629,14 @@ impl EmbodimentConfig {
             return bad(format!(
                 "num_timestep_buckets must be >= 1, got {}",
                 self.num_timestep_buckets
+            ));
+        }
+        if !self.cameras.is_empty() && self.cameras.len() != self.prompt.chat.images {
+            return bad(format!(
+                "cameras names {} view(s) ({}) but prompt.chat.images is {}",
+                self.cameras.len(),
+                self.cameras.join(", "),
+                self.prompt.chat.images
             ));
         }
         let st = self.state_timestep();

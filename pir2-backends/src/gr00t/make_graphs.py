@@ -5,7 +5,7 @@ pir2-cli tests; run with $PIR2_PYTHON, which has `onnx`). The
 functions are small random MLP-like maps, chosen so that every input influences the
 output; they are not GR00T. Usage:
 
-    make_graphs.py OUTDIR [VARIANT]
+    make_graphs.py OUTDIR [VARIANT [D_VL]]
 
 VARIANT breaks one file on purpose: wrong_name, wrong_rank, wrong_dim, wrong_type.
 """
@@ -207,4 +207,7 @@ def main(out, variant):
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 3:
+        # Another backbone width D_VL (e.g. to match a training fixture's head).
+        D_VL = int(sys.argv[3])
     main(sys.argv[1], sys.argv[2] if len(sys.argv) > 2 else "")

@@ -326,14 +326,51 @@ impl SplitBackbone {
                 ));
             }
         }
+        let mut sb = SplitBackbone {
+            vit,
+            llm,
+            vision: vision.clone(),
+            side,
+            views,
+            patches,
+            patch_dim,
+            image_tokens: prompt_cfg.image_tokens,
+            d,
+            deepstack,
+            base: Vec::new(),
+            image_pos: Vec::new(),
+            visual: Vec::new(),
+            positions: Vec::new(),
+            rows: Vec::new(),
+            image_embeds: Vec::new(),
+            ds: Vec::new(),
+            inputs: Vec::new(),
+        };
+        sb.set_sequence(files, tokenizer, seq)?;
+        Ok(sb)
+    }
+
+    /// Take `seq` as the prompt from now on (a new task): its image placeholder positions,
+    /// its multimodal positions and its rows of the token-embedding table (read from the
+    /// checkpoint's weights). The graphs stay loaded.
+    pub fn set_sequence(
+        &mut self,
+        files: &CheckpointFiles,
+        tokenizer: &dyn PromptTokenizer,
+        seq: &Sequence,
+    ) -> Result<()> {
+        let vision = &self.vision;
+        let grid = image_grid(self.side, vision)?;
+        let views = self.views;
+        let d = self.d;
         let image_token = tokenizer.image_token_id();
         let image_pos: Vec<usize> = (0..seq.ids.len())
             .filter(|&i| seq.ids[i] == image_token)
             .collect();
-        if image_pos.len() != prompt_cfg.image_tokens {
+        if image_pos.len() != self.image_tokens {
             return Err(Gr00tError::input(
                 "image placeholder tokens in the prompt",
-                prompt_cfg.image_tokens,
+                self.image_tokens,
                 image_pos.len(),
             ));
         }
@@ -370,26 +407,11 @@ impl SplitBackbone {
                 ),
             });
         }
-        Ok(SplitBackbone {
-            vit,
-            llm,
-            vision: vision.clone(),
-            side,
-            views,
-            patches,
-            patch_dim,
-            image_tokens: prompt_cfg.image_tokens,
-            d,
-            deepstack,
-            base,
-            image_pos,
-            visual,
-            positions,
-            rows: Vec::new(),
-            image_embeds: Vec::new(),
-            ds: Vec::new(),
-            inputs: Vec::new(),
-        })
+        self.base = base;
+        self.image_pos = image_pos;
+        self.visual = visual;
+        self.positions = positions;
+        Ok(())
     }
 
     /// The multimodal positions fed to the LLM, `[3, T]` row-major.

@@ -171,6 +171,17 @@ fn io<'a>(what: &'a str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Gr00t
 /// `statistics.json`, `embodiment_id.json` (slot 3), `pir2_gr00t.safetensors` (zero delay
 /// table, a small position embedding, identity `vlln`) and `vocab.txt`.
 pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result<()> {
+    write_tiny_checkpoint_with_width(dir, variant, D_VL, python)
+}
+
+/// [`write_tiny_checkpoint`] with backbone width `d_vl` in place of [`D_VL`] (every graph
+/// and the `vlln` side weights), e.g. to match the `D_vl` of a training fixture's head.
+pub fn write_tiny_checkpoint_with_width(
+    dir: &Path,
+    variant: &str,
+    d_vl: usize,
+    python: &Path,
+) -> Result<()> {
     let onnx = dir.join("onnx");
     std::fs::create_dir_all(&onnx).map_err(io("creating", &onnx))?;
     let script = dir.join("make_graphs.py");
@@ -179,6 +190,7 @@ pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result
         .arg(&script)
         .arg(&onnx)
         .arg(variant)
+        .arg(d_vl.to_string())
         .output()
         .map_err(|e| Gr00tError::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
     let _ = std::fs::remove_file(&script);
@@ -210,8 +222,8 @@ pub fn write_tiny_checkpoint(dir: &Path, variant: &str, python: &Path) -> Result
                 vec![0.0; (cfg.d_vis_max + 1) * D_IN],
             ),
             (POSITION_EMBEDDING, vec![64, D_IN], pos),
-            ("vlln.weight", vec![D_VL], vec![1.0; D_VL]),
-            ("vlln.bias", vec![D_VL], vec![0.0; D_VL]),
+            ("vlln.weight", vec![d_vl], vec![1.0; d_vl]),
+            ("vlln.bias", vec![d_vl], vec![0.0; d_vl]),
         ],
     )
 }

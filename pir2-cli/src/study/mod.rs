@@ -21,6 +21,8 @@ pub mod dataset;
 pub mod evaluate;
 #[cfg(feature = "gr00t")]
 pub mod gr00t;
+#[cfg(feature = "gr00t")]
+pub mod gr00t_features;
 #[cfg(feature = "mujoco")]
 pub mod leap_cube;
 pub mod open_loop;

@@ -39,6 +39,13 @@
 //! key, an image/video/integer feature or a width that does not match is one
 //! [`Error::Feature`] or [`Error::ColumnType`] naming the key.
 //!
+//! # Camera videos
+//!
+//! [`VideoDataset`] reads the frame index of a dataset with video features (timestamps,
+//! tasks, which file and where in it each episode lies) and [`FrameReader`] decodes the
+//! frames, streaming, with the `ffmpeg` program (see the `video` module's docs for the
+//! layout and the timestamp rule, LeRobot's).
+//!
 //! Writing never replaces an existing dataset silently: [`WriteMode::New`] refuses a
 //! non-empty directory, [`WriteMode::Resume`] appends episodes in new data/episode files
 //! (one pair per writing session), [`WriteMode::Overwrite`] writes the new dataset into a
@@ -54,6 +61,7 @@ mod spec;
 mod stats;
 #[cfg(test)]
 mod tests;
+mod video;
 mod write;
 
 pub use collect::*;
@@ -63,6 +71,10 @@ pub use select::{
 };
 pub use spec::*;
 pub use stats::*;
+pub use video::{
+    check_ffmpeg, ffmpeg_program, DecodedFrame, FrameReader, VideoDataset, VideoEpisode, VideoSpan,
+    VideoStream, DEFAULT_TOLERANCE_S, VIDEO_PATH,
+};
 pub use write::*;
 
 use crate::error::{Error, Result};

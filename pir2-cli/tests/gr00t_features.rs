@@ -1,0 +1,590 @@
+//! `pir2 features gr00t` on a tiny LeRobotDataset v3.0 with camera videos (the committed
+//! fixture `pir2-sim/tests/fixtures/lerobot_video`, made by `make_lerobot_video.py` with PyAV:
+//! 2 episodes of 5 and 7 frames, an AV1 and an H.264 view of 32×24 px, episodes concatenated
+//! in one file per view): the frames pir2 decodes equal PyAV's (LeRobot's decoding backend)
+//! under LeRobot's timestamp rule; the features file holds, row for row, what the backbone
+//! gives on those frames, agrees with the deployment path, is accepted by `pir2 train gr00t`,
+//! and an interrupted run resumes to the same bytes. Needs `ffmpeg` and `$PIR2_PYTHON` with
+//! `av` and `onnx` (scripts/setup-native.sh; `source .native/env.sh`).
+#![cfg(feature = "gr00t")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use pir2_backends::gr00t::testing::{
+    add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint,
+    write_tiny_checkpoint_with_width,
+};
+use pir2_backends::gr00t::{
+    load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, Group, GroupFormat, Norm,
+};
+use pir2_backends::ort::OrtOptions;
+use pir2_backends::train::gr00t::PrecomputedFeatures;
+use pir2_cli::study::gr00t_features::{extract, partial_path, progress_path, Gr00tFeaturesOptions};
+use pir2_sim::dataset::{ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S};
+
+mod common;
+use common::Scratch;
+
+const VIEWS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
+/// `D_vl` of the training fixture `alt` (pir2-backends/tests/fixtures/gr00t_n17_head).
+const D_VL: usize = 20;
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-sim/tests/fixtures/lerobot_video")
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dst = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &dst);
+        } else {
+            std::fs::copy(&p, &dst).unwrap();
+        }
+    }
+}
+
+/// PyAV the way LeRobot decodes (`decode_video_frames_pyav`): every frame's time is
+/// `pts · time_base`, the frame for a query is the nearest one and must lie within the
+/// tolerance; `frame.to_ndarray(format="rgb24")`.
+const PYAV_REF: &str = r#"
+import json, sys
+import av, numpy as np
+q = json.load(open(sys.argv[1]))
+out = open(sys.argv[2], "wb")
+meta = []
+for item in q:
+    c = av.open(item["file"]); st = c.streams.video[0]
+    frames, ts = [], []
+    for f in c.decode(st):
+        frames.append(f.to_ndarray(format="rgb24")); ts.append(float(f.pts * st.time_base))
+    c.close()
+    ts = np.array(ts)
+    for t in item["times"]:
+        d = np.abs(ts - t); i = int(d.argmin())
+        assert d[i] < item["tol"], (t, ts)
+        out.write(frames[i].tobytes()); meta.append([float(ts[i])] + list(frames[i].shape))
+json.dump(meta, open(sys.argv[2] + ".json", "w"))
+"#;
+
+#[test]
+fn decoded_frames_equal_pyav_under_lerobots_timestamp_rule() {
+    let dir = Scratch::new("gr00t-features-decode");
+    let python = python_from_env().unwrap();
+    let data = VideoDataset::open(&fixture()).unwrap();
+    assert_eq!(data.total_frames(), 12);
+    assert_eq!(data.video_keys, VIEWS);
+    assert_eq!(data.tasks, ["pick the cube", "Put the ball in the bowl!"]);
+    assert_eq!(data.task(&data.episodes[1], 3), "Put the ball in the bowl!");
+    data.check_views(&VIEWS.map(String::from)).unwrap();
+    let e = data
+        .check_views(&["observation.images.top".to_string()])
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("observation.images.top") && e.contains(VIEWS[0]),
+        "{e}"
+    );
+
+    let mut queries = Vec::new();
+    let mut ours: Vec<u8> = Vec::new();
+    let mut times = Vec::new();
+    for key in VIEWS {
+        let mut reader = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
+        let mut q = Vec::new();
+        for ep in &data.episodes {
+            for t in 0..ep.len() {
+                let time = ep.videos[key].from_timestamp + ep.timestamps[t];
+                let f = reader.frame(&data, key, ep, t).unwrap();
+                assert_eq!(f.hw, (24, 32));
+                ours.extend_from_slice(&f.rgb);
+                times.push(f.time);
+                q.push(time);
+            }
+        }
+        let file = data.video_file(key, &data.episodes[0]).unwrap();
+        queries.push(serde_json::json!({"file": file, "times": q, "tol": DEFAULT_TOLERANCE_S}));
+    }
+    let qpath = dir.path().join("queries.json");
+    std::fs::write(&qpath, serde_json::to_string(&queries).unwrap()).unwrap();
+    let rpath = dir.path().join("pyav.raw");
+    let script = dir.path().join("pyav_ref.py");
+    std::fs::write(&script, PYAV_REF).unwrap();
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg(&qpath)
+        .arg(&rpath)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "PyAV reference: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let theirs = std::fs::read(&rpath).unwrap();
+    let meta: Vec<Vec<f64>> =
+        serde_json::from_str(&std::fs::read_to_string(rpath.with_extension("raw.json")).unwrap())
+            .unwrap();
+    assert_eq!(ours.len(), theirs.len());
+    assert_eq!(meta.len(), times.len());
+    for (m, t) in meta.iter().zip(&times) {
+        assert!((m[0] - t).abs() < 1e-9, "frame time {t} vs PyAV {}", m[0]);
+    }
+    let max = ours
+        .iter()
+        .zip(&theirs)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    let differ = ours.iter().zip(&theirs).filter(|(a, b)| a != b).count();
+    println!(
+        "pir2 (ffmpeg) vs PyAV: {} bytes, max |diff| = {max}, {differ} differ",
+        ours.len()
+    );
+    assert!(max <= 1, "max |pir2 − PyAV| = {max} (> 1/255)");
+    // Both views, both episodes: the frames differ (the reader does not repeat one frame).
+    let n = 24 * 32 * 3;
+    assert_ne!(&ours[..n], &ours[n..2 * n]);
+    assert_ne!(&ours[..n], &ours[12 * n..13 * n]);
+
+    // A frame that is not in the video: one error naming the file, the episode and the frame.
+    let mut shifted = data.clone();
+    shifted.episodes[1].timestamps[6] += 0.05;
+    let mut reader = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
+    let ep = &shifted.episodes[1];
+    for t in 0..6 {
+        reader.frame(&shifted, VIEWS[1], ep, t).unwrap();
+    }
+    let e = reader
+        .frame(&shifted, VIEWS[1], ep, 6)
+        .unwrap_err()
+        .to_string();
+    println!("{e}");
+    assert!(
+        e.contains("file-000.mp4") && e.contains("episode 1, frame 6") && e.contains("nearest"),
+        "{e}"
+    );
+    // No decoder: one error naming the program and FFmpeg.
+    let mut reader = FrameReader::new(dir.path().join("no-ffmpeg"), DEFAULT_TOLERANCE_S);
+    let e = reader
+        .frame(&data, VIEWS[0], &data.episodes[0], 0)
+        .unwrap_err()
+        .to_string();
+    println!("{e}");
+    assert!(e.contains("no-ffmpeg") && e.contains("FFmpeg"), "{e}");
+}
+
+fn group(name: &str, dim: usize, norm: Norm) -> Group {
+    Group {
+        name: name.into(),
+        dim,
+        norm,
+        relative: false,
+        state_key: None,
+        format: GroupFormat::Default,
+    }
+}
+
+/// The training test's embodiment (4 state values, 4 actions, H = 8, n_obs = 2, slot 1)
+/// with the tiny backbone's image and prompt and the fixture's two camera views.
+fn embodiment() -> EmbodimentConfig {
+    let mut e = EmbodimentConfig::xarm6_xhand();
+    e.name = "tiny".into();
+    e.horizon = 8;
+    e.d_max = 2;
+    e.d_vis_max = 2;
+    e.n_obs = 2;
+    e.embodiment_id = 1;
+    e.state = vec![
+        group("arm", 3, Norm::MinMax),
+        group("grip", 1, Norm::MeanStd),
+    ];
+    e.action = vec![
+        group("arm", 3, Norm::MinMax),
+        group("grip", 1, Norm::Q01Q99),
+    ];
+    e.image.shortest_edge = 16;
+    e.image.resize = 16;
+    e.image.crop = 16;
+    e.prompt.image_tokens = 4;
+    e.prompt.text_tokens = 4;
+    e.prompt.chat.images = 2;
+    e.cameras = VIEWS.map(String::from).to_vec();
+    e
+}
+
+fn pir2(args: &[&std::ffi::OsStr]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(args)
+        .output()
+        .expect("runs pir2")
+}
+
+fn text(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr)
+}
+
+fn layer_norm(x: &[f32]) -> Vec<f32> {
+    let d = x.len() as f32;
+    let mean = x.iter().sum::<f32>() / d;
+    let var = x.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d;
+    x.iter().map(|v| (v - mean) / (var + 1e-5).sqrt()).collect()
+}
+
+#[test]
+fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
+    let dir = Scratch::new("gr00t-features");
+    let root = dir.path();
+    let python = python_from_env().unwrap();
+    let (data_dir, ck, emb, feats) = (
+        root.join("data"),
+        root.join("ck"),
+        root.join("embodiment.toml"),
+        root.join("features.safetensors"),
+    );
+    copy_dir(&fixture(), &data_dir);
+    write_tiny_checkpoint_with_width(&ck, "", D_VL, &python).unwrap();
+    let cfg = embodiment();
+    std::fs::write(&emb, cfg.to_toml().unwrap()).unwrap();
+
+    let args = |out: &Path, extra: &[&str]| -> Vec<std::ffi::OsString> {
+        let mut v: Vec<std::ffi::OsString> = vec![
+            "features".into(),
+            "gr00t".into(),
+            "--checkpoint".into(),
+            ck.clone().into(),
+            "--data".into(),
+            data_dir.clone().into(),
+            "--embodiment".into(),
+            emb.clone().into(),
+            "--out".into(),
+            out.into(),
+        ];
+        v.extend(extra.iter().map(Into::into));
+        v
+    };
+    let run = |a: Vec<std::ffi::OsString>| {
+        let a: Vec<&std::ffi::OsStr> = a.iter().map(|s| s.as_os_str()).collect();
+        pir2(&a)
+    };
+    let o = run(args(&feats, &[]));
+    let t = text(&o);
+    println!("{t}");
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains("features: 12/12 frames") && t.contains("[12, 8, 20]"),
+        "{t}"
+    );
+    assert!(!partial_path(&feats).exists() && !progress_path(&feats).exists());
+
+    // What `pir2 train gr00t` reads.
+    let pf = PrecomputedFeatures::open(&feats).unwrap();
+    assert_eq!((pf.frames(), pf.tokens(), pf.dim()), (12, 8, D_VL));
+    let tensors = candle_core::safetensors::load(&feats, &candle_core::Device::Cpu).unwrap();
+    let rows: Vec<Vec<f32>> = tensors["embeddings"]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        .reshape((12, 8 * D_VL))
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+    let image: Vec<Vec<u8>> = tensors["image_mask"]
+        .to_dtype(candle_core::DType::U8)
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+    let attn: Vec<Vec<u8>> = tensors["attention_mask"]
+        .to_dtype(candle_core::DType::U8)
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+
+    // The same backbone run directly on the same decoded frames, with each episode's task.
+    let files = CheckpointFiles::in_dir(&ck);
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    let data = VideoDataset::open(&data_dir).unwrap();
+    let load = |prompt: &str| {
+        Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &cfg.vision,
+            tok.as_ref(),
+            prompt,
+            None,
+            &OrtOptions::default(),
+        )
+        .unwrap()
+    };
+    let mut readers: Vec<FrameReader> = VIEWS
+        .iter()
+        .map(|_| FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S))
+        .collect();
+    let mut frames = Vec::new();
+    let mut g = 0;
+    for ep in &data.episodes {
+        let mut bb = load(data.task(ep, 0));
+        for t in 0..ep.len() {
+            let views: Vec<(Vec<u8>, (usize, usize))> = readers
+                .iter_mut()
+                .zip(VIEWS)
+                .map(|(r, k)| {
+                    let f = r.frame(&data, k, ep, t).unwrap();
+                    (f.rgb.clone(), f.hw)
+                })
+                .collect();
+            let refs: Vec<(&[u8], (usize, usize))> =
+                views.iter().map(|(v, hw)| (v.as_slice(), *hw)).collect();
+            let want = bb.backbone_embeddings(&refs).unwrap().to_vec();
+            assert!(
+                want.iter()
+                    .zip(&rows[g])
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "row {g} (episode {}, frame {t}) differs from the backbone",
+                ep.episode_index
+            );
+            let lay = bb.layout();
+            assert_eq!(
+                image[g],
+                lay.image_mask
+                    .iter()
+                    .map(|&b| u8::from(b))
+                    .collect::<Vec<_>>()
+            );
+            assert_eq!(
+                attn[g],
+                lay.attention_mask
+                    .iter()
+                    .map(|&b| u8::from(b))
+                    .collect::<Vec<_>>()
+            );
+            frames.push(views);
+            g += 1;
+        }
+    }
+    assert_eq!(g, 12);
+    // The two tasks give different prompts: the text tokens differ between the episodes.
+    assert_ne!(rows[0][4 * D_VL..], rows[5][4 * D_VL..]);
+
+    // Deployment agrees: `pir2 run`'s path (`encode_views`: vlln, here the identity
+    // LayerNorm, and no VL self-attention in this copy) on frame 7 is LayerNorm(row 7).
+    std::fs::remove_file(&files.vl_self_attention).unwrap();
+    let mut deploy = load(data.task(&data.episodes[1], 0));
+    let views: Vec<pir2_runtime::View> = frames[7]
+        .iter()
+        .map(|(v, hw)| pir2_runtime::View {
+            image: v.clone(),
+            hw: *hw,
+        })
+        .collect();
+    let deployed = deploy.encode_views(&views).unwrap().to_vec();
+    for (tok_i, (a, b)) in deployed.chunks(D_VL).zip(rows[7].chunks(D_VL)).enumerate() {
+        let ln = layer_norm(b);
+        let err = a
+            .iter()
+            .zip(&ln)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
+        assert!(err < 1e-5, "token {tok_i}: deployment vs features {err}");
+    }
+
+    // Bad inputs: one error each, naming what is wrong, and no output.
+    let bad = root.join("bad.safetensors");
+    let bad_emb = root.join("bad.toml");
+    let mut no_cams = cfg.clone();
+    no_cams.cameras.clear();
+    std::fs::write(&bad_emb, no_cams.to_toml().unwrap()).unwrap();
+    let mut a = args(&bad, &[]);
+    a[7] = bad_emb.clone().into();
+    let o = run(a.clone());
+    assert!(
+        !o.status.success() && text(&o).contains("`cameras` names no camera view"),
+        "{}",
+        text(&o)
+    );
+    let mut top = cfg.clone();
+    top.cameras[1] = "observation.images.top".into();
+    std::fs::write(&bad_emb, top.to_toml().unwrap()).unwrap();
+    let o = run(a);
+    let t = text(&o);
+    assert!(
+        !o.status.success() && t.contains("observation.images.top") && t.contains(VIEWS[1]),
+        "{t}"
+    );
+    let o = {
+        let a = args(&bad, &[]);
+        Command::new(env!("CARGO_BIN_EXE_pir2"))
+            .args(&a)
+            .env("PIR2_FFMPEG", root.join("no-such-ffmpeg"))
+            .output()
+            .unwrap()
+    };
+    let t = text(&o);
+    println!("{t}");
+    assert!(
+        !o.status.success() && t.contains("no-such-ffmpeg") && t.contains("FFmpeg"),
+        "{t}"
+    );
+    assert!(!bad.exists() && !partial_path(&bad).exists());
+
+    // An existing output is not replaced without --overwrite; with it, the same bytes.
+    let o = run(args(&feats, &[]));
+    assert!(
+        !o.status.success() && text(&o).contains("--overwrite"),
+        "{}",
+        text(&o)
+    );
+    let first = std::fs::read(&feats).unwrap();
+    let o = run(args(&feats, &["--overwrite"]));
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(
+        std::fs::read(&feats).unwrap() == first,
+        "a second run differs"
+    );
+
+    // Interrupted after 5 frames (mid episode 0/1 boundary), refused without --resume,
+    // resumed to the same bytes.
+    let part = root.join("part.safetensors");
+    let mut lo = Gr00tFeaturesOptions::new(&ck, &data_dir, &part);
+    lo.embodiment = Some(emb.clone());
+    lo.stop_after = Some(6);
+    let s = extract(&lo, |_| {}).unwrap();
+    assert!(s.interrupted() && s.done == 6, "{s:?}");
+    assert!(partial_path(&part).exists() && !part.exists());
+    let o = run(args(&part, &[]));
+    assert!(
+        !o.status.success() && text(&o).contains("--resume"),
+        "{}",
+        text(&o)
+    );
+    let o = run(args(&part, &["--resume"]));
+    let t = text(&o);
+    assert!(
+        o.status.success() && t.contains("resumed at frame 6"),
+        "{t}"
+    );
+    assert!(
+        std::fs::read(&part).unwrap() == first,
+        "the resumed file differs"
+    );
+
+    // `pir2 train gr00t --features` takes the file (the `alt` head has D_vl = 20).
+    let head = root.join("head");
+    std::fs::create_dir_all(&head).unwrap();
+    let fx = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../pir2-backends/tests/fixtures/gr00t_n17_head");
+    std::fs::copy(fx.join("alt.config.json"), head.join("config.json")).unwrap();
+    std::fs::copy(
+        fx.join("alt.weights.safetensors"),
+        head.join("model.safetensors"),
+    )
+    .unwrap();
+    let out = root.join("run");
+    let a: Vec<std::ffi::OsString> = vec![
+        "train".into(),
+        "gr00t".into(),
+        "--checkpoint".into(),
+        head.into(),
+        "--data".into(),
+        data_dir.clone().into(),
+        "--embodiment".into(),
+        emb.clone().into(),
+        "--features".into(),
+        feats.clone().into(),
+        "--out".into(),
+        out.clone().into(),
+        "--steps".into(),
+        "2".into(),
+        "--batch-size".into(),
+        "4".into(),
+    ];
+    let o = run(a);
+    let t = text(&o);
+    println!("{t}");
+    assert!(o.status.success(), "{t}");
+    assert!(out.join("step-000002/model.safetensors").exists(), "{t}");
+}
+
+/// GR00T's split export (ViT + LLM glued in Rust) with the BPE tokenizer and the chat
+/// template, the embodiment taken from the checkpoint (no `--embodiment`): every row equals
+/// the split backbone run directly on the decoded frames with the episode's task (the prompt
+/// changes between the episodes: the token-table rows and positions are re-read).
+#[test]
+fn split_backbone_features_equal_the_split_backbone_on_the_frames() {
+    let dir = Scratch::new("gr00t-features-split");
+    let root = dir.path();
+    let python = python_from_env().unwrap();
+    let ck = root.join("ck");
+    write_tiny_checkpoint(&ck, "", &python).unwrap();
+    add_bpe_tokenizer(&ck).unwrap();
+    let path = ck.join("embodiment.toml");
+    let mut cfg = EmbodimentConfig::load(&path).unwrap();
+    cfg.prompt.chat.images = 2;
+    cfg.prompt.image_tokens = 8;
+    cfg.vision.patch_size = 4;
+    cfg.vision.temporal_patch_size = 2;
+    cfg.vision.merge_size = 2;
+    cfg.cameras = VIEWS.map(String::from).to_vec();
+    std::fs::write(&path, cfg.to_toml().unwrap()).unwrap();
+    write_split_backbone(&ck, "pick the cube", "", &python).unwrap();
+    let data_dir = root.join("data");
+    copy_dir(&fixture(), &data_dir);
+    let out = root.join("split.safetensors");
+    let s = extract(&Gr00tFeaturesOptions::new(&ck, &data_dir, &out), |_| {}).unwrap();
+    assert!(s.complete && s.backbone.contains("split export"), "{s:?}");
+    let tensors = candle_core::safetensors::load(&out, &candle_core::Device::Cpu).unwrap();
+    let (n, t, d) = s.shape;
+    assert_eq!(n, 12);
+    let rows: Vec<Vec<f32>> = tensors["embeddings"]
+        .reshape((n, t * d))
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+    let files = CheckpointFiles::in_dir(&ck);
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    let data = VideoDataset::open(&data_dir).unwrap();
+    let mut readers: Vec<FrameReader> = VIEWS
+        .iter()
+        .map(|_| FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S))
+        .collect();
+    let mut g = 0;
+    for ep in &data.episodes {
+        let mut bb = Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &cfg.vision,
+            tok.as_ref(),
+            data.task(ep, 0),
+            None,
+            &OrtOptions::default(),
+        )
+        .unwrap();
+        assert!(bb.is_split());
+        for f in 0..ep.len() {
+            let views: Vec<(Vec<u8>, (usize, usize))> = readers
+                .iter_mut()
+                .zip(VIEWS)
+                .map(|(r, k)| {
+                    let fr = r.frame(&data, k, ep, f).unwrap();
+                    (fr.rgb.clone(), fr.hw)
+                })
+                .collect();
+            let refs: Vec<(&[u8], (usize, usize))> =
+                views.iter().map(|(v, hw)| (v.as_slice(), *hw)).collect();
+            let want = bb.backbone_embeddings(&refs).unwrap();
+            assert!(
+                want.iter()
+                    .zip(&rows[g])
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "row {g} (episode {}, frame {f}) differs from the split backbone",
+                ep.episode_index
+            );
+            g += 1;
+        }
+    }
+    assert_eq!(g, n);
+}
