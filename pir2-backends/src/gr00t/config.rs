@@ -866,7 +866,8 @@ pub struct CheckpointFiles {
     /// when only that one exists.
     pub vit: PathBuf,
     /// GR00T's LLM export (`full_pipeline`): `onnx/llm_fp32.onnx`, or `onnx/llm_bf16.onnx`
-    /// when only that one exists.
+    /// (the exporter's default) when only that one exists. The name only picks the file: its
+    /// declared element types decide how it is fed ([`super::contract::Precision`]).
     pub llm: PathBuf,
     /// GR00T's checkpoint weights (one file), which hold the VLM's token-embedding table.
     pub model_weights: PathBuf,
