@@ -280,3 +280,117 @@ fn llm_with_a_wrong_input_name_or_width_is_refused_by_name() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Replace the split stand-ins of `dir` by those of `variant` (same weights; see
+/// `make_split_backbone.py`).
+fn regenerate(dir: &Path, variant: &str) {
+    for f in std::fs::read_dir(dir.join("onnx")).unwrap() {
+        let p = f.unwrap().path();
+        let n = p.file_name().unwrap().to_string_lossy().to_string();
+        if n.starts_with("vit_") || n.starts_with("llm_") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    write_split_backbone(dir, PROMPT, variant, &python_from_env().unwrap()).unwrap();
+}
+
+/// Largest |a − b| over the largest |b| (the stand-ins' features are tanh outputs, |b| ≤ 1).
+fn rel_diff(a: &[f32], b: &[f32]) -> f32 {
+    max_diff(a, b) / b.iter().fold(0.0f32, |m, x| m.max(x.abs()))
+}
+
+/// GR00T's exporter writes the LLM in bfloat16 by default (`llm_bf16.onnx`: bfloat16
+/// `inputs_embeds`, `deepstack_*` and `embeddings`) and the ViT so with `use_bf16=True`
+/// (`vit_bf16.onnx`). pir2 takes them unchanged, converting each float tensor at the boundary
+/// by its declared type: the features match the float32 composition of the same maps up to
+/// bfloat16 rounding. The stand-ins compute in float32 between boundary Casts (ONNX Runtime's
+/// CPU provider has no bfloat16 MatMul/Add/Tanh kernels), so the difference is the rounding
+/// of the inputs (2⁻⁹ relative each) and of the output (2⁻⁹ of |y| ≤ 1), carried through four
+/// tanh layers: below 2·10⁻² of the feature scale. float16 (2⁻¹¹) lands below 5·10⁻³ — and a
+/// float16 file named `llm_fp32.onnx` is read as float16: the types decide, not the name.
+#[test]
+fn bf16_and_f16_exports_match_the_float32_composition() {
+    let (dir, _) = split_fixture("bf16", "llm_bf16", |_| {});
+    let fused_dir = fused_copy(&dir, "fused");
+    let frame = views();
+    let want = load(&fused_dir)
+        .unwrap()
+        .encode_views(&frame)
+        .unwrap()
+        .to_vec();
+    for (variant, file, converted, tol) in [
+        (
+            "llm_bf16",
+            "llm_bf16.onnx",
+            "LLM inputs_embeds bfloat16",
+            2e-2,
+        ),
+        (
+            "llm_bf16,vit_bf16",
+            "vit_bf16.onnx",
+            "ViT pixel_values bfloat16, ViT image_embeds bfloat16",
+            2e-2,
+        ),
+        ("llm_f16", "llm_fp32.onnx", "LLM deepstack_2 float16", 5e-3),
+    ] {
+        if variant != "llm_bf16" {
+            regenerate(&dir, variant);
+        }
+        let mut bb = load(&dir).unwrap_or_else(|e| panic!("{variant}: {e}"));
+        let what = bb.describe();
+        assert!(
+            what.contains(file) && what.contains(converted),
+            "{variant}: {what}"
+        );
+        let got = bb.encode_views(&frame).unwrap().to_vec();
+        let r = rel_diff(&got, &want);
+        println!("{variant}: max |split − fused| / max |fused| = {r:.3e}");
+        assert!(r < tol, "{variant}: relative difference {r} ≥ {tol}");
+        assert!(
+            r > 0.0,
+            "{variant}: no rounding at all: the boundary is not half precision"
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&fused_dir).ok();
+}
+
+/// A float input of a type pir2 does not convert (float64 `inputs_embeds`) is one error naming
+/// the file, the input and the type; a bfloat16 op the provider has no kernel for is one error
+/// at load naming the file, the op, the provider and the way out.
+#[test]
+fn unsupported_element_types_and_kernels_are_named_at_load() {
+    let (dir, _) = split_fixture("types", "llm_f64", |_| {});
+    let e = load(&dir).unwrap_err();
+    assert!(matches!(e, Gr00tError::Contract { .. }), "{e}");
+    let e = e.to_string();
+    assert!(
+        e.contains("llm_fp32.onnx")
+            && e.contains("`inputs_embeds`")
+            && e.contains("float64")
+            && e.contains("bfloat16"),
+        "{e}"
+    );
+    regenerate(&dir, "llm_bf16_matmul");
+    match load(&dir) {
+        Err(e @ Gr00tError::NoKernel { .. }) => {
+            let e = e.to_string();
+            println!("{e}");
+            assert!(
+                e.contains("llm_bf16.onnx")
+                    && e.contains("MatMul")
+                    && e.contains("CPUExecutionProvider")
+                    && e.contains("--ep cuda")
+                    && e.contains("use_bf16=False"),
+                "{e}"
+            );
+        }
+        // An ONNX Runtime with bfloat16 CPU kernels runs it (the MatMul is by identity).
+        Ok(mut bb) => {
+            let f = bb.encode_views(&views()).unwrap().to_vec();
+            assert!(f.iter().all(|x| x.is_finite()));
+        }
+        Err(e) => panic!("not the missing-kernel error: {e}"),
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -606,11 +606,19 @@ impl Gr00tBackbone {
     pub fn describe(&self) -> String {
         match &self.core {
             Core::Fused(g) => format!("`{}`", file_name(g.path())),
-            Core::Split(s) => format!(
-                "GR00T's split export `{}` + `{}` (glued in Rust)",
-                file_name(s.vit_path()),
-                file_name(s.llm_path())
-            ),
+            Core::Split(s) => {
+                let half = s.half_tensors();
+                format!(
+                    "GR00T's split export `{}` + `{}` (glued in Rust{})",
+                    file_name(s.vit_path()),
+                    file_name(s.llm_path()),
+                    if half.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; converted from/to f32: {}", half.join(", "))
+                    }
+                )
+            }
         }
     }
 

@@ -837,7 +837,8 @@ pub fn read_embodiment_id(path: &Path, tag: &str) -> Result<Option<i64>> {
 }
 
 /// `onnx/NAME_fp32.onnx`, or `onnx/NAME_bf16.onnx` when only that one exists (GR00T's
-/// exporter names its files by precision; a bf16 file is refused by the contract check).
+/// exporter names its files by precision; the file's declared types, not its name, decide
+/// how it is fed).
 fn precision_variant(onnx: &Path, name: &str) -> PathBuf {
     let fp32 = onnx.join(format!("{name}_fp32.onnx"));
     let bf16 = onnx.join(format!("{name}_bf16.onnx"));
@@ -880,7 +881,8 @@ pub struct CheckpointFiles {
     /// when only that one exists.
     pub vit: PathBuf,
     /// GR00T's LLM export (`full_pipeline`): `onnx/llm_fp32.onnx`, or `onnx/llm_bf16.onnx`
-    /// when only that one exists.
+    /// (the exporter's default) when only that one exists. The name only picks the file: its
+    /// declared element types decide how it is fed ([`super::contract::Precision`]).
     pub llm: PathBuf,
     /// GR00T's checkpoint weights (one file), which hold the VLM's token-embedding table.
     pub model_weights: PathBuf,

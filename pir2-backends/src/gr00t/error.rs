@@ -77,6 +77,25 @@ pub enum Gr00tError {
         /// What is wrong.
         problem: String,
     },
+    /// The execution provider has no kernel for an op of a graph at its element types (e.g.
+    /// a `bfloat16` graph on the CPU provider).
+    #[error(
+        "ONNX model `{path}` ({role}) cannot run on {provider}: ONNX Runtime has no kernel \
+         for {op} there; {hint}"
+    )]
+    NoKernel {
+        /// The ONNX file.
+        path: PathBuf,
+        /// Its role, e.g. "LLM".
+        role: &'static str,
+        /// ONNX Runtime's name of the provider, e.g. `CPUExecutionProvider`.
+        provider: &'static str,
+        /// The op with its opset version and the node, as ONNX Runtime names them, e.g.
+        /// "MatMul(13) at node `/layers.0/mlp/MatMul`".
+        op: String,
+        /// What to do.
+        hint: String,
+    },
     /// ONNX Runtime failed (loading the library, creating a session, running a graph).
     #[error(transparent)]
     Ort(#[from] OrtError),

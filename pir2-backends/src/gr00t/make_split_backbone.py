@@ -20,10 +20,22 @@ The maps are small random functions, not GR00T; the LLM stand-in depends on ever
 id row, on the order of the tokens (a running sum stands in for causal attention), on the
 padding mask and on the deepstack features at the visual positions, so a wrong glue changes
 its output. The positions follow the public rule of transformers' Qwen3-VL `get_rope_index`
-(transcribed below). VARIANT breaks the LLM on purpose: wrong_name (`input_embeds`),
-wrong_width (inputs_embeds of width D - 4).
+(transcribed below). VARIANT (comma-separated) changes the stand-ins:
 
-    make_split_backbone.py SPEC.json OUTDIR [VARIANT]
+    wrong_name        the LLM takes `input_embeds`
+    wrong_width       the LLM takes inputs_embeds of width D - 4
+    llm_bf16          `llm_bf16.onnx` (no llm_fp32.onnx) with bfloat16 inputs_embeds,
+                      deepstack_* and embeddings, as GR00T's exporter writes it by default;
+                      Casts at the boundary, the same float32 interior
+    vit_bf16          `vit_bf16.onnx` (no vit_fp32.onnx) with bfloat16 pixel_values,
+                      image_embeds and deepstack_features, likewise
+    llm_f16           float16 boundary, still named `llm_fp32.onnx` (the file's declared
+                      types decide, not its name)
+    llm_f64           inputs_embeds declared float64 (not a type pir2 takes)
+    llm_bf16_matmul   `llm_bf16.onnx` whose first op is a bfloat16 MatMul (no kernel on
+                      ONNX Runtime's CPU provider)
+
+    make_split_backbone.py SPEC.json OUTDIR [VARIANT[,VARIANT…]]
 """
 
 import json
@@ -35,6 +47,7 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 F, I, B = TensorProto.FLOAT, TensorProto.INT64, TensorProto.BOOL
+BF16, F16, F64 = TensorProto.BFLOAT16, TensorProto.FLOAT16, TensorProto.DOUBLE
 DV, LAYERS, DEEPSTACK = 8, 4, 3
 rng = np.random.default_rng(11)
 
@@ -156,7 +169,13 @@ def write_safetensors(path, tensors):
             f.write(raw)
 
 
+def to_f32(g, name, ty):
+    """An input declared `ty`, as float32 inside the graph."""
+    return name if ty == F else g.op("Cast", [name], to=F)
+
+
 def main(spec_path, out, variant):
+    variants = set(filter(None, variant.split(",")))
     spec = json.load(open(spec_path))
     ids, att = spec["ids"], spec["attention"]
     v, s, p, tp, m = spec["views"], spec["side"], spec["patch"], spec["temporal"], spec["merge"]
@@ -186,36 +205,48 @@ def main(spec_path, out, variant):
         rng.bit_generator.state = state
 
     seeded()
+    vt = BF16 if "vit_bf16" in variants else F
     g = Builder("vit/")
-    img, ds = vit(g, "pixel_values", p_rows, patch_dim, n, m * m, d)
-    g.op("Identity", [img], out="image_embeds")
-    g.op("Concat", [g.op("Unsqueeze", [x, g.const("ax0", np.array([0], np.int64))]) for x in ds], out="deepstack_features", axis=0)
+    img, ds = vit(g, to_f32(g, "pixel_values", vt), p_rows, patch_dim, n, m * m, d)
+    g.op("Identity" if vt == F else "Cast", [img], out="image_embeds", **({} if vt == F else {"to": vt}))
+    dsf = g.op("Concat", [g.op("Unsqueeze", [x, g.const("ax0", np.array([0], np.int64))]) for x in ds], axis=0)
+    g.op("Identity" if vt == F else "Cast", [dsf], out="deepstack_features", **({} if vt == F else {"to": vt}))
     save(
-        f"{out}/onnx/vit_fp32.onnx",
+        f"{out}/onnx/vit_{'bf16' if vt == BF16 else 'fp32'}.onnx",
         g,
-        [helper.make_tensor_value_info("pixel_values", F, [p_rows, patch_dim])],
+        [helper.make_tensor_value_info("pixel_values", vt, [p_rows, patch_dim])],
         [
-            helper.make_tensor_value_info("image_embeds", F, [n, d]),
-            helper.make_tensor_value_info("deepstack_features", F, [DEEPSTACK, n, d]),
+            helper.make_tensor_value_info("image_embeds", vt, [n, d]),
+            helper.make_tensor_value_info("deepstack_features", vt, [DEEPSTACK, n, d]),
         ],
     )
     vit_state = rng.bit_generator.state
 
-    d_llm = d - 4 if variant == "wrong_width" else d
-    emb_name = "input_embeds" if variant == "wrong_name" else "inputs_embeds"
+    d_llm = d - 4 if "wrong_width" in variants else d
+    emb_name = "input_embeds" if "wrong_name" in variants else "inputs_embeds"
+    bf16_file = bool(variants & {"llm_bf16", "llm_bf16_matmul"})
+    lt = BF16 if bf16_file else F16 if "llm_f16" in variants else F  # boundary float type
+    et = F64 if "llm_f64" in variants else lt  # inputs_embeds
     g = Builder("llm/")
-    llm(g, emb_name, "attention_mask", "position_ids", "visual_pos_masks", [f"deepstack_{l}" for l in range(DEEPSTACK)], d_llm, "embeddings")
+    emb = to_f32(g, emb_name, et)
+    if "llm_bf16_matmul" in variants:
+        eye = g.op("Cast", [g.const("eye", np.eye(d_llm, dtype=np.float32))], to=BF16)
+        emb = g.op("Cast", [g.op("MatMul", [emb_name, eye])], to=F)
+    ds_in = [to_f32(g, f"deepstack_{l}", lt) for l in range(DEEPSTACK)]
+    y = llm(g, emb, "attention_mask", "position_ids", "visual_pos_masks", ds_in, d_llm, "embeddings" if lt == F else "embeddings_f32")
+    if lt != F:
+        g.op("Cast", [y], out="embeddings", to=lt)
     save(
-        f"{out}/onnx/llm_fp32.onnx",
+        f"{out}/onnx/llm_{'bf16' if bf16_file else 'fp32'}.onnx",
         g,
         [
-            helper.make_tensor_value_info(emb_name, F, [1, "seq_len", d_llm]),
+            helper.make_tensor_value_info(emb_name, et, [1, "seq_len", d_llm]),
             helper.make_tensor_value_info("attention_mask", I, [1, "seq_len"]),
             helper.make_tensor_value_info("position_ids", I, [3, 1, "seq_len"]),
             helper.make_tensor_value_info("visual_pos_masks", B, [1, "seq_len"]),
         ]
-        + [helper.make_tensor_value_info(f"deepstack_{l}", F, [n, d_llm]) for l in range(DEEPSTACK)],
-        [helper.make_tensor_value_info("embeddings", F, [1, "seq_len", d_llm])],
+        + [helper.make_tensor_value_info(f"deepstack_{l}", lt, [n, d_llm]) for l in range(DEEPSTACK)],
+        [helper.make_tensor_value_info("embeddings", lt, [1, "seq_len", d_llm])],
     )
 
     # The fused composition: same weights (same seed positions), glue as ONNX ops.

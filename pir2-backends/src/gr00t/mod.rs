@@ -12,7 +12,7 @@
 //! | `onnx/dit.onnx`            | `sa_embs [B,1+H,D_in]`, `vl_embs [B,T*,D_vl]`, **`timestep i64 [B,1+H]`**, opt. `image_mask`/`backbone_attention_mask bool [B,T*]` | `output [B,1+H,D_hid]` |
 //! | `onnx/action_decoder.onnx` | `model_output [B,1+H,D_hid]`, `embodiment_id` | `output [B,1+H,A_max]` |
 //! | `onnx/backbone.onnx`       | `pixel_values f32 [B,3,crop,crop]`, `input_ids i64 [B,T*]`, opt. `attention_mask` | `embeddings [B,T*,D_vl]` |
-//! | or `onnx/vit_fp32.onnx` + `onnx/llm_fp32.onnx` + `model.safetensors` | GR00T's own split export, glued in Rust ([`split`]) | |
+//! | or `onnx/vit_{fp32,bf16}.onnx` + `onnx/llm_{fp32,bf16}.onnx` + `model.safetensors` | GR00T's own split export, glued in Rust ([`split`]); float tensors f32, bf16 or f16 | |
 //! | `onnx/vl_self_attention.onnx` (optional) | `hidden_states [B,T*,D_vl]` | `output [B,T*,D_vl]` |
 //!
 //! (`*`: may be dynamic.) Bold = the πR² change: timesteps per position instead of per sample

@@ -19,6 +19,15 @@
 //! 5. the LLM with `inputs_embeds`, `attention_mask`, `position_ids`, and, when it declares
 //!    them, `visual_pos_masks` (the placeholder mask) and `deepstack_l = deepstack_features[l]`
 //!    → `embeddings [1, T, D]`, the backbone features (the last kept layer, pre-norm).
+//!
+//! Either file may be GR00T's `float32` or `bfloat16` export (`vit_fp32.onnx` /
+//! `vit_bf16.onnx`, `llm_fp32.onnx` / `llm_bf16.onnx`, the LLM's default being bfloat16) or
+//! `float16`: the glue computes in `f32`, and each float tensor is converted at the graph's
+//! boundary by the element type the file declares ([`super::contract::Graph::input`]). What
+//! runs *inside* a bfloat16 graph is the execution provider's business: ONNX Runtime's CPU
+//! provider has no bfloat16 kernels for the math ops (MatMul, Add, Mul, Softmax…), so such a
+//! graph needs the CUDA or TensorRT provider, and on the CPU loading it is one
+//! [`Gr00tError::NoKernel`] naming the file, the op and the way out.
 
 use std::path::Path;
 
@@ -429,6 +438,21 @@ impl SplitBackbone {
         self.llm.path()
     }
 
+    /// The half-precision boundary tensors of the two files (`bfloat16`/`float16`, converted
+    /// from and to `f32` per call), e.g. `LLM inputs_embeds bfloat16`.
+    pub fn half_tensors(&self) -> Vec<String> {
+        let named = |role: &str, g: &Graph| {
+            g.declared
+                .half_tensors()
+                .into_iter()
+                .map(|t| format!("{role} {t}"))
+                .collect::<Vec<_>>()
+        };
+        let mut v = named("ViT", &self.vit);
+        v.extend(named("LLM", &self.llm));
+        v
+    }
+
     /// Run the glue for one frame: `pixels` `[V, 3, s, s]`, the sequence's `attention`
     /// mask; the backbone features `[T, D]` go to `out`.
     pub fn run(&mut self, pixels: &[f32], attention: &[i64], out: &mut Vec<f32>) -> Result<()> {
@@ -436,12 +460,11 @@ impl SplitBackbone {
         patchify(pixels, self.views, self.side, &self.vision, &mut self.rows)?;
         let mut image_embeds = std::mem::take(&mut self.image_embeds);
         let mut ds = std::mem::take(&mut self.ds);
+        let pixel_values =
+            self.vit
+                .input("pixel_values", &[self.patches, self.patch_dim], &self.rows)?;
         let r = self.vit.run_many(
-            vec![feed(
-                "pixel_values",
-                &[self.patches, self.patch_dim],
-                &self.rows,
-            )?],
+            vec![pixel_values],
             &mut [
                 ("image_embeds", &mut image_embeds),
                 ("deepstack_features", &mut ds),
@@ -471,7 +494,7 @@ impl SplitBackbone {
             self.inputs[i * d..(i + 1) * d].copy_from_slice(&self.image_embeds[k * d..(k + 1) * d]);
         }
         let mut feeds = vec![
-            feed("inputs_embeds", &[1, t, d], &self.inputs)?,
+            self.llm.input("inputs_embeds", &[1, t, d], &self.inputs)?,
             feed("attention_mask", &[1, t], attention)?,
             feed("position_ids", &[3, 1, t], &self.positions)?,
         ];
@@ -479,7 +502,10 @@ impl SplitBackbone {
             feeds.push(feed("visual_pos_masks", &[1, t], &self.visual)?);
         }
         for (l, name) in DEEPSTACK_INPUTS.iter().take(self.deepstack).enumerate() {
-            feeds.push(feed(name, &[n, d], &self.ds[l * n * d..(l + 1) * n * d])?);
+            feeds.push(
+                self.llm
+                    .input(name, &[n, d], &self.ds[l * n * d..(l + 1) * n * d])?,
+            );
         }
         self.llm.run_into(feeds, "embeddings", out)?;
         if out.len() != t * d {

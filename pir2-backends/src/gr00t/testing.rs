@@ -240,7 +240,11 @@ pub const SPLIT_VOCAB: usize = 512;
 /// `vision.embed_tokens_key`), made by [`MAKE_SPLIT_BACKBONE_PY`] with `python`; removes
 /// `onnx/backbone.onnx` and writes the fused composition of the stand-ins, for that prompt's
 /// sequence, as `fused_backbone.onnx` in `dir` (move it to `onnx/backbone.onnx` for a fused
-/// checkpoint). `variant` `wrong_name` / `wrong_width` breaks the LLM. Returns the
+/// checkpoint). `variant` (comma-separated; see the script) changes the stand-ins:
+/// `wrong_name` / `wrong_width` break the LLM, `llm_bf16` / `vit_bf16` write GR00T's bfloat16
+/// files (`llm_bf16.onnx`, `vit_bf16.onnx`: bfloat16 float tensors at the boundary, the same
+/// float32 maps inside), `llm_f16` a float16 LLM still named `llm_fp32.onnx`, `llm_f64` a
+/// float64 `inputs_embeds`, `llm_bf16_matmul` a bfloat16 MatMul inside. Returns the
 /// multimodal positions of the sequence by the generator's Python transcription of the
 /// public rule, `[3][T]`.
 pub fn write_split_backbone(
