@@ -551,7 +551,8 @@ fn relative_arm_actions_run_on_the_emulators() {
 /// A checkpoint with GR00T's split backbone export (`vit_fp32.onnx` + `llm_fp32.onnx` + the
 /// token table in `model.safetensors`, tiny stand-ins) instead of a fused `backbone.onnx`:
 /// `pir2 run` and `pir2 bench gr00t` pick it by its files and say so; a half split set is one
-/// error naming the missing file, before any robot.
+/// error naming the missing file, before any robot; GR00T's bfloat16 LLM runs with its
+/// boundary converted, and one whose bfloat16 ops the CPU provider cannot run is one error.
 #[test]
 fn run_gr00t_takes_gr00ts_split_backbone_export() {
     use pir2_backends::gr00t::EmbodimentConfig;
@@ -593,6 +594,33 @@ fn run_gr00t_takes_gr00ts_split_backbone_export() {
     assert!(
         text.contains("vit_fp32.onnx")
             && text.contains("missing")
+            && !text.contains("warm-up done"),
+        "{text}"
+    );
+    // GR00T's default bfloat16 LLM (`llm_bf16.onnx`, boundary Casts around an f32 stand-in):
+    // run with the conversion at its boundary, named in the slow-channel line.
+    let python = python_from_env().unwrap();
+    std::fs::remove_file(ck.join("onnx/llm_fp32.onnx")).unwrap();
+    write_split_backbone(&ck, "catch the book", "llm_bf16", &python).unwrap();
+    let (v, text) = emulated_json(&ck, "catch the book", 10, &[]);
+    let slow = v["slow"].as_str().unwrap();
+    assert!(
+        slow.contains("`llm_bf16.onnx`") && slow.contains("LLM inputs_embeds bfloat16"),
+        "{slow}\n{text}"
+    );
+    // A bfloat16 op inside, on the CPU provider: one error naming the file, the op and the
+    // way out, before any robot.
+    for f in ["onnx/vit_fp32.onnx", "onnx/llm_bf16.onnx"] {
+        std::fs::remove_file(ck.join(f)).unwrap();
+    }
+    write_split_backbone(&ck, "catch the book", "llm_bf16_matmul", &python).unwrap();
+    let (out, text) = emulated(&ck, "catch the book", 5, &[]);
+    assert!(!out.status.success(), "{text}");
+    assert!(
+        text.contains("llm_bf16.onnx")
+            && text.contains("MatMul")
+            && text.contains("CPUExecutionProvider")
+            && text.contains("--ep cuda")
             && !text.contains("warm-up done"),
         "{text}"
     );
