@@ -67,6 +67,18 @@ impl Batcher {
     }
 
     pub(super) fn fill<D: Dataset + ?Sized>(&mut self, data: &D) -> Result<()> {
+        self.fill_encoded(data, None)
+    }
+
+    /// [`fill`](Self::fill), with the sample's action chunk turned into model coordinates by
+    /// `encode(episode, frame, chunk)` (the chunk `[H, A]` of raw actions from `frame` on,
+    /// the last action repeated past the episode's end) instead of the per-frame statistics:
+    /// for targets that depend on the sample (relative actions). The draws are the same.
+    pub(super) fn fill_encoded<D: Dataset + ?Sized>(
+        &mut self,
+        data: &D,
+        mut encode: Option<&mut dyn FnMut(usize, usize, &mut [f32]) -> Result<()>>,
+    ) -> Result<()> {
         let Spec {
             horizon: h,
             action_dim: a,
@@ -96,7 +108,10 @@ impl Batcher {
             for p in 0..h {
                 self.act[p * a..(p + 1) * a].copy_from_slice(data.action(e, (t + p).min(len - 1)));
             }
-            self.stats.normalize_action(&mut self.act);
+            match encode.as_mut() {
+                Some(f) => f(e, t, &mut self.act)?,
+                None => self.stats.normalize_action(&mut self.act),
+            }
             self.rng.fill_normal(&mut self.eps);
             self.schedule.draw(&mut self.rng, &mut self.draw)?;
             let r = i * h * a..(i + 1) * h * a;

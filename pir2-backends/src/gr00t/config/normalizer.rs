@@ -30,8 +30,8 @@ pub struct Normalizer {
     action_clip: Vec<bool>,
     /// Per action dimension, the raw state index a relative action is added to.
     action_reference: Vec<Option<usize>>,
-    /// A degenerate min/max (or percentile) action dimension of the first slot's statistics:
-    /// normalises to 0.
+    /// A degenerate min/max (or percentile) action dimension (numpy's `isclose(max, min)`),
+    /// laid out like `action_scale` (`[A]` or `[H, A]`): normalises to 0.
     action_zero: Vec<bool>,
 }
 
@@ -256,9 +256,9 @@ impl Normalizer {
                 let r = if m.rows == 1 { 0 } else { p };
                 ao.extend_from_slice(&m.offset[r * g.dim..(r + 1) * g.dim]);
                 ascale.extend_from_slice(&m.scale[r * g.dim..(r + 1) * g.dim]);
+                azero.extend_from_slice(&m.zero[r * g.dim..(r + 1) * g.dim]);
                 if p == 0 {
                     aclip.extend(std::iter::repeat_n(m.clip, g.dim));
-                    azero.extend_from_slice(&m.zero[..g.dim]);
                 }
             }
         }
@@ -346,6 +346,33 @@ impl Normalizer {
                 n.clamp(-1.0, 1.0)
             } else {
                 n
+            };
+        }
+    }
+
+    /// GR00T's training target for the action at `slot` of a chunk whose observation's newest
+    /// raw state is `state` (the inverse of [`decode_action`](Self::decode_action) inside the
+    /// clip range): subtract the reference state from the relative groups (`a − s`), then
+    /// normalise with that slot's statistics, `(x − offset)/scale`, clipped to `[-1, 1]` for
+    /// the min/max and percentile groups; a degenerate min/max dimension of that slot maps to
+    /// 0. In place. `state` is only read for relative groups (pass `&[]` without any).
+    pub fn encode_action(&self, slot: usize, state: &[f32], a: &mut [f32]) {
+        let n = self.action_dim();
+        let row = if self.per_slot() { slot * n } else { 0 };
+        for (i, x) in a.iter_mut().enumerate() {
+            if self.action_zero[row + i] {
+                *x = 0.0;
+                continue;
+            }
+            let mut u = *x;
+            if let Some(k) = self.action_reference[i] {
+                u -= state[k];
+            }
+            let v = (u - self.action_offset[row + i]) / self.action_scale[row + i];
+            *x = if self.action_clip[i] {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
             };
         }
     }

@@ -432,6 +432,29 @@ fn relative_action_statistics_are_read_per_slot_and_decode_like_gr00t() {
     map.decode(&x, 2, &r, &mut u);
     assert!((u[0] - 0.65).abs() < 1e-6, "{u:?}");
 
+    // Training targets (GR00T's apply_action): the absolute actions [0.6, −0.7, 0.75] at
+    // slot 1 against the same state: arm₀ 0.6 − 0.5 = 0.1 → (0.1 − (−0.2))/0.4·2 − 1 = 0.5;
+    // arm₁ −0.7 + 1.0 = 0.3 → (0.3 + 0.4)/0.8·2 − 1 = 0.75; hand 0.75 → 0.5.
+    let mut z = [0.6, -0.7, 0.75];
+    n.encode_action(1, &state, &mut z);
+    let want_z = [0.5, 0.75, 0.5];
+    assert!(
+        z.iter().zip(want_z).all(|(x, w)| (x - w).abs() < 1e-6),
+        "{z:?} vs {want_z:?}"
+    );
+    // ... which the runtime decodes back to the actions (the round trip inside the range);
+    // a target outside the slot's range is clipped (arm₁ at slot 0: −0.7 + 1.0 = 0.3 > 0.2).
+    map.decode(&z, 1, &r, &mut u);
+    assert!(
+        u.iter()
+            .zip([0.6, -0.7, 0.75])
+            .all(|(x, w)| (x - w).abs() < 1e-6),
+        "{u:?}"
+    );
+    let mut z = [0.6, -0.7, 0.75];
+    n.encode_action(0, &state, &mut z);
+    assert_eq!(z[1], 1.0, "{z:?}");
+
     // `[D]` statistics: the same range at every slot.
     std::fs::write(
         &p,
