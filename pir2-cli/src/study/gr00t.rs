@@ -179,7 +179,8 @@ fn statistics_json(
 }
 
 /// GR00T's `relative_action` statistics of every relative action group: per chunk slot `p`
-/// (`[H, D]` tables), the statistics of `a_{t+p} − s_t` over the chunks the trainer draws
+/// (`[H, D]` tables), the statistics of `a_{t+p} − s_t` (a pose: `T_ref⁻¹·T` in the group's
+/// layout) over the chunks the trainer draws
 /// (every frame `t`, the state group's raw value at `t`, the last action repeated past the
 /// episode's end, as the batch sampler does). GR00T's own tool takes only the chunks that fit
 /// inside the episode; taking the sampled ones keeps every training target inside the
@@ -190,6 +191,7 @@ fn relative_statistics(
 ) -> serde_json::Value {
     let h = emb.horizon;
     let reference = emb.action_reference();
+    let poses = emb.action_poses();
     let mut out = serde_json::Map::new();
     let mut at = 0;
     for g in &emb.action {
@@ -198,17 +200,32 @@ fn relative_statistics(
         if !g.relative {
             continue;
         }
+        let pose = poses.iter().find(|p| p.first == cols.start);
+        let k0 = reference[cols.start].unwrap_or(0);
         let mut rows: Vec<FeatureStats> = Vec::with_capacity(h);
-        let mut values = Vec::new();
+        let (mut values, mut rel) = (Vec::new(), vec![0f32; g.dim]);
         for p in 0..h {
             values.clear();
             for e in episodes {
                 let len = e.len();
                 for t in 0..len {
                     let (a, s) = (e.action((t + p).min(len - 1)), e.fast(t));
-                    for j in cols.clone() {
-                        let k = reference[j].unwrap_or(0);
-                        values.push(f64::from(a[j]) - f64::from(s[k]));
+                    match pose {
+                        Some(pg) => {
+                            pir2_runtime::pose::relative(
+                                pg.format,
+                                &s[k0..k0 + g.dim],
+                                &a[cols.clone()],
+                                &mut rel,
+                            );
+                            values.extend(rel.iter().map(|&v| f64::from(v)));
+                        }
+                        None => {
+                            for j in cols.clone() {
+                                let k = reference[j].unwrap_or(0);
+                                values.push(f64::from(a[j]) - f64::from(s[k]));
+                            }
+                        }
                     }
                 }
             }
