@@ -530,12 +530,10 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
             for p in 0..h {
                 map.decode(&chunk[p * 4..(p + 1) * 4], p, &reference, &mut u);
                 let want = ep.action((t + p).min(len - 1));
-                for j in 0..4 {
+                for (j, (x, w)) in u.iter().zip(want).enumerate() {
                     assert!(
-                        (u[j] - want[j]).abs() < 1e-5,
-                        "episode {e} frame {t} slot {p} dim {j}: decoded {}, dataset {}",
-                        u[j],
-                        want[j]
+                        (x - w).abs() < 1e-5,
+                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
                     );
                 }
             }
@@ -608,13 +606,11 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
                 .unwrap();
             assert_eq!(res.steps, ep.len());
             for (t, sent) in env.sent.iter().enumerate() {
-                for j in 0..4 {
+                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
                     assert!(
-                        (sent[j] - actions[t][j]).abs() < 1e-4,
-                        "{} episode {e} tick {t} dim {j}: sent {}, dataset {}",
-                        mode.describe(),
-                        sent[j],
-                        actions[t][j]
+                        (x - w).abs() < 1e-4,
+                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
+                        mode.describe()
                     );
                 }
             }

@@ -77,8 +77,8 @@ fn read(format: PoseFormat, v: &[f32]) -> (Vector3<f64>, Matrix3<f64>) {
 
 /// Write a pose (see the module docs).
 fn write(format: PoseFormat, t: &Vector3<f64>, r: &Matrix3<f64>, out: &mut [f32]) {
-    for k in 0..3 {
-        out[k] = t[k] as f32;
+    for (o, v) in out[..3].iter_mut().zip(t.iter()) {
+        *o = *v as f32;
     }
     match format {
         PoseFormat::XyzRot6d => {
@@ -90,8 +90,8 @@ fn write(format: PoseFormat, t: &Vector3<f64>, r: &Matrix3<f64>, out: &mut [f32]
         }
         PoseFormat::XyzRotvec => {
             let v = Rotation3::from_matrix_unchecked(*r).scaled_axis();
-            for k in 0..3 {
-                out[3 + k] = v[k] as f32;
+            for (o, x) in out[3..6].iter_mut().zip(v.iter()) {
+                *o = *x as f32;
             }
         }
     }

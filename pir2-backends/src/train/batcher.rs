@@ -2,6 +2,9 @@
 
 use super::*;
 
+/// Encodes one sample's raw action chunk in place: `(episode, frame, chunk)`.
+pub(super) type ChunkEncoder<'a> = dyn FnMut(usize, usize, &mut [f32]) -> Result<()> + 'a;
+
 /// Builds training batches into reusable host buffers.
 pub(super) struct Batcher {
     pub(super) spec: Spec,
@@ -77,7 +80,7 @@ impl Batcher {
     pub(super) fn fill_encoded<D: Dataset + ?Sized>(
         &mut self,
         data: &D,
-        mut encode: Option<&mut dyn FnMut(usize, usize, &mut [f32]) -> Result<()>>,
+        mut encode: Option<&mut ChunkEncoder<'_>>,
     ) -> Result<()> {
         let Spec {
             horizon: h,

@@ -637,8 +637,8 @@ fn relative_end_effector_poses_encode_and_decode_like_gr00t() {
         let scale = if slot == 0 { 2.0 } else { 4.0 };
         let mut z = action;
         n.encode_action(slot, &state, &mut z);
-        for k in 0..9 {
-            assert!((z[k] - rel[k] / scale).abs() < 1e-6, "slot {slot}: {z:?}");
+        for (x, r) in z.iter().zip(rel) {
+            assert!((x - r / scale).abs() < 1e-6, "slot {slot}: {z:?}");
         }
         assert!((z[9] + 0.5).abs() < 1e-6, "{z:?}");
         let mut a = z;
