@@ -11,9 +11,13 @@ use std::process::{Command, Output};
 
 use candle_core::{DType, Device, Tensor};
 use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
+use pir2_backends::gr00t::Normalizer;
 use pir2_backends::gr00t::{EmbodimentConfig, Group, GroupFormat, Norm};
-use pir2_cli::study::gr00t::{train, Gr00tTrainOptions};
-use pir2_sim::dataset::{DatasetSpec, DatasetWriter, Episode, FeatureKeys, WriteMode};
+use pir2_backends::train::gr00t::ActionTargets;
+use pir2_cli::study::gr00t::{train, Gr00tTargets, Gr00tTrainOptions};
+use pir2_sim::dataset::{
+    read_selected, DatasetSpec, DatasetWriter, Episode, FeatureKeys, FeatureSelection, WriteMode,
+};
 
 mod common;
 use common::Scratch;
@@ -67,6 +71,16 @@ fn embodiment(path: &Path, state_dim: usize) {
         group("arm", 3, Norm::MinMax),
         group("grip", 1, Norm::Q01Q99),
     ];
+    std::fs::write(path, e.to_toml().unwrap()).unwrap();
+}
+
+/// [`embodiment`] with the `arm` action group relative to the `arm` state group (and `grip`
+/// min/max: the percentiles would clip the extremes of the dataset's actions).
+fn relative_embodiment(path: &Path) {
+    embodiment(path, 4);
+    let mut e = EmbodimentConfig::load(path).unwrap();
+    e.action[0].relative = true;
+    e.action[1].norm = Norm::MinMax;
     std::fs::write(path, e.to_toml().unwrap()).unwrap();
 }
 
@@ -371,4 +385,235 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
     o.features = no_mask;
     let e = err(&o);
     assert!(e.contains("image_mask"), "{e}");
+}
+
+/// Replays one episode's raw states (the fast row is the raw state, as on the robot) and
+/// records the commands it is sent.
+struct Replay {
+    states: Vec<Vec<f32>>,
+    t: usize,
+    sent: Vec<Vec<f32>>,
+}
+
+impl pir2_runtime::Environment for Replay {
+    fn spec(&self) -> pir2_runtime::EnvSpec {
+        pir2_runtime::EnvSpec {
+            fast_dim: 4,
+            slow_dim: 0,
+            action_dim: 4,
+            control_period: 40_000_000,
+            max_steps: self.states.len(),
+        }
+    }
+    fn reset(&mut self, _seed: u64) {
+        self.t = 0;
+        self.sent.clear();
+    }
+    fn observe(&mut self, fast: &mut [f32], _slow: &mut [f32]) {
+        fast.copy_from_slice(&self.states[self.t]);
+    }
+    fn step(&mut self, action: &[f32]) -> pir2_runtime::EnvStep {
+        self.sent.push(action.to_vec());
+        self.t += 1;
+        pir2_runtime::EnvStep {
+            done: self.t >= self.states.len(),
+            success: true,
+            reward: 0.0,
+        }
+    }
+}
+
+/// A head that outputs the training target exactly: it finds the dataset frame of the
+/// snapshot's newest raw state and steers every slot to what the trainer's own encoder
+/// ([`Gr00tTargets`]) makes of that frame's chunk.
+struct TargetOracle {
+    targets: Gr00tTargets,
+    episode: usize,
+    states: Vec<Vec<f32>>,
+    actions: Vec<Vec<f32>>,
+    chunk: Vec<f32>,
+}
+
+impl pir2_runtime::VelocityModel for TargetOracle {
+    fn backend(&self) -> &'static str {
+        "training-target oracle"
+    }
+    fn velocity(
+        &mut self,
+        inp: &pir2_runtime::ModelInput<'_>,
+        out: &mut [f32],
+    ) -> pir2_runtime::Result<()> {
+        let (h, a, f) = (inp.horizon, inp.action_dim, inp.fast_dim);
+        let newest = &inp.obs_fast[(inp.n_obs - 1) * f..inp.n_obs * f];
+        let t = self
+            .states
+            .iter()
+            .position(|s| s.as_slice() == newest)
+            .expect("the snapshot's state is a dataset frame");
+        let len = self.actions.len();
+        for p in 0..h {
+            self.chunk[p * a..(p + 1) * a].copy_from_slice(&self.actions[(t + p).min(len - 1)]);
+        }
+        self.targets
+            .encode(self.episode, t, &mut self.chunk)
+            .map_err(|e| pir2_runtime::Error::Config(e.to_string()))?;
+        for p in 0..h {
+            let tau = inp.tau[p];
+            for j in 0..a {
+                let i = p * a + j;
+                out[i] = if (0.0..1.0).contains(&tau) {
+                    (self.chunk[i] - inp.x[i]) / (1.0 - tau)
+                } else {
+                    0.0
+                };
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A relative action group trains (the refusal is gone) and what it trains on deploys back
+/// to the dataset: the run writes `relative_action.arm` as `[H, 3]` tables; the trainer's
+/// targets (`Gr00tTargets`, GR00T's `a_{t+p} − s_t` normalised per slot) decode with the
+/// runtime's output map of the run's `statistics.json` to the dataset's absolute actions;
+/// and the lock-step runtime driven by a head that outputs exactly those targets sends, at
+/// every tick of every episode, the dataset's action of that tick (πR² async with one- and
+/// two-tick calls, πR² without async): each slot is decoded against the state of the call
+/// that made it, the reference training used for it.
+#[test]
+fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
+    let i = inputs("gr00t-train-relative");
+    relative_embodiment(&i.emb);
+    let mut o = options(&i, "rel");
+    o.steps = 2;
+    o.checkpoint_every = None;
+    let r = train(&o, |_| {}).unwrap();
+    assert_eq!(r.report.losses.len(), 2);
+    assert!(r.report.losses.iter().all(|(_, l)| l.is_finite()));
+
+    // The statistics the deployment reads.
+    let emb = EmbodimentConfig::load(&o.out.join("embodiment.toml")).unwrap();
+    let h = emb.horizon;
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(o.out.join("statistics.json")).unwrap())
+            .unwrap();
+    let tag = emb.embodiment_tag.as_str();
+    let rel = &stats[tag]["relative_action"]["arm"]["min"];
+    assert_eq!(rel.as_array().map(Vec::len), Some(h), "{rel}");
+    assert_eq!(rel[0].as_array().map(Vec::len), Some(3), "{rel}");
+    assert!(stats[tag]["relative_action"].get("grip").is_none());
+    let norm = Normalizer::load(&o.out.join("statistics.json"), &emb).unwrap();
+    assert!(norm.per_slot());
+    let map = norm.action_output_map();
+    assert_eq!(map.reference, [Some(0), Some(1), Some(2), None]);
+
+    let sel = FeatureSelection {
+        fast: vec!["observation.state".into()],
+        slow: Vec::new(),
+        action: "action".into(),
+    };
+    let ds = read_selected(&i.data, &sel).unwrap();
+    let targets = Gr00tTargets::new(norm, h, &ds.episodes);
+
+    // Encode (trainer) → decode (runtime), every frame and slot.
+    let (mut chunk, mut reference, mut u) = (vec![0f32; h * 4], [0f32; 4], [0f32; 4]);
+    let mut moved = 0.0f32;
+    for (e, ep) in ds.episodes.iter().enumerate() {
+        let len = ep.len();
+        for t in 0..len {
+            for p in 0..h {
+                chunk[p * 4..(p + 1) * 4].copy_from_slice(ep.action((t + p).min(len - 1)));
+            }
+            targets.encode(e, t, &mut chunk).unwrap();
+            assert!(chunk.iter().all(|z| z.abs() <= 1.0), "{chunk:?}");
+            map.fill_reference(ep.fast(t), &mut reference);
+            for p in 0..h {
+                map.decode(&chunk[p * 4..(p + 1) * 4], p, &reference, &mut u);
+                let want = ep.action((t + p).min(len - 1));
+                for (j, (x, w)) in u.iter().zip(want).enumerate() {
+                    assert!(
+                        (x - w).abs() < 1e-5,
+                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
+                    );
+                }
+            }
+            moved = moved.max((ep.fast(t)[0] - ep.fast(0)[0]).abs());
+        }
+    }
+    assert!(moved > 0.5, "the reference state must move ({moved})");
+
+    // Deployed: the lock-step runtime with the run's output map.
+    use pir2_runtime::{ActionHead, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode};
+    use pir2_schedule::{Alignment, FrontMode};
+    let pir2_async = |nfe| Mode::PiR2Async {
+        nfe,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    let pir2_sync = Mode::PiR2Sync {
+        nfe: None,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    for (mode, call_ticks) in [
+        (pir2_async(None), 1),
+        (pir2_async(Some(2)), 2),
+        (pir2_sync, 2),
+    ] {
+        for (e, ep) in ds.episodes.iter().enumerate() {
+            let states: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.fast(t).to_vec()).collect();
+            let actions: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.action(t).to_vec()).collect();
+            let sp = HeadSpec {
+                horizon: h,
+                action_dim: 4,
+                n_obs: emb.n_obs,
+                fast_dim: 4,
+                slow_dim: 0,
+                period: 40_000_000,
+                d_max: emb.d_max,
+                d_vis_max: 0,
+            };
+            let oracle = TargetOracle {
+                targets: targets.clone(),
+                episode: e,
+                states: states.clone(),
+                actions: actions.clone(),
+                chunk: vec![0.0; h * 4],
+            };
+            let mut head = ActionHead::new(
+                oracle,
+                sp,
+                mode.head_mode(4),
+                LatencyWindow::new(20, 0, sp.period, sp.d_max),
+                5,
+            )
+            .unwrap();
+            let mut env = Replay {
+                states,
+                t: 0,
+                sent: Vec::new(),
+            };
+            let timing = LockstepTiming {
+                call_ticks,
+                slow_delay: 0,
+                overrun_ticks: 0,
+                overrun_every: 0,
+                pin_delay: true,
+            };
+            let mut drv = LockstepDriver::new(&head).with_output(map.clone());
+            let res = drv
+                .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
+                .unwrap();
+            assert_eq!(res.steps, ep.len());
+            for (t, sent) in env.sent.iter().enumerate() {
+                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
+                    assert!(
+                        (x - w).abs() < 1e-4,
+                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
+                        mode.describe()
+                    );
+                }
+            }
+        }
+    }
 }

@@ -26,6 +26,7 @@ pub mod metrics;
 pub mod mode;
 pub mod model;
 pub mod policy;
+pub mod pose;
 pub mod realtime;
 #[cfg(feature = "remote")]
 pub mod remote;
@@ -34,7 +35,7 @@ pub mod window;
 
 pub use chunk::Chunk;
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
-pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap};
+pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap, PoseGroup};
 pub use error::{panic_message, Error, Result};
 pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
 pub use io::{

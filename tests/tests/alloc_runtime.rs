@@ -19,6 +19,7 @@ fn control_tick_allocates_nothing() {
         offset: vec![0.1; h * a],
         clip: vec![true; a],
         reference: vec![Some(0), None, Some(2)],
+        poses: Vec::new(),
     };
     let cases = [None, Some(0.1)]
         .into_iter()

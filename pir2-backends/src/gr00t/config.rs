@@ -121,8 +121,9 @@ pub struct Group {
     /// of the same name; it must have the same width).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub state_key: Option<String>,
-    /// Action groups only: what the values are. Relative end-effector poses (`xyz_rot6d`,
-    /// `xyz_rotvec`) are not supported yet.
+    /// Action groups only: what the values are. A relative end-effector pose (`xyz_rot6d`,
+    /// `xyz_rotvec`) is `T_ref⁻¹·T` with `T_ref` the `state_key` group read in the same
+    /// layout (see `pir2_runtime::pose`).
     #[serde(default, skip_serializing_if = "is_default_format")]
     pub format: GroupFormat,
 }
@@ -560,6 +561,25 @@ impl EmbodimentConfig {
         out
     }
 
+    /// The relative end-effector pose groups as the runtime's output map holds them (first
+    /// action dimension and layout).
+    pub fn action_poses(&self) -> Vec<pir2_runtime::PoseGroup> {
+        let mut out = Vec::new();
+        let mut at = 0;
+        for g in &self.action {
+            let format = match g.format {
+                GroupFormat::Default => None,
+                GroupFormat::XyzRot6d => Some(pir2_runtime::pose::PoseFormat::XyzRot6d),
+                GroupFormat::XyzRotvec => Some(pir2_runtime::pose::PoseFormat::XyzRotvec),
+            };
+            if let Some(format) = format.filter(|_| g.relative) {
+                out.push(pir2_runtime::PoseGroup { first: at, format });
+            }
+            at += g.dim;
+        }
+        out
+    }
+
     /// The relative action groups as `group → state group`, for logs and run summaries.
     pub fn relative_groups(&self) -> Vec<String> {
         self.action
@@ -701,13 +721,6 @@ impl EmbodimentConfig {
                     ));
                 }
                 continue;
-            }
-            if g.format != GroupFormat::Default {
-                return bad(format!(
-                    "action group `{}`: relative end-effector poses ({:?}) are not supported yet \
-                     (relative joint groups are)",
-                    g.name, g.format
-                ));
             }
             let key = g.reference_key();
             match self.state.iter().find(|s| s.name == key) {

@@ -2,6 +2,9 @@
 
 use super::*;
 
+/// Encodes one sample's raw action chunk in place: `(episode, frame, chunk)`.
+pub(super) type ChunkEncoder<'a> = dyn FnMut(usize, usize, &mut [f32]) -> Result<()> + 'a;
+
 /// Builds training batches into reusable host buffers.
 pub(super) struct Batcher {
     pub(super) spec: Spec,
@@ -67,6 +70,18 @@ impl Batcher {
     }
 
     pub(super) fn fill<D: Dataset + ?Sized>(&mut self, data: &D) -> Result<()> {
+        self.fill_encoded(data, None)
+    }
+
+    /// [`fill`](Self::fill), with the sample's action chunk turned into model coordinates by
+    /// `encode(episode, frame, chunk)` (the chunk `[H, A]` of raw actions from `frame` on,
+    /// the last action repeated past the episode's end) instead of the per-frame statistics:
+    /// for targets that depend on the sample (relative actions). The draws are the same.
+    pub(super) fn fill_encoded<D: Dataset + ?Sized>(
+        &mut self,
+        data: &D,
+        mut encode: Option<&mut ChunkEncoder<'_>>,
+    ) -> Result<()> {
         let Spec {
             horizon: h,
             action_dim: a,
@@ -96,7 +111,10 @@ impl Batcher {
             for p in 0..h {
                 self.act[p * a..(p + 1) * a].copy_from_slice(data.action(e, (t + p).min(len - 1)));
             }
-            self.stats.normalize_action(&mut self.act);
+            match encode.as_mut() {
+                Some(f) => f(e, t, &mut self.act)?,
+                None => self.stats.normalize_action(&mut self.act),
+            }
             self.rng.fill_normal(&mut self.eps);
             self.schedule.draw(&mut self.rng, &mut self.draw)?;
             let r = i * h * a..(i + 1) * h * a;

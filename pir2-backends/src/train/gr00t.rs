@@ -10,8 +10,9 @@
 //!
 //! Each sample (the paper's robot recipe): a frame `t` uniformly over all frames; the state
 //! history ending at `t`; the action chunk `a_{t..t+H}` (the last action repeats past the
-//! end); `τ`/mask from the schedule's draw (πR²: staircase with a clean, masked front of
-//! `d ~ U{1..d_max}`, or the warm-up branch); `d_vis ~ U{0..d_vis_max}` per sample, the VL
+//! end; encoded per sample by an [`ActionTargets`] when the targets depend on the sample, as
+//! relative actions do); `τ`/mask from the schedule's draw (πR²: staircase with a clean,
+//! masked front of `d ~ U{1..d_max}`, or the warm-up branch); `d_vis ~ U{0..d_vis_max}` per sample, the VL
 //! tokens of frame `max(0, t − d_vis)` and `e(d_vis)` on the action tokens. GR00T's discrete
 //! timesteps are [`timestep_bucket`]`(τ_p)` per action token and `state_timestep` for the
 //! state token (per-token AdaLN, as deployed). Actions are padded with zeros to `A_max`; the
@@ -54,6 +55,18 @@ pub struct Gr00tTrainSpec {
     pub embodiment_id: u32,
     /// GR00T timestep of the state token (deployment default: `buckets − 1`).
     pub state_timestep: u32,
+}
+
+/// How a sample's action chunk becomes the model's training target when the target depends
+/// on the sample, not only on the frame: GR00T's relative action groups are `a − s`, with `s`
+/// the newest raw state of the sample's observation window (frame `t` itself), normalised
+/// with per-chunk-slot statistics. Without one, the trainer reads the data's actions as
+/// already normalised.
+pub trait ActionTargets {
+    /// Encode in place `chunk` (`[H, A]`): the raw actions of episode `episode` from frame
+    /// `frame` on (slot `p` holds frame `min(frame + p, len − 1)`), the sample's observation
+    /// window ending at `frame`.
+    fn encode(&self, episode: usize, frame: usize, chunk: &mut [f32]) -> Result<()>;
 }
 
 // ---------------------------------------------------------------- VL features
@@ -487,6 +500,7 @@ pub struct Gr00tTrainer<'a> {
     progress: Option<ProgressFn<'a>>,
     identity: serde_json::Value,
     extra_files: Vec<(String, Vec<u8>)>,
+    targets: Option<&'a dyn ActionTargets>,
 }
 
 impl std::fmt::Debug for Gr00tTrainer<'_> {
@@ -514,7 +528,14 @@ impl<'a> Gr00tTrainer<'a> {
             progress: None,
             identity: serde_json::Value::Null,
             extra_files: Vec::new(),
+            targets: None,
         }
+    }
+    /// Encode every sample's chunk with `targets` (the data then holds raw actions); without
+    /// it the data's actions are the normalised targets themselves.
+    pub fn action_targets(mut self, targets: &'a dyn ActionTargets) -> Self {
+        self.targets = Some(targets);
+        self
     }
     /// Continue from the latest step checkpoint or `interrupted-*` state (see
     /// [`Trainer::resume`]; bit-identical to an uninterrupted run).
@@ -637,7 +658,7 @@ impl<'a> Gr00tTrainer<'a> {
 
     /// Train `head` (loaded with [`Gr00tN17Head::load_trainable`]) on `data` (per frame the
     /// normalised state padded to `max_state_dim` as the fast row, the normalised action of
-    /// width `A`) with the VL tokens of `vl` (frame `i` = the `i`-th frame over the episodes in
+    /// width `A`, or the raw one with [`action_targets`](Self::action_targets)) with the VL tokens of `vl` (frame `i` = the `i`-th frame over the episodes in
     /// order). On return the head holds the last step's weights.
     pub fn run(
         mut self,
@@ -797,7 +818,13 @@ impl<'a> Gr00tTrainer<'a> {
                 return Err(Error::Interrupted { step, resume_point });
             }
             let lr = cfg.lr_at(step);
-            batcher.fill(data)?;
+            match self.targets {
+                Some(tg) => {
+                    let mut f = |e: usize, t: usize, c: &mut [f32]| tg.encode(e, t, c);
+                    batcher.fill_encoded(data, Some(&mut f))?
+                }
+                None => batcher.fill(data)?,
+            }
             for i in 0..b {
                 let (e, t) = batcher.slow_frame[i];
                 vl.read(

@@ -14,8 +14,14 @@
 //!   ([`PrecomputedFeatures`]: `embeddings [N, T, D_vl]`, `image_mask [N, T]`, optional
 //!   `attention_mask`), `N` = the dataset's frames in episode order.
 //!
+//! Relative action groups (`relative = true`) train on GR00T's relative targets: slot `p` of
+//! the sample at frame `t` is `a_{t+p} − s_t` (the raw state of frame `t`, the newest row of
+//! the observation window), normalised with the slot's `relative_action` statistics
+//! ([`Gr00tTargets`]).
+//!
 //! Output directory: `statistics.json` (GR00T's layout, computed from the dataset, per
-//! group: min, max, mean, std, q01, q99), `embodiment.toml`, `gr00t_run.json` (the inputs'
+//! group: min, max, mean, std, q01, q99; `relative_action` tables `[H, D]` for relative
+//! groups), `embodiment.toml`, `gr00t_run.json` (the inputs'
 //! digests), `vl-cache/` (the processed VL tokens, keyed by dataset + features + frozen head),
 //! `loss.jsonl`, and `step-NNNNNN/` checkpoints (`model.safetensors` with GR00T's tensor names
 //! and the delay table, `config.json`, the training state). The paper's robot recipe is the
@@ -31,7 +37,7 @@ use candle_core::Device;
 use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
 use pir2_backends::gr00t::{EmbodimentConfig, Normalizer};
 use pir2_backends::train::gr00t::{
-    head_fingerprint, tree_fingerprint, vl_cache_key, Gr00tTrainSpec, Gr00tTrainer,
+    head_fingerprint, tree_fingerprint, vl_cache_key, ActionTargets, Gr00tTrainSpec, Gr00tTrainer,
     PrecomputedFeatures, VlCache,
 };
 use pir2_backends::train::{Episode, Progress, TrainConfig, TrainReport};
@@ -163,12 +169,149 @@ fn statistics_json(
         }
         serde_json::Value::Object(m)
     };
-    serde_json::json!({
-        emb.embodiment_tag.clone(): {
-            "state": groups(&state, &emb.state),
-            "action": groups(&action, &emb.action),
+    let mut tables = serde_json::Map::new();
+    tables.insert("state".into(), groups(&state, &emb.state));
+    tables.insert("action".into(), groups(&action, &emb.action));
+    if emb.has_relative_actions() {
+        tables.insert("relative_action".into(), relative_statistics(emb, episodes));
+    }
+    serde_json::json!({ emb.embodiment_tag.clone(): tables })
+}
+
+/// GR00T's `relative_action` statistics of every relative action group: per chunk slot `p`
+/// (`[H, D]` tables), the statistics of `a_{t+p} − s_t` (a pose: `T_ref⁻¹·T` in the group's
+/// layout) over the chunks the trainer draws
+/// (every frame `t`, the state group's raw value at `t`, the last action repeated past the
+/// episode's end, as the batch sampler does). GR00T's own tool takes only the chunks that fit
+/// inside the episode; taking the sampled ones keeps every training target inside the
+/// statistics' range, so no target is clipped.
+fn relative_statistics(
+    emb: &EmbodimentConfig,
+    episodes: &[pir2_sim::dataset::Episode],
+) -> serde_json::Value {
+    let h = emb.horizon;
+    let reference = emb.action_reference();
+    let poses = emb.action_poses();
+    let mut out = serde_json::Map::new();
+    let mut at = 0;
+    for g in &emb.action {
+        let cols = at..at + g.dim;
+        at += g.dim;
+        if !g.relative {
+            continue;
         }
-    })
+        let pose = poses.iter().find(|p| p.first == cols.start);
+        let k0 = reference[cols.start].unwrap_or(0);
+        let mut rows: Vec<FeatureStats> = Vec::with_capacity(h);
+        let (mut values, mut rel) = (Vec::new(), vec![0f32; g.dim]);
+        for p in 0..h {
+            values.clear();
+            for e in episodes {
+                let len = e.len();
+                for t in 0..len {
+                    let (a, s) = (e.action((t + p).min(len - 1)), e.fast(t));
+                    match pose {
+                        Some(pg) => {
+                            pir2_runtime::pose::relative(
+                                pg.format,
+                                &s[k0..k0 + g.dim],
+                                &a[cols.clone()],
+                                &mut rel,
+                            );
+                            values.extend(rel.iter().map(|&v| f64::from(v)));
+                        }
+                        None => {
+                            for j in cols.clone() {
+                                let k = reference[j].unwrap_or(0);
+                                values.push(f64::from(a[j]) - f64::from(s[k]));
+                            }
+                        }
+                    }
+                }
+            }
+            rows.push(FeatureStats::compute(&values, g.dim));
+        }
+        let quantile = |s: &FeatureStats, name: &str| -> Vec<f64> {
+            let i = pir2_sim::dataset::QUANTILES
+                .iter()
+                .position(|(_, n)| *n == name)
+                .unwrap_or(0);
+            s.quantiles[i].clone()
+        };
+        let table = |f: &dyn Fn(&FeatureStats) -> Vec<f64>| -> Vec<Vec<f64>> {
+            rows.iter().map(f).collect()
+        };
+        out.insert(
+            g.name.clone(),
+            serde_json::json!({
+                "min": table(&|s| s.min.clone()),
+                "max": table(&|s| s.max.clone()),
+                "mean": table(&|s| s.mean.clone()),
+                "std": table(&|s| s.std.clone()),
+                "q01": table(&|s| quantile(s, "q01")),
+                "q99": table(&|s| quantile(s, "q99")),
+            }),
+        );
+    }
+    serde_json::Value::Object(out)
+}
+
+/// The training targets of `pir2 train gr00t`: every slot `p` of a sample's chunk encoded
+/// with GR00T's processor ([`Normalizer::encode_action`] at slot `p`) against the raw state
+/// of the sample's frame `t`, the newest row of its observation window. A relative group's
+/// target is `a_{t+p} − s_t` normalised with the slot's `relative_action` statistics; an
+/// absolute group's is its normalised action. The runtime decodes slot `p` of the chunk a
+/// call makes from the snapshot at tick `t` against the raw state of that snapshot's newest
+/// row (`OutputMap::decode`, the reference filled by `OutputMap::fill_reference`), and
+/// executes it at tick `t + p`: the same pairing of state and action.
+#[derive(Debug, Clone)]
+pub struct Gr00tTargets {
+    norm: Normalizer,
+    horizon: usize,
+    action_dim: usize,
+    /// Raw states per episode, `[len, S]`.
+    states: Vec<Vec<f32>>,
+    state_dim: usize,
+}
+
+impl Gr00tTargets {
+    /// The targets of `episodes` (raw dataset states and actions) under `norm` for chunks of
+    /// `horizon` slots.
+    pub fn new(norm: Normalizer, horizon: usize, episodes: &[pir2_sim::dataset::Episode]) -> Self {
+        Self {
+            action_dim: norm.action_dim(),
+            state_dim: norm.state_dim(),
+            norm,
+            horizon,
+            states: episodes.iter().map(|e| e.fast.clone()).collect(),
+        }
+    }
+}
+
+impl ActionTargets for Gr00tTargets {
+    fn encode(&self, episode: usize, frame: usize, chunk: &mut [f32]) -> pir2_backends::Result<()> {
+        let (sd, a) = (self.state_dim, self.action_dim);
+        let s = self
+            .states
+            .get(episode)
+            .and_then(|s| s.get(frame * sd..(frame + 1) * sd))
+            .ok_or_else(|| {
+                pir2_backends::Error::Dataset(format!(
+                    "no frame {frame} in episode {episode} of the training targets"
+                ))
+            })?;
+        if chunk.len() != self.horizon * a {
+            return Err(pir2_backends::Error::Dataset(format!(
+                "an action chunk of {} values, expected H × A = {} × {a}",
+                chunk.len(),
+                self.horizon
+            )));
+        }
+        for (p, x) in chunk.chunks_exact_mut(a).enumerate() {
+            self.norm.encode_action(p, s, x);
+        }
+        Ok(())
+    }
 }
 
 /// Write `text` to `path`, or, when the file exists (a resumed run), check it is the same.
@@ -260,15 +403,6 @@ pub fn train(
     let c = head.config().clone();
     let ck = o.checkpoint.display();
     let ed = o.embodiment.display();
-    if let Some(g) = emb.action.iter().find(|g| g.relative) {
-        // Relative targets are the chunk's actions minus the state at its start, per chunk
-        // slot; the per-frame preprocessing below cannot express them yet.
-        bail!(
-            "embodiment {ed}: action group `{}` is relative; `pir2 train gr00t` trains absolute \
-             action groups only (relative groups run, but do not train yet)",
-            g.name
-        );
-    }
     check_head_fits(&emb, &c, &o.checkpoint, &o.embodiment)?;
 
     // The dataset: widths first, against the embodiment.
@@ -317,13 +451,13 @@ pub fn train(
             for t in 0..e.len() {
                 s.fill(0.0);
                 norm.normalize_state(e.fast(t), &mut s[..enc]);
-                let mut act = e.action(t).to_vec();
-                norm.normalize_action(&mut act);
-                out.push(&s, &[], &act);
+                // Raw: the targets are encoded per sample (`Gr00tTargets`).
+                out.push(&s, &[], e.action(t));
             }
             out
         })
         .collect();
+    let targets = Gr00tTargets::new(norm, emb.horizon, &ds.episodes);
 
     // The frozen backbone's tokens: cached once per frame, keyed by everything they depend on.
     let features = PrecomputedFeatures::open(&o.features)
@@ -396,6 +530,7 @@ pub fn train(
         .resume(o.resume)
         .identity(identity)
         .checkpoint_file("config.json", config_json)
+        .action_targets(&targets)
         .on_progress(&mut progress);
     if let Some(s) = &o.stop {
         trainer = trainer.stop_on(s.clone());

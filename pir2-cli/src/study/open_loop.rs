@@ -225,6 +225,7 @@ mod tests {
                     offset: vec![0.0, -4.0],
                     clip: Vec::new(),
                     reference: Vec::new(),
+                    poses: Vec::new(),
                 },
                 windows: 6,
                 seed: 1,

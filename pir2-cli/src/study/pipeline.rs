@@ -138,6 +138,7 @@ pub fn output_map(m: &CandleModel) -> OutputMap {
         offset: n.mean.clone(),
         clip: Vec::new(),
         reference: Vec::new(),
+        poses: Vec::new(),
     }
 }
 

@@ -30,8 +30,11 @@ pub struct Normalizer {
     action_clip: Vec<bool>,
     /// Per action dimension, the raw state index a relative action is added to.
     action_reference: Vec<Option<usize>>,
-    /// A degenerate min/max (or percentile) action dimension of the first slot's statistics:
-    /// normalises to 0.
+    /// The relative end-effector poses among the relative dimensions (composed with the
+    /// reference pose, not added per dimension).
+    action_poses: Vec<pir2_runtime::PoseGroup>,
+    /// A degenerate min/max (or percentile) action dimension (numpy's `isclose(max, min)`),
+    /// laid out like `action_scale` (`[A]` or `[H, A]`): normalises to 0.
     action_zero: Vec<bool>,
 }
 
@@ -85,6 +88,7 @@ impl Normalizer {
             action_offset: vec![0.0; action_dim],
             action_clip: vec![false; action_dim],
             action_reference: vec![None; action_dim],
+            action_poses: Vec::new(),
             action_zero: vec![false; action_dim],
         }
     }
@@ -256,9 +260,9 @@ impl Normalizer {
                 let r = if m.rows == 1 { 0 } else { p };
                 ao.extend_from_slice(&m.offset[r * g.dim..(r + 1) * g.dim]);
                 ascale.extend_from_slice(&m.scale[r * g.dim..(r + 1) * g.dim]);
+                azero.extend_from_slice(&m.zero[r * g.dim..(r + 1) * g.dim]);
                 if p == 0 {
                     aclip.extend(std::iter::repeat_n(m.clip, g.dim));
-                    azero.extend_from_slice(&m.zero[..g.dim]);
                 }
             }
         }
@@ -275,6 +279,7 @@ impl Normalizer {
             action_offset: ao,
             action_clip: aclip,
             action_reference: cfg.action_reference(),
+            action_poses: cfg.action_poses(),
             action_zero: azero,
         })
     }
@@ -350,6 +355,46 @@ impl Normalizer {
         }
     }
 
+    /// GR00T's training target for the action at `slot` of a chunk whose observation's newest
+    /// raw state is `state` (the inverse of [`decode_action`](Self::decode_action) inside the
+    /// clip range): subtract the reference state from the relative groups (`a − s`; a relative
+    /// end-effector pose becomes `T_ref⁻¹·T`, see `pir2_runtime::pose`), then
+    /// normalise with that slot's statistics, `(x − offset)/scale`, clipped to `[-1, 1]` for
+    /// the min/max and percentile groups; a degenerate min/max dimension of that slot maps to
+    /// 0. In place. `state` is only read for relative groups (pass `&[]` without any).
+    pub fn encode_action(&self, slot: usize, state: &[f32], a: &mut [f32]) {
+        let n = self.action_dim();
+        let row = if self.per_slot() { slot * n } else { 0 };
+        for g in &self.action_poses {
+            let r = g.dims();
+            let k = self.action_reference[g.first].unwrap_or(0);
+            let mut abs = [0f32; 9];
+            abs[..r.len()].copy_from_slice(&a[r.clone()]);
+            pir2_runtime::pose::relative(
+                g.format,
+                &state[k..k + r.len()],
+                &abs[..r.len()],
+                &mut a[r],
+            );
+        }
+        for (i, x) in a.iter_mut().enumerate() {
+            if self.action_zero[row + i] {
+                *x = 0.0;
+                continue;
+            }
+            let mut u = *x;
+            if let Some(k) = self.action_reference[i].filter(|_| !self.in_pose(i)) {
+                u -= state[k];
+            }
+            let v = (u - self.action_offset[row + i]) / self.action_scale[row + i];
+            *x = if self.action_clip[i] {
+                v.clamp(-1.0, 1.0)
+            } else {
+                v
+            };
+        }
+    }
+
     /// Denormalise one absolute action vector in place with the first slot's statistics
     /// (relative groups get no reference: see [`decode_action`](Self::decode_action)).
     pub fn denormalize_action(&self, a: &mut [f32]) {
@@ -366,7 +411,8 @@ impl Normalizer {
     /// GR00T's decoding of the action at `slot` of a chunk made from an observation whose
     /// newest raw state is `state`: denormalise with that slot's statistics (clipping the
     /// min/max and percentile groups first), then add the reference state to the relative
-    /// groups. In place.
+    /// groups (compose a relative end-effector pose with the reference pose, `T_ref·T_rel`).
+    /// In place.
     pub fn decode_action(&self, slot: usize, state: &[f32], a: &mut [f32]) {
         let n = self.action_dim();
         let row = if self.per_slot() { slot * n } else { 0 };
@@ -377,11 +423,28 @@ impl Normalizer {
                 *x
             };
             let mut u = self.action_scale[row + i] * v + self.action_offset[row + i];
-            if let Some(k) = self.action_reference[i] {
+            if let Some(k) = self.action_reference[i].filter(|_| !self.in_pose(i)) {
                 u += state[k];
             }
             *x = u;
         }
+        for g in &self.action_poses {
+            let r = g.dims();
+            let k = self.action_reference[g.first].unwrap_or(0);
+            let mut rel = [0f32; 9];
+            rel[..r.len()].copy_from_slice(&a[r.clone()]);
+            pir2_runtime::pose::absolute(
+                g.format,
+                &state[k..k + r.len()],
+                &rel[..r.len()],
+                &mut a[r],
+            );
+        }
+    }
+
+    /// Whether action dimension `i` belongs to a relative pose.
+    fn in_pose(&self, i: usize) -> bool {
+        self.action_poses.iter().any(|g| g.dims().contains(&i))
     }
 
     /// The runtime's output map that turns model actions into absolute joint targets
@@ -397,6 +460,7 @@ impl Normalizer {
             offset: self.action_offset.clone(),
             clip: self.action_clip.clone(),
             reference,
+            poses: self.action_poses.clone(),
         }
     }
 }
