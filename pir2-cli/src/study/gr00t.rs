@@ -140,13 +140,6 @@ fn statistics_json(
     };
     let state = FeatureStats::compute(&gather(&|e| &e.fast), emb.state_dim());
     let action = FeatureStats::compute(&gather(&|e| &e.action), emb.action_dim());
-    let quantile = |s: &FeatureStats, name: &str| -> Vec<f64> {
-        let i = pir2_sim::dataset::QUANTILES
-            .iter()
-            .position(|(_, n)| *n == name)
-            .unwrap_or(0);
-        s.quantiles[i].clone()
-    };
     let groups = |s: &FeatureStats, groups: &[pir2_backends::gr00t::Group]| {
         let mut m = serde_json::Map::new();
         let mut at = 0;
@@ -231,13 +224,6 @@ fn relative_statistics(
             }
             rows.push(FeatureStats::compute(&values, g.dim));
         }
-        let quantile = |s: &FeatureStats, name: &str| -> Vec<f64> {
-            let i = pir2_sim::dataset::QUANTILES
-                .iter()
-                .position(|(_, n)| *n == name)
-                .unwrap_or(0);
-            s.quantiles[i].clone()
-        };
         let table = |f: &dyn Fn(&FeatureStats) -> Vec<f64>| -> Vec<Vec<f64>> {
             rows.iter().map(f).collect()
         };
@@ -696,4 +682,13 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
         d_vis_max,
         trained: pir2_backends::gr00t::policy_name(emb.policy.trained).to_string(),
     })
+}
+
+/// The named quantile row (`q01`, `q99`, ...) of `s` (the first row if the name is unknown).
+fn quantile(s: &FeatureStats, name: &str) -> Vec<f64> {
+    let i = pir2_sim::dataset::QUANTILES
+        .iter()
+        .position(|(_, n)| *n == name)
+        .unwrap_or(0);
+    s.quantiles[i].clone()
 }
