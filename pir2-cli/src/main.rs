@@ -841,7 +841,38 @@ fn task(name: &str) -> TaskName {
     }
 }
 
-fn main() -> Result<()> {
+/// Runs the command; an error ends the process with exit status 1 and one message on stderr:
+/// the error and its causes, as anyhow writes them, but never a stack backtrace (an expected
+/// error such as "training interrupted" is not a crash, even with `RUST_BACKTRACE` set; panics
+/// still print theirs).
+fn main() -> std::process::ExitCode {
+    match run() {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("{}", error_report(&e));
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// `Error: <message>` and, if any, the causes, numbered as anyhow numbers them.
+fn error_report(e: &anyhow::Error) -> String {
+    let mut out = format!("Error: {e}");
+    let causes: Vec<String> = e.chain().skip(1).map(|c| c.to_string()).collect();
+    match causes.len() {
+        0 => {}
+        1 => out.push_str(&format!("\n\nCaused by:\n    {}", causes[0])),
+        _ => {
+            out.push_str("\n\nCaused by:");
+            for (i, c) in causes.iter().enumerate() {
+                out.push_str(&format!("\n    {i}: {c}"));
+            }
+        }
+    }
+    out
+}
+
+fn run() -> Result<()> {
     let cli = Cli::parse();
     match cli.cmd {
         Cmd::Demo {
@@ -1038,5 +1069,28 @@ fn main() -> Result<()> {
                 commands::robot_emulate(which, ctrl_c_flag())
             }
         },
+    }
+}
+
+#[cfg(test)]
+mod error_report_tests {
+    use super::error_report;
+    use anyhow::Context;
+
+    #[test]
+    fn the_report_is_the_message_and_its_numbered_causes() {
+        let one: anyhow::Result<()> = Err(anyhow::anyhow!("disk full")).context("writing x");
+        assert_eq!(
+            error_report(&one.unwrap_err()),
+            "Error: writing x\n\nCaused by:\n    disk full"
+        );
+        let two: anyhow::Result<()> = Err(anyhow::anyhow!("disk full"))
+            .context("writing x")
+            .context("saving step 3");
+        assert_eq!(
+            error_report(&two.unwrap_err()),
+            "Error: saving step 3\n\nCaused by:\n    0: writing x\n    1: disk full"
+        );
+        assert_eq!(error_report(&anyhow::anyhow!("bad")), "Error: bad");
     }
 }

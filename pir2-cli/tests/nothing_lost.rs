@@ -72,6 +72,33 @@ fn run_json_records_a_failure_and_never_replaces_a_file() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// An error ends the process with status 1 and one report on stderr (message and causes),
+/// without a stack backtrace even when `RUST_BACKTRACE` asks for one: an expected error such
+/// as an interrupted training or a missing file is not a crash. Before, `main` returned the
+/// `anyhow` error and its `Debug` form printed the captured backtrace.
+#[test]
+fn an_error_is_one_report_without_a_backtrace() {
+    let dir = tmpdir("error-report");
+    let missing = dir.join("no-such-config.toml");
+    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(["demo", "--config", missing.to_str().unwrap()])
+        .args(["--out", dir.join("out").to_str().unwrap()])
+        .env("RUST_BACKTRACE", "1")
+        .env("RUST_LIB_BACKTRACE", "1")
+        .output()
+        .unwrap();
+    let stderr = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.starts_with("Error: "), "{stderr}");
+    assert_eq!(stderr.matches("Error: ").count(), 1, "{stderr}");
+    assert!(
+        stderr.contains("no-such-config.toml"),
+        "names the path: {stderr}"
+    );
+    assert!(!stderr.to_lowercase().contains("backtrace"), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 fn spawn_collect(out: &Path, extra: &[&str]) -> Child {
     Command::new(env!("CARGO_BIN_EXE_pir2"))
         .args(["collect", "ballplate", "--episodes", "1000000", "--out"])
