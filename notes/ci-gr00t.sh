@@ -30,6 +30,9 @@ cargo test -p pir2-backends --features gr00t --test gr00t_export
 # `pir2 train gr00t` end to end (candle, CPU; needs no ONNX Runtime at run time): a synthetic
 # N1.7-shaped checkpoint, dataset and backbone features; resume bit-identity; input errors.
 cargo test -p pir2-cli --features gr00t --test gr00t_train
+# A relative end-effector pose (xyz_rot6d) through pir2 train gr00t on a widened synthetic
+# checkpoint; relative poses against scipy's Rotation (PIR2_PYTHON with scipy), ~2 s.
+cargo test -p pir2-cli --features gr00t --test gr00t_train_pose
 # Issue 20's chain: synthetic N1.7 checkpoint → pir2 train gr00t (2 steps) → pir2 export --gr00t
 # → pir2 run gr00t-xarm-xhand --emulate (25 ticks), and the export's input errors (~5 s).
 cargo test -p pir2-cli --features gr00t --test gr00t_export -- --test-threads=1

@@ -3,7 +3,7 @@
 #   MuJoCo 3.17.0 (feature `mujoco`), ONNX Runtime 1.31.1 (feature `ort`), libtorch 2.13.0 (feature `tch`),
 #   and the LeapCubeReorient scene from the `playground==0.2.0` wheel (Apache-2.0).
 # Everything comes from PyPI into a private venv under .native/ (nothing is downloaded from elsewhere),
-# with the Python references of the native tests (onnx, tokenizers, jinja2, albumentations +
+# with the Python references of the native tests (onnx, scipy, tokenizers, jinja2, albumentations +
 # opencv-python-headless, av, xarm-python-sdk), and the `ffmpeg` program (apt) that decodes
 # datasets' camera videos.
 # It writes .native/env.sh; `source .native/env.sh` before building/running with those features.
@@ -40,6 +40,9 @@ have mujoco 3.17.0 || "$pip" -q install "mujoco==3.17.0"
 have onnxruntime 1.31.1 || "$pip" -q install "onnxruntime==1.31.1"
 # `onnx` + numpy: the GR00T tests write their tiny synthetic graphs with them.
 "$venv/bin/python" -c "import onnx, numpy" 2>/dev/null || "$pip" -q install onnx numpy
+# scipy: its `Rotation` is the reference of the relative end-effector poses
+# (pir2-cli/tests/gr00t_train_pose.rs); Isaac-GR00T's pose code builds on it.
+have scipy 1.17.1 || "$pip" -q install "scipy==1.17.1"
 # Hugging Face `tokenizers` + Jinja2: the Python reference of the GR00T tokenizer golden test
 # (pir2-backends/tests/gr00t_tokenizer.rs).
 have tokenizers 0.23.3 || "$pip" -q install "tokenizers==0.23.3"

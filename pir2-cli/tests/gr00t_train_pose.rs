@@ -1,0 +1,630 @@
+//! A relative end-effector pose group through `pir2 train gr00t`, end to end: a synthetic
+//! N1.7-shaped checkpoint wide enough for a 9-value `xyz_rot6d` pose (the tiny `alt` fixture
+//! of `gr00t_train.rs` with its action encoder/decoder and state encoder widened to
+//! `max_action_dim = max_state_dim = 10`, under GR00T's tensor names), a dataset whose state
+//! and action are an end-effector pose plus a gripper, and the checks:
+//! - the run trains and writes `relative_action.eef` `[H, 9]` tables;
+//! - the relative poses are GR00T's `T_ref⁻¹·T` (reference = the state of the sample's
+//!   frame, rot6d = the first two rows of `R`), checked against scipy's `Rotation` on the
+//!   same poses, in both layouts (`xyz_rot6d`, `xyz_rotvec`), and the written tables are
+//!   their per-slot minimum and maximum;
+//! - the trainer's targets decode back to the dataset's absolute poses through the runtime's
+//!   output map, and the lock-step runtime driven by a head that outputs exactly those targets
+//!   sends the dataset's pose at every tick (πR² async with one- and two-tick calls, πR²
+//!   sync).
+//!
+//! Needs `$PIR2_PYTHON` with numpy and scipy (scripts/setup-native.sh; `source
+//! .native/env.sh`).
+#![cfg(feature = "gr00t")]
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use candle_core::{Device, Tensor};
+use pir2_backends::gr00t::testing::python_from_env;
+use pir2_backends::gr00t::{EmbodimentConfig, Group, GroupFormat, Norm, Normalizer};
+use pir2_backends::train::gr00t::ActionTargets;
+use pir2_cli::study::gr00t::{train, Gr00tTargets, Gr00tTrainOptions};
+use pir2_runtime::pose::{relative, PoseFormat};
+use pir2_runtime::PoseGroup;
+use pir2_sim::dataset::{
+    read_selected, DatasetSpec, DatasetWriter, Episode, FeatureKeys, FeatureSelection, WriteMode,
+};
+
+mod common;
+use common::Scratch;
+
+const FRAMES_PER_EPISODE: usize = 14;
+const EPISODES: usize = 3;
+const TOKENS: usize = 6;
+/// End-effector pose (9) + gripper (1), for the state and the action.
+const WIDTH: usize = 10;
+/// The widened checkpoint's `max_action_dim` and `max_state_dim`.
+const WIDE: usize = 10;
+
+fn fixtures() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/fixtures/gr00t_n17_head")
+}
+
+/// A deterministic stream of values in `[-0.1, 0.1)` (xorshift).
+fn padding(seed: &mut u64, n: usize) -> Vec<f32> {
+    (0..n)
+        .map(|_| {
+            *seed ^= *seed << 13;
+            *seed ^= *seed >> 7;
+            *seed ^= *seed << 17;
+            ((*seed >> 11) as f64 / (1u64 << 53) as f64 * 0.2 - 0.1) as f32
+        })
+        .collect()
+}
+
+/// `t` (`[n, rows, cols]`) widened to `[n, rows_of(r), cols_of(c)]`: entry `(i, r, c)` of
+/// the old tensor lands at `(i, rows_of(r), cols_of(c))`; every other entry is seeded padding.
+fn widen(
+    t: &Tensor,
+    rows: usize,
+    cols: usize,
+    row_of: impl Fn(usize) -> usize,
+    col_of: impl Fn(usize) -> usize,
+    seed: &mut u64,
+) -> Tensor {
+    let (n, r0, c0) = t.dims3().unwrap();
+    let old = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let mut v = padding(seed, n * rows * cols);
+    for i in 0..n {
+        for r in 0..r0 {
+            for c in 0..c0 {
+                v[(i * rows + row_of(r)) * cols + col_of(c)] = old[(i * r0 + r) * c0 + c];
+            }
+        }
+    }
+    Tensor::from_vec(v, (n, rows, cols), &Device::Cpu).unwrap()
+}
+
+/// The `alt` fixture (max_state_dim 6 × state history 2, max_action_dim 5) as a checkpoint
+/// with `max_action_dim = max_state_dim = WIDE`: GR00T's tensors that depend on those widths
+/// (`action_encoder.W1`, `action_decoder.layer2`, `state_encoder.layer1`, one `[W, b]` per
+/// embodiment slot) keep the fixture's values at the old positions and get seeded padding in
+/// the new rows and columns; everything else is the fixture's.
+fn wide_checkpoint(dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixtures().join("alt.config.json")).unwrap())
+            .unwrap();
+    let (old_s, old_a) = (6, 5);
+    assert_eq!(cfg["max_state_dim"], old_s);
+    assert_eq!(cfg["max_action_dim"], old_a);
+    let history = cfg["state_history_length"].as_u64().unwrap() as usize;
+    cfg["max_state_dim"] = WIDE.into();
+    cfg["max_action_dim"] = WIDE.into();
+    std::fs::write(
+        dir.join("config.json"),
+        serde_json::to_string_pretty(&cfg).unwrap(),
+    )
+    .unwrap();
+
+    let mut w: HashMap<String, Tensor> =
+        candle_core::safetensors::load(fixtures().join("alt.weights.safetensors"), &Device::Cpu)
+            .unwrap();
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let id = |i: usize| i;
+    let p = "action_head.";
+    // Action encoder input: [n, A_max, D_in].
+    let k = format!("{p}action_encoder.W1.W");
+    let d_in = w[&k].dims3().unwrap().2;
+    let t = widen(&w[&k], WIDE, d_in, id, id, &mut seed);
+    w.insert(k, t);
+    // Action decoder output: [n, hid, A_max] and [n, A_max].
+    let k = format!("{p}action_decoder.layer2.W");
+    let hid = w[&k].dims3().unwrap().1;
+    let t = widen(&w[&k], hid, WIDE, id, id, &mut seed);
+    w.insert(k, t);
+    let k = format!("{p}action_decoder.layer2.b");
+    let b = w[&k].unsqueeze(1).unwrap();
+    let t = widen(&b, 1, WIDE, id, id, &mut seed).squeeze(1).unwrap();
+    w.insert(k, t);
+    // State encoder input: history × max_state_dim, step-major ([n, hist · S_max, hid]).
+    let k = format!("{p}state_encoder.layer1.W");
+    let hid = w[&k].dims3().unwrap().2;
+    let t = widen(
+        &w[&k],
+        history * WIDE,
+        hid,
+        |r| (r / old_s) * WIDE + r % old_s,
+        id,
+        &mut seed,
+    );
+    w.insert(k, t);
+    candle_core::safetensors::save(&w, dir.join("model.safetensors")).unwrap();
+}
+
+fn group(name: &str, dim: usize) -> Group {
+    Group {
+        name: name.into(),
+        dim,
+        norm: Norm::MinMax,
+        relative: false,
+        state_key: None,
+        format: GroupFormat::Default,
+    }
+}
+
+/// State `eef` 9 + `grip` 1; action `eef` (relative `xyz_rot6d` to the state's `eef`) +
+/// `grip`; H = 8, d_max = 2, n_obs = 2, slot 1.
+fn embodiment(path: &Path) {
+    let mut e = EmbodimentConfig::xarm6_xhand();
+    e.name = "tiny-eef".into();
+    e.horizon = 8;
+    e.d_max = 2;
+    e.d_vis_max = 2;
+    e.n_obs = 2;
+    e.embodiment_id = 1;
+    e.state = vec![group("eef", 9), group("grip", 1)];
+    e.action = vec![
+        Group {
+            relative: true,
+            format: GroupFormat::XyzRot6d,
+            ..group("eef", 9)
+        },
+        group("grip", 1),
+    ];
+    std::fs::write(path, e.to_toml().unwrap()).unwrap();
+}
+
+/// The rotation matrix of the rotation vector `w` (Rodrigues), row-major.
+fn rotation(w: [f64; 3]) -> [[f64; 3]; 3] {
+    let th = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    let k = w.map(|x| x / th);
+    let kx = [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]];
+    let mut r = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            let k2: f64 = (0..3).map(|m| kx[i][m] * kx[m][j]).sum();
+            r[i][j] = f64::from(u8::from(i == j)) + th.sin() * kx[i][j] + (1.0 - th.cos()) * k2;
+        }
+    }
+    r
+}
+
+/// A pose along a smooth path at phase `ph`, in GR00T's `xyz_rot6d` (rows 0 and 1 of `R`).
+fn pose(ph: f64) -> [f32; 9] {
+    let r = rotation([
+        0.6 * ph.sin(),
+        0.5 * (1.3 * ph).cos(),
+        0.9 * (0.7 * ph).sin() + 0.2,
+    ]);
+    let t = [0.3 * ph.sin(), 0.2 * ph.cos(), 0.05 * ph];
+    let mut out = [0f32; 9];
+    for (o, v) in out.iter_mut().zip(
+        t.iter()
+            .chain(r[0].iter())
+            .chain(r[1].iter())
+            .map(|&v| v as f32),
+    ) {
+        *o = v;
+    }
+    out
+}
+
+/// Episodes whose state is a pose and a gripper, and whose action is the pose a little ahead
+/// on the same path (so a relative action is not the identity) and a gripper command.
+fn dataset(root: &Path) {
+    let names = |p: &str| (0..WIDTH).map(|i| format!("{p}{i}")).collect::<Vec<_>>();
+    let spec = DatasetSpec {
+        fps: 25,
+        robot_type: Some("tiny-eef".into()),
+        tasks: vec!["pick the cube".into()],
+        fast_names: names("s"),
+        slow_names: Vec::new(),
+        action_names: names("a"),
+        keys: FeatureKeys::default(),
+    };
+    let mut w = DatasetWriter::open(root, spec, WriteMode::New).unwrap();
+    for e in 0..EPISODES {
+        let mut ep = Episode::new(WIDTH, 0, WIDTH);
+        for t in 0..FRAMES_PER_EPISODE {
+            let ph = 0.3 * t as f64 + 1.7 * e as f64;
+            let mut s = pose(ph).to_vec();
+            s.push(ph.sin() as f32);
+            let mut a = pose(ph + 0.35).to_vec();
+            a.push((0.8 * (ph + 0.2).sin()) as f32);
+            ep.push(&s, &[], &a);
+        }
+        w.append(&ep).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+/// Backbone outputs: N frames of 6 tokens of width 20; tokens 0-1 text, 2-4 image, 5 padding.
+fn features(path: &Path, frames: usize) {
+    let dev = Device::Cpu;
+    let mut seed = 7u64;
+    let emb = Tensor::from_vec(
+        padding(&mut seed, frames * TOKENS * 20),
+        (frames, TOKENS, 20),
+        &dev,
+    )
+    .unwrap();
+    let image: Vec<u8> = (0..frames).flat_map(|_| [0u8, 0, 1, 1, 1, 0]).collect();
+    let attn: Vec<u8> = (0..frames).flat_map(|_| [1u8, 1, 1, 1, 1, 0]).collect();
+    let map = HashMap::from([
+        ("embeddings".to_string(), emb),
+        (
+            "image_mask".to_string(),
+            Tensor::from_vec(image, (frames, TOKENS), &dev).unwrap(),
+        ),
+        (
+            "attention_mask".to_string(),
+            Tensor::from_vec(attn, (frames, TOKENS), &dev).unwrap(),
+        ),
+    ]);
+    candle_core::safetensors::save(&map, path).unwrap();
+}
+
+/// GR00T's relative pose with scipy's `Rotation` (Isaac-GR00T's `pose.py` builds on it):
+/// for each `[reference, pose]` pair in `xyz_rot6d`, the rotation is read from the first
+/// two rows (the third is their cross product), `T_ref⁻¹·T` is
+/// `(R_ref⁻¹·R, R_ref⁻¹·(t − t_ref))`, written back as `xyz_rot6d` (first two rows) and as
+/// `xyz_rotvec`; the inputs are also written as `xyz_rotvec`.
+const SCIPY_REF: &str = r#"
+import json, sys
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+def read6d(v):
+    v = np.asarray(v, dtype=np.float64)
+    r0 = v[3:6] / np.linalg.norm(v[3:6])
+    r1 = v[6:9] - r0 * (r0 @ v[6:9]); r1 /= np.linalg.norm(r1)
+    return v[:3], Rotation.from_matrix(np.stack([r0, r1, np.cross(r0, r1)]))
+
+pairs = json.load(open(sys.argv[1]))
+out = []
+for ref, pose in pairs:
+    t0, r0 = read6d(ref); t, r = read6d(pose)
+    rel_r = r0.inv() * r
+    rel_t = r0.inv().apply(t - t0)
+    m = rel_r.as_matrix()
+    out.append({
+        "rot6d": list(rel_t) + list(m[0]) + list(m[1]),
+        "rotvec": list(rel_t) + list(rel_r.as_rotvec()),
+        "ref_rotvec": list(t0) + list(r0.as_rotvec()),
+        "pose_rotvec": list(t) + list(r.as_rotvec()),
+    })
+json.dump(out, open(sys.argv[2], "w"))
+"#;
+
+/// Replays one episode's raw states (the fast row is the raw state, as on the robot) and
+/// records the commands it is sent.
+struct Replay {
+    states: Vec<Vec<f32>>,
+    t: usize,
+    sent: Vec<Vec<f32>>,
+}
+
+impl pir2_runtime::Environment for Replay {
+    fn spec(&self) -> pir2_runtime::EnvSpec {
+        pir2_runtime::EnvSpec {
+            fast_dim: WIDTH,
+            slow_dim: 0,
+            action_dim: WIDTH,
+            control_period: 40_000_000,
+            max_steps: self.states.len(),
+        }
+    }
+    fn reset(&mut self, _seed: u64) {
+        self.t = 0;
+        self.sent.clear();
+    }
+    fn observe(&mut self, fast: &mut [f32], _slow: &mut [f32]) {
+        fast.copy_from_slice(&self.states[self.t]);
+    }
+    fn step(&mut self, action: &[f32]) -> pir2_runtime::EnvStep {
+        self.sent.push(action.to_vec());
+        self.t += 1;
+        pir2_runtime::EnvStep {
+            done: self.t >= self.states.len(),
+            success: true,
+            reward: 0.0,
+        }
+    }
+}
+
+/// A head that outputs the training target exactly: it finds the dataset frame of the
+/// snapshot's newest raw state and steers every slot to what the trainer's own encoder
+/// ([`Gr00tTargets`]) makes of that frame's chunk.
+struct TargetOracle {
+    targets: Gr00tTargets,
+    episode: usize,
+    states: Vec<Vec<f32>>,
+    actions: Vec<Vec<f32>>,
+    chunk: Vec<f32>,
+}
+
+impl pir2_runtime::VelocityModel for TargetOracle {
+    fn backend(&self) -> &'static str {
+        "training-target oracle"
+    }
+    fn velocity(
+        &mut self,
+        inp: &pir2_runtime::ModelInput<'_>,
+        out: &mut [f32],
+    ) -> pir2_runtime::Result<()> {
+        let (h, a, f) = (inp.horizon, inp.action_dim, inp.fast_dim);
+        let newest = &inp.obs_fast[(inp.n_obs - 1) * f..inp.n_obs * f];
+        let t = self
+            .states
+            .iter()
+            .position(|s| s.as_slice() == newest)
+            .expect("the snapshot's state is a dataset frame");
+        let len = self.actions.len();
+        for p in 0..h {
+            self.chunk[p * a..(p + 1) * a].copy_from_slice(&self.actions[(t + p).min(len - 1)]);
+        }
+        self.targets
+            .encode(self.episode, t, &mut self.chunk)
+            .map_err(|e| pir2_runtime::Error::Config(e.to_string()))?;
+        for p in 0..h {
+            let tau = inp.tau[p];
+            for j in 0..a {
+                let i = p * a + j;
+                out[i] = if (0.0..1.0).contains(&tau) {
+                    (self.chunk[i] - inp.x[i]) / (1.0 - tau)
+                } else {
+                    0.0
+                };
+            }
+        }
+        Ok(())
+    }
+}
+
+fn max_diff(a: &[f32], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (f64::from(*x) - y).abs())
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
+    let dir = Scratch::new("gr00t-train-pose");
+    let root = dir.path();
+    let (ck, data, emb_path, feats) = (
+        root.join("ck"),
+        root.join("data"),
+        root.join("embodiment.toml"),
+        root.join("features.safetensors"),
+    );
+    wide_checkpoint(&ck);
+    dataset(&data);
+    embodiment(&emb_path);
+    features(&feats, EPISODES * FRAMES_PER_EPISODE);
+    let mut o = Gr00tTrainOptions::new(&ck, &data, &emb_path, &feats, &root.join("run"));
+    o.steps = 2;
+    o.batch_size = 8;
+    o.lr = 1e-3;
+    o.seed = 3;
+    let r = train(&o, |_| {}).unwrap();
+    assert_eq!(r.report.losses.len(), 2);
+    assert!(
+        r.report.losses.iter().all(|(_, l)| l.is_finite()),
+        "{:?}",
+        r.report.losses
+    );
+
+    // The statistics the deployment reads: `[H, 9]` relative tables for the pose only.
+    let emb = EmbodimentConfig::load(&o.out.join("embodiment.toml")).unwrap();
+    let h = emb.horizon;
+    let stats: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(o.out.join("statistics.json")).unwrap())
+            .unwrap();
+    let tag = emb.embodiment_tag.as_str();
+    let table = |stat: &str| -> Vec<Vec<f64>> {
+        serde_json::from_value(stats[tag]["relative_action"]["eef"][stat].clone()).unwrap()
+    };
+    let (rel_min, rel_max) = (table("min"), table("max"));
+    assert_eq!(rel_min.len(), h);
+    assert!(rel_min.iter().chain(&rel_max).all(|r| r.len() == 9));
+    assert!(stats[tag]["relative_action"].get("grip").is_none());
+    let norm = Normalizer::load(&o.out.join("statistics.json"), &emb).unwrap();
+    assert!(norm.per_slot());
+    let map = norm.action_output_map();
+    let want_ref: Vec<Option<usize>> = (0..9).map(Some).chain([None]).collect();
+    assert_eq!(map.reference, want_ref);
+    assert_eq!(
+        map.poses,
+        [PoseGroup {
+            first: 0,
+            format: PoseFormat::XyzRot6d
+        }]
+    );
+
+    let sel = FeatureSelection {
+        fast: vec!["observation.state".into()],
+        slow: Vec::new(),
+        action: "action".into(),
+    };
+    let ds = read_selected(&data, &sel).unwrap();
+
+    // GR00T's convention, independently: scipy's T_ref⁻¹·T on every (state of frame t,
+    // action of frame t + p) pair the statistics are taken over.
+    let mut pairs = Vec::new();
+    for ep in &ds.episodes {
+        let len = ep.len();
+        for t in 0..len {
+            for p in 0..h {
+                let a = ep.action((t + p).min(len - 1));
+                pairs.push((p, ep.fast(t)[..9].to_vec(), a[..9].to_vec()));
+            }
+        }
+    }
+    let python = python_from_env().unwrap();
+    let (script, qpath, rpath) = (
+        root.join("scipy_ref.py"),
+        root.join("pairs.json"),
+        root.join("scipy.json"),
+    );
+    std::fs::write(&script, SCIPY_REF).unwrap();
+    let q: Vec<[&Vec<f32>; 2]> = pairs.iter().map(|(_, s, a)| [s, a]).collect();
+    std::fs::write(&qpath, serde_json::to_string(&q).unwrap()).unwrap();
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg(&qpath)
+        .arg(&rpath)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "scipy reference: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let theirs: Vec<HashMap<String, Vec<f64>>> =
+        serde_json::from_str(&std::fs::read_to_string(&rpath).unwrap()).unwrap();
+    assert_eq!(theirs.len(), pairs.len());
+    let (mut worst6, mut worst_v) = (0f64, 0f64);
+    let (mut lo, mut hi) = (vec![vec![f64::MAX; 9]; h], vec![vec![f64::MIN; 9]; h]);
+    for ((p, s, a), sc) in pairs.iter().zip(&theirs) {
+        let mut rel = [0f32; 9];
+        relative(PoseFormat::XyzRot6d, s, a, &mut rel);
+        worst6 = worst6.max(max_diff(&rel, &sc["rot6d"]));
+        for (j, v) in sc["rot6d"].iter().enumerate() {
+            lo[*p][j] = lo[*p][j].min(*v);
+            hi[*p][j] = hi[*p][j].max(*v);
+        }
+        let to32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let mut rel_v = [0f32; 6];
+        relative(
+            PoseFormat::XyzRotvec,
+            &to32(&sc["ref_rotvec"]),
+            &to32(&sc["pose_rotvec"]),
+            &mut rel_v,
+        );
+        worst_v = worst_v.max(max_diff(&rel_v, &sc["rotvec"]));
+    }
+    println!(
+        "pir2 vs scipy, {} relative poses: max |diff| rot6d {worst6:.2e}, rotvec {worst_v:.2e}",
+        pairs.len()
+    );
+    assert!(worst6 < 1e-5, "xyz_rot6d: max |pir2 − scipy| = {worst6}");
+    assert!(worst_v < 1e-5, "xyz_rotvec: max |pir2 − scipy| = {worst_v}");
+    // The written tables are the per-slot extremes of those relative poses.
+    for p in 0..h {
+        for j in 0..9 {
+            assert!(
+                (rel_min[p][j] - lo[p][j]).abs() < 1e-5 && (rel_max[p][j] - hi[p][j]).abs() < 1e-5,
+                "slot {p} dim {j}: statistics [{}, {}], scipy [{}, {}]",
+                rel_min[p][j],
+                rel_max[p][j],
+                lo[p][j],
+                hi[p][j]
+            );
+        }
+    }
+
+    // Encode (trainer) → decode (runtime), every frame and slot.
+    let targets = Gr00tTargets::new(norm, h, &ds.episodes);
+    let (mut chunk, mut reference, mut u) = (vec![0f32; h * WIDTH], [0f32; WIDTH], [0f32; WIDTH]);
+    let mut worst = 0f32;
+    for (e, ep) in ds.episodes.iter().enumerate() {
+        let len = ep.len();
+        for t in 0..len {
+            for p in 0..h {
+                chunk[p * WIDTH..(p + 1) * WIDTH].copy_from_slice(ep.action((t + p).min(len - 1)));
+            }
+            targets.encode(e, t, &mut chunk).unwrap();
+            assert!(chunk.iter().all(|z| z.abs() <= 1.0), "{chunk:?}");
+            map.fill_reference(ep.fast(t), &mut reference);
+            for p in 0..h {
+                map.decode(&chunk[p * WIDTH..(p + 1) * WIDTH], p, &reference, &mut u);
+                let want = ep.action((t + p).min(len - 1));
+                for (j, (x, w)) in u.iter().zip(want).enumerate() {
+                    worst = worst.max((x - w).abs());
+                    assert!(
+                        (x - w).abs() < 1e-5,
+                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
+                    );
+                }
+            }
+        }
+    }
+    println!("encode → decode: max |decoded − dataset| = {worst:.2e}");
+
+    // Deployed: the lock-step runtime with the run's output map.
+    use pir2_runtime::{ActionHead, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode};
+    use pir2_schedule::{Alignment, FrontMode};
+    let pir2_async = |nfe| Mode::PiR2Async {
+        nfe,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    let pir2_sync = Mode::PiR2Sync {
+        nfe: None,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    let mut worst = 0f32;
+    for (mode, call_ticks) in [
+        (pir2_async(None), 1),
+        (pir2_async(Some(2)), 2),
+        (pir2_sync, 2),
+    ] {
+        for (e, ep) in ds.episodes.iter().enumerate() {
+            let states: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.fast(t).to_vec()).collect();
+            let actions: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.action(t).to_vec()).collect();
+            let sp = HeadSpec {
+                horizon: h,
+                action_dim: WIDTH,
+                n_obs: emb.n_obs,
+                fast_dim: WIDTH,
+                slow_dim: 0,
+                period: 40_000_000,
+                d_max: emb.d_max,
+                d_vis_max: 0,
+            };
+            let oracle = TargetOracle {
+                targets: targets.clone(),
+                episode: e,
+                states: states.clone(),
+                actions: actions.clone(),
+                chunk: vec![0.0; h * WIDTH],
+            };
+            let mut head = ActionHead::new(
+                oracle,
+                sp,
+                mode.head_mode(WIDTH),
+                LatencyWindow::new(20, 0, sp.period, sp.d_max),
+                5,
+            )
+            .unwrap();
+            let mut env = Replay {
+                states,
+                t: 0,
+                sent: Vec::new(),
+            };
+            let timing = LockstepTiming {
+                call_ticks,
+                slow_delay: 0,
+                overrun_ticks: 0,
+                overrun_every: 0,
+                pin_delay: true,
+            };
+            let mut drv = LockstepDriver::new(&head).with_output(map.clone());
+            let res = drv
+                .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
+                .unwrap();
+            assert_eq!(res.steps, ep.len());
+            for (t, sent) in env.sent.iter().enumerate() {
+                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
+                    worst = worst.max((x - w).abs());
+                    assert!(
+                        (x - w).abs() < 1e-4,
+                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
+                        mode.describe()
+                    );
+                }
+            }
+        }
+    }
+    println!("deployed: max |sent − dataset| = {worst:.2e}");
+}
