@@ -36,7 +36,8 @@ cargo test -p pir2-cli --features gr00t --test gr00t_train_pose
 # Issue 20's chain: synthetic N1.7 checkpoint → pir2 train gr00t (2 steps) → pir2 export --gr00t
 # → pir2 run gr00t-xarm-xhand --emulate (25 ticks), and the export's input errors (~5 s).
 cargo test -p pir2-cli --features gr00t --test gr00t_export -- --test-threads=1
-# `pir2 features gr00t` (needs the `ffmpeg` program and PyAV in PIR2_PYTHON): pir2's decoded
-# frames vs PyAV's on the committed AV1/H.264 fixture, and the features file end to end (the
-# backbone on the decoded frames, deployment agreement, resume, accepted by pir2 train gr00t).
+# `pir2 features gr00t` (needs the `ffmpeg` program and PyAV, Pillow, pyarrow in PIR2_PYTHON):
+# pir2's decoded frames vs PyAV's on the committed AV1/H.264 fixture, and the features file end
+# to end (the backbone on the decoded frames, deployment agreement, resume, accepted by pir2
+# train gr00t); an image-typed camera (PNG/JPEG in the data file) vs Pillow.
 cargo test -p pir2-cli --features gr00t --test gr00t_features -- --test-threads=1

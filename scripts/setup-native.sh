@@ -3,7 +3,7 @@
 #   MuJoCo 3.17.0 (feature `mujoco`), ONNX Runtime 1.31.1 (feature `ort`), libtorch 2.13.0 (feature `tch`),
 #   and the LeapCubeReorient scene from the `playground==0.2.0` wheel (Apache-2.0).
 # Everything comes from PyPI into a private venv under .native/ (nothing is downloaded from elsewhere),
-# with the Python references of the native tests (onnx, scipy, tokenizers, jinja2, albumentations +
+# with the Python references of the native tests (onnx, scipy, Pillow, pyarrow, tokenizers, jinja2, albumentations +
 # opencv-python-headless, av, xarm-python-sdk), and the `ffmpeg` program (apt) that decodes
 # datasets' camera videos.
 # It writes .native/env.sh; `source .native/env.sh` before building/running with those features.
@@ -54,6 +54,11 @@ have opencv-python-headless 4.14.0.94 || "$pip" -q install "opencv-python-headle
 # PyAV (LeRobot's video decoding backend): the Python reference of `pir2 features gr00t`'s
 # frame decoding (pir2-cli/tests/gr00t_features.rs). 18.1.0: the last release for Python 3.11.
 have av 18.1.0 || "$pip" -q install "av==18.1.0"
+# Pillow + pyarrow: the Python reference of image-typed camera features (PNG/JPEG bytes in the
+# data files, decoded by LeRobot with Pillow) in pir2-cli/tests/gr00t_features.rs, which also
+# writes its image dataset with pyarrow.
+have pillow 13.0.0 || "$pip" -q install "pillow==13.0.0"
+have pyarrow 26.0.1 || "$pip" -q install "pyarrow==26.0.1"
 # The `ffmpeg` program: `pir2 features gr00t` decodes the datasets' camera videos with it
 # (AV1, LeRobot's default codec, and H.264). Debian/Ubuntu package `ffmpeg`.
 if ! command -v ffmpeg >/dev/null 2>&1; then

@@ -170,10 +170,11 @@ enum Cmd {
         #[arg(long, default_value = "action")]
         action_key: String,
     },
-    /// Precompute a frozen backbone's features over a dataset's camera videos. `gr00t`: GR00T
+    /// Precompute a frozen backbone's features over a dataset's cameras. `gr00t`: GR00T
     /// N1.7's backbone (the checkpoint's ONNX backbone and tokenizer, run as `pir2 run` runs
     /// them) on every frame of a LeRobotDataset v3.0, written as the `--features` file of
-    /// `pir2 train gr00t` (needs a build with `--features gr00t` and the `ffmpeg` program).
+    /// `pir2 train gr00t` (needs a build with `--features gr00t`, and the `ffmpeg` program
+    /// for video cameras).
     Features {
         /// Which backbone.
         #[arg(value_parser = ["gr00t"])]
@@ -183,11 +184,11 @@ enum Cmd {
         /// `tokenizer.json` (a GR00T N1.7 directory with those added).
         #[arg(long)]
         checkpoint: PathBuf,
-        /// Dataset directory (LeRobotDataset v3.0 with the camera videos).
+        /// Dataset directory (LeRobotDataset v3.0 with camera videos or image features).
         #[arg(long)]
         data: PathBuf,
         /// The embodiment file (default: the checkpoint's embodiment.toml); `cameras` names
-        /// the dataset's video features in view order.
+        /// the dataset's camera (video or image) features in view order.
         #[arg(long)]
         embodiment: Option<PathBuf>,
         /// Output safetensors file (`embeddings` `[N,T,D_vl]`, `image_mask`, `attention_mask`).

@@ -4,8 +4,10 @@
 //! in one file per view): the frames pir2 decodes equal PyAV's (LeRobot's decoding backend)
 //! under LeRobot's timestamp rule; the features file holds, row for row, what the backbone
 //! gives on those frames, agrees with the deployment path, is accepted by `pir2 train gr00t`,
-//! and an interrupted run resumes to the same bytes. Needs `ffmpeg` and `$PIR2_PYTHON` with
-//! `av` and `onnx` (scripts/setup-native.sh; `source .native/env.sh`).
+//! and an interrupted run resumes to the same bytes. An image-typed camera (PNG/JPEG in the
+//! data file) added to a copy of the fixture decodes as Pillow does. Needs `ffmpeg` and
+//! `$PIR2_PYTHON` with `av`, `onnx`, `pillow` and `pyarrow` (scripts/setup-native.sh;
+//! `source .native/env.sh`).
 #![cfg(feature = "gr00t")]
 
 use std::path::{Path, PathBuf};
@@ -587,4 +589,234 @@ fn split_backbone_features_equal_the_split_backbone_on_the_frames() {
         }
     }
     assert_eq!(g, n);
+}
+
+/// The image-typed camera of the image test.
+const SIDE: &str = "observation.images.side";
+
+/// Adds an image feature to a copy of the video fixture the way LeRobot v3.0 stores one (a
+/// column of the data file holding, per frame, Hugging Face `datasets`' `Image` struct
+/// `{bytes, path}`; `"dtype": "image"` in `meta/info.json`): episode 0 as PNG (LeRobot's
+/// image writer), episode 1 as JPEG, 28×20 px. Writes Pillow's decoding of every frame
+/// (`Image.open(...).convert("RGB")`, what LeRobot's loader gets for these RGB images) to
+/// `argv[3]`. `argv[4]` = `EP:FRAME` truncates that frame's PNG/JPEG bytes to half.
+const IMAGE_DATASET: &str = r#"
+import io, json, sys
+import numpy as np
+import pyarrow as pa, pyarrow.parquet as pq
+from PIL import Image
+
+root, key, raw = sys.argv[1], sys.argv[2], sys.argv[3]
+corrupt = tuple(int(x) for x in sys.argv[4].split(":")) if len(sys.argv) > 4 else None
+W, H = 28, 20
+path = f"{root}/data/chunk-000/file-000.parquet"
+t = pq.read_table(path)
+eps, frames = t["episode_index"].to_pylist(), t["frame_index"].to_pylist()
+cells, out = [], open(raw, "wb")
+for i, (ep, fr) in enumerate(zip(eps, frames)):
+    y, x = np.mgrid[0:H, 0:W]
+    k = 31 * ep + 11 * fr
+    img = np.stack([(x * 9 + k) % 256, (y * 12 + 3 * k) % 256, ((x * y) + k) % 256], -1)
+    img = img.astype(np.uint8)
+    img[(fr * 2) % (H - 5):(fr * 2) % (H - 5) + 5, 3:9] = [250, 250, 10]
+    buf = io.BytesIO()
+    if ep == 0:
+        Image.fromarray(img).save(buf, format="PNG"); name = f"frame-{i:06d}.png"
+    else:
+        Image.fromarray(img).save(buf, format="JPEG", quality=90); name = f"frame-{i:06d}.jpg"
+    b = buf.getvalue()
+    out.write(np.asarray(Image.open(io.BytesIO(b)).convert("RGB")).tobytes())
+    if corrupt == (ep, fr):
+        b = b[: len(b) // 2]
+    cells.append({"bytes": b, "path": name})
+out.close()
+image_type = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
+t = t.append_column(key, pa.array(cells, type=image_type))
+pq.write_table(t, path)
+info_path = f"{root}/meta/info.json"
+info = json.load(open(info_path))
+info["features"][key] = {"dtype": "image", "shape": [H, W, 3], "names": ["height", "width", "channels"]}
+json.dump(info, open(info_path, "w"), indent=4)
+"#;
+
+fn image_dataset(python: &Path, root: &Path, data: &Path, raw: &Path, corrupt: Option<&str>) {
+    copy_dir(&fixture(), data);
+    let script = root.join("image_dataset.py");
+    std::fs::write(&script, IMAGE_DATASET).unwrap();
+    let mut c = Command::new(python);
+    c.arg(&script).arg(data).arg(SIDE).arg(raw);
+    if let Some(at) = corrupt {
+        c.arg(at);
+    }
+    let o = c.output().unwrap();
+    assert!(
+        o.status.success(),
+        "image dataset: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// An image-typed camera (PNG/JPEG bytes in the data file, LeRobot v3.0's `image` feature)
+/// next to a video camera: pir2's pixels equal Pillow's decoding of the same bytes (PNG
+/// exactly; JPEG within the decoders' rounding), every features row equals, bit for bit, the
+/// backbone run directly on those frames (for the PNG episode: on Pillow's pixels), a
+/// corrupt image is one error naming the data file, the camera, the episode and the frame,
+/// and a depth video is refused by name.
+#[test]
+fn image_camera_features_are_the_backbone_on_pillows_pixels() {
+    let dir = Scratch::new("gr00t-features-image");
+    let root = dir.path();
+    let python = python_from_env().unwrap();
+    let (data_dir, raw) = (root.join("data"), root.join("pillow.raw"));
+    image_dataset(&python, root, &data_dir, &raw, None);
+    let data = VideoDataset::open(&data_dir).unwrap();
+    assert_eq!(data.image_keys, [SIDE]);
+    assert_eq!(data.video_keys, VIEWS);
+    let cams = vec![VIEWS[0].to_string(), SIDE.to_string()];
+    data.check_views(&cams).unwrap();
+    // The state-only reader (`pir2 train gr00t`) still reads the dataset.
+    let sel = pir2_sim::dataset::FeatureSelection {
+        fast: vec!["observation.state".into()],
+        slow: Vec::new(),
+        action: "action".into(),
+    };
+    assert_eq!(
+        pir2_sim::dataset::read_selected(&data_dir, &sel)
+            .unwrap()
+            .total_frames(),
+        12
+    );
+
+    // Pixels: pir2 against Pillow, every frame.
+    let pillow = std::fs::read(&raw).unwrap();
+    let n = 20 * 28 * 3;
+    assert_eq!(pillow.len(), 12 * n);
+    let mut reader = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
+    let (mut g, mut png_max, mut jpeg_max, mut jpeg_sum, mut jpeg_n) = (0, 0u8, 0u8, 0u64, 0);
+    for ep in &data.episodes {
+        for t in 0..ep.len() {
+            let f = reader.frame(&data, SIDE, ep, t).unwrap();
+            assert_eq!(f.hw, (20, 28));
+            assert_eq!(f.time, ep.timestamps[t]);
+            let d = f
+                .rgb
+                .iter()
+                .zip(&pillow[g * n..(g + 1) * n])
+                .map(|(a, b)| a.abs_diff(*b))
+                .max()
+                .unwrap();
+            if ep.episode_index == 0 {
+                png_max = png_max.max(d);
+            } else {
+                jpeg_max = jpeg_max.max(d);
+                jpeg_sum += f
+                    .rgb
+                    .iter()
+                    .zip(&pillow[g * n..(g + 1) * n])
+                    .map(|(a, b)| u64::from(a.abs_diff(*b)))
+                    .sum::<u64>();
+                jpeg_n += n;
+            }
+            g += 1;
+        }
+    }
+    let jpeg_mean = jpeg_sum as f64 / jpeg_n as f64;
+    println!(
+        "pir2 vs Pillow: PNG max |diff| {png_max}; JPEG max |diff| {jpeg_max}, mean {jpeg_mean:.3}"
+    );
+    assert_eq!(png_max, 0, "PNG pixels differ from Pillow's");
+    // JPEG decoders are not bit-identical (the standard leaves IDCT rounding and chroma
+    // upsampling open): the `image` crate's and Pillow's libjpeg-turbo differ by a few levels.
+    assert!(
+        jpeg_max <= 4 && jpeg_mean < 0.5,
+        "JPEG pixels differ from Pillow's by up to {jpeg_max} (mean {jpeg_mean})"
+    );
+
+    // Features: a video camera and the image camera, through the library `extract`.
+    let ck = root.join("ck");
+    write_tiny_checkpoint_with_width(&ck, "", D_VL, &python).unwrap();
+    let mut cfg = embodiment();
+    cfg.cameras = cams.clone();
+    let emb = root.join("embodiment.toml");
+    std::fs::write(&emb, cfg.to_toml().unwrap()).unwrap();
+    let feats = root.join("features.safetensors");
+    let mut o = Gr00tFeaturesOptions::new(&ck, &data_dir, &feats);
+    o.embodiment = Some(emb.clone());
+    let s = extract(&o, |_| {}).unwrap();
+    assert!(s.complete && s.shape == (12, 8, D_VL), "{s:?}");
+    let tensors = candle_core::safetensors::load(&feats, &candle_core::Device::Cpu).unwrap();
+    let rows: Vec<Vec<f32>> = tensors["embeddings"]
+        .reshape((12, 8 * D_VL))
+        .unwrap()
+        .to_vec2()
+        .unwrap();
+    let files = CheckpointFiles::in_dir(&ck);
+    let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
+    let mut video = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
+    let mut image = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
+    let mut g = 0;
+    for ep in &data.episodes {
+        let mut bb = Gr00tBackbone::load(
+            &files,
+            &cfg.image,
+            &cfg.prompt,
+            &cfg.vision,
+            tok.as_ref(),
+            data.task(ep, 0),
+            None,
+            &OrtOptions::default(),
+        )
+        .unwrap();
+        for t in 0..ep.len() {
+            let front = video.frame(&data, VIEWS[0], ep, t).unwrap();
+            let side = image.frame(&data, SIDE, ep, t).unwrap();
+            if ep.episode_index == 0 {
+                // PNG: Pillow's pixels exactly (checked above), so this is the backbone on them.
+                assert_eq!(side.rgb, pillow[g * n..(g + 1) * n]);
+            }
+            let views = [
+                (front.rgb.as_slice(), front.hw),
+                (side.rgb.as_slice(), side.hw),
+            ];
+            let want = bb.backbone_embeddings(&views).unwrap().to_vec();
+            assert!(
+                want.iter()
+                    .zip(&rows[g])
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "row {g} (episode {}, frame {t}) differs from the backbone on the frames",
+                ep.episode_index
+            );
+            g += 1;
+        }
+    }
+    // The image camera matters: another frame there gives another row.
+    assert_ne!(rows[0], rows[1]);
+
+    // A corrupt image: one error naming the data file, the camera, the episode and the frame.
+    let bad_dir = root.join("bad");
+    image_dataset(&python, root, &bad_dir, &root.join("bad.raw"), Some("0:3"));
+    let bad = root.join("bad.safetensors");
+    let mut o = Gr00tFeaturesOptions::new(&ck, &bad_dir, &bad);
+    o.embodiment = Some(emb.clone());
+    let e = format!("{:#}", extract(&o, |_| {}).unwrap_err());
+    println!("{e}");
+    assert!(
+        e.contains("file-000.parquet")
+            && e.contains(SIDE)
+            && e.contains("episode 0, frame 3")
+            && e.contains("does not decode"),
+        "{e}"
+    );
+    assert!(!bad.exists());
+
+    // A depth video (LeRobot's `video.is_depth_map`) is refused by name.
+    let info_path = data_dir.join("meta/info.json");
+    let mut info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&info_path).unwrap()).unwrap();
+    info["features"][VIEWS[0]]["info"]["video.is_depth_map"] = true.into();
+    std::fs::write(&info_path, info.to_string()).unwrap();
+    let data = VideoDataset::open(&data_dir).unwrap();
+    let e = data.check_views(&cams).unwrap_err().to_string();
+    println!("{e}");
+    assert!(e.contains(VIEWS[0]) && e.contains("depth"), "{e}");
 }

@@ -162,6 +162,22 @@ pub enum Error {
         /// What went wrong (the decoder's last messages included).
         reason: String,
     },
+    /// A camera frame stored as an image (an image feature in the data files) cannot be
+    /// read: no row, no bytes, bytes that do not decode, or an image that is not 8-bit grey,
+    /// RGB or RGBA.
+    #[error("{path}: camera `{key}`, episode {episode}, frame {frame}: {reason}")]
+    ImageFrame {
+        /// The data file.
+        path: PathBuf,
+        /// The image feature.
+        key: String,
+        /// `episode_index`.
+        episode: i64,
+        /// `frame_index` within the episode.
+        frame: usize,
+        /// What is wrong.
+        reason: String,
+    },
     /// A camera frame the dataset's timestamps ask for is not in its video (LeRobot's rule:
     /// the decoded frame nearest to `from_timestamp + timestamp` must lie within the
     /// tolerance).

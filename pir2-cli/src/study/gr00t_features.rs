@@ -4,10 +4,11 @@
 //!
 //! For every frame of the dataset, episodes in `episode_index` order and frames in
 //! `frame_index` order (the trainer's global frame order):
-//! 1. the frame of each camera view named by the embodiment's `cameras` (video features of
-//!    the dataset, in view order) is decoded from its video ([`FrameReader`], LeRobot's
-//!    timestamp rule: `from_timestamp + timestamp`, nearest decoded frame within
-//!    `tolerance_s`);
+//! 1. the frame of each camera view named by the embodiment's `cameras` (camera features of
+//!    the dataset, in view order) is read ([`FrameReader`]): a video feature is decoded
+//!    from its video under LeRobot's timestamp rule (`from_timestamp + timestamp`, nearest
+//!    decoded frame within `tolerance_s`); an image feature (PNG/JPEG bytes in the data
+//!    files) is decoded from the frame's row. Both give the same RGB frame to step 3;
 //! 2. the frame's task (`task_index` → `meta/tasks.parquet`) becomes the prompt as
 //!    `pir2 run --task TASK` makes it (a key of the embodiment's `[tasks]`, else the text
 //!    itself), through the checkpoint's tokenizer and GR00T N1.7's chat template;
@@ -301,8 +302,9 @@ pub fn extract(
         .with_context(|| format!("reading the embodiment {}", emb_path.display()))?;
     if cfg.cameras.is_empty() {
         bail!(
-            "{}: `cameras` names no camera view; list the dataset's video features in view \
-             order, one per prompt.chat.images ({}), e.g. cameras = [\"observation.images.ego_view\"]",
+            "{}: `cameras` names no camera view; list the dataset's camera (video or image) \
+             features in view order, one per prompt.chat.images ({}), e.g. cameras = \
+             [\"observation.images.ego_view\"]",
             emb_path.display(),
             cfg.prompt.chat.images
         );
@@ -322,7 +324,11 @@ pub fn extract(
         bail!("{}: the dataset has no frames", o.data.display());
     }
     let program = ffmpeg_program();
-    let decoder = check_ffmpeg(&program)?;
+    let decoder = if data.needs_video_decoder(&cfg.cameras) {
+        check_ffmpeg(&program)?
+    } else {
+        "none (image features only)".to_string()
+    };
     let tok = load_tokenizer(&files, &cfg.prompt)?;
     let first_prompt = cfg.prompt_for(data.task(&data.episodes[0], 0)).to_string();
     let mut bb = Gr00tBackbone::load(

@@ -44,7 +44,8 @@
 //! [`VideoDataset`] reads the frame index of a dataset with video features (timestamps,
 //! tasks, which file and where in it each episode lies) and [`FrameReader`] decodes the
 //! frames, streaming, with the `ffmpeg` program (see the `video` module's docs for the
-//! layout and the timestamp rule, LeRobot's).
+//! layout and the timestamp rule, LeRobot's). Image features (PNG/JPEG bytes in the data
+//! files) are read and decoded in Rust by the same reader.
 //!
 //! Writing never replaces an existing dataset silently: [`WriteMode::New`] refuses a
 //! non-empty directory, [`WriteMode::Resume`] appends episodes in new data/episode files

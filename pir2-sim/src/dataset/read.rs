@@ -5,6 +5,7 @@ use arrow_array::types::{Float32Type, Float64Type, Int32Type, Int64Type, UInt64T
 use arrow_array::{ArrayRef, RecordBatch};
 use arrow_schema::DataType;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use parquet::arrow::ProjectionMask;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::fs::{self, File};
@@ -136,6 +137,13 @@ pub(super) fn check_template(
 }
 
 pub(super) fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
+    read_parquet_columns(path, None)
+}
+
+/// [`read_parquet`] keeping only the named top-level columns (those the file has; `None`:
+/// all). A camera's image column holds every frame's encoded image, so readers of the
+/// other columns leave it out.
+pub(super) fn read_parquet_columns(path: &Path, keep: Option<&[&str]>) -> Result<Vec<RecordBatch>> {
     let file = match File::open(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
@@ -148,10 +156,21 @@ pub(super) fn read_parquet(path: &Path) -> Result<Vec<RecordBatch>> {
     // it, so the decoding runs behind `catch_unwind` (the panic hook still prints the
     // decoder's message).
     let decode = || -> Result<Vec<RecordBatch>> {
-        let reader = ParquetRecordBatchReaderBuilder::try_new(file)
-            .map_err(|e| Error::parquet(path, e))?
-            .build()
-            .map_err(|e| Error::parquet(path, e))?;
+        let mut builder =
+            ParquetRecordBatchReaderBuilder::try_new(file).map_err(|e| Error::parquet(path, e))?;
+        if let Some(keep) = keep {
+            let roots: Vec<usize> = builder
+                .schema()
+                .fields()
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| keep.contains(&f.name().as_str()))
+                .map(|(i, _)| i)
+                .collect();
+            let mask = ProjectionMask::roots(builder.parquet_schema(), roots);
+            builder = builder.with_projection(mask);
+        }
+        let reader = builder.build().map_err(|e| Error::parquet(path, e))?;
         reader
             .collect::<std::result::Result<Vec<_>, _>>()
             .map_err(|source| Error::Arrow {

@@ -29,6 +29,27 @@
 //! frame asked for (`-ss`, input side) and read forward; asking for an earlier time or for
 //! another file starts a new one. At most one frame per view is kept in memory besides the
 //! one being read.
+//!
+//! # Image features
+//!
+//! A camera may instead be an image feature (`"dtype": "image"`): LeRobot v3.0 writes it
+//! into the data files themselves (`data_path`), one encoded image per frame in the
+//! feature's column, as Hugging Face `datasets`' `Image` type stores it: a struct of
+//! `bytes` (the PNG file LeRobot's image writer made, or another format) and `path` (the
+//! name it had). LeRobot decodes it with Pillow and hands the pixels on unchanged. Here
+//! the frame of row `(episode_index, frame_index)` is decoded with the pure-Rust `image`
+//! crate (PNG, JPEG) into the same `height × width × 3` RGB frame a video gives, as
+//! Pillow's `convert("RGB")` of an 8-bit image: grey replicated, alpha dropped. 16-bit and
+//! float images, a missing `bytes` value and bytes that do not decode are one
+//! [`Error::ImageFrame`] naming the data file, the camera, the episode and the frame. The
+//! reader keeps one data file's column of one camera in memory.
+//!
+//! # Depth
+//!
+//! LeRobot v3.0 marks a depth camera's video with `"video.is_depth_map": true` in its
+//! feature's `info` (`video_info` in older sets; newer LeRobot versions quantise depth into
+//! 12-bit video). The backbone
+//! takes RGB cameras only: [`VideoDataset::check_views`] refuses a depth camera by name.
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read};
@@ -45,7 +66,7 @@ use serde_json::Value;
 
 use super::read::{
     check_template, column, int_column, read_episode_rows, read_info_checked, read_parquet,
-    read_tasks, type_error,
+    read_parquet_columns, read_tasks, type_error,
 };
 use super::write::fill_template;
 use super::{INFO_PATH, TASKS_PATH};
@@ -90,6 +111,9 @@ pub struct VideoEpisode {
     pub task_index: Vec<i64>,
     /// Per video feature: where the episode is.
     pub videos: BTreeMap<String, VideoSpan>,
+    /// The data file holding the episode's rows (`data/chunk_index`, `data/file_index`):
+    /// where its image features are.
+    pub data_file: (i64, i64),
 }
 
 impl VideoEpisode {
@@ -113,11 +137,16 @@ pub struct VideoDataset {
     pub fps: f64,
     /// The video features, in `info.json` order.
     pub video_keys: Vec<String>,
+    /// The image features (encoded images in the data files), in `info.json` order.
+    pub image_keys: Vec<String>,
+    /// The video features marked `video.is_depth_map`.
+    pub depth_keys: Vec<String>,
     /// Task strings by `task_index`.
     pub tasks: Vec<String>,
     /// Episodes in `episode_index` order.
     pub episodes: Vec<VideoEpisode>,
     video_tmpl: String,
+    data_tmpl: String,
 }
 
 fn f64_column(batch: &RecordBatch, path: &Path, name: &str) -> Result<Vec<f64>> {
@@ -167,6 +196,27 @@ impl VideoDataset {
                     .collect()
             })
             .unwrap_or_default();
+        let features = info.get("features").and_then(Value::as_object);
+        let keys_where = |pred: &dyn Fn(&Value) -> bool| -> Vec<String> {
+            features
+                .map(|f| {
+                    f.iter()
+                        .filter(|(_, v)| pred(v))
+                        .map(|(k, _)| k.clone())
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        let image_keys = keys_where(&|v| v.get("dtype").and_then(Value::as_str) == Some("image"));
+        let depth_keys = keys_where(&|v| {
+            v.get("dtype").and_then(Value::as_str) == Some("video")
+                && ["info", "video_info"]
+                    .iter()
+                    .find_map(|k| v.get(*k))
+                    .and_then(|i| i.get("video.is_depth_map"))
+                    .and_then(Value::as_bool)
+                    .unwrap_or(false)
+        });
         for k in &video_keys {
             if k.is_empty() || k.contains(['/', '\\', '\0']) || k == ".." || k == "." {
                 return Err(Error::Feature {
@@ -194,7 +244,8 @@ impl VideoDataset {
         let mut by_ep: BTreeMap<i64, Frames> = BTreeMap::new();
         for &(chunk, file) in &files {
             let path = root.join(fill_template(&data_tmpl, chunk as usize, file as usize));
-            for b in read_parquet(&path)? {
+            let keep = ["episode_index", "frame_index", "timestamp", "task_index"];
+            for b in read_parquet_columns(&path, Some(&keep))? {
                 let ep = int_column(&b, &path, "episode_index")?;
                 let frame = int_column(&b, &path, "frame_index")?;
                 let ts = if b.column_by_name("timestamp").is_some() {
@@ -271,15 +322,19 @@ impl VideoDataset {
                 timestamps,
                 task_index,
                 videos,
+                data_file: (r.data_chunk, r.data_file),
             });
         }
         Ok(VideoDataset {
             root: root.to_path_buf(),
             fps,
             video_keys,
+            image_keys,
+            depth_keys,
             tasks,
             episodes,
             video_tmpl,
+            data_tmpl,
         })
     }
 
@@ -293,22 +348,40 @@ impl VideoDataset {
         self.episodes.iter().map(VideoEpisode::len).sum()
     }
 
-    /// Check that every key of `views` is a video feature with a file for every episode
-    /// (one [`Error::Feature`] naming the key and the video features there are).
+    /// Check that every key of `views` is an RGB camera: an image feature, or a video
+    /// feature (not a depth map) with a file for every episode (one [`Error::Feature`]
+    /// naming the key and, when it is not a camera, the cameras there are).
     pub fn check_views(&self, views: &[String]) -> Result<()> {
         let info = self.root.join(INFO_PATH);
+        let list = |keys: &[String]| {
+            if keys.is_empty() {
+                "none".to_string()
+            } else {
+                keys.join(", ")
+            }
+        };
         for v in views {
+            if self.depth_keys.contains(v) {
+                return Err(Error::Feature {
+                    path: info,
+                    key: v.clone(),
+                    reason: "is a depth video (`video.is_depth_map`); the backbone takes RGB \
+                             cameras and pir2 does not read depth maps"
+                        .into(),
+                });
+            }
+            if self.is_image(v) {
+                continue;
+            }
             if !self.video_keys.contains(v) {
                 return Err(Error::Feature {
                     path: info,
                     key: v.clone(),
                     reason: format!(
-                        "is not a video feature of the dataset (its video features: {})",
-                        if self.video_keys.is_empty() {
-                            "none".to_string()
-                        } else {
-                            self.video_keys.join(", ")
-                        }
+                        "is not a camera feature of the dataset (its video features: {}; its \
+                         image features: {})",
+                        list(&self.video_keys),
+                        list(&self.image_keys)
                     ),
                 });
             }
@@ -339,6 +412,25 @@ impl VideoDataset {
             span.chunk_index as usize,
             span.file_index as usize,
         )))
+    }
+
+    /// Whether camera `key` is an image feature (else a video feature).
+    pub fn is_image(&self, key: &str) -> bool {
+        self.image_keys.iter().any(|k| k == key)
+    }
+
+    /// Whether any of `views` is a video feature (and so needs the decoder program).
+    pub fn needs_video_decoder(&self, views: &[String]) -> bool {
+        views.iter().any(|v| self.video_keys.contains(v))
+    }
+
+    /// The data file holding `episode`'s rows.
+    pub fn data_file(&self, episode: &VideoEpisode) -> PathBuf {
+        self.root.join(fill_template(
+            &self.data_tmpl,
+            episode.data_file.0 as usize,
+            episode.data_file.1 as usize,
+        ))
     }
 
     /// The task string of frame `t` of `episode` (`meta/tasks.parquet`; empty if the
@@ -785,14 +877,128 @@ impl Drop for VideoStream {
     }
 }
 
-/// One camera view's frames across episodes and files: keeps one [`VideoStream`] open and
-/// starts a new one when another file or an earlier time is asked for.
-#[derive(Debug)]
+// ------------------------------------------------------------------------ images
+
+/// Decode one encoded camera image (PNG, JPEG) into `out` as `height × width × 3` RGB, as
+/// Pillow's `convert("RGB")` does for 8-bit images (grey replicated, alpha dropped);
+/// returns `(height, width)`. Other pixel types are refused by name.
+pub(crate) fn decode_image(
+    bytes: &[u8],
+    out: &mut Vec<u8>,
+) -> std::result::Result<(usize, usize), String> {
+    use image::ColorType;
+    let img =
+        image::load_from_memory(bytes).map_err(|e| format!("the image does not decode ({e})"))?;
+    let rgb = match img.color() {
+        ColorType::Rgb8 => img.into_rgb8(),
+        ColorType::L8 | ColorType::La8 | ColorType::Rgba8 => img.to_rgb8(),
+        c => {
+            return Err(format!(
+                "the image is {c:?}; 8-bit grey, RGB or RGBA images are read"
+            ))
+        }
+    };
+    let (w, h) = rgb.dimensions();
+    out.clear();
+    out.extend_from_slice(rgb.as_raw());
+    Ok((h as usize, w as usize))
+}
+
+/// One image feature's column of one data file.
+struct ImageColumn {
+    path: PathBuf,
+    key: String,
+    /// `(episode_index, frame_index)` → (batch, row).
+    rows: std::collections::HashMap<(i64, i64), (usize, usize)>,
+    /// Per batch: the feature's struct column.
+    columns: Vec<arrow_array::ArrayRef>,
+    frame: DecodedFrame,
+}
+
+impl ImageColumn {
+    /// Read `key`'s column (a struct with a binary `bytes` field, Hugging Face's `Image`)
+    /// and the row keys of the data file `path`.
+    fn read(path: &Path, key: &str) -> Result<Self> {
+        let mut rows = std::collections::HashMap::new();
+        let mut columns = Vec::new();
+        let expected = "an image: struct<bytes: binary, path: string>";
+        for (i, b) in read_parquet_columns(path, Some(&["episode_index", "frame_index", key]))?
+            .into_iter()
+            .enumerate()
+        {
+            let ep = int_column(&b, path, "episode_index")?;
+            let frame = int_column(&b, path, "frame_index")?;
+            let col = column(&b, path, key)?.clone();
+            let bytes_type = match col.data_type() {
+                DataType::Struct(fields) => fields
+                    .iter()
+                    .find(|f| f.name() == "bytes")
+                    .map(|f| f.data_type().clone()),
+                _ => None,
+            };
+            if !matches!(
+                bytes_type,
+                Some(DataType::Binary) | Some(DataType::LargeBinary)
+            ) {
+                return Err(type_error(path, key, expected, col.data_type()));
+            }
+            for (r, (e, f)) in ep.iter().zip(&frame).enumerate() {
+                rows.insert((*e, *f), (i, r));
+            }
+            columns.push(col);
+        }
+        Ok(ImageColumn {
+            path: path.to_path_buf(),
+            key: key.to_string(),
+            rows,
+            columns,
+            frame: DecodedFrame {
+                time: 0.0,
+                hw: (0, 0),
+                rgb: Vec::new(),
+            },
+        })
+    }
+
+    /// The encoded bytes at `(batch, row)` (`None` when null).
+    fn bytes(&self, batch: usize, row: usize) -> Option<&[u8]> {
+        let s = self.columns[batch].as_struct();
+        if s.is_null(row) {
+            return None;
+        }
+        let b = s.column_by_name("bytes")?;
+        if b.is_null(row) {
+            return None;
+        }
+        match b.data_type() {
+            DataType::Binary => Some(b.as_binary::<i32>().value(row)),
+            DataType::LargeBinary => Some(b.as_binary::<i64>().value(row)),
+            _ => None,
+        }
+    }
+}
+
+/// One camera view's frames across episodes and files. A video feature: keeps one
+/// [`VideoStream`] open and starts a new one when another file or an earlier time is asked
+/// for. An image feature: keeps the camera's column of one data file and decodes the
+/// frame's image (see the module docs).
 pub struct FrameReader {
     program: PathBuf,
     tolerance: f64,
     stream: Option<VideoStream>,
     last: f64,
+    images: Option<ImageColumn>,
+}
+
+impl std::fmt::Debug for FrameReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameReader")
+            .field("program", &self.program)
+            .field("tolerance", &self.tolerance)
+            .field("stream", &self.stream)
+            .field("images", &self.images.as_ref().map(|c| (&c.path, &c.key)))
+            .finish()
+    }
 }
 
 impl FrameReader {
@@ -803,11 +1009,57 @@ impl FrameReader {
             tolerance,
             stream: None,
             last: f64::NEG_INFINITY,
+            images: None,
         }
     }
 
-    /// Frame `frame` of `episode` of view `key` of `data` (one [`Error::VideoFrame`] naming
-    /// the file, the episode and the frame when the video has no frame there).
+    /// Frame `frame` of `episode` of the image feature `key`.
+    fn image_frame(
+        &mut self,
+        data: &VideoDataset,
+        key: &str,
+        episode: &VideoEpisode,
+        frame: usize,
+    ) -> Result<&DecodedFrame> {
+        let path = data.data_file(episode);
+        if self
+            .images
+            .as_ref()
+            .is_none_or(|c| c.path != path || c.key != key)
+        {
+            self.images = None;
+            self.images = Some(ImageColumn::read(&path, key)?);
+        }
+        let col = self.images.as_mut().expect("read above");
+        let fail = |reason: String| Error::ImageFrame {
+            path: path.clone(),
+            key: key.to_string(),
+            episode: episode.episode_index,
+            frame,
+            reason,
+        };
+        let &(b, r) = col
+            .rows
+            .get(&(episode.episode_index, frame as i64))
+            .ok_or_else(|| fail("the data file has no row for it".into()))?;
+        let mut rgb = std::mem::take(&mut col.frame.rgb);
+        let bytes = col.bytes(b, r).ok_or_else(|| {
+            fail("its image has no `bytes` (an image stored only by path is not read)".into())
+        })?;
+        let hw = decode_image(bytes, &mut rgb).map_err(fail)?;
+        col.frame = DecodedFrame {
+            time: episode.timestamps[frame],
+            hw,
+            rgb,
+        };
+        Ok(&col.frame)
+    }
+
+    /// Frame `frame` of `episode` of view `key` of `data`: from its video (one
+    /// [`Error::VideoFrame`] naming the file, the episode and the frame when the video has
+    /// no frame there), or, for an image feature, decoded from the data file (one
+    /// [`Error::ImageFrame`] naming the file, the camera, the episode and the frame when it
+    /// cannot be read).
     pub fn frame(
         &mut self,
         data: &VideoDataset,
@@ -815,6 +1067,9 @@ impl FrameReader {
         episode: &VideoEpisode,
         frame: usize,
     ) -> Result<&DecodedFrame> {
+        if data.is_image(key) {
+            return self.image_frame(data, key, episode, frame);
+        }
         let path = data.video_file(key, episode)?;
         let span = episode.videos[key];
         let time = span.from_timestamp + episode.timestamps[frame];
@@ -895,6 +1150,35 @@ mod tests {
         };
         let ds = super::super::read_selected(&fixture(), &sel).unwrap();
         assert_eq!(ds.total_frames(), 12);
+    }
+
+    /// PNG round trip (RGB exact; grey replicated, alpha dropped, as Pillow's
+    /// `convert("RGB")`), and the refusals: bytes that are no image, a 16-bit image.
+    #[test]
+    fn camera_images_decode_to_rgb_like_pillow_or_are_refused_by_name() {
+        use image::ImageEncoder;
+        let png = |raw: &[u8], w: u32, h: u32, c: image::ColorType| {
+            let mut v = Vec::new();
+            image::codecs::png::PngEncoder::new(&mut v)
+                .write_image(raw, w, h, c)
+                .unwrap();
+            v
+        };
+        let rgb: Vec<u8> = (0..2 * 3 * 3).map(|i| (i * 13) as u8).collect();
+        let mut out = Vec::new();
+        let hw = decode_image(&png(&rgb, 3, 2, image::ColorType::Rgb8), &mut out).unwrap();
+        assert_eq!((hw, &out), ((2, 3), &rgb));
+        let grey = [7u8, 200];
+        decode_image(&png(&grey, 2, 1, image::ColorType::L8), &mut out).unwrap();
+        assert_eq!(out, [7, 7, 7, 200, 200, 200]);
+        let rgba = [1u8, 2, 3, 0, 4, 5, 6, 255];
+        decode_image(&png(&rgba, 2, 1, image::ColorType::Rgba8), &mut out).unwrap();
+        assert_eq!(out, [1, 2, 3, 4, 5, 6]);
+        let e = decode_image(b"\x89PNG not really", &mut out).unwrap_err();
+        assert!(e.contains("does not decode"), "{e}");
+        let wide = [0u8, 1, 2, 3];
+        let e = decode_image(&png(&wide, 2, 1, image::ColorType::L16), &mut out).unwrap_err();
+        assert!(e.contains("L16") && e.contains("8-bit"), "{e}");
     }
 
     #[test]
