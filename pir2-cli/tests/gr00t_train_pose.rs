@@ -13,6 +13,8 @@
 //!   sends the dataset's pose at every tick (πR² async with one- and two-tick calls, πR²
 //!   sync).
 //!
+//! The same run with an `xyz_rotvec` pose (6 values) is the second test.
+//!
 //! Needs `$PIR2_PYTHON` with numpy and scipy (scripts/setup-native.sh; `source
 //! .native/env.sh`).
 #![cfg(feature = "gr00t")]
@@ -38,10 +40,13 @@ use common::Scratch;
 const FRAMES_PER_EPISODE: usize = 14;
 const EPISODES: usize = 3;
 const TOKENS: usize = 6;
-/// End-effector pose (9) + gripper (1), for the state and the action.
-const WIDTH: usize = 10;
 /// The widened checkpoint's `max_action_dim` and `max_state_dim`.
 const WIDE: usize = 10;
+
+/// End-effector pose + gripper (1), for the state and the action.
+fn width(format: PoseFormat) -> usize {
+    format.width() + 1
+}
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/fixtures/gr00t_n17_head")
@@ -150,9 +155,10 @@ fn group(name: &str, dim: usize) -> Group {
     }
 }
 
-/// State `eef` 9 + `grip` 1; action `eef` (relative `xyz_rot6d` to the state's `eef`) +
-/// `grip`; H = 8, d_max = 2, n_obs = 2, slot 1.
-fn embodiment(path: &Path) {
+/// State `eef` (9 or 6) + `grip` 1; action `eef` (relative pose in `format` to the state's
+/// `eef`) + `grip`; H = 8, d_max = 2, n_obs = 2, slot 1.
+fn embodiment(path: &Path, format: PoseFormat) {
+    let pw = format.width();
     let mut e = EmbodimentConfig::xarm6_xhand();
     e.name = "tiny-eef".into();
     e.horizon = 8;
@@ -160,12 +166,15 @@ fn embodiment(path: &Path) {
     e.d_vis_max = 2;
     e.n_obs = 2;
     e.embodiment_id = 1;
-    e.state = vec![group("eef", 9), group("grip", 1)];
+    e.state = vec![group("eef", pw), group("grip", 1)];
     e.action = vec![
         Group {
             relative: true,
-            format: GroupFormat::XyzRot6d,
-            ..group("eef", 9)
+            format: match format {
+                PoseFormat::XyzRot6d => GroupFormat::XyzRot6d,
+                PoseFormat::XyzRotvec => GroupFormat::XyzRotvec,
+            },
+            ..group("eef", pw)
         },
         group("grip", 1),
     ];
@@ -187,30 +196,28 @@ fn rotation(w: [f64; 3]) -> [[f64; 3]; 3] {
     r
 }
 
-/// A pose along a smooth path at phase `ph`, in GR00T's `xyz_rot6d` (rows 0 and 1 of `R`).
-fn pose(ph: f64) -> [f32; 9] {
-    let r = rotation([
+/// A pose along a smooth path at phase `ph` (rotations up to about 1.2 rad about varying
+/// axes), in GR00T's `xyz_rot6d` (rows 0 and 1 of `R`) or `xyz_rotvec`.
+fn pose(ph: f64, format: PoseFormat) -> Vec<f32> {
+    let w = [
         0.6 * ph.sin(),
         0.5 * (1.3 * ph).cos(),
         0.9 * (0.7 * ph).sin() + 0.2,
-    ]);
+    ];
     let t = [0.3 * ph.sin(), 0.2 * ph.cos(), 0.05 * ph];
-    let mut out = [0f32; 9];
-    for (o, v) in out.iter_mut().zip(
-        t.iter()
-            .chain(r[0].iter())
-            .chain(r[1].iter())
-            .map(|&v| v as f32),
-    ) {
-        *o = v;
-    }
-    out
+    let r = rotation(w);
+    let rot: Vec<f64> = match format {
+        PoseFormat::XyzRot6d => r[0].iter().chain(r[1].iter()).copied().collect(),
+        PoseFormat::XyzRotvec => w.to_vec(),
+    };
+    t.iter().chain(&rot).map(|&v| v as f32).collect()
 }
 
 /// Episodes whose state is a pose and a gripper, and whose action is the pose a little ahead
 /// on the same path (so a relative action is not the identity) and a gripper command.
-fn dataset(root: &Path) {
-    let names = |p: &str| (0..WIDTH).map(|i| format!("{p}{i}")).collect::<Vec<_>>();
+fn dataset(root: &Path, format: PoseFormat) {
+    let wd = width(format);
+    let names = |p: &str| (0..wd).map(|i| format!("{p}{i}")).collect::<Vec<_>>();
     let spec = DatasetSpec {
         fps: 25,
         robot_type: Some("tiny-eef".into()),
@@ -222,12 +229,12 @@ fn dataset(root: &Path) {
     };
     let mut w = DatasetWriter::open(root, spec, WriteMode::New).unwrap();
     for e in 0..EPISODES {
-        let mut ep = Episode::new(WIDTH, 0, WIDTH);
+        let mut ep = Episode::new(wd, 0, wd);
         for t in 0..FRAMES_PER_EPISODE {
             let ph = 0.3 * t as f64 + 1.7 * e as f64;
-            let mut s = pose(ph).to_vec();
+            let mut s = pose(ph, format);
             s.push(ph.sin() as f32);
-            let mut a = pose(ph + 0.35).to_vec();
+            let mut a = pose(ph + 0.35, format);
             a.push((0.8 * (ph + 0.2).sin()) as f32);
             ep.push(&s, &[], &a);
         }
@@ -297,6 +304,7 @@ json.dump(out, open(sys.argv[2], "w"))
 /// Replays one episode's raw states (the fast row is the raw state, as on the robot) and
 /// records the commands it is sent.
 struct Replay {
+    width: usize,
     states: Vec<Vec<f32>>,
     t: usize,
     sent: Vec<Vec<f32>>,
@@ -305,9 +313,9 @@ struct Replay {
 impl pir2_runtime::Environment for Replay {
     fn spec(&self) -> pir2_runtime::EnvSpec {
         pir2_runtime::EnvSpec {
-            fast_dim: WIDTH,
+            fast_dim: self.width,
             slow_dim: 0,
-            action_dim: WIDTH,
+            action_dim: self.width,
             control_period: 40_000_000,
             max_steps: self.states.len(),
         }
@@ -388,7 +396,19 @@ fn max_diff(a: &[f32], b: &[f64]) -> f64 {
 
 #[test]
 fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
-    let dir = Scratch::new("gr00t-train-pose");
+    trains_and_deploys(PoseFormat::XyzRot6d);
+}
+
+/// The same with an `xyz_rotvec` pose (6 values); the scipy check is the `xyz_rot6d` test's
+/// (it compares both layouts).
+#[test]
+fn a_relative_rotvec_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
+    trains_and_deploys(PoseFormat::XyzRotvec);
+}
+
+fn trains_and_deploys(format: PoseFormat) {
+    let (pw, wd) = (format.width(), width(format));
+    let dir = Scratch::new(&format!("gr00t-train-pose-{pw}"));
     let root = dir.path();
     let (ck, data, emb_path, feats) = (
         root.join("ck"),
@@ -397,8 +417,8 @@ fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
         root.join("features.safetensors"),
     );
     wide_checkpoint(&ck);
-    dataset(&data);
-    embodiment(&emb_path);
+    dataset(&data, format);
+    embodiment(&emb_path, format);
     features(&feats, EPISODES * FRAMES_PER_EPISODE);
     let mut o = Gr00tTrainOptions::new(&ck, &data, &emb_path, &feats, &root.join("run"));
     o.steps = 2;
@@ -413,7 +433,7 @@ fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
         r.report.losses
     );
 
-    // The statistics the deployment reads: `[H, 9]` relative tables for the pose only.
+    // The statistics the deployment reads: `[H, pw]` relative tables for the pose only.
     let emb = EmbodimentConfig::load(&o.out.join("embodiment.toml")).unwrap();
     let h = emb.horizon;
     let stats: serde_json::Value =
@@ -425,20 +445,14 @@ fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
     };
     let (rel_min, rel_max) = (table("min"), table("max"));
     assert_eq!(rel_min.len(), h);
-    assert!(rel_min.iter().chain(&rel_max).all(|r| r.len() == 9));
+    assert!(rel_min.iter().chain(&rel_max).all(|r| r.len() == pw));
     assert!(stats[tag]["relative_action"].get("grip").is_none());
     let norm = Normalizer::load(&o.out.join("statistics.json"), &emb).unwrap();
     assert!(norm.per_slot());
     let map = norm.action_output_map();
-    let want_ref: Vec<Option<usize>> = (0..9).map(Some).chain([None]).collect();
+    let want_ref: Vec<Option<usize>> = (0..pw).map(Some).chain([None]).collect();
     assert_eq!(map.reference, want_ref);
-    assert_eq!(
-        map.poses,
-        [PoseGroup {
-            first: 0,
-            format: PoseFormat::XyzRot6d
-        }]
-    );
+    assert_eq!(map.poses, [PoseGroup { first: 0, format }]);
 
     let sel = FeatureSelection {
         fast: vec!["observation.state".into()],
@@ -449,6 +463,128 @@ fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
 
     // GR00T's convention, independently: scipy's T_ref⁻¹·T on every (state of frame t,
     // action of frame t + p) pair the statistics are taken over.
+    if format == PoseFormat::XyzRot6d {
+        check_against_scipy(root, &ds, h, &rel_min, &rel_max);
+    }
+
+    // Encode (trainer) → decode (runtime), every frame and slot.
+    let targets = Gr00tTargets::new(norm, h, &ds.episodes);
+    let (mut chunk, mut reference, mut u) = (vec![0f32; h * wd], vec![0f32; wd], vec![0f32; wd]);
+    let mut worst = 0f32;
+    for (e, ep) in ds.episodes.iter().enumerate() {
+        let len = ep.len();
+        for t in 0..len {
+            for p in 0..h {
+                chunk[p * wd..(p + 1) * wd].copy_from_slice(ep.action((t + p).min(len - 1)));
+            }
+            targets.encode(e, t, &mut chunk).unwrap();
+            assert!(chunk.iter().all(|z| z.abs() <= 1.0), "{chunk:?}");
+            map.fill_reference(ep.fast(t), &mut reference);
+            for p in 0..h {
+                map.decode(&chunk[p * wd..(p + 1) * wd], p, &reference, &mut u);
+                let want = ep.action((t + p).min(len - 1));
+                for (j, (x, w)) in u.iter().zip(want).enumerate() {
+                    worst = worst.max((x - w).abs());
+                    assert!(
+                        (x - w).abs() < 1e-5,
+                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
+                    );
+                }
+            }
+        }
+    }
+    println!("encode → decode: max |decoded − dataset| = {worst:.2e}");
+
+    // Deployed: the lock-step runtime with the run's output map.
+    use pir2_runtime::{ActionHead, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode};
+    use pir2_schedule::{Alignment, FrontMode};
+    let pir2_async = |nfe| Mode::PiR2Async {
+        nfe,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    let pir2_sync = Mode::PiR2Sync {
+        nfe: None,
+        alignment: Alignment::Fresh,
+        front: FrontMode::Visible,
+    };
+    let mut worst = 0f32;
+    for (mode, call_ticks) in [
+        (pir2_async(None), 1),
+        (pir2_async(Some(2)), 2),
+        (pir2_sync, 2),
+    ] {
+        for (e, ep) in ds.episodes.iter().enumerate() {
+            let states: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.fast(t).to_vec()).collect();
+            let actions: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.action(t).to_vec()).collect();
+            let sp = HeadSpec {
+                horizon: h,
+                action_dim: wd,
+                n_obs: emb.n_obs,
+                fast_dim: wd,
+                slow_dim: 0,
+                period: 40_000_000,
+                d_max: emb.d_max,
+                d_vis_max: 0,
+            };
+            let oracle = TargetOracle {
+                targets: targets.clone(),
+                episode: e,
+                states: states.clone(),
+                actions: actions.clone(),
+                chunk: vec![0.0; h * wd],
+            };
+            let mut head = ActionHead::new(
+                oracle,
+                sp,
+                mode.head_mode(wd),
+                LatencyWindow::new(20, 0, sp.period, sp.d_max),
+                5,
+            )
+            .unwrap();
+            let mut env = Replay {
+                width: wd,
+                states,
+                t: 0,
+                sent: Vec::new(),
+            };
+            let timing = LockstepTiming {
+                call_ticks,
+                slow_delay: 0,
+                overrun_ticks: 0,
+                overrun_every: 0,
+                pin_delay: true,
+            };
+            let mut drv = LockstepDriver::new(&head).with_output(map.clone());
+            let res = drv
+                .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
+                .unwrap();
+            assert_eq!(res.steps, ep.len());
+            for (t, sent) in env.sent.iter().enumerate() {
+                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
+                    worst = worst.max((x - w).abs());
+                    assert!(
+                        (x - w).abs() < 1e-4,
+                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
+                        mode.describe()
+                    );
+                }
+            }
+        }
+    }
+    println!("deployed: max |sent − dataset| = {worst:.2e}");
+}
+
+/// GR00T's `T_ref⁻¹·T` with scipy's `Rotation` on every (state of frame `t`, action of frame
+/// `t + p`) pose pair of `ds` (`xyz_rot6d`) against pir2's `pose::relative`, in both layouts;
+/// the run's `relative_action` tables must be the per-slot extremes of scipy's values.
+fn check_against_scipy(
+    root: &Path,
+    ds: &pir2_sim::dataset::Dataset,
+    h: usize,
+    rel_min: &[Vec<f64>],
+    rel_max: &[Vec<f64>],
+) {
     let mut pairs = Vec::new();
     for ep in &ds.episodes {
         let len = ep.len();
@@ -521,110 +657,4 @@ fn a_relative_pose_group_trains_and_deploys_back_to_the_datasets_poses() {
             );
         }
     }
-
-    // Encode (trainer) → decode (runtime), every frame and slot.
-    let targets = Gr00tTargets::new(norm, h, &ds.episodes);
-    let (mut chunk, mut reference, mut u) = (vec![0f32; h * WIDTH], [0f32; WIDTH], [0f32; WIDTH]);
-    let mut worst = 0f32;
-    for (e, ep) in ds.episodes.iter().enumerate() {
-        let len = ep.len();
-        for t in 0..len {
-            for p in 0..h {
-                chunk[p * WIDTH..(p + 1) * WIDTH].copy_from_slice(ep.action((t + p).min(len - 1)));
-            }
-            targets.encode(e, t, &mut chunk).unwrap();
-            assert!(chunk.iter().all(|z| z.abs() <= 1.0), "{chunk:?}");
-            map.fill_reference(ep.fast(t), &mut reference);
-            for p in 0..h {
-                map.decode(&chunk[p * WIDTH..(p + 1) * WIDTH], p, &reference, &mut u);
-                let want = ep.action((t + p).min(len - 1));
-                for (j, (x, w)) in u.iter().zip(want).enumerate() {
-                    worst = worst.max((x - w).abs());
-                    assert!(
-                        (x - w).abs() < 1e-5,
-                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
-                    );
-                }
-            }
-        }
-    }
-    println!("encode → decode: max |decoded − dataset| = {worst:.2e}");
-
-    // Deployed: the lock-step runtime with the run's output map.
-    use pir2_runtime::{ActionHead, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode};
-    use pir2_schedule::{Alignment, FrontMode};
-    let pir2_async = |nfe| Mode::PiR2Async {
-        nfe,
-        alignment: Alignment::Fresh,
-        front: FrontMode::Visible,
-    };
-    let pir2_sync = Mode::PiR2Sync {
-        nfe: None,
-        alignment: Alignment::Fresh,
-        front: FrontMode::Visible,
-    };
-    let mut worst = 0f32;
-    for (mode, call_ticks) in [
-        (pir2_async(None), 1),
-        (pir2_async(Some(2)), 2),
-        (pir2_sync, 2),
-    ] {
-        for (e, ep) in ds.episodes.iter().enumerate() {
-            let states: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.fast(t).to_vec()).collect();
-            let actions: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.action(t).to_vec()).collect();
-            let sp = HeadSpec {
-                horizon: h,
-                action_dim: WIDTH,
-                n_obs: emb.n_obs,
-                fast_dim: WIDTH,
-                slow_dim: 0,
-                period: 40_000_000,
-                d_max: emb.d_max,
-                d_vis_max: 0,
-            };
-            let oracle = TargetOracle {
-                targets: targets.clone(),
-                episode: e,
-                states: states.clone(),
-                actions: actions.clone(),
-                chunk: vec![0.0; h * WIDTH],
-            };
-            let mut head = ActionHead::new(
-                oracle,
-                sp,
-                mode.head_mode(WIDTH),
-                LatencyWindow::new(20, 0, sp.period, sp.d_max),
-                5,
-            )
-            .unwrap();
-            let mut env = Replay {
-                states,
-                t: 0,
-                sent: Vec::new(),
-            };
-            let timing = LockstepTiming {
-                call_ticks,
-                slow_delay: 0,
-                overrun_ticks: 0,
-                overrun_every: 0,
-                pin_delay: true,
-            };
-            let mut drv = LockstepDriver::new(&head).with_output(map.clone());
-            let res = drv
-                .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
-                .unwrap();
-            assert_eq!(res.steps, ep.len());
-            for (t, sent) in env.sent.iter().enumerate() {
-                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
-                    worst = worst.max((x - w).abs());
-                    assert!(
-                        (x - w).abs() < 1e-4,
-                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
-                        mode.describe()
-                    );
-                }
-            }
-        }
-    }
-    println!("deployed: max |sent − dataset| = {worst:.2e}");
 }
