@@ -7,11 +7,11 @@
 //! - the relative poses are GR00T's `T_ref⁻¹·T` (reference = the state of the sample's
 //!   frame, rot6d = the first two rows of `R`), checked against scipy's `Rotation` on the
 //!   same poses, in both layouts (`xyz_rot6d`, `xyz_rotvec`), and the written tables are
-//!   their per-slot minimum and maximum;
+//!   their per-slot minimum and maximum over the chunks the statistics take;
 //! - the trainer's targets decode back to the dataset's absolute poses through the runtime's
 //!   output map, and the lock-step runtime driven by a head that outputs exactly those targets
-//!   sends the dataset's pose at every tick (πR² async with one- and two-tick calls, πR²
-//!   sync).
+//!   sends the dataset's pose at every tick up to `len − H` (πR² async with one- and
+//!   two-tick calls, πR² sync).
 //!
 //! The same run with an `xyz_rotvec` pose (6 values) is the second test.
 //!
@@ -467,13 +467,14 @@ fn trains_and_deploys(format: PoseFormat) {
         check_against_scipy(root, &ds, h, &rel_min, &rel_max);
     }
 
-    // Encode (trainer) → decode (runtime), every frame and slot.
+    // Encode (trainer) → decode (runtime), every chunk inside its episode (t ≤ len − H, the
+    // chunks every statistics rule covers) and every slot.
     let targets = Gr00tTargets::new(norm, h, &ds.episodes);
     let (mut chunk, mut reference, mut u) = (vec![0f32; h * wd], vec![0f32; wd], vec![0f32; wd]);
     let mut worst = 0f32;
     for (e, ep) in ds.episodes.iter().enumerate() {
         let len = ep.len();
-        for t in 0..len {
+        for t in 0..=len - h {
             for p in 0..h {
                 chunk[p * wd..(p + 1) * wd].copy_from_slice(ep.action((t + p).min(len - 1)));
             }
@@ -560,7 +561,9 @@ fn trains_and_deploys(format: PoseFormat) {
                 .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
                 .unwrap();
             assert_eq!(res.steps, ep.len());
-            for (t, sent) in env.sent.iter().enumerate() {
+            // Ticks up to len − H: every command there comes from chunks made (and rebased)
+            // at frames inside the episode, which every statistics rule covers.
+            for (t, sent) in env.sent.iter().enumerate().take(ep.len() + 1 - h) {
                 for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
                     worst = worst.max((x - w).abs());
                     assert!(
@@ -577,7 +580,11 @@ fn trains_and_deploys(format: PoseFormat) {
 
 /// GR00T's `T_ref⁻¹·T` with scipy's `Rotation` on every (state of frame `t`, action of frame
 /// `t + p`) pose pair of `ds` (`xyz_rot6d`) against pir2's `pose::relative`, in both layouts;
-/// the run's `relative_action` tables must be the per-slot extremes of scipy's values.
+/// the run's `relative_action` tables must be the per-slot extremes of scipy's values over
+/// the chunks the statistics take. Two rules exist while the branches merge: GR00T's
+/// (`RelativeActionLoader`: the chunks inside their episode, `t ≤ len − H`) and the earlier
+/// one (every frame, the last action repeated past the end); the tables must be exactly one
+/// of them, and the data tells them apart.
 fn check_against_scipy(
     root: &Path,
     ds: &pir2_sim::dataset::Dataset,
@@ -591,7 +598,8 @@ fn check_against_scipy(
         for t in 0..len {
             for p in 0..h {
                 let a = ep.action((t + p).min(len - 1));
-                pairs.push((p, ep.fast(t)[..9].to_vec(), a[..9].to_vec()));
+                let inside = t + h <= len;
+                pairs.push((p, inside, ep.fast(t)[..9].to_vec(), a[..9].to_vec()));
             }
         }
     }
@@ -602,7 +610,7 @@ fn check_against_scipy(
         root.join("scipy.json"),
     );
     std::fs::write(&script, SCIPY_REF).unwrap();
-    let q: Vec<[&Vec<f32>; 2]> = pairs.iter().map(|(_, s, a)| [s, a]).collect();
+    let q: Vec<[&Vec<f32>; 2]> = pairs.iter().map(|(_, _, s, a)| [s, a]).collect();
     std::fs::write(&qpath, serde_json::to_string(&q).unwrap()).unwrap();
     let out = Command::new(&python)
         .arg(&script)
@@ -619,14 +627,21 @@ fn check_against_scipy(
         serde_json::from_str(&std::fs::read_to_string(&rpath).unwrap()).unwrap();
     assert_eq!(theirs.len(), pairs.len());
     let (mut worst6, mut worst_v) = (0f64, 0f64);
-    let (mut lo, mut hi) = (vec![vec![f64::MAX; 9]; h], vec![vec![f64::MIN; 9]; h]);
-    for ((p, s, a), sc) in pairs.iter().zip(&theirs) {
+    // Per rule (0: every frame, padded; 1: inside the episode): per-slot min and max.
+    let mut lo = [vec![vec![f64::MAX; 9]; h], vec![vec![f64::MAX; 9]; h]];
+    let mut hi = [vec![vec![f64::MIN; 9]; h], vec![vec![f64::MIN; 9]; h]];
+    for ((p, inside, s, a), sc) in pairs.iter().zip(&theirs) {
         let mut rel = [0f32; 9];
         relative(PoseFormat::XyzRot6d, s, a, &mut rel);
         worst6 = worst6.max(max_diff(&rel, &sc["rot6d"]));
-        for (j, v) in sc["rot6d"].iter().enumerate() {
-            lo[*p][j] = lo[*p][j].min(*v);
-            hi[*p][j] = hi[*p][j].max(*v);
+        for rule in 0..2 {
+            if rule == 1 && !inside {
+                continue;
+            }
+            for (j, v) in sc["rot6d"].iter().enumerate() {
+                lo[rule][*p][j] = lo[rule][*p][j].min(*v);
+                hi[rule][*p][j] = hi[rule][*p][j].max(*v);
+            }
         }
         let to32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         let mut rel_v = [0f32; 6];
@@ -644,17 +659,35 @@ fn check_against_scipy(
     );
     assert!(worst6 < 1e-5, "xyz_rot6d: max |pir2 − scipy| = {worst6}");
     assert!(worst_v < 1e-5, "xyz_rotvec: max |pir2 − scipy| = {worst_v}");
-    // The written tables are the per-slot extremes of those relative poses.
-    for p in 0..h {
-        for j in 0..9 {
-            assert!(
-                (rel_min[p][j] - lo[p][j]).abs() < 1e-5 && (rel_max[p][j] - hi[p][j]).abs() < 1e-5,
-                "slot {p} dim {j}: statistics [{}, {}], scipy [{}, {}]",
-                rel_min[p][j],
-                rel_max[p][j],
-                lo[p][j],
-                hi[p][j]
-            );
+    // The written tables are the per-slot extremes of those relative poses under one rule.
+    let worst_under = |rule: usize| -> f64 {
+        let mut w = 0f64;
+        for p in 0..h {
+            for j in 0..9 {
+                w = w
+                    .max((rel_min[p][j] - lo[rule][p][j]).abs())
+                    .max((rel_max[p][j] - hi[rule][p][j]).abs());
+            }
         }
-    }
+        w
+    };
+    let (padded, inside) = (worst_under(0), worst_under(1));
+    println!(
+        "relative_action.eef vs scipy's extremes: max |diff| {padded:.2e} (every frame, padded), \
+         {inside:.2e} (chunks inside the episode)"
+    );
+    let rules_differ = (0..h).any(|p| {
+        (0..9).any(|j| {
+            (lo[0][p][j] - lo[1][p][j]).abs() > 1e-3 || (hi[0][p][j] - hi[1][p][j]).abs() > 1e-3
+        })
+    });
+    assert!(
+        rules_differ,
+        "the data cannot tell the two chunk rules apart"
+    );
+    assert!(
+        padded.min(inside) < 1e-5,
+        "the relative_action.eef tables are scipy's extremes under neither chunk rule \
+         (max |diff| {padded} padded, {inside} inside)"
+    );
 }
