@@ -169,6 +169,10 @@ enum Cmd {
         /// gr00t: the dataset feature holding the action.
         #[arg(long, default_value = "action")]
         action_key: String,
+        /// gr00t: train without GR00T's DiT dropout (by default the checkpoint's
+        /// `diffusion_model_cfg.dropout`, 0.2 in N1.7, applies in training only).
+        #[arg(long)]
+        no_dropout: bool,
     },
     /// Precompute a frozen backbone's features over a dataset's camera videos. `gr00t`: GR00T
     /// N1.7's backbone (the checkpoint's ONNX backbone and tokenizer, run as `pir2 run` runs
@@ -704,6 +708,7 @@ struct Gr00tArgs {
     checkpoint_every: Option<usize>,
     state_key: String,
     action_key: String,
+    no_dropout: bool,
     /// Options of the other tasks were given.
     unused: bool,
 }
@@ -732,6 +737,7 @@ fn train_gr00t(a: Gr00tArgs) -> Result<()> {
     o.resume = a.resume;
     o.state_key = a.state_key;
     o.action_key = a.action_key;
+    o.dropout = !a.no_dropout;
     o.stop = Some(ctrl_c_flag());
     let steps = o.steps;
     let s = train(&o, |p| {
@@ -922,6 +928,7 @@ fn main() -> Result<()> {
             checkpoint_every,
             state_key,
             action_key,
+            no_dropout,
         } if t.as_deref() == Some("gr00t") => train_gr00t(Gr00tArgs {
             data,
             out,
@@ -936,6 +943,7 @@ fn main() -> Result<()> {
             checkpoint_every,
             state_key,
             action_key,
+            no_dropout,
             unused: policy.is_some() || config.is_some() || task_file.is_some(),
         }),
         Cmd::Train {

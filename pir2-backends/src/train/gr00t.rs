@@ -24,12 +24,17 @@
 //! file, never a stale one. [`PrecomputedFeatures`] reads backbone outputs a user computed
 //! with the real backbone.
 //!
+//! The training forward is [`Gr00tN17Head::velocity_train`]: GR00T's dropout in the DiT
+//! blocks at the checkpoint's rate (`diffusion_model_cfg.dropout`, `final_dropout`; see
+//! [`DitDropout`]), masks keyed by the run's seed and the step index, so a resumed run is
+//! bit-identical to an uninterrupted one. [`Gr00tTrainer::dropout`]`(false)` trains without
+//! it. Whether it is on, and its rate, are part of the run's identity ([`RUN_FILE`]).
+//!
 //! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
 //! optimiser state and update are on the host. Only the CPU has been run.
 //!
-//! Not done here: GR00T's dropout (0.2 in the DiT) is not applied, so the training forward is
-//! the deterministic inference forward; EMA, self-rollout and validation hooks of
-//! [`super::Trainer`] are refused by name.
+//! Not done here: EMA, self-rollout and validation hooks of [`super::Trainer`] are refused
+//! by name.
 
 use std::fs::File;
 use std::io::{BufWriter, Read, Seek, SeekFrom};
@@ -39,7 +44,7 @@ use sha2::{Digest, Sha256};
 
 use super::*;
 use crate::candle::gr00t_n17::{
-    is_trained, timestep_bucket, Gr00tN17Head, TensorIndex, Timesteps, VlTokens,
+    is_trained, timestep_bucket, DitDropout, Gr00tN17Head, TensorIndex, Timesteps, VlTokens,
 };
 
 /// The embodiment as the trainer sees it.
@@ -501,6 +506,7 @@ pub struct Gr00tTrainer<'a> {
     identity: serde_json::Value,
     extra_files: Vec<(String, Vec<u8>)>,
     targets: Option<&'a dyn ActionTargets>,
+    dropout: bool,
 }
 
 impl std::fmt::Debug for Gr00tTrainer<'_> {
@@ -510,6 +516,7 @@ impl std::fmt::Debug for Gr00tTrainer<'_> {
             .field("spec", &self.spec)
             .field("out_dir", &self.out_dir)
             .field("resume", &self.resume)
+            .field("dropout", &self.dropout)
             .finish_non_exhaustive()
     }
 }
@@ -529,7 +536,14 @@ impl<'a> Gr00tTrainer<'a> {
             identity: serde_json::Value::Null,
             extra_files: Vec::new(),
             targets: None,
+            dropout: true,
         }
+    }
+    /// Apply GR00T's DiT dropout at the checkpoint's rate in the training forward (on by
+    /// default; see [`DitDropout`]).
+    pub fn dropout(mut self, on: bool) -> Self {
+        self.dropout = on;
+        self
     }
     /// Encode every sample's chunk with `targets` (the data then holds raw actions); without
     /// it the data's actions are the normalised targets themselves.
@@ -670,7 +684,15 @@ impl<'a> Gr00tTrainer<'a> {
         let cfg = self.cfg.clone();
         let out = self.out_dir.clone();
         // The run's identity: written once, checked on resume.
-        let id = serde_json::json!({ "spec": self.spec, "identity": self.identity });
+        let dit = &head.config().dit;
+        let dropout = (self.dropout && dit.dropout > 0.0).then(
+            || serde_json::json!({ "rate": dit.dropout, "final_dropout": dit.final_dropout }),
+        );
+        let id = serde_json::json!({
+            "spec": self.spec,
+            "identity": self.identity,
+            "dropout": dropout,
+        });
         let id_path = out.join(RUN_FILE);
         let resume_from = if self.resume {
             latest_step_checkpoint(&out)?
@@ -857,18 +879,17 @@ impl<'a> Gr00tTrainer<'a> {
                 d_vis: Some(&dv),
             };
             let s = head.encode_state(&state, &ids)?;
-            let v = head
-                .velocity(
-                    &s,
-                    &x,
-                    Timesteps::PerPosition {
-                        actions: &ta,
-                        tokens: &tt,
-                    },
-                    &tokens,
-                    &ids,
-                )?
-                .narrow(2, 0, a)?;
+            let ts = Timesteps::PerPosition {
+                actions: &ta,
+                tokens: &tt,
+            };
+            let v = if dropout.is_some() {
+                let d = DitDropout::from_config(&c.dit, cfg.seed, step as u64);
+                head.velocity_train(&s, &x, ts, &tokens, &ids, &d)?
+            } else {
+                head.velocity(&s, &x, ts, &tokens, &ids)?
+            };
+            let v = v.narrow(2, 0, a)?;
             let target = Tensor::from_slice(&batcher.target, (b, h, a), &dev)?;
             let mask = Tensor::from_slice(&batcher.mask, (b, h, 1), &dev)?;
             let msum: f32 = batcher.mask.iter().sum();

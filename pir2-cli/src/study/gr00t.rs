@@ -26,7 +26,9 @@
 //! `loss.jsonl`, and `step-NNNNNN/` checkpoints (`model.safetensors` with GR00T's tensor names
 //! and the delay table, `config.json`, the training state). The paper's robot recipe is the
 //! default: AdamW, lr 1e-4 with 5 % warm-up and cosine decay, weight decay 1e-5, clip 1.0,
-//! `d ~ U{1..d_max}`, `d_vis ~ U{0..d_vis_max}`, α = 0.2.
+//! `d ~ U{1..d_max}`, `d_vis ~ U{0..d_vis_max}`, α = 0.2. GR00T's DiT dropout (the
+//! checkpoint's `diffusion_model_cfg.dropout`, 0.2 in N1.7) applies in the training forward
+//! unless `dropout` is off (`--no-dropout`); inference and export never drop.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -77,6 +79,9 @@ pub struct Gr00tTrainOptions {
     pub stop: Option<Arc<AtomicBool>>,
     /// Return after this many steps as if interrupted (tests, time slicing).
     pub stop_after: Option<usize>,
+    /// GR00T's DiT dropout in the training forward, at the checkpoint's rate
+    /// (`diffusion_model_cfg.dropout`).
+    pub dropout: bool,
 }
 
 impl Gr00tTrainOptions {
@@ -105,6 +110,7 @@ impl Gr00tTrainOptions {
             resume: false,
             stop: None,
             stop_after: None,
+            dropout: true,
         }
     }
 }
@@ -517,6 +523,7 @@ pub fn train(
         .identity(identity)
         .checkpoint_file("config.json", config_json)
         .action_targets(&targets)
+        .dropout(o.dropout)
         .on_progress(&mut progress);
     if let Some(s) = &o.stop {
         trainer = trainer.stop_on(s.clone());
