@@ -350,6 +350,46 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
         e
     };
 
+    // Devices, through the binary: a GPU this build lacks names the feature to build with
+    // (before anything is read or written); an unknown name lists the accepted ones.
+    let device = |d: &str| {
+        let out = i.root.join(format!("dev-{d}"));
+        let run = pir2(&[
+            "train".as_ref(),
+            "gr00t".as_ref(),
+            "--checkpoint".as_ref(),
+            i.ck.as_os_str(),
+            "--data".as_ref(),
+            i.data.as_os_str(),
+            "--embodiment".as_ref(),
+            i.emb.as_os_str(),
+            "--features".as_ref(),
+            i.feats.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--device".as_ref(),
+            d.as_ref(),
+        ]);
+        assert!(!run.status.success(), "--device {d} ran");
+        assert!(!out.exists(), "--device {d} wrote {}", out.display());
+        let e = String::from_utf8_lossy(&run.stderr).to_string();
+        println!("{e}");
+        e
+    };
+    if !cfg!(feature = "cuda") {
+        let e = device("cuda:1");
+        assert!(
+            e.contains("`cuda:1`") && e.contains("--features cuda"),
+            "{e}"
+        );
+    }
+    if !cfg!(feature = "metal") {
+        let e = device("metal");
+        assert!(e.contains("--features metal"), "{e}");
+    }
+    let e = device("tpu");
+    assert!(e.contains("`tpu`") && e.contains("cuda:N"), "{e}");
+
     // A checkpoint without the action head's tensors.
     let no_head = i.root.join("no-head");
     std::fs::create_dir_all(&no_head).unwrap();

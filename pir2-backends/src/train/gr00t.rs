@@ -1,4 +1,6 @@
-//! πR² fine-tuning of GR00T N1.7's action head ([`Gr00tN17Head`]) on CPU.
+//! πR² fine-tuning of GR00T N1.7's action head ([`Gr00tN17Head`]) with candle, on the
+//! head's device (the CPU; a GPU with the `cuda` / `metal` features, see
+//! [`crate::candle::device`]).
 //!
 //! The network is the inference head itself, loaded with [`Gr00tN17Head::load_trainable`]:
 //! its projectors, position embedding, DiT and decoder are candle `Var`s, the backbone
@@ -31,7 +33,8 @@
 //! it. Whether it is on, and its rate, are part of the run's identity ([`RUN_FILE`]).
 //!
 //! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
-//! optimiser state and update are on the host. Only the CPU has been run.
+//! optimiser state and update are on the host. Only the CPU has been run; the `cuda` and
+//! `metal` features have not been compiled here.
 //!
 //! Not done here: EMA, self-rollout and validation hooks of [`super::Trainer`] are refused
 //! by name.

@@ -1,5 +1,6 @@
 //! `pir2 train gr00t`: πR² fine-tuning of a GR00T N1.7 checkpoint's action head on a
-//! LeRobotDataset v3.0, on CPU with candle (feature `gr00t`).
+//! LeRobotDataset v3.0 with candle (feature `gr00t`), on the CPU by default or on the GPU
+//! `--device` names (`cuda[:N]` with the `cuda` feature, `metal[:N]` with `metal`).
 //!
 //! Inputs:
 //! - `--checkpoint N17_DIR`: GR00T N1.7's `config.json` and its `model.safetensors` (or
@@ -82,6 +83,9 @@ pub struct Gr00tTrainOptions {
     /// GR00T's DiT dropout in the training forward, at the checkpoint's rate
     /// (`diffusion_model_cfg.dropout`).
     pub dropout: bool,
+    /// The candle device the head trains on: `cpu`, `cuda[:N]`, `metal[:N]`
+    /// ([`pir2_backends::candle::device`]; a GPU needs the build feature of its name).
+    pub device: String,
 }
 
 impl Gr00tTrainOptions {
@@ -111,6 +115,7 @@ impl Gr00tTrainOptions {
             stop: None,
             stop_after: None,
             dropout: true,
+            device: "cpu".into(),
         }
     }
 }
@@ -388,9 +393,10 @@ pub fn train(
     o: &Gr00tTrainOptions,
     mut progress: impl FnMut(&Progress),
 ) -> Result<Gr00tTrainSummary> {
+    let device = pir2_backends::candle::device(&o.device)?;
     let emb = EmbodimentConfig::load(&o.embodiment)
         .with_context(|| format!("embodiment {}", o.embodiment.display()))?;
-    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &Device::Cpu)
+    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &device)
         .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
     let c = head.config().clone();
     let ck = o.checkpoint.display();
