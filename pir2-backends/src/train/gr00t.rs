@@ -10,9 +10,11 @@
 //! (AdamW, cosine LR with warm-up, grad-norm clip, seed), the same batch sampler, step
 //! checkpoints with the full training state, `interrupted-*` states, bit-identical resume.
 //!
-//! Each sample (the paper's robot recipe): a frame `t` uniformly over all frames; the state
-//! history ending at `t`; the action chunk `a_{t..t+H}` (the last action repeats past the
-//! end; encoded per sample by an [`ActionTargets`] when the targets depend on the sample, as
+//! Each sample (the paper's robot recipe on GR00T's data pipeline): a frame `t` uniformly
+//! over the frames whose whole chunk lies inside their episode (`t ≤ len − H`, as GR00T's
+//! `ShardedSingleStepDataset` samples; an episode shorter than `H` gives none); the state
+//! history ending at `t` (clamped at the episode start); the action chunk `a_{t..t+H}`
+//! (encoded per sample by an [`ActionTargets`] when the targets depend on the sample, as
 //! relative actions do); `τ`/mask from the schedule's draw (πR²: staircase with a clean,
 //! masked front of `d ~ U{1..d_max}`, or the warm-up branch); `d_vis ~ U{0..d_vis_max}` per sample, the VL
 //! tokens of frame `max(0, t − d_vis)` and `e(d_vis)` on the action tokens. GR00T's discrete
@@ -72,8 +74,8 @@ pub struct Gr00tTrainSpec {
 /// already normalised.
 pub trait ActionTargets {
     /// Encode in place `chunk` (`[H, A]`): the raw actions of episode `episode` from frame
-    /// `frame` on (slot `p` holds frame `min(frame + p, len − 1)`), the sample's observation
-    /// window ending at `frame`.
+    /// `frame` on (slot `p` holds frame `frame + p`; the trainer draws only chunks inside the
+    /// episode), the sample's observation window ending at `frame`.
     fn encode(&self, episode: usize, frame: usize, chunk: &mut [f32]) -> Result<()>;
 }
 
@@ -650,6 +652,18 @@ impl<'a> Gr00tTrainer<'a> {
             ));
         }
         let frames: usize = data.iter().map(Episode::len).sum();
+        let full: usize = data
+            .iter()
+            .map(|e| (e.len() + 1).saturating_sub(s.horizon))
+            .sum();
+        if full == 0 {
+            let longest = data.iter().map(Episode::len).max().unwrap_or(0);
+            return Err(Error::Dataset(format!(
+                "no episode holds one whole action chunk of H = {} frames (the longest has \
+                 {longest}); GR00T trains only on chunks inside an episode",
+                s.horizon
+            )));
+        }
         if vl.frames() != frames || vl.dim() != c.backbone_embedding_dim {
             return Err(Error::Dataset(format!(
                 "the VL features hold {} frames of width {}, the dataset has {frames} frames and \
@@ -772,6 +786,7 @@ impl<'a> Gr00tTrainer<'a> {
         };
         let stats = Stats::identity(&spec);
         let mut batcher = Batcher::new(data, &spec, &stats, &cfg);
+        batcher.full_chunks_only(data);
         let set_vars = |params: &[Vec<f32>]| -> Result<()> {
             for (v, p) in vars.iter().zip(params) {
                 v.set(&Tensor::from_slice(p, v.dims(), &dev)?)?;

@@ -15,10 +15,12 @@
 //!   ([`PrecomputedFeatures`]: `embeddings [N, T, D_vl]`, `image_mask [N, T]`, optional
 //!   `attention_mask`), `N` = the dataset's frames in episode order.
 //!
-//! Relative action groups (`relative = true`) train on GR00T's relative targets: slot `p` of
-//! the sample at frame `t` is `a_{t+p} − s_t` (the raw state of frame `t`, the newest row of
-//! the observation window), normalised with the slot's `relative_action` statistics
-//! ([`Gr00tTargets`]).
+//! Samples are the frames whose whole action chunk lies inside their episode
+//! (`t ≤ len − H`), as in GR00T's data pipeline. Relative action groups (`relative = true`)
+//! train on GR00T's relative targets: slot `p` of the sample at frame `t` is `a_{t+p} − s_t`
+//! (the raw state of frame `t`, the newest row of the observation window), normalised with
+//! the slot's `relative_action` statistics ([`Gr00tTargets`]), computed over the same chunks
+//! as GR00T's statistics tool.
 //!
 //! Output directory: `statistics.json` (GR00T's layout, computed from the dataset, per
 //! group: min, max, mean, std, q01, q99; `relative_action` tables `[H, D]` for relative
@@ -184,11 +186,11 @@ fn statistics_json(
 
 /// GR00T's `relative_action` statistics of every relative action group: per chunk slot `p`
 /// (`[H, D]` tables), the statistics of `a_{t+p} − s_t` (a pose: `T_ref⁻¹·T` in the group's
-/// layout) over the chunks the trainer draws
-/// (every frame `t`, the state group's raw value at `t`, the last action repeated past the
-/// episode's end, as the batch sampler does). GR00T's own tool takes only the chunks that fit
-/// inside the episode; taking the sampled ones keeps every training target inside the
-/// statistics' range, so no target is clipped.
+/// layout; `s_t` the state group's raw value at `t`) over the chunks that lie inside their
+/// episode, `t ∈ 0..=len − H` (the last one ends on the episode's last frame; an episode
+/// shorter than `H` adds nothing), as GR00T's `RelativeActionLoader` takes them
+/// (`usable_length = len − delta_indices[-1]`). These are exactly the chunks the trainer
+/// draws, so no training target of a min/max group is clipped.
 fn relative_statistics(
     emb: &EmbodimentConfig,
     episodes: &[pir2_sim::dataset::Episode],
@@ -211,9 +213,8 @@ fn relative_statistics(
         for p in 0..h {
             values.clear();
             for e in episodes {
-                let len = e.len();
-                for t in 0..len {
-                    let (a, s) = (e.action((t + p).min(len - 1)), e.fast(t));
+                for t in 0..(e.len() + 1).saturating_sub(h) {
+                    let (a, s) = (e.action(t + p), e.fast(t));
                     match pose {
                         Some(pg) => {
                             pir2_runtime::pose::relative(
@@ -428,6 +429,15 @@ pub fn train(
     let frames: usize = ds.episodes.iter().map(|e| e.len()).sum();
     if frames == 0 {
         bail!("dataset {dd} has no frames");
+    }
+    let longest = ds.episodes.iter().map(|e| e.len()).max().unwrap_or(0);
+    if longest < emb.horizon {
+        bail!(
+            "dataset {dd}: no episode holds one whole action chunk of the embodiment's horizon \
+             H = {} frames (the longest has {longest}); GR00T trains only on chunks inside an \
+             episode",
+            emb.horizon
+        );
     }
 
     // Statistics → GR00T's normalisation, written for export and deployment.
