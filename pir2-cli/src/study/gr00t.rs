@@ -707,11 +707,37 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
     })
 }
 
-/// The named quantile row (`q01`, `q99`, ...) of `s` (the first row if the name is unknown).
+/// The named quantile row (`q01`, `q99`, ...) of `s`.
+///
+/// # Panics
+///
+/// If `name` is not one of [`pir2_sim::dataset::QUANTILES`]: the callers pass the literal
+/// names GR00T's statistics need, so that is a bug here, not bad input.
 fn quantile(s: &FeatureStats, name: &str) -> Vec<f64> {
     let i = pir2_sim::dataset::QUANTILES
         .iter()
         .position(|(_, n)| *n == name)
-        .unwrap_or(0);
+        .unwrap_or_else(|| {
+            panic!("`{name}` is not among pir2_sim::dataset::QUANTILES; GR00T's statistics use q01 and q99, which it computes")
+        });
     s.quantiles[i].clone()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantile_rows_are_found_by_name() {
+        let data: Vec<f64> = (0..=100).map(f64::from).collect();
+        let s = FeatureStats::compute(&data, 1);
+        assert_eq!(quantile(&s, "q01"), [1.0]);
+        assert_eq!(quantile(&s, "q99"), [99.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "`q42` is not among")]
+    fn an_unknown_quantile_is_a_bug() {
+        quantile(&FeatureStats::compute(&[0.0], 1), "q42");
+    }
 }
