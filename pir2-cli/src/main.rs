@@ -173,8 +173,8 @@ enum Cmd {
         /// `diffusion_model_cfg.dropout`, 0.2 in N1.7, applies in training only).
         #[arg(long)]
         no_dropout: bool,
-        /// gr00t: the candle device: cpu, cuda[:N] (a build with `--features cuda`) or
-        /// metal[:N] (`--features metal`).
+        /// gr00t: the candle device: `cpu`, `cuda[:N]` (a build with `--features cuda`) or
+        /// `metal[:N]` (`--features metal`).
         #[arg(long, default_value = "cpu")]
         device: String,
     },
