@@ -512,3 +512,117 @@ fn trainable_head_starts_as_the_base_head() {
     let again = back.velocity(&s_t, x, per, &vl2, emb).unwrap();
     assert_eq!(bits(&again), bits(&moved));
 }
+
+#[test]
+fn dropout_applies_in_the_training_forward_only_and_is_keyed_by_seed_step_and_site() {
+    use pir2_backends::candle::gr00t_n17::{DitDropout, DropoutSite};
+    let c = Case::load("alt");
+    let cfg = c.head.config().dit.clone();
+    // The fixture's config is N1.7's: `dropout` 0.2 with `final_dropout`.
+    assert_eq!((cfg.dropout, cfg.final_dropout), (0.2, true));
+    let emb = c.get("in.embodiment_id");
+    let (vl, s) = c.prefix();
+    let x = c.get("in.actions");
+    let t = c.get("in.timesteps");
+    let ts = Timesteps::Shared(t);
+    let bits = |t: &Tensor| -> Vec<u32> {
+        let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        v.iter().map(|x| x.to_bits()).collect()
+    };
+    let eval = c.head.velocity(&s, x, ts, &c.vl(&vl), emb).unwrap();
+    let train = |d: &DitDropout| {
+        c.head
+            .velocity_train(&s, x, ts, &c.vl(&vl), emb, d)
+            .unwrap()
+    };
+    let loss = |v: &Tensor| {
+        v.sqr()
+            .unwrap()
+            .mean_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
+
+    // Rate 0: the training forward is the inference forward, bit for bit.
+    let off = DitDropout {
+        rate: 0.0,
+        ..DitDropout::from_config(&cfg, 7, 3)
+    };
+    assert_eq!(bits(&train(&off)), bits(&eval));
+
+    // The checkpoint's rate: the same (seed, step) gives the same bits; another step or
+    // seed other masks, hence another loss; fewer sites without `final_dropout`.
+    let d = DitDropout::from_config(&cfg, 7, 3);
+    let v = train(&d);
+    assert_ne!(bits(&v), bits(&eval));
+    assert_eq!(bits(&train(&d)), bits(&v), "same seed and step, other bits");
+    let next = train(&DitDropout { step: 4, ..d });
+    assert_ne!(loss(&next), loss(&v), "step 4 drew step 3's masks");
+    let seed = train(&DitDropout { seed: 8, ..d });
+    assert_ne!(loss(&seed), loss(&v), "seed 8 drew seed 7's masks");
+    let no_final = train(&DitDropout {
+        final_dropout: false,
+        ..d
+    });
+    assert_ne!(bits(&no_final), bits(&v));
+    println!(
+        "loss: eval {:.5}, step 3 {:.5}, step 4 {:.5}, seed 8 {:.5}",
+        loss(&eval),
+        loss(&v),
+        loss(&next),
+        loss(&seed)
+    );
+    // No hidden state: the inference forward is unchanged after training forwards.
+    let again = c.head.velocity(&s, x, ts, &c.vl(&vl), emb).unwrap();
+    assert_eq!(bits(&again), bits(&eval));
+    // The sampler (GR00T's get_action) never drops: still the reference's output.
+    let a = c
+        .head
+        .sample(&s, c.get("in.noise"), &c.vl(&vl), emb)
+        .unwrap();
+    check("alt", "get_action", &a, c.get("out.action_pred"));
+
+    // The masks: 0 or 1/(1 − p), dropped at rate p, element i a function of
+    // (seed, step, site, i) only, distinct per site.
+    let n = 200_000;
+    for p in [0.2, 0.5] {
+        let dp = DitDropout { rate: p, ..d };
+        let m = dp.mask(DropoutSite::FeedForwardInner(1), n).unwrap();
+        let scale = (1.0 / (1.0 - p)) as f32;
+        assert!(m.iter().all(|&v| v == 0.0 || v == scale), "p = {p}");
+        let dropped = m.iter().filter(|&&v| v == 0.0).count() as f64 / n as f64;
+        assert!((dropped - p).abs() < 0.005, "p = {p}: dropped {dropped}");
+        let mean = m.iter().map(|&v| f64::from(v)).sum::<f64>() / n as f64;
+        assert!((mean - 1.0).abs() < 0.01, "p = {p}: mean {mean}");
+        let head = dp.mask(DropoutSite::FeedForwardInner(1), 100).unwrap();
+        assert_eq!(head[..], m[..100]);
+    }
+    let site = |s: DropoutSite| d.mask(s, 1000).unwrap();
+    let a = site(DropoutSite::Attention(0));
+    for other in [
+        DropoutSite::AttentionFinal(0),
+        DropoutSite::FeedForwardInner(0),
+        DropoutSite::FeedForwardOutput(0),
+        DropoutSite::Attention(1),
+    ] {
+        assert_ne!(a, site(other), "{other:?}");
+    }
+    assert!(DitDropout { rate: 1.0, ..d }
+        .mask(DropoutSite::Attention(0), 4)
+        .is_err());
+
+    // The rate comes from `diffusion_model_cfg` (the DiT class's 0.1 when absent) and must
+    // be in [0, 1).
+    let text = std::fs::read_to_string(fixtures().join("alt.config.json")).unwrap();
+    let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    json["diffusion_model_cfg"]
+        .as_object_mut()
+        .unwrap()
+        .remove("dropout");
+    let c1 = Gr00tN17Config::from_json_str(&json.to_string(), Path::new("c.json")).unwrap();
+    assert_eq!(c1.dit.dropout, 0.1);
+    json["diffusion_model_cfg"]["dropout"] = serde_json::json!(1.0);
+    let e = Gr00tN17Config::from_json_str(&json.to_string(), Path::new("c.json")).unwrap_err();
+    assert!(e.to_string().contains("dropout"), "{e}");
+}

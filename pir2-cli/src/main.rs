@@ -169,6 +169,14 @@ enum Cmd {
         /// gr00t: the dataset feature holding the action.
         #[arg(long, default_value = "action")]
         action_key: String,
+        /// gr00t: train without GR00T's DiT dropout (by default the checkpoint's
+        /// `diffusion_model_cfg.dropout`, 0.2 in N1.7, applies in training only).
+        #[arg(long)]
+        no_dropout: bool,
+        /// gr00t: the candle device: `cpu`, `cuda[:N]` (a build with `--features cuda`) or
+        /// `metal[:N]` (`--features metal`).
+        #[arg(long, default_value = "cpu")]
+        device: String,
     },
     /// Precompute a frozen backbone's features over a dataset's cameras. `gr00t`: GR00T
     /// N1.7's backbone (the checkpoint's ONNX backbone and tokenizer, run as `pir2 run` runs
@@ -705,6 +713,8 @@ struct Gr00tArgs {
     checkpoint_every: Option<usize>,
     state_key: String,
     action_key: String,
+    no_dropout: bool,
+    device: String,
     /// Options of the other tasks were given.
     unused: bool,
 }
@@ -733,6 +743,8 @@ fn train_gr00t(a: Gr00tArgs) -> Result<()> {
     o.resume = a.resume;
     o.state_key = a.state_key;
     o.action_key = a.action_key;
+    o.dropout = !a.no_dropout;
+    o.device = a.device;
     o.stop = Some(ctrl_c_flag());
     let steps = o.steps;
     let s = train(&o, |p| {
@@ -954,6 +966,8 @@ fn run() -> Result<()> {
             checkpoint_every,
             state_key,
             action_key,
+            no_dropout,
+            device,
         } if t.as_deref() == Some("gr00t") => train_gr00t(Gr00tArgs {
             data,
             out,
@@ -968,6 +982,8 @@ fn run() -> Result<()> {
             checkpoint_every,
             state_key,
             action_key,
+            no_dropout,
+            device,
             unused: policy.is_some() || config.is_some() || task_file.is_some(),
         }),
         Cmd::Train {
@@ -979,17 +995,25 @@ fn run() -> Result<()> {
             config,
             seed,
             resume,
+            device,
             ..
-        } => commands::train(&TrainOptions {
-            task: task(t.as_deref().unwrap_or("ballplate")),
-            task_file,
-            data,
-            policy: policy.map(Into::into),
-            out,
-            config,
-            seed,
-            resume,
-        }),
+        } => {
+            if device != "cpu" {
+                anyhow::bail!(
+                    "--device is an option of `pir2 train gr00t`; the other tasks train on the cpu"
+                );
+            }
+            commands::train(&TrainOptions {
+                task: task(t.as_deref().unwrap_or("ballplate")),
+                task_file,
+                data,
+                policy: policy.map(Into::into),
+                out,
+                config,
+                seed,
+                resume,
+            })
+        }
         Cmd::Eval {
             task: t,
             checkpoint,

@@ -24,7 +24,8 @@ use common::Scratch;
 const H: usize = 16;
 const SLOT: i64 = 3;
 const EPISODES: usize = 2;
-const FRAMES: usize = 12;
+/// At least `H`: the trainer draws only chunks inside an episode, as GR00T does.
+const FRAMES: usize = 18;
 
 /// The synthetic N1.7 configuration: `D_vl` of the synthetic backbone, room for the 45
 /// state and 18 action values, 2 DiT blocks (one cross-attending, one self-attending).

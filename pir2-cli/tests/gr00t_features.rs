@@ -190,12 +190,14 @@ fn group(name: &str, dim: usize, norm: Norm) -> Group {
     }
 }
 
-/// The training test's embodiment (4 state values, 4 actions, H = 8, n_obs = 2, slot 1)
-/// with the tiny backbone's image and prompt and the fixture's two camera views.
+/// The training test's embodiment (4 state values, 4 actions, n_obs = 2, slot 1) with
+/// H = 7, so that the fixture's longer episode (7 frames) holds one whole chunk (the trainer
+/// draws only chunks inside an episode, as GR00T does), the tiny backbone's image and prompt
+/// and the fixture's two camera views.
 fn embodiment() -> EmbodimentConfig {
     let mut e = EmbodimentConfig::xarm6_xhand();
     e.name = "tiny".into();
-    e.horizon = 8;
+    e.horizon = 7;
     e.d_max = 2;
     e.d_vis_max = 2;
     e.n_obs = 2;

@@ -86,6 +86,11 @@ fn relative_embodiment(path: &Path) {
 
 /// Episodes whose action is a smooth function of the state.
 fn dataset(root: &Path, state_dim: usize) {
+    dataset_of(root, state_dim, FRAMES_PER_EPISODE);
+}
+
+/// [`dataset`] with `frames` frames per episode.
+fn dataset_of(root: &Path, state_dim: usize, frames: usize) {
     let names = |p: &str, n: usize| (0..n).map(|i| format!("{p}{i}")).collect::<Vec<_>>();
     let spec = DatasetSpec {
         fps: 25,
@@ -99,7 +104,7 @@ fn dataset(root: &Path, state_dim: usize) {
     let mut w = DatasetWriter::open(root, spec, WriteMode::New).unwrap();
     for e in 0..EPISODES {
         let mut ep = Episode::new(state_dim, 0, 4);
-        for t in 0..FRAMES_PER_EPISODE {
+        for t in 0..frames {
             let ph = 0.3 * t as f32 + e as f32;
             let q: Vec<f32> = (0..state_dim).map(|i| (ph + i as f32).sin()).collect();
             let a: Vec<f32> = (0..4).map(|i| 0.8 * (ph + 0.2 + i as f32).sin()).collect();
@@ -305,6 +310,26 @@ fn trains_resumes_bit_identically_and_loads_back() {
         "{stats}"
     );
 
+    // GR00T's DiT dropout is on by default (the fixture's config: 0.2 with final_dropout,
+    // keyed by seed and step, so the resumes above are bit-identical with it). Without it the
+    // same first batch gives another loss, and a dropout run does not resume without it.
+    let mut o = options(&i, "no-dropout");
+    o.dropout = false;
+    o.steps = 1;
+    let plain = train(&o, |_| {}).unwrap();
+    let (with, without) = (second.report.losses[0], plain.report.losses[0]);
+    println!("step 1 loss: dropout {:.6}, none {:.6}", with.1, without.1);
+    assert_eq!(with.0, without.0);
+    assert_ne!(
+        with.1, without.1,
+        "the dropout run's first loss is the plain one"
+    );
+    let mut o = options(&i, "full");
+    o.dropout = false;
+    o.resume = true;
+    let e = format!("{:#}", train(&o, |_| {}).unwrap_err());
+    assert!(e.contains("gr00t_run.json"), "{e}");
+
     // Other features: another cache file, never the old one.
     features(&i.feats, EPISODES * FRAMES_PER_EPISODE, 1);
     let mut o = options(&i, "other-features");
@@ -329,6 +354,46 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
         println!("{e}");
         e
     };
+
+    // Devices, through the binary: a GPU this build lacks names the feature to build with
+    // (before anything is read or written); an unknown name lists the accepted ones.
+    let device = |d: &str| {
+        let out = i.root.join(format!("dev-{d}"));
+        let run = pir2(&[
+            "train".as_ref(),
+            "gr00t".as_ref(),
+            "--checkpoint".as_ref(),
+            i.ck.as_os_str(),
+            "--data".as_ref(),
+            i.data.as_os_str(),
+            "--embodiment".as_ref(),
+            i.emb.as_os_str(),
+            "--features".as_ref(),
+            i.feats.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--device".as_ref(),
+            d.as_ref(),
+        ]);
+        assert!(!run.status.success(), "--device {d} ran");
+        assert!(!out.exists(), "--device {d} wrote {}", out.display());
+        let e = String::from_utf8_lossy(&run.stderr).to_string();
+        println!("{e}");
+        e
+    };
+    if !cfg!(feature = "cuda") {
+        let e = device("cuda:1");
+        assert!(
+            e.contains("`cuda:1`") && e.contains("--features cuda"),
+            "{e}"
+        );
+    }
+    if !cfg!(feature = "metal") {
+        let e = device("metal");
+        assert!(e.contains("--features metal"), "{e}");
+    }
+    let e = device("tpu");
+    assert!(e.contains("`tpu`") && e.contains("cuda:N"), "{e}");
 
     // A checkpoint without the action head's tensors.
     let no_head = i.root.join("no-head");
@@ -357,6 +422,15 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
         e.contains("observation.state") && e.contains('5') && e.contains('4'),
         "{e}"
     );
+
+    // Episodes shorter than the horizon (8): no whole chunk to train on, as in GR00T.
+    let short_eps = i.root.join("short-episodes");
+    dataset_of(&short_eps, 4, 7);
+    let mut o = options(&i, "e-short");
+    o.data = short_eps;
+    let e = err(&o);
+    assert!(e.contains("H = 8") && e.contains("longest has 7"), "{e}");
+    assert!(!o.out.join("statistics.json").exists(), "{e}");
 
     // An embodiment whose state does not fit the checkpoint's max_state_dim (6).
     let big = i.root.join("big.toml");
@@ -473,13 +547,14 @@ impl pir2_runtime::VelocityModel for TargetOracle {
 }
 
 /// A relative action group trains (the refusal is gone) and what it trains on deploys back
-/// to the dataset: the run writes `relative_action.arm` as `[H, 3]` tables; the trainer's
-/// targets (`Gr00tTargets`, GR00T's `a_{t+p} − s_t` normalised per slot) decode with the
-/// runtime's output map of the run's `statistics.json` to the dataset's absolute actions;
-/// and the lock-step runtime driven by a head that outputs exactly those targets sends, at
-/// every tick of every episode, the dataset's action of that tick (πR² async with one- and
-/// two-tick calls, πR² without async): each slot is decoded against the state of the call
-/// that made it, the reference training used for it.
+/// to the dataset: the run writes `relative_action.arm` as `[H, 3]` tables, computed over the
+/// chunks inside their episode as GR00T's statistics tool does; the trainer's targets
+/// (`Gr00tTargets`, GR00T's `a_{t+p} − s_t` normalised per slot) of every chunk it draws
+/// decode with the runtime's output map of the run's `statistics.json` to the dataset's
+/// absolute actions; and the lock-step runtime driven by a head that outputs exactly those
+/// targets sends, at every tick up to `len − H` of every episode, the dataset's action of
+/// that tick (πR² async with one- and two-tick calls, πR² without async): each slot is
+/// decoded against the state of the call that made it, the reference training used for it.
 #[test]
 fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
     let i = inputs("gr00t-train-relative");
@@ -513,14 +588,58 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
         action: "action".into(),
     };
     let ds = read_selected(&i.data, &sel).unwrap();
+
+    // The tables are GR00T's (`RelativeActionLoader`): slot p over the chunks inside their
+    // episode, t ∈ 0..=len − H (the last one ends on the last frame). The old rule (every
+    // frame, the last action repeated) gives other tables on this data.
+    let table = |stat: &str, p: usize, j: usize| {
+        stats[tag]["relative_action"]["arm"][stat][p][j]
+            .as_f64()
+            .unwrap()
+    };
+    let rel_values = |p: usize, j: usize, padded: bool| -> Vec<f64> {
+        let mut v = Vec::new();
+        for ep in &ds.episodes {
+            let len = ep.len();
+            let frames = if padded { len } else { len + 1 - h };
+            for t in 0..frames {
+                let a = ep.action((t + p).min(len - 1))[j];
+                v.push(f64::from(a) - f64::from(ep.fast(t)[j]));
+            }
+        }
+        v
+    };
+    let mut old_rule_differs = false;
+    for p in 0..h {
+        for j in 0..3 {
+            let v = rel_values(p, j, false);
+            assert_eq!(v.len(), EPISODES * (FRAMES_PER_EPISODE + 1 - h));
+            let mean = v.iter().sum::<f64>() / v.len() as f64;
+            let min = v.iter().copied().fold(f64::INFINITY, f64::min);
+            let max = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            for (stat, want) in [("mean", mean), ("min", min), ("max", max)] {
+                let got = table(stat, p, j);
+                assert!(
+                    (got - want).abs() <= 1e-9 * (1.0 + want.abs()),
+                    "relative_action.arm.{stat}[{p}][{j}] = {got}, GR00T's rule gives {want}"
+                );
+            }
+            let old = rel_values(p, j, true);
+            let old_mean = old.iter().sum::<f64>() / old.len() as f64;
+            old_rule_differs |= (old_mean - mean).abs() > 1e-6;
+        }
+    }
+    assert!(old_rule_differs, "the data cannot tell the two rules apart");
+
     let targets = Gr00tTargets::new(norm, h, &ds.episodes);
 
-    // Encode (trainer) → decode (runtime), every frame and slot.
+    // Encode (trainer) → decode (runtime), every chunk the trainer draws (t ≤ len − H) and
+    // every slot: inside [-1, 1] (min/max groups are never clipped) and exact.
     let (mut chunk, mut reference, mut u) = (vec![0f32; h * 4], [0f32; 4], [0f32; 4]);
     let mut moved = 0.0f32;
     for (e, ep) in ds.episodes.iter().enumerate() {
         let len = ep.len();
-        for t in 0..len {
+        for t in 0..=len - h {
             for p in 0..h {
                 chunk[p * 4..(p + 1) * 4].copy_from_slice(ep.action((t + p).min(len - 1)));
             }
@@ -605,7 +724,10 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
                 .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
                 .unwrap();
             assert_eq!(res.steps, ep.len());
-            for (t, sent) in env.sent.iter().enumerate() {
+            // Ticks up to len − H: every command there comes from chunks made (and rebased)
+            // at frames the trainer draws. Later ones may decode a clipped slot: GR00T
+            // neither trains on nor takes statistics from chunks that run past the end.
+            for (t, sent) in env.sent.iter().enumerate().take(ep.len() + 1 - h) {
                 for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
                     assert!(
                         (x - w).abs() < 1e-4,

@@ -18,6 +18,7 @@
 //! m.velocity(&input, &mut v).unwrap();
 //! ```
 
+mod device;
 pub(crate) mod dit;
 pub mod export;
 pub mod gr00t_n17;
@@ -31,6 +32,8 @@ use std::path::Path;
 
 use candle_core::{Device, Tensor, Var};
 use pir2_runtime::model::{ModelInput, SlowInput, VelocityModel};
+
+pub use device::device;
 
 use crate::checkpoint::{self, Checkpoint};
 use crate::config::{Config, ModelConfig, SlowSpec, Spec, Stats};

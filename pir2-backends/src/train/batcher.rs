@@ -69,6 +69,21 @@ impl Batcher {
         }
     }
 
+    /// Draw only the frames whose whole chunk lies inside the episode (`t ≤ len − H`, none
+    /// in an episode shorter than `H`), as GR00T's sampler does
+    /// (`ShardedSingleStepDataset.get_effective_episode_length`), instead of every frame
+    /// with the last action repeated past the end. The frames left are drawn uniformly;
+    /// returns how many there are.
+    pub(super) fn full_chunks_only<D: Dataset + ?Sized>(&mut self, data: &D) -> usize {
+        let h = self.spec.horizon;
+        let mut total = 0;
+        for (e, c) in self.cum.iter_mut().enumerate() {
+            total += (data.episode_len(e) + 1).saturating_sub(h);
+            *c = total;
+        }
+        total
+    }
+
     pub(super) fn fill<D: Dataset + ?Sized>(&mut self, data: &D) -> Result<()> {
         self.fill_encoded(data, None)
     }
@@ -212,5 +227,57 @@ impl Batcher {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// GR00T's sampling: only frames `t ≤ len − H` (the last chunk ending on the last frame
+    /// included), every one of them, none from an episode shorter than `H`; without it,
+    /// every frame.
+    #[test]
+    fn full_chunks_only_draws_the_frames_whose_chunk_fits() {
+        let spec = Spec {
+            horizon: 5,
+            action_dim: 1,
+            n_obs: 1,
+            fast_dim: 1,
+            slow: SlowSpec::None,
+            d_vis_max: 0,
+        };
+        let data: Vec<Episode> = [7usize, 4, 5]
+            .iter()
+            .map(|&len| {
+                let mut e = Episode::new(1, 0, 1);
+                for t in 0..len {
+                    e.push(&[t as f32], &[], &[t as f32]);
+                }
+                e
+            })
+            .collect();
+        let cfg = TrainConfig {
+            batch_size: 64,
+            schedule: TrainSchedule::StandardFlow,
+            ..TrainConfig::default()
+        };
+        let draws = |full: bool| {
+            let mut b = Batcher::new(&data[..], &spec, &Stats::identity(&spec), &cfg);
+            if full {
+                assert_eq!(b.full_chunks_only(&data[..]), 3 + 1);
+            }
+            let mut seen = std::collections::BTreeSet::new();
+            for _ in 0..8 {
+                let mut record = |e: usize, t: usize, _: &mut [f32]| -> Result<()> {
+                    seen.insert((e, t));
+                    Ok(())
+                };
+                b.fill_encoded(&data[..], Some(&mut record)).unwrap();
+            }
+            seen.into_iter().collect::<Vec<_>>()
+        };
+        assert_eq!(draws(true), [(0, 0), (0, 1), (0, 2), (2, 0)]);
+        assert_eq!(draws(false).len(), 7 + 4 + 5);
     }
 }

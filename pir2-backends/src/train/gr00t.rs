@@ -1,4 +1,6 @@
-//! πR² fine-tuning of GR00T N1.7's action head ([`Gr00tN17Head`]) on CPU.
+//! πR² fine-tuning of GR00T N1.7's action head ([`Gr00tN17Head`]) with candle, on the
+//! head's device (the CPU; a GPU with the `cuda` / `metal` features, see
+//! [`crate::candle::device`]).
 //!
 //! The network is the inference head itself, loaded with [`Gr00tN17Head::load_trainable`]:
 //! its projectors, position embedding, DiT and decoder are candle `Var`s, the backbone
@@ -8,9 +10,11 @@
 //! (AdamW, cosine LR with warm-up, grad-norm clip, seed), the same batch sampler, step
 //! checkpoints with the full training state, `interrupted-*` states, bit-identical resume.
 //!
-//! Each sample (the paper's robot recipe): a frame `t` uniformly over all frames; the state
-//! history ending at `t`; the action chunk `a_{t..t+H}` (the last action repeats past the
-//! end; encoded per sample by an [`ActionTargets`] when the targets depend on the sample, as
+//! Each sample (the paper's robot recipe on GR00T's data pipeline): a frame `t` uniformly
+//! over the frames whose whole chunk lies inside their episode (`t ≤ len − H`, as GR00T's
+//! `ShardedSingleStepDataset` samples; an episode shorter than `H` gives none); the state
+//! history ending at `t` (clamped at the episode start); the action chunk `a_{t..t+H}`
+//! (encoded per sample by an [`ActionTargets`] when the targets depend on the sample, as
 //! relative actions do); `τ`/mask from the schedule's draw (πR²: staircase with a clean,
 //! masked front of `d ~ U{1..d_max}`, or the warm-up branch); `d_vis ~ U{0..d_vis_max}` per sample, the VL
 //! tokens of frame `max(0, t − d_vis)` and `e(d_vis)` on the action tokens. GR00T's discrete
@@ -24,12 +28,18 @@
 //! file, never a stale one. [`PrecomputedFeatures`] reads backbone outputs a user computed
 //! with the real backbone.
 //!
-//! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
-//! optimiser state and update are on the host. Only the CPU has been run.
+//! The training forward is [`Gr00tN17Head::velocity_train`]: GR00T's dropout in the DiT
+//! blocks at the checkpoint's rate (`diffusion_model_cfg.dropout`, `final_dropout`; see
+//! [`DitDropout`]), masks keyed by the run's seed and the step index, so a resumed run is
+//! bit-identical to an uninterrupted one. [`Gr00tTrainer::dropout`]`(false)` trains without
+//! it. Whether it is on, and its rate, are part of the run's identity ([`RUN_FILE`]).
 //!
-//! Not done here: GR00T's dropout (0.2 in the DiT) is not applied, so the training forward is
-//! the deterministic inference forward; EMA, self-rollout and validation hooks of
-//! [`super::Trainer`] are refused by name.
+//! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
+//! optimiser state and update are on the host. Only the CPU has been run; the `cuda` and
+//! `metal` features have not been compiled here.
+//!
+//! Not done here: EMA, self-rollout and validation hooks of [`super::Trainer`] are refused
+//! by name.
 
 use std::fs::File;
 use std::io::{BufWriter, Read, Seek, SeekFrom};
@@ -39,7 +49,7 @@ use sha2::{Digest, Sha256};
 
 use super::*;
 use crate::candle::gr00t_n17::{
-    is_trained, timestep_bucket, Gr00tN17Head, TensorIndex, Timesteps, VlTokens,
+    is_trained, timestep_bucket, DitDropout, Gr00tN17Head, TensorIndex, Timesteps, VlTokens,
 };
 
 /// The embodiment as the trainer sees it.
@@ -64,8 +74,8 @@ pub struct Gr00tTrainSpec {
 /// already normalised.
 pub trait ActionTargets {
     /// Encode in place `chunk` (`[H, A]`): the raw actions of episode `episode` from frame
-    /// `frame` on (slot `p` holds frame `min(frame + p, len − 1)`), the sample's observation
-    /// window ending at `frame`.
+    /// `frame` on (slot `p` holds frame `frame + p`; the trainer draws only chunks inside the
+    /// episode), the sample's observation window ending at `frame`.
     fn encode(&self, episode: usize, frame: usize, chunk: &mut [f32]) -> Result<()>;
 }
 
@@ -501,6 +511,7 @@ pub struct Gr00tTrainer<'a> {
     identity: serde_json::Value,
     extra_files: Vec<(String, Vec<u8>)>,
     targets: Option<&'a dyn ActionTargets>,
+    dropout: bool,
 }
 
 impl std::fmt::Debug for Gr00tTrainer<'_> {
@@ -510,6 +521,7 @@ impl std::fmt::Debug for Gr00tTrainer<'_> {
             .field("spec", &self.spec)
             .field("out_dir", &self.out_dir)
             .field("resume", &self.resume)
+            .field("dropout", &self.dropout)
             .finish_non_exhaustive()
     }
 }
@@ -529,7 +541,14 @@ impl<'a> Gr00tTrainer<'a> {
             identity: serde_json::Value::Null,
             extra_files: Vec::new(),
             targets: None,
+            dropout: true,
         }
+    }
+    /// Apply GR00T's DiT dropout at the checkpoint's rate in the training forward (on by
+    /// default; see [`DitDropout`]).
+    pub fn dropout(mut self, on: bool) -> Self {
+        self.dropout = on;
+        self
     }
     /// Encode every sample's chunk with `targets` (the data then holds raw actions); without
     /// it the data's actions are the normalised targets themselves.
@@ -633,6 +652,18 @@ impl<'a> Gr00tTrainer<'a> {
             ));
         }
         let frames: usize = data.iter().map(Episode::len).sum();
+        let full: usize = data
+            .iter()
+            .map(|e| (e.len() + 1).saturating_sub(s.horizon))
+            .sum();
+        if full == 0 {
+            let longest = data.iter().map(Episode::len).max().unwrap_or(0);
+            return Err(Error::Dataset(format!(
+                "no episode holds one whole action chunk of H = {} frames (the longest has \
+                 {longest}); GR00T trains only on chunks inside an episode",
+                s.horizon
+            )));
+        }
         if vl.frames() != frames || vl.dim() != c.backbone_embedding_dim {
             return Err(Error::Dataset(format!(
                 "the VL features hold {} frames of width {}, the dataset has {frames} frames and \
@@ -670,7 +701,15 @@ impl<'a> Gr00tTrainer<'a> {
         let cfg = self.cfg.clone();
         let out = self.out_dir.clone();
         // The run's identity: written once, checked on resume.
-        let id = serde_json::json!({ "spec": self.spec, "identity": self.identity });
+        let dit = &head.config().dit;
+        let dropout = (self.dropout && dit.dropout > 0.0).then(
+            || serde_json::json!({ "rate": dit.dropout, "final_dropout": dit.final_dropout }),
+        );
+        let id = serde_json::json!({
+            "spec": self.spec,
+            "identity": self.identity,
+            "dropout": dropout,
+        });
         let id_path = out.join(RUN_FILE);
         let resume_from = if self.resume {
             latest_step_checkpoint(&out)?
@@ -747,6 +786,7 @@ impl<'a> Gr00tTrainer<'a> {
         };
         let stats = Stats::identity(&spec);
         let mut batcher = Batcher::new(data, &spec, &stats, &cfg);
+        batcher.full_chunks_only(data);
         let set_vars = |params: &[Vec<f32>]| -> Result<()> {
             for (v, p) in vars.iter().zip(params) {
                 v.set(&Tensor::from_slice(p, v.dims(), &dev)?)?;
@@ -857,18 +897,17 @@ impl<'a> Gr00tTrainer<'a> {
                 d_vis: Some(&dv),
             };
             let s = head.encode_state(&state, &ids)?;
-            let v = head
-                .velocity(
-                    &s,
-                    &x,
-                    Timesteps::PerPosition {
-                        actions: &ta,
-                        tokens: &tt,
-                    },
-                    &tokens,
-                    &ids,
-                )?
-                .narrow(2, 0, a)?;
+            let ts = Timesteps::PerPosition {
+                actions: &ta,
+                tokens: &tt,
+            };
+            let v = if dropout.is_some() {
+                let d = DitDropout::from_config(&c.dit, cfg.seed, step as u64);
+                head.velocity_train(&s, &x, ts, &tokens, &ids, &d)?
+            } else {
+                head.velocity(&s, &x, ts, &tokens, &ids)?
+            };
+            let v = v.narrow(2, 0, a)?;
             let target = Tensor::from_slice(&batcher.target, (b, h, a), &dev)?;
             let mask = Tensor::from_slice(&batcher.mask, (b, h, 1), &dev)?;
             let msum: f32 = batcher.mask.iter().sum();

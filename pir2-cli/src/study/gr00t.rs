@@ -1,5 +1,6 @@
 //! `pir2 train gr00t`: πR² fine-tuning of a GR00T N1.7 checkpoint's action head on a
-//! LeRobotDataset v3.0, on CPU with candle (feature `gr00t`).
+//! LeRobotDataset v3.0 with candle (feature `gr00t`), on the CPU by default or on the GPU
+//! `--device` names (`cuda[:N]` with the `cuda` feature, `metal[:N]` with `metal`).
 //!
 //! Inputs:
 //! - `--checkpoint N17_DIR`: GR00T N1.7's `config.json` and its `model.safetensors` (or
@@ -14,10 +15,12 @@
 //!   ([`PrecomputedFeatures`]: `embeddings [N, T, D_vl]`, `image_mask [N, T]`, optional
 //!   `attention_mask`), `N` = the dataset's frames in episode order.
 //!
-//! Relative action groups (`relative = true`) train on GR00T's relative targets: slot `p` of
-//! the sample at frame `t` is `a_{t+p} − s_t` (the raw state of frame `t`, the newest row of
-//! the observation window), normalised with the slot's `relative_action` statistics
-//! ([`Gr00tTargets`]).
+//! Samples are the frames whose whole action chunk lies inside their episode
+//! (`t ≤ len − H`), as in GR00T's data pipeline. Relative action groups (`relative = true`)
+//! train on GR00T's relative targets: slot `p` of the sample at frame `t` is `a_{t+p} − s_t`
+//! (the raw state of frame `t`, the newest row of the observation window), normalised with
+//! the slot's `relative_action` statistics ([`Gr00tTargets`]), computed over the same chunks
+//! as GR00T's statistics tool.
 //!
 //! Output directory: `statistics.json` (GR00T's layout, computed from the dataset, per
 //! group: min, max, mean, std, q01, q99; `relative_action` tables `[H, D]` for relative
@@ -26,7 +29,9 @@
 //! `loss.jsonl`, and `step-NNNNNN/` checkpoints (`model.safetensors` with GR00T's tensor names
 //! and the delay table, `config.json`, the training state). The paper's robot recipe is the
 //! default: AdamW, lr 1e-4 with 5 % warm-up and cosine decay, weight decay 1e-5, clip 1.0,
-//! `d ~ U{1..d_max}`, `d_vis ~ U{0..d_vis_max}`, α = 0.2.
+//! `d ~ U{1..d_max}`, `d_vis ~ U{0..d_vis_max}`, α = 0.2. GR00T's DiT dropout (the
+//! checkpoint's `diffusion_model_cfg.dropout`, 0.2 in N1.7) applies in the training forward
+//! unless `dropout` is off (`--no-dropout`); inference and export never drop.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -77,6 +82,12 @@ pub struct Gr00tTrainOptions {
     pub stop: Option<Arc<AtomicBool>>,
     /// Return after this many steps as if interrupted (tests, time slicing).
     pub stop_after: Option<usize>,
+    /// GR00T's DiT dropout in the training forward, at the checkpoint's rate
+    /// (`diffusion_model_cfg.dropout`).
+    pub dropout: bool,
+    /// The candle device the head trains on: `cpu`, `cuda[:N]`, `metal[:N]`
+    /// ([`pir2_backends::candle::device`]; a GPU needs the build feature of its name).
+    pub device: String,
 }
 
 impl Gr00tTrainOptions {
@@ -105,6 +116,8 @@ impl Gr00tTrainOptions {
             resume: false,
             stop: None,
             stop_after: None,
+            dropout: true,
+            device: "cpu".into(),
         }
     }
 }
@@ -173,11 +186,11 @@ fn statistics_json(
 
 /// GR00T's `relative_action` statistics of every relative action group: per chunk slot `p`
 /// (`[H, D]` tables), the statistics of `a_{t+p} − s_t` (a pose: `T_ref⁻¹·T` in the group's
-/// layout) over the chunks the trainer draws
-/// (every frame `t`, the state group's raw value at `t`, the last action repeated past the
-/// episode's end, as the batch sampler does). GR00T's own tool takes only the chunks that fit
-/// inside the episode; taking the sampled ones keeps every training target inside the
-/// statistics' range, so no target is clipped.
+/// layout; `s_t` the state group's raw value at `t`) over the chunks that lie inside their
+/// episode, `t ∈ 0..=len − H` (the last one ends on the episode's last frame; an episode
+/// shorter than `H` adds nothing), as GR00T's `RelativeActionLoader` takes them
+/// (`usable_length = len − delta_indices[-1]`). These are exactly the chunks the trainer
+/// draws, so no training target of a min/max group is clipped.
 fn relative_statistics(
     emb: &EmbodimentConfig,
     episodes: &[pir2_sim::dataset::Episode],
@@ -200,9 +213,8 @@ fn relative_statistics(
         for p in 0..h {
             values.clear();
             for e in episodes {
-                let len = e.len();
-                for t in 0..len {
-                    let (a, s) = (e.action((t + p).min(len - 1)), e.fast(t));
+                for t in 0..(e.len() + 1).saturating_sub(h) {
+                    let (a, s) = (e.action(t + p), e.fast(t));
                     match pose {
                         Some(pg) => {
                             pir2_runtime::pose::relative(
@@ -382,9 +394,10 @@ pub fn train(
     o: &Gr00tTrainOptions,
     mut progress: impl FnMut(&Progress),
 ) -> Result<Gr00tTrainSummary> {
+    let device = pir2_backends::candle::device(&o.device)?;
     let emb = EmbodimentConfig::load(&o.embodiment)
         .with_context(|| format!("embodiment {}", o.embodiment.display()))?;
-    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &Device::Cpu)
+    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &device)
         .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
     let c = head.config().clone();
     let ck = o.checkpoint.display();
@@ -416,6 +429,15 @@ pub fn train(
     let frames: usize = ds.episodes.iter().map(|e| e.len()).sum();
     if frames == 0 {
         bail!("dataset {dd} has no frames");
+    }
+    let longest = ds.episodes.iter().map(|e| e.len()).max().unwrap_or(0);
+    if longest < emb.horizon {
+        bail!(
+            "dataset {dd}: no episode holds one whole action chunk of the embodiment's horizon \
+             H = {} frames (the longest has {longest}); GR00T trains only on chunks inside an \
+             episode",
+            emb.horizon
+        );
     }
 
     // Statistics → GR00T's normalisation, written for export and deployment.
@@ -517,6 +539,7 @@ pub fn train(
         .identity(identity)
         .checkpoint_file("config.json", config_json)
         .action_targets(&targets)
+        .dropout(o.dropout)
         .on_progress(&mut progress);
     if let Some(s) = &o.stop {
         trainer = trainer.stop_on(s.clone());
@@ -684,11 +707,37 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
     })
 }
 
-/// The named quantile row (`q01`, `q99`, ...) of `s` (the first row if the name is unknown).
+/// The named quantile row (`q01`, `q99`, ...) of `s`.
+///
+/// # Panics
+///
+/// If `name` is not one of [`pir2_sim::dataset::QUANTILES`]: the callers pass the literal
+/// names GR00T's statistics need, so that is a bug here, not bad input.
 fn quantile(s: &FeatureStats, name: &str) -> Vec<f64> {
     let i = pir2_sim::dataset::QUANTILES
         .iter()
         .position(|(_, n)| *n == name)
-        .unwrap_or(0);
+        .unwrap_or_else(|| {
+            panic!("`{name}` is not among pir2_sim::dataset::QUANTILES; GR00T's statistics use q01 and q99, which it computes")
+        });
     s.quantiles[i].clone()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantile_rows_are_found_by_name() {
+        let data: Vec<f64> = (0..=100).map(f64::from).collect();
+        let s = FeatureStats::compute(&data, 1);
+        assert_eq!(quantile(&s, "q01"), [1.0]);
+        assert_eq!(quantile(&s, "q99"), [99.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "`q42` is not among")]
+    fn an_unknown_quantile_is_a_bug() {
+        quantile(&FeatureStats::compute(&[0.0], 1), "q42");
+    }
 }

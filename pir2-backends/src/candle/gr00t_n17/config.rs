@@ -27,6 +27,13 @@ pub struct DitConfig {
     pub max_num_positional_embeddings: usize,
     /// LayerNorm epsilon of the blocks (`norm_eps`).
     pub norm_eps: f64,
+    /// Training-time dropout rate `p` of the blocks (`dropout`; N1.7: 0.2): after the
+    /// attention's output projection and after the feed-forward's GELU. Inference never
+    /// drops; see [`super::DitDropout`].
+    pub dropout: f64,
+    /// With `dropout`, also drop the attention output a second time and the feed-forward's
+    /// output (`final_dropout`; N1.7: true).
+    pub final_dropout: bool,
 }
 
 /// The optional self-attention stack over the VL tokens (GR00T's `vl_self_attention_cfg`).
@@ -108,6 +115,8 @@ impl Default for Gr00tN17Config {
                 sinusoidal_positions: false,
                 max_num_positional_embeddings: 512,
                 norm_eps: 1e-5,
+                dropout: 0.2,
+                final_dropout: true,
             },
             vl_self_attention: None,
             max_num_embodiments: 32,
@@ -246,6 +255,8 @@ impl Gr00tN17Config {
                     sinusoidal_positions: pos.is_some(),
                     max_num_positional_embeddings: f.usize("max_num_positional_embeddings", 512)?,
                     norm_eps: f.f64("norm_eps", 1e-5)?,
+                    dropout: f.f64("dropout", 0.1)?,
+                    final_dropout: f.bool("final_dropout", true)?,
                 }
             }
         };
@@ -332,6 +343,12 @@ impl Gr00tN17Config {
                     self.backbone_embedding_dim
                 )));
             }
+        }
+        if !(0.0..1.0).contains(&self.dit.dropout) {
+            return Err(bad(format!(
+                "`diffusion_model_cfg.dropout` = {} must be in [0, 1)",
+                self.dit.dropout
+            )));
         }
         if self.use_alternate_vl_dit
             && (!self.dit.interleave_self_attention || self.attend_text_every_n_blocks == 0)

@@ -2,6 +2,7 @@
 
 use candle_core::{DType, Device, Module, Tensor, Var, D};
 
+use super::dropout::{DitDropout, DropoutSite};
 use super::weights::TensorIndex;
 use crate::candle::layers::layer_norm;
 use crate::error::{Error, Result};
@@ -352,13 +353,15 @@ impl Block {
         })
     }
 
-    /// `x [B, N, D]`; `temb` for AdaLN blocks; `source` for cross-attention (else self).
+    /// `x [B, N, D]`; `temb` for AdaLN blocks; `source` for cross-attention (else self);
+    /// `dropout`: the training forward's dropout and this block's index (`None`: inference).
     pub(super) fn forward(
         &self,
         x: &Tensor,
         temb: Option<&Tensor>,
         source: Option<&Tensor>,
         bias: Option<&Tensor>,
+        dropout: Option<(&DitDropout, usize)>,
     ) -> Result<Tensor> {
         let d = x.dim(D::Minus1)?;
         let mut h = match &self.norm1 {
@@ -378,13 +381,26 @@ impl Block {
         if let Some(pe) = &self.positions {
             h = h.broadcast_add(&pe.narrow(0, 0, x.dim(1)?)?)?;
         }
-        let a = self.attn.forward(&h, source.unwrap_or(&h), bias)?;
+        let mut a = self.attn.forward(&h, source.unwrap_or(&h), bias)?;
+        if let Some((d, i)) = dropout {
+            a = d.apply(&a, DropoutSite::Attention(i))?;
+            if d.final_dropout {
+                a = d.apply(&a, DropoutSite::AttentionFinal(i))?;
+            }
+        }
         let x = (x + a)?;
         let n3 = match &self.norm3 {
             Some(n) => n.forward(&x)?,
             None => layer_norm(&x, self.eps)?,
         };
-        let f = self.ff_out.forward(&self.ff_in.forward(&n3)?.gelu()?)?;
+        let mut f = self.ff_in.forward(&n3)?.gelu()?;
+        if let Some((d, i)) = dropout {
+            f = d.apply(&f, DropoutSite::FeedForwardInner(i))?;
+        }
+        let mut f = self.ff_out.forward(&f)?;
+        if let Some((d, i)) = dropout.filter(|(d, _)| d.final_dropout) {
+            f = d.apply(&f, DropoutSite::FeedForwardOutput(i))?;
+        }
         Ok((x + f)?)
     }
 }

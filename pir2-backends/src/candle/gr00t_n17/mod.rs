@@ -36,10 +36,15 @@
 //!
 //! **Fine-tuning.** [`Gr00tN17Head::load_trainable`] loads the same network with its trained
 //! tensors ([`is_trained`]) as candle [`Var`]s and a zero-initialised delay table, so the
-//! training forward is [`Gr00tN17Head::velocity`] itself and the untrained head reproduces
-//! the checkpoint's. Per-position AdaLN here means every token's AdaLN and output modulation
-//! read that token's own timestep embedding through the pretrained (shared) `norm1.linear`
-//! and `proj_out_1` weights.
+//! untrained head reproduces the checkpoint's. The training forward is
+//! [`Gr00tN17Head::velocity_train`]: the same network with GR00T's dropout in the DiT blocks
+//! ([`DitDropout`]: rate `diffusion_model_cfg.dropout`, 0.2 in N1.7, after the attention
+//! output and inside and after the feed-forward), its masks a pure function of
+//! `(seed, step, site)`. [`Gr00tN17Head::velocity`] (inference, export, `pir2 run`) never
+//! drops. The frozen `vlln` / VL self-attention never drop either: GR00T puts frozen modules
+//! in `eval` mode, which is what lets their output be cached. Per-position AdaLN here means
+//! every token's AdaLN and output modulation read that token's own timestep embedding
+//! through the pretrained (shared) `norm1.linear` and `proj_out_1` weights.
 //!
 //! Loading ([`Gr00tN17Head::load`]) reads `config.json` ([`Gr00tN17Config`]) and the
 //! `action_head.*` tensors of `model.safetensors` or of a sharded checkpoint
@@ -68,6 +73,7 @@
 //! ```
 
 mod config;
+mod dropout;
 mod layers;
 mod weights;
 
@@ -76,6 +82,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor, Var, D};
 
 pub use config::{DitConfig, Gr00tN17Config, VlSelfAttentionConfig};
+pub use dropout::{DitDropout, DropoutSite};
 pub(crate) use layers::{action_time_frequencies, dit_time_frequencies, sinusoidal_table_values};
 pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 
@@ -602,7 +609,7 @@ impl Gr00tN17Head {
             None => features.clone(),
         };
         for b in &self.vl_self_attention {
-            x = b.forward(&x, None, None, None)?;
+            x = b.forward(&x, None, None, None, None)?;
         }
         Ok(x)
     }
@@ -677,6 +684,17 @@ impl Gr00tN17Head {
     /// The DiT: `sa_embs [B, N, D_in]` (state token, then action tokens), the VL tokens and
     /// a timestep per sample `[B]` or per token `[B, N]` → `[B, N, output_dim]`.
     pub fn dit(&self, sa_embs: &Tensor, vl: &VlTokens<'_>, timestep: &Tensor) -> Result<Tensor> {
+        self.dit_with(sa_embs, vl, timestep, None)
+    }
+
+    /// [`Self::dit`] with the training forward's dropout in every block (`None`: inference).
+    fn dit_with(
+        &self,
+        sa_embs: &Tensor,
+        vl: &VlTokens<'_>,
+        timestep: &Tensor,
+        dropout: Option<&DitDropout>,
+    ) -> Result<Tensor> {
         let c = &self.cfg;
         let (b, n) = match sa_embs.dims() {
             [b, n, d] if *d == c.input_embedding_dim => (*b, *n),
@@ -764,8 +782,9 @@ impl Gr00tN17Head {
         };
         let mut x = sa_embs.clone();
         for (i, (block, &is_cross)) in self.dit.blocks.iter().zip(&self.dit.cross).enumerate() {
+            let drop = dropout.map(|d| (d, i));
             x = if !is_cross {
-                block.forward(&x, Some(&temb), None, None)?
+                block.forward(&x, Some(&temb), None, None, drop)?
             } else {
                 let bias = biases.as_ref().map(|(text, image)| {
                     if i % (2 * c.attend_text_every_n_blocks) == 0 {
@@ -774,7 +793,7 @@ impl Gr00tN17Head {
                         image
                     }
                 });
-                block.forward(&x, Some(&temb), Some(vl.embeddings), bias)?
+                block.forward(&x, Some(&temb), Some(vl.embeddings), bias, drop)?
             };
         }
         let d = c.input_embedding_dim;
@@ -805,6 +824,7 @@ impl Gr00tN17Head {
 
     /// One velocity evaluation (one NFE): `state_features [B, 1, D_in]` from
     /// [`Self::encode_state`], `actions [B, H, A_max]` → velocity `[B, H, A_max]`.
+    /// Deterministic: no dropout (GR00T in `eval` mode).
     pub fn velocity(
         &self,
         state_features: &Tensor,
@@ -812,6 +832,40 @@ impl Gr00tN17Head {
         timesteps: Timesteps<'_>,
         vl: &VlTokens<'_>,
         embodiment_id: &Tensor,
+    ) -> Result<Tensor> {
+        self.velocity_with(state_features, actions, timesteps, vl, embodiment_id, None)
+    }
+
+    /// The training forward: [`Self::velocity`] with GR00T's dropout in the DiT blocks
+    /// ([`DitDropout`]; its masks depend on its seed and step only). With a zero rate it is
+    /// [`Self::velocity`] bit for bit.
+    pub fn velocity_train(
+        &self,
+        state_features: &Tensor,
+        actions: &Tensor,
+        timesteps: Timesteps<'_>,
+        vl: &VlTokens<'_>,
+        embodiment_id: &Tensor,
+        dropout: &DitDropout,
+    ) -> Result<Tensor> {
+        self.velocity_with(
+            state_features,
+            actions,
+            timesteps,
+            vl,
+            embodiment_id,
+            Some(dropout),
+        )
+    }
+
+    fn velocity_with(
+        &self,
+        state_features: &Tensor,
+        actions: &Tensor,
+        timesteps: Timesteps<'_>,
+        vl: &VlTokens<'_>,
+        embodiment_id: &Tensor,
+        dropout: Option<&DitDropout>,
     ) -> Result<Tensor> {
         let (b, h) = match actions.dims() {
             [b, h, _] => (*b, *h),
@@ -837,7 +891,7 @@ impl Gr00tN17Head {
         let a = self.encode_actions(actions, &t_actions, embodiment_id)?;
         let a = self.add_delay_embedding(&a, vl.d_vis)?;
         let sa = Tensor::cat(&[state_features, &a], 1)?;
-        let out = self.dit(&sa, vl, &t_tokens)?;
+        let out = self.dit_with(&sa, vl, &t_tokens, dropout)?;
         let pred = self.decode(&out, embodiment_id)?;
         Ok(pred.narrow(1, 1, h)?)
     }
