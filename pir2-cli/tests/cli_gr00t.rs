@@ -30,6 +30,17 @@ fn run(ck: &Path, extra: &[&str]) -> (Output, String) {
     (out, text)
 }
 
+/// Robot addresses that reach no robot: an unreachable xArm and a missing XHand port.
+const UNREACHABLE_ROBOT: [&str; 4] = ["--xarm", "127.0.0.1:1", "--xhand", "/nonexistent/ttyUSB9"];
+
+/// `pir2 run` of `catch_book` on [`UNREACHABLE_ROBOT`], with `extra` flags.
+fn on_unreachable_robot(ck: &Path, extra: &[&str]) -> (Output, String) {
+    let mut args = vec!["--task", "catch_book"];
+    args.extend_from_slice(extra);
+    args.extend(UNREACHABLE_ROBOT);
+    run(ck, &args)
+}
+
 /// `pir2 run` of `task` on the in-process emulators for `ticks` ticks, with `extra` flags.
 fn emulated(ck: &Path, task: &str, ticks: u32, extra: &[&str]) -> (Output, String) {
     let ticks = ticks.to_string();
@@ -115,18 +126,7 @@ fn run_gr00t_errors_name_the_problem() {
     assert!(text.contains("does not exist"), "{text}");
     // A bad checkpoint fails before any robot is connected (the xArm address is unreachable,
     // yet the error is the contract's).
-    let (out, text) = run(
-        &bad,
-        &[
-            "--task",
-            "catch_book",
-            "--xarm",
-            "127.0.0.1:1",
-            "--xhand",
-            "/nonexistent/ttyUSB9",
-            "--synthetic-camera",
-        ],
-    );
+    let (out, text) = on_unreachable_robot(&bad, &["--synthetic-camera"]);
     assert!(!out.status.success());
     assert!(
         text.contains("dit.onnx") && !text.contains("connecting to the xArm"),
@@ -134,31 +134,10 @@ fn run_gr00t_errors_name_the_problem() {
     );
     // An unreachable robot (valid checkpoint).
     let good = checkpoint("good-unreachable", "");
-    let (out, text) = run(
-        &good,
-        &[
-            "--task",
-            "catch_book",
-            "--xarm",
-            "127.0.0.1:1",
-            "--xhand",
-            "/nonexistent/ttyUSB9",
-        ],
-    );
+    let (out, text) = on_unreachable_robot(&good, &[]);
     assert!(!out.status.success());
     assert!(text.contains("--synthetic-camera"), "{text}");
-    let (out, text) = run(
-        &good,
-        &[
-            "--task",
-            "catch_book",
-            "--xarm",
-            "127.0.0.1:1",
-            "--xhand",
-            "/nonexistent/ttyUSB9",
-            "--synthetic-camera",
-        ],
-    );
+    let (out, text) = on_unreachable_robot(&good, &["--synthetic-camera"]);
     assert!(!out.status.success());
     assert!(
         text.contains("connecting to the xArm at 127.0.0.1:1"),
@@ -442,14 +421,11 @@ fn one_replayed_camera_per_view_drives_a_multi_view_run() {
 #[test]
 fn a_bad_camera_device_is_one_error_naming_it_before_any_robot() {
     let ck = checkpoint("camera", "");
-    let robot = ["--xarm", "127.0.0.1:1", "--xhand", "/nonexistent/ttyUSB9"];
     for (dev, why) in [
         ("/dev/video-pir2-missing", "No such file"),
         ("/dev/null", "not a V4L2 device"),
     ] {
-        let mut args = vec!["--task", "catch_book", "--camera", dev];
-        args.extend(robot);
-        let (out, text) = run(&ck, &args);
+        let (out, text) = on_unreachable_robot(&ck, &["--camera", dev]);
         eprintln!("{text}");
         assert!(!out.status.success(), "{text}");
         assert!(
@@ -466,26 +442,14 @@ fn a_bad_camera_device_is_one_error_naming_it_before_any_robot() {
         vec!["--camera", "/dev/video0", "--camera-format", "h264"],
     ];
     for extra in refused {
-        let mut args = vec!["--task", "catch_book"];
-        args.extend(robot);
-        args.extend(&extra);
-        let (out, text) = run(&ck, &args);
+        let (out, text) = on_unreachable_robot(&ck, &extra);
         assert!(!out.status.success(), "{extra:?}: {text}");
         assert!(
             text.contains("error:") && !text.contains("connecting to the xArm"),
             "{extra:?}: {text}"
         );
     }
-    let mut args = vec![
-        "--task",
-        "catch_book",
-        "--camera",
-        "/dev/null",
-        "--camera-size",
-        "640",
-    ];
-    args.extend(robot);
-    let (out, text) = run(&ck, &args);
+    let (out, text) = on_unreachable_robot(&ck, &["--camera", "/dev/null", "--camera-size", "640"]);
     assert!(!out.status.success());
     assert!(text.contains("camera size \"640\""), "{text}");
     std::fs::remove_dir_all(&ck).ok();

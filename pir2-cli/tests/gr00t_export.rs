@@ -6,9 +6,9 @@
 //! with `onnx` for the synthetic backbone graph).
 #![cfg(feature = "gr00t")]
 
-use std::ffi::OsStr;
+use std::ffi::{OsStr, OsString};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use candle_core::{Device, Tensor};
 use pir2_backends::candle::gr00t_n17::{head_tensor_shapes, Gr00tN17Config, PREFIX};
@@ -19,6 +19,7 @@ use pir2_backends::gr00t::EmbodimentConfig;
 use pir2_sim::dataset::{DatasetSpec, DatasetWriter, Episode, FeatureKeys, WriteMode};
 
 mod common;
+use common::gr00t::{pir2_text as pir2, read_json, train_args};
 use common::Scratch;
 
 const H: usize = 16;
@@ -158,16 +159,6 @@ fn features(path: &Path, frames: usize) {
     candle_core::safetensors::save(&map, path).unwrap();
 }
 
-fn pir2<S: AsRef<OsStr>>(args: &[S]) -> (Output, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
-        .args(args)
-        .output()
-        .expect("runs pir2");
-    let text =
-        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
-    (out, text)
-}
-
 fn export(step: &Path, out: &Path) -> (Output, String) {
     pir2(&[
         OsStr::new("export"),
@@ -193,30 +184,47 @@ fn trained(tag: &str) -> (Scratch, PathBuf) {
     std::fs::write(&emb_path, emb.to_toml().unwrap()).unwrap();
     dataset(&data, &emb);
     features(&feats, EPISODES * FRAMES);
-    let (out, text) = pir2(&[
-        OsStr::new("train"),
-        OsStr::new("gr00t"),
-        OsStr::new("--checkpoint"),
-        ck.as_os_str(),
-        OsStr::new("--data"),
-        data.as_os_str(),
-        OsStr::new("--embodiment"),
-        emb_path.as_os_str(),
-        OsStr::new("--features"),
-        feats.as_os_str(),
-        OsStr::new("--out"),
-        run.as_os_str(),
-        OsStr::new("--steps"),
-        OsStr::new("2"),
-        OsStr::new("--batch-size"),
-        OsStr::new("4"),
-        OsStr::new("--checkpoint-every"),
-        OsStr::new("2"),
-        OsStr::new("--seed"),
-        OsStr::new("3"),
-    ]);
+    let mut args = train_args(&ck, &data, &emb_path, &feats, &run);
+    args.extend(
+        [
+            "--steps",
+            "2",
+            "--batch-size",
+            "4",
+            "--checkpoint-every",
+            "2",
+            "--seed",
+            "3",
+        ]
+        .map(OsString::from),
+    );
+    let (out, text) = pir2(&args);
     assert!(out.status.success(), "train: {text}");
     (dir, run)
+}
+
+/// `pir2 run gr00t-xarm-xhand` of the export `ck` (with the head of `candle_head` in candle,
+/// if given) on the emulators for 25 ticks, its report written to `json`.
+fn run_emulated(ck: &Path, candle_head: Option<&Path>, json: &Path) -> (Output, String) {
+    let mut args = vec![
+        OsStr::new("run"),
+        OsStr::new("gr00t-xarm-xhand"),
+        OsStr::new("--checkpoint"),
+        ck.as_os_str(),
+    ];
+    if let Some(step) = candle_head {
+        args.extend([OsStr::new("--candle-head"), step.as_os_str()]);
+    }
+    args.extend([
+        OsStr::new("--task"),
+        OsStr::new("catch_book"),
+        OsStr::new("--emulate"),
+        OsStr::new("--ticks"),
+        OsStr::new("25"),
+        OsStr::new("--json"),
+        json.as_os_str(),
+    ]);
+    pir2(&args)
 }
 
 #[test]
@@ -253,22 +261,9 @@ fn trained_head_exports_and_runs_on_the_emulators() {
     std::fs::copy(bb.join("vocab.txt"), ck.join("vocab.txt")).unwrap();
 
     let json = dir.path().join("run.json");
-    let (out, text) = pir2(&[
-        OsStr::new("run"),
-        OsStr::new("gr00t-xarm-xhand"),
-        OsStr::new("--checkpoint"),
-        ck.as_os_str(),
-        OsStr::new("--task"),
-        OsStr::new("catch_book"),
-        OsStr::new("--emulate"),
-        OsStr::new("--ticks"),
-        OsStr::new("25"),
-        OsStr::new("--json"),
-        json.as_os_str(),
-    ]);
+    let (out, text) = run_emulated(&ck, None, &json);
     assert!(out.status.success(), "run: {text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let v = read_json(&json);
     assert_eq!(v["mode"]["kind"], "pi_r2_async", "{v}");
     assert_eq!(v["trace"]["ticks"], 25, "{v}");
     assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1, "{v}");
@@ -277,26 +272,11 @@ fn trained_head_exports_and_runs_on_the_emulators() {
     // The same run with the head in candle, straight from the step directory.
     let candle_run = |step: &Path| {
         let _ = std::fs::remove_file(&json);
-        pir2(&[
-            OsStr::new("run"),
-            OsStr::new("gr00t-xarm-xhand"),
-            OsStr::new("--checkpoint"),
-            ck.as_os_str(),
-            OsStr::new("--candle-head"),
-            step.as_os_str(),
-            OsStr::new("--task"),
-            OsStr::new("catch_book"),
-            OsStr::new("--emulate"),
-            OsStr::new("--ticks"),
-            OsStr::new("25"),
-            OsStr::new("--json"),
-            json.as_os_str(),
-        ])
+        run_emulated(&ck, Some(step), &json)
     };
     let (out, text) = candle_run(&step);
     assert!(out.status.success(), "run --candle-head: {text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let v = read_json(&json);
     assert_eq!(v["mode"]["kind"], "pi_r2_async", "{v}");
     assert_eq!(v["trace"]["ticks"], 25, "{v}");
     assert!(v["head"].as_str().unwrap().contains("candle"), "{v}");

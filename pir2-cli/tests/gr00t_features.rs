@@ -10,15 +10,16 @@
 //! `source .native/env.sh`).
 #![cfg(feature = "gr00t")]
 
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 use pir2_backends::gr00t::testing::{
     add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint,
     write_tiny_checkpoint_with_width,
 };
 use pir2_backends::gr00t::{
-    load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, Group, GroupFormat, Norm,
+    load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, PromptTokenizer,
 };
 use pir2_backends::ort::OrtOptions;
 use pir2_backends::train::gr00t::PrecomputedFeatures;
@@ -26,11 +27,15 @@ use pir2_cli::study::gr00t_features::{extract, partial_path, progress_path, Gr00
 use pir2_sim::dataset::{ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S};
 
 mod common;
+use common::gr00t::{
+    alt_checkpoint, arm_grip_embodiment, pir2, read_json, run_python, state_and_action, text,
+    train_args,
+};
 use common::Scratch;
 
 const VIEWS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
 /// `D_vl` of the training fixture `alt` (pir2-backends/tests/fixtures/gr00t_n17_head).
-const D_VL: usize = 20;
+const D_VL: usize = common::gr00t::ALT_D_VL;
 
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-sim/tests/fixtures/lerobot_video")
@@ -113,23 +118,16 @@ fn decoded_frames_equal_pyav_under_lerobots_timestamp_rule() {
     let qpath = dir.path().join("queries.json");
     std::fs::write(&qpath, serde_json::to_string(&queries).unwrap()).unwrap();
     let rpath = dir.path().join("pyav.raw");
-    let script = dir.path().join("pyav_ref.py");
-    std::fs::write(&script, PYAV_REF).unwrap();
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg(&qpath)
-        .arg(&rpath)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "PyAV reference: {}",
-        String::from_utf8_lossy(&out.stderr)
+    run_python(
+        &python,
+        &dir.path().join("pyav_ref.py"),
+        PYAV_REF,
+        &[qpath.as_os_str(), rpath.as_os_str()],
+        "PyAV reference",
     );
     let theirs = std::fs::read(&rpath).unwrap();
     let meta: Vec<Vec<f64>> =
-        serde_json::from_str(&std::fs::read_to_string(rpath.with_extension("raw.json")).unwrap())
-            .unwrap();
+        serde_json::from_value(read_json(&rpath.with_extension("raw.json"))).unwrap();
     assert_eq!(ours.len(), theirs.len());
     assert_eq!(meta.len(), times.len());
     for (m, t) in meta.iter().zip(&times) {
@@ -179,37 +177,12 @@ fn decoded_frames_equal_pyav_under_lerobots_timestamp_rule() {
     assert!(e.contains("no-ffmpeg") && e.contains("FFmpeg"), "{e}");
 }
 
-fn group(name: &str, dim: usize, norm: Norm) -> Group {
-    Group {
-        name: name.into(),
-        dim,
-        norm,
-        relative: false,
-        state_key: None,
-        format: GroupFormat::Default,
-    }
-}
-
 /// The training test's embodiment (4 state values, 4 actions, n_obs = 2, slot 1) with
 /// H = 7, so that the fixture's longer episode (7 frames) holds one whole chunk (the trainer
 /// draws only chunks inside an episode, as GR00T does), the tiny backbone's image and prompt
 /// and the fixture's two camera views.
 fn embodiment() -> EmbodimentConfig {
-    let mut e = EmbodimentConfig::xarm6_xhand();
-    e.name = "tiny".into();
-    e.horizon = 7;
-    e.d_max = 2;
-    e.d_vis_max = 2;
-    e.n_obs = 2;
-    e.embodiment_id = 1;
-    e.state = vec![
-        group("arm", 3, Norm::MinMax),
-        group("grip", 1, Norm::MeanStd),
-    ];
-    e.action = vec![
-        group("arm", 3, Norm::MinMax),
-        group("grip", 1, Norm::Q01Q99),
-    ];
+    let mut e = arm_grip_embodiment(7, 3);
     e.image.shortest_edge = 16;
     e.image.resize = 16;
     e.image.crop = 16;
@@ -220,15 +193,36 @@ fn embodiment() -> EmbodimentConfig {
     e
 }
 
-fn pir2(args: &[&std::ffi::OsStr]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pir2"))
-        .args(args)
-        .output()
-        .expect("runs pir2")
+/// The backbone of the checkpoint `files` under `cfg` with the prompt `prompt`.
+fn backbone(
+    files: &CheckpointFiles,
+    cfg: &EmbodimentConfig,
+    tok: &dyn PromptTokenizer,
+    prompt: &str,
+) -> Gr00tBackbone {
+    Gr00tBackbone::load(
+        files,
+        &cfg.image,
+        &cfg.prompt,
+        &cfg.vision,
+        tok,
+        prompt,
+        None,
+        &OrtOptions::default(),
+    )
+    .unwrap()
 }
 
-fn text(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).to_string() + &String::from_utf8_lossy(&o.stderr)
+/// The `embeddings` of a features file as `n` rows of `width` values.
+fn embedding_rows(feats: &Path, n: usize, width: usize) -> Vec<Vec<f32>> {
+    let tensors = candle_core::safetensors::load(feats, &candle_core::Device::Cpu).unwrap();
+    tensors["embeddings"]
+        .to_dtype(candle_core::DType::F32)
+        .unwrap()
+        .reshape((n, width))
+        .unwrap()
+        .to_vec2()
+        .unwrap()
 }
 
 fn layer_norm(x: &[f32]) -> Vec<f32> {
@@ -270,10 +264,7 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
         v.extend(extra.iter().map(Into::into));
         v
     };
-    let run = |a: Vec<std::ffi::OsString>| {
-        let a: Vec<&std::ffi::OsStr> = a.iter().map(|s| s.as_os_str()).collect();
-        pir2(&a)
-    };
+    let run = |a: Vec<OsString>| pir2(&a);
     let o = run(args(&feats, &[]));
     let t = text(&o);
     println!("{t}");
@@ -287,14 +278,8 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
     // What `pir2 train gr00t` reads.
     let pf = PrecomputedFeatures::open(&feats).unwrap();
     assert_eq!((pf.frames(), pf.tokens(), pf.dim()), (12, 8, D_VL));
+    let rows = embedding_rows(&feats, 12, 8 * D_VL);
     let tensors = candle_core::safetensors::load(&feats, &candle_core::Device::Cpu).unwrap();
-    let rows: Vec<Vec<f32>> = tensors["embeddings"]
-        .to_dtype(candle_core::DType::F32)
-        .unwrap()
-        .reshape((12, 8 * D_VL))
-        .unwrap()
-        .to_vec2()
-        .unwrap();
     let image: Vec<Vec<u8>> = tensors["image_mask"]
         .to_dtype(candle_core::DType::U8)
         .unwrap()
@@ -310,19 +295,7 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
     let files = CheckpointFiles::in_dir(&ck);
     let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
     let data = VideoDataset::open(&data_dir).unwrap();
-    let load = |prompt: &str| {
-        Gr00tBackbone::load(
-            &files,
-            &cfg.image,
-            &cfg.prompt,
-            &cfg.vision,
-            tok.as_ref(),
-            prompt,
-            None,
-            &OrtOptions::default(),
-        )
-        .unwrap()
-    };
+    let load = |prompt: &str| backbone(&files, &cfg, tok.as_ref(), prompt);
     let mut readers: Vec<FrameReader> = VIEWS
         .iter()
         .map(|_| FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S))
@@ -477,34 +450,10 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
 
     // `pir2 train gr00t --features` takes the file (the `alt` head has D_vl = 20).
     let head = root.join("head");
-    std::fs::create_dir_all(&head).unwrap();
-    let fx = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../pir2-backends/tests/fixtures/gr00t_n17_head");
-    std::fs::copy(fx.join("alt.config.json"), head.join("config.json")).unwrap();
-    std::fs::copy(
-        fx.join("alt.weights.safetensors"),
-        head.join("model.safetensors"),
-    )
-    .unwrap();
+    alt_checkpoint(&head);
     let out = root.join("run");
-    let a: Vec<std::ffi::OsString> = vec![
-        "train".into(),
-        "gr00t".into(),
-        "--checkpoint".into(),
-        head.into(),
-        "--data".into(),
-        data_dir.clone().into(),
-        "--embodiment".into(),
-        emb.clone().into(),
-        "--features".into(),
-        feats.clone().into(),
-        "--out".into(),
-        out.clone().into(),
-        "--steps".into(),
-        "2".into(),
-        "--batch-size".into(),
-        "4".into(),
-    ];
+    let mut a = train_args(&head, &data_dir, &emb, &feats, &out);
+    a.extend(["--steps", "2", "--batch-size", "4"].map(OsString::from));
     let o = run(a);
     let t = text(&o);
     println!("{t}");
@@ -539,14 +488,9 @@ fn split_backbone_features_equal_the_split_backbone_on_the_frames() {
     let out = root.join("split.safetensors");
     let s = extract(&Gr00tFeaturesOptions::new(&ck, &data_dir, &out), |_| {}).unwrap();
     assert!(s.complete && s.backbone.contains("split export"), "{s:?}");
-    let tensors = candle_core::safetensors::load(&out, &candle_core::Device::Cpu).unwrap();
     let (n, t, d) = s.shape;
     assert_eq!(n, 12);
-    let rows: Vec<Vec<f32>> = tensors["embeddings"]
-        .reshape((n, t * d))
-        .unwrap()
-        .to_vec2()
-        .unwrap();
+    let rows = embedding_rows(&out, n, t * d);
     let files = CheckpointFiles::in_dir(&ck);
     let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
     let data = VideoDataset::open(&data_dir).unwrap();
@@ -556,17 +500,7 @@ fn split_backbone_features_equal_the_split_backbone_on_the_frames() {
         .collect();
     let mut g = 0;
     for ep in &data.episodes {
-        let mut bb = Gr00tBackbone::load(
-            &files,
-            &cfg.image,
-            &cfg.prompt,
-            &cfg.vision,
-            tok.as_ref(),
-            data.task(ep, 0),
-            None,
-            &OrtOptions::default(),
-        )
-        .unwrap();
+        let mut bb = backbone(&files, &cfg, tok.as_ref(), data.task(ep, 0));
         assert!(bb.is_split());
         for f in 0..ep.len() {
             let views: Vec<(Vec<u8>, (usize, usize))> = readers
@@ -643,18 +577,14 @@ json.dump(info, open(info_path, "w"), indent=4)
 
 fn image_dataset(python: &Path, root: &Path, data: &Path, raw: &Path, corrupt: Option<&str>) {
     copy_dir(&fixture(), data);
-    let script = root.join("image_dataset.py");
-    std::fs::write(&script, IMAGE_DATASET).unwrap();
-    let mut c = Command::new(python);
-    c.arg(&script).arg(data).arg(SIDE).arg(raw);
-    if let Some(at) = corrupt {
-        c.arg(at);
-    }
-    let o = c.output().unwrap();
-    assert!(
-        o.status.success(),
-        "image dataset: {}",
-        String::from_utf8_lossy(&o.stderr)
+    let mut args = vec![data.as_os_str(), SIDE.as_ref(), raw.as_os_str()];
+    args.extend(corrupt.map(std::ffi::OsStr::new));
+    run_python(
+        python,
+        &root.join("image_dataset.py"),
+        IMAGE_DATASET,
+        &args,
+        "image dataset",
     );
 }
 
@@ -677,13 +607,8 @@ fn image_camera_features_are_the_backbone_on_pillows_pixels() {
     let cams = vec![VIEWS[0].to_string(), SIDE.to_string()];
     data.check_views(&cams).unwrap();
     // The state-only reader (`pir2 train gr00t`) still reads the dataset.
-    let sel = pir2_sim::dataset::FeatureSelection {
-        fast: vec!["observation.state".into()],
-        slow: Vec::new(),
-        action: "action".into(),
-    };
     assert_eq!(
-        pir2_sim::dataset::read_selected(&data_dir, &sel)
+        pir2_sim::dataset::read_selected(&data_dir, &state_and_action())
             .unwrap()
             .total_frames(),
         12
@@ -746,29 +671,14 @@ fn image_camera_features_are_the_backbone_on_pillows_pixels() {
     o.embodiment = Some(emb.clone());
     let s = extract(&o, |_| {}).unwrap();
     assert!(s.complete && s.shape == (12, 8, D_VL), "{s:?}");
-    let tensors = candle_core::safetensors::load(&feats, &candle_core::Device::Cpu).unwrap();
-    let rows: Vec<Vec<f32>> = tensors["embeddings"]
-        .reshape((12, 8 * D_VL))
-        .unwrap()
-        .to_vec2()
-        .unwrap();
+    let rows = embedding_rows(&feats, 12, 8 * D_VL);
     let files = CheckpointFiles::in_dir(&ck);
     let tok = load_tokenizer(&files, &cfg.prompt).unwrap();
     let mut video = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
     let mut image = FrameReader::new(ffmpeg_program(), DEFAULT_TOLERANCE_S);
     let mut g = 0;
     for ep in &data.episodes {
-        let mut bb = Gr00tBackbone::load(
-            &files,
-            &cfg.image,
-            &cfg.prompt,
-            &cfg.vision,
-            tok.as_ref(),
-            data.task(ep, 0),
-            None,
-            &OrtOptions::default(),
-        )
-        .unwrap();
+        let mut bb = backbone(&files, &cfg, tok.as_ref(), data.task(ep, 0));
         for t in 0..ep.len() {
             let front = video.frame(&data, VIEWS[0], ep, t).unwrap();
             let side = image.frame(&data, SIDE, ep, t).unwrap();
@@ -813,8 +723,7 @@ fn image_camera_features_are_the_backbone_on_pillows_pixels() {
 
     // A depth video (LeRobot's `video.is_depth_map`) is refused by name.
     let info_path = data_dir.join("meta/info.json");
-    let mut info: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&info_path).unwrap()).unwrap();
+    let mut info = read_json(&info_path);
     info["features"][VIEWS[0]]["info"]["video.is_depth_map"] = true.into();
     std::fs::write(&info_path, info.to_string()).unwrap();
     let data = VideoDataset::open(&data_dir).unwrap();

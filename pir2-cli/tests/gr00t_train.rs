@@ -7,70 +7,31 @@
 #![cfg(feature = "gr00t")]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use candle_core::{DType, Device, Tensor};
 use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
 use pir2_backends::gr00t::Normalizer;
-use pir2_backends::gr00t::{EmbodimentConfig, Group, GroupFormat, Norm};
-use pir2_backends::train::gr00t::ActionTargets;
+use pir2_backends::gr00t::{EmbodimentConfig, Norm};
 use pir2_cli::study::gr00t::{train, Gr00tTargets, Gr00tTrainOptions};
 use pir2_sim::dataset::{
-    read_selected, DatasetSpec, DatasetWriter, Episode, FeatureKeys, FeatureSelection, WriteMode,
+    read_selected, DatasetSpec, DatasetWriter, Episode, FeatureKeys, WriteMode,
 };
 
 mod common;
+use common::gr00t::{
+    alt_checkpoint, arm_grip_embodiment, encode_decode_every_chunk,
+    lockstep_sends_the_datasets_actions, pir2, pir2_text, read_json, state_and_action, train_args,
+    write_alt_features, ALT_D_VL, TOKENS,
+};
 use common::Scratch;
 
 const FRAMES_PER_EPISODE: usize = 14;
 const EPISODES: usize = 3;
-const TOKENS: usize = 6;
-
-fn fixtures() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-backends/tests/fixtures/gr00t_n17_head")
-}
-
-/// The `alt` fixture as a checkpoint directory (max_state_dim 6, state history 2,
-/// max_action_dim 5, 8 positions, D_vl 20, 3 embodiment slots).
-fn checkpoint(dir: &Path) {
-    std::fs::create_dir_all(dir).unwrap();
-    std::fs::copy(fixtures().join("alt.config.json"), dir.join("config.json")).unwrap();
-    std::fs::copy(
-        fixtures().join("alt.weights.safetensors"),
-        dir.join("model.safetensors"),
-    )
-    .unwrap();
-}
-
-fn group(name: &str, dim: usize, norm: Norm) -> Group {
-    Group {
-        name: name.into(),
-        dim,
-        norm,
-        relative: false,
-        state_key: None,
-        format: GroupFormat::Default,
-    }
-}
 
 /// 4 state values (3 joints min/max + 1 mean/std), 4 action values, H = 8, d_max = 2,
 /// d_vis_max = 2, n_obs = 2, slot 1.
 fn embodiment(path: &Path, state_dim: usize) {
-    let mut e = EmbodimentConfig::xarm6_xhand();
-    e.name = "tiny".into();
-    e.horizon = 8;
-    e.d_max = 2;
-    e.d_vis_max = 2;
-    e.n_obs = 2;
-    e.embodiment_id = 1;
-    e.state = vec![
-        group("arm", state_dim - 1, Norm::MinMax),
-        group("grip", 1, Norm::MeanStd),
-    ];
-    e.action = vec![
-        group("arm", 3, Norm::MinMax),
-        group("grip", 1, Norm::Q01Q99),
-    ];
+    let e = arm_grip_embodiment(8, state_dim - 1);
     std::fs::write(path, e.to_toml().unwrap()).unwrap();
 }
 
@@ -117,25 +78,10 @@ fn dataset_of(root: &Path, state_dim: usize, frames: usize) {
 
 /// Backbone outputs: N frames of 6 tokens of width 20; tokens 0-1 text, 2-4 image, 5 padding.
 fn features(path: &Path, frames: usize, seed: u64) {
-    let dev = Device::Cpu;
-    let emb = Tensor::randn(0f32, 1.0, (frames, TOKENS, 20), &dev).unwrap();
+    let emb = Tensor::randn(0f32, 1.0, (frames, TOKENS, ALT_D_VL), &Device::Cpu).unwrap();
     // A fixed per-seed offset so two seeds give different files.
     let emb = (emb + seed as f64).unwrap();
-    let row = [0u8, 0, 1, 1, 1, 0];
-    let image: Vec<u8> = (0..frames).flat_map(|_| row).collect();
-    let attn: Vec<u8> = (0..frames).flat_map(|_| [1u8, 1, 1, 1, 1, 0]).collect();
-    let map = std::collections::HashMap::from([
-        ("embeddings".to_string(), emb),
-        (
-            "image_mask".to_string(),
-            Tensor::from_vec(image, (frames, TOKENS), &dev).unwrap(),
-        ),
-        (
-            "attention_mask".to_string(),
-            Tensor::from_vec(attn, (frames, TOKENS), &dev).unwrap(),
-        ),
-    ]);
-    candle_core::safetensors::save(&map, path).unwrap();
+    write_alt_features(path, emb);
 }
 
 struct Inputs {
@@ -158,7 +104,7 @@ fn inputs(name: &str) -> Inputs {
         root,
         _dir: dir,
     };
-    checkpoint(&i.ck);
+    alt_checkpoint(&i.ck);
     dataset(&i.data, 4);
     embodiment(&i.emb, 4);
     features(&i.feats, EPISODES * FRAMES_PER_EPISODE, 0);
@@ -175,11 +121,11 @@ fn options(i: &Inputs, out: &str) -> Gr00tTrainOptions {
     o
 }
 
-fn pir2(args: &[&std::ffi::OsStr]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pir2"))
-        .args(args)
-        .output()
-        .expect("runs pir2")
+/// `pir2 train gr00t` on the inputs `i` into `out`, with `extra` flags.
+fn train_cli(i: &Inputs, out: &Path, extra: &[&str]) -> Vec<std::ffi::OsString> {
+    let mut args = train_args(&i.ck, &i.data, &i.emb, &i.feats, out);
+    args.extend(extra.iter().map(Into::into));
+    args
 }
 
 fn bytes(p: &Path) -> Vec<u8> {
@@ -191,33 +137,22 @@ fn trains_resumes_bit_identically_and_loads_back() {
     let i = inputs("gr00t-train");
     // The binary, the whole run.
     let out_full = i.root.join("full");
-    let args: Vec<&std::ffi::OsStr> = vec![
-        "train".as_ref(),
-        "gr00t".as_ref(),
-        "--checkpoint".as_ref(),
-        i.ck.as_os_str(),
-        "--data".as_ref(),
-        i.data.as_os_str(),
-        "--embodiment".as_ref(),
-        i.emb.as_os_str(),
-        "--features".as_ref(),
-        i.feats.as_os_str(),
-        "--out".as_ref(),
-        out_full.as_os_str(),
-        "--steps".as_ref(),
-        "6".as_ref(),
-        "--batch-size".as_ref(),
-        "8".as_ref(),
-        "--lr".as_ref(),
-        "0.001".as_ref(),
-        "--checkpoint-every".as_ref(),
-        "3".as_ref(),
-        "--seed".as_ref(),
-        "11".as_ref(),
-    ];
-    let run = pir2(&args);
-    let text =
-        String::from_utf8_lossy(&run.stdout).to_string() + &String::from_utf8_lossy(&run.stderr);
+    let (run, text) = pir2_text(&train_cli(
+        &i,
+        &out_full,
+        &[
+            "--steps",
+            "6",
+            "--batch-size",
+            "8",
+            "--lr",
+            "0.001",
+            "--checkpoint-every",
+            "3",
+            "--seed",
+            "11",
+        ],
+    ));
     assert!(run.status.success(), "{text}");
     assert!(text.contains("(built)"), "{text}");
     let losses: Vec<f64> = std::fs::read_to_string(out_full.join("loss.jsonl"))
@@ -359,22 +294,7 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
     // (before anything is read or written); an unknown name lists the accepted ones.
     let device = |d: &str| {
         let out = i.root.join(format!("dev-{d}"));
-        let run = pir2(&[
-            "train".as_ref(),
-            "gr00t".as_ref(),
-            "--checkpoint".as_ref(),
-            i.ck.as_os_str(),
-            "--data".as_ref(),
-            i.data.as_os_str(),
-            "--embodiment".as_ref(),
-            i.emb.as_os_str(),
-            "--features".as_ref(),
-            i.feats.as_os_str(),
-            "--out".as_ref(),
-            out.as_os_str(),
-            "--device".as_ref(),
-            d.as_ref(),
-        ]);
+        let run = pir2(&train_cli(&i, &out, &["--device", d]));
         assert!(!run.status.success(), "--device {d} ran");
         assert!(!out.exists(), "--device {d} wrote {}", out.display());
         let e = String::from_utf8_lossy(&run.stderr).to_string();
@@ -461,91 +381,6 @@ fn bad_inputs_are_one_error_naming_what_is_wrong() {
     assert!(e.contains("image_mask"), "{e}");
 }
 
-/// Replays one episode's raw states (the fast row is the raw state, as on the robot) and
-/// records the commands it is sent.
-struct Replay {
-    states: Vec<Vec<f32>>,
-    t: usize,
-    sent: Vec<Vec<f32>>,
-}
-
-impl pir2_runtime::Environment for Replay {
-    fn spec(&self) -> pir2_runtime::EnvSpec {
-        pir2_runtime::EnvSpec {
-            fast_dim: 4,
-            slow_dim: 0,
-            action_dim: 4,
-            control_period: 40_000_000,
-            max_steps: self.states.len(),
-        }
-    }
-    fn reset(&mut self, _seed: u64) {
-        self.t = 0;
-        self.sent.clear();
-    }
-    fn observe(&mut self, fast: &mut [f32], _slow: &mut [f32]) {
-        fast.copy_from_slice(&self.states[self.t]);
-    }
-    fn step(&mut self, action: &[f32]) -> pir2_runtime::EnvStep {
-        self.sent.push(action.to_vec());
-        self.t += 1;
-        pir2_runtime::EnvStep {
-            done: self.t >= self.states.len(),
-            success: true,
-            reward: 0.0,
-        }
-    }
-}
-
-/// A head that outputs the training target exactly: it finds the dataset frame of the
-/// snapshot's newest raw state and steers every slot to what the trainer's own encoder
-/// ([`Gr00tTargets`]) makes of that frame's chunk.
-struct TargetOracle {
-    targets: Gr00tTargets,
-    episode: usize,
-    states: Vec<Vec<f32>>,
-    actions: Vec<Vec<f32>>,
-    chunk: Vec<f32>,
-}
-
-impl pir2_runtime::VelocityModel for TargetOracle {
-    fn backend(&self) -> &'static str {
-        "training-target oracle"
-    }
-    fn velocity(
-        &mut self,
-        inp: &pir2_runtime::ModelInput<'_>,
-        out: &mut [f32],
-    ) -> pir2_runtime::Result<()> {
-        let (h, a, f) = (inp.horizon, inp.action_dim, inp.fast_dim);
-        let newest = &inp.obs_fast[(inp.n_obs - 1) * f..inp.n_obs * f];
-        let t = self
-            .states
-            .iter()
-            .position(|s| s.as_slice() == newest)
-            .expect("the snapshot's state is a dataset frame");
-        let len = self.actions.len();
-        for p in 0..h {
-            self.chunk[p * a..(p + 1) * a].copy_from_slice(&self.actions[(t + p).min(len - 1)]);
-        }
-        self.targets
-            .encode(self.episode, t, &mut self.chunk)
-            .map_err(|e| pir2_runtime::Error::Config(e.to_string()))?;
-        for p in 0..h {
-            let tau = inp.tau[p];
-            for j in 0..a {
-                let i = p * a + j;
-                out[i] = if (0.0..1.0).contains(&tau) {
-                    (self.chunk[i] - inp.x[i]) / (1.0 - tau)
-                } else {
-                    0.0
-                };
-            }
-        }
-        Ok(())
-    }
-}
-
 /// A relative action group trains (the refusal is gone) and what it trains on deploys back
 /// to the dataset: the run writes `relative_action.arm` as `[H, 3]` tables, computed over the
 /// chunks inside their episode as GR00T's statistics tool does; the trainer's targets
@@ -569,9 +404,7 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
     // The statistics the deployment reads.
     let emb = EmbodimentConfig::load(&o.out.join("embodiment.toml")).unwrap();
     let h = emb.horizon;
-    let stats: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(o.out.join("statistics.json")).unwrap())
-            .unwrap();
+    let stats = read_json(&o.out.join("statistics.json"));
     let tag = emb.embodiment_tag.as_str();
     let rel = &stats[tag]["relative_action"]["arm"]["min"];
     assert_eq!(rel.as_array().map(Vec::len), Some(h), "{rel}");
@@ -582,12 +415,7 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
     let map = norm.action_output_map();
     assert_eq!(map.reference, [Some(0), Some(1), Some(2), None]);
 
-    let sel = FeatureSelection {
-        fast: vec!["observation.state".into()],
-        slow: Vec::new(),
-        action: "action".into(),
-    };
-    let ds = read_selected(&i.data, &sel).unwrap();
+    let ds = read_selected(&i.data, &state_and_action()).unwrap();
 
     // The tables are GR00T's (`RelativeActionLoader`): slot p over the chunks inside their
     // episode, t ∈ 0..=len − H (the last one ends on the last frame). The old rule (every
@@ -635,107 +463,15 @@ fn a_relative_group_trains_and_deploys_back_to_the_datasets_actions() {
 
     // Encode (trainer) → decode (runtime), every chunk the trainer draws (t ≤ len − H) and
     // every slot: inside [-1, 1] (min/max groups are never clipped) and exact.
-    let (mut chunk, mut reference, mut u) = (vec![0f32; h * 4], [0f32; 4], [0f32; 4]);
+    encode_decode_every_chunk(&ds, &targets, &map, h, 4);
     let mut moved = 0.0f32;
-    for (e, ep) in ds.episodes.iter().enumerate() {
-        let len = ep.len();
-        for t in 0..=len - h {
-            for p in 0..h {
-                chunk[p * 4..(p + 1) * 4].copy_from_slice(ep.action((t + p).min(len - 1)));
-            }
-            targets.encode(e, t, &mut chunk).unwrap();
-            assert!(chunk.iter().all(|z| z.abs() <= 1.0), "{chunk:?}");
-            map.fill_reference(ep.fast(t), &mut reference);
-            for p in 0..h {
-                map.decode(&chunk[p * 4..(p + 1) * 4], p, &reference, &mut u);
-                let want = ep.action((t + p).min(len - 1));
-                for (j, (x, w)) in u.iter().zip(want).enumerate() {
-                    assert!(
-                        (x - w).abs() < 1e-5,
-                        "episode {e} frame {t} slot {p} dim {j}: decoded {x}, dataset {w}"
-                    );
-                }
-            }
+    for ep in &ds.episodes {
+        for t in 0..=ep.len() - h {
             moved = moved.max((ep.fast(t)[0] - ep.fast(0)[0]).abs());
         }
     }
     assert!(moved > 0.5, "the reference state must move ({moved})");
 
     // Deployed: the lock-step runtime with the run's output map.
-    use pir2_runtime::{ActionHead, HeadSpec, LatencyWindow, LockstepDriver, LockstepTiming, Mode};
-    use pir2_schedule::{Alignment, FrontMode};
-    let pir2_async = |nfe| Mode::PiR2Async {
-        nfe,
-        alignment: Alignment::Fresh,
-        front: FrontMode::Visible,
-    };
-    let pir2_sync = Mode::PiR2Sync {
-        nfe: None,
-        alignment: Alignment::Fresh,
-        front: FrontMode::Visible,
-    };
-    for (mode, call_ticks) in [
-        (pir2_async(None), 1),
-        (pir2_async(Some(2)), 2),
-        (pir2_sync, 2),
-    ] {
-        for (e, ep) in ds.episodes.iter().enumerate() {
-            let states: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.fast(t).to_vec()).collect();
-            let actions: Vec<Vec<f32>> = (0..ep.len()).map(|t| ep.action(t).to_vec()).collect();
-            let sp = HeadSpec {
-                horizon: h,
-                action_dim: 4,
-                n_obs: emb.n_obs,
-                fast_dim: 4,
-                slow_dim: 0,
-                period: 40_000_000,
-                d_max: emb.d_max,
-                d_vis_max: 0,
-            };
-            let oracle = TargetOracle {
-                targets: targets.clone(),
-                episode: e,
-                states: states.clone(),
-                actions: actions.clone(),
-                chunk: vec![0.0; h * 4],
-            };
-            let mut head = ActionHead::new(
-                oracle,
-                sp,
-                mode.head_mode(4),
-                LatencyWindow::new(20, 0, sp.period, sp.d_max),
-                5,
-            )
-            .unwrap();
-            let mut env = Replay {
-                states,
-                t: 0,
-                sent: Vec::new(),
-            };
-            let timing = LockstepTiming {
-                call_ticks,
-                slow_delay: 0,
-                overrun_ticks: 0,
-                overrun_every: 0,
-                pin_delay: true,
-            };
-            let mut drv = LockstepDriver::new(&head).with_output(map.clone());
-            let res = drv
-                .run_episode(&mut env, &mut head, &mode, timing, 1, |_, _| {})
-                .unwrap();
-            assert_eq!(res.steps, ep.len());
-            // Ticks up to len − H: every command there comes from chunks made (and rebased)
-            // at frames the trainer draws. Later ones may decode a clipped slot: GR00T
-            // neither trains on nor takes statistics from chunks that run past the end.
-            for (t, sent) in env.sent.iter().enumerate().take(ep.len() + 1 - h) {
-                for (j, (x, w)) in sent.iter().zip(&actions[t]).enumerate() {
-                    assert!(
-                        (x - w).abs() < 1e-4,
-                        "{} episode {e} tick {t} dim {j}: sent {x}, dataset {w}",
-                        mode.describe()
-                    );
-                }
-            }
-        }
-    }
+    lockstep_sends_the_datasets_actions(&ds, &targets, &map, &emb, 4);
 }

@@ -2,6 +2,11 @@
 
 use std::path::{Path, PathBuf};
 
+/// The GR00T tests' fixtures; each GR00T test binary uses a part of them.
+#[cfg(feature = "gr00t")]
+#[allow(dead_code)]
+pub mod gr00t;
+
 /// A fresh scratch directory under the system temp dir, removed when dropped.
 pub struct Scratch(PathBuf);
 
