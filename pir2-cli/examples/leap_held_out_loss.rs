@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use pir2_backends::candle::CandleModel;
 use pir2_backends::train::held_out_loss;
-use pir2_cli::study::leap_cube::{load_demos, LeapCubeTask, LeapStudyConfig};
+use pir2_cli::study::leap_cube::{LeapCubeTask, LeapStudyConfig};
 use pir2_cli::study::pipeline::{policy_dir, Episodes};
 use pir2_cli::study::{Policy, Task};
 
@@ -35,19 +35,20 @@ fn main() -> Result<()> {
         .with_context(|| format!("unknown policy {:?}", args[2]))?;
     let seed: u64 = args[3].parse().context("SEED")?;
     let batches: usize = args.get(6).map(|b| b.parse()).transpose()?.unwrap_or(8);
-    let slow_frames = cfg.slow_frames;
-    let task = LeapCubeTask::new(cfg)?;
+    // The study's own demonstration loader (successful episodes, slow frames stacked as
+    // configured), pointed at each data set in turn.
+    let held_task = LeapCubeTask::new(LeapStudyConfig {
+        dataset: args[5].clone(),
+        ..cfg.clone()
+    })?;
+    let task = LeapCubeTask::new(LeapStudyConfig {
+        dataset: args[4].clone(),
+        ..cfg
+    })?;
     let spec = task.spec();
     let schedule = policy.schedule(&task.settings().recipe);
-    // As the study trains: successful episodes, the slow channel stacked as configured.
-    let load = |root: &str| -> Result<Vec<pir2_sim::dataset::Episode>> {
-        Ok(load_demos(Path::new(root))?
-            .iter()
-            .map(|e| e.with_slow_frames(slow_frames))
-            .collect())
-    };
-    let train = load(&args[4])?;
-    let held = load(&args[5])?;
+    let train = task.demonstrations(Path::new(&args[1]))?;
+    let held = held_task.demonstrations(Path::new(&args[1]))?;
     let frames = |d: &[pir2_sim::dataset::Episode]| d.iter().map(|e| e.len()).sum::<usize>();
     println!(
         "# {policy:?} seed {seed}: train {} episodes / {} frames, held out {} / {}, {batches} × 256 samples each",
