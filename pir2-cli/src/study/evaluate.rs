@@ -51,11 +51,29 @@ pub fn config_fingerprint<C: Serialize>(config: &C) -> Result<String> {
         }
     }
     let text = toml::to_string(&v).context("serialising the config")?;
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in text.bytes() {
+    Ok(format!("{:016x}", fnv1a(FNV_OFFSET, text.as_bytes())))
+}
+
+/// FNV-1a (64 bits) offset basis.
+pub(crate) const FNV_OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
+
+/// FNV-1a (64 bits) of `bytes`, continuing from `h` ([`FNV_OFFSET`] to start).
+pub(crate) fn fnv1a(mut h: u64, bytes: &[u8]) -> u64 {
+    for &b in bytes {
         h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
     }
-    Ok(format!("{h:016x}"))
+    h
+}
+
+/// `#w<hash of the weights file>` for the checkpoint directory `dir`, empty when it has no
+/// readable `model.safetensors`. Part of a cell's checkpoint key, so that a cell measured on
+/// one set of weights is never taken for another checkpoint of the same name and step: a
+/// run retrained on other data, or on a machine whose SIMD kernels round differently,
+/// writes other weights under the same `…/best@14000`.
+fn weights_tag(dir: &Path) -> String {
+    std::fs::read(dir.join("model.safetensors"))
+        .map(|b| format!("#w{:016x}", fnv1a(FNV_OFFSET, &b)))
+        .unwrap_or_default()
 }
 
 /// What identifies a measured cell besides the config.
@@ -221,9 +239,10 @@ pub fn chosen_checkpoint(run_dir: &Path) -> String {
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
+    let tag = weights_tag(&run_dir.join("best"));
     match step {
-        Some(s) => format!("{name}/best@{s}"),
-        None => format!("{name}/best"),
+        Some(s) => format!("{name}/best@{s}{tag}"),
+        None => format!("{name}/best{tag}"),
     }
 }
 
@@ -234,7 +253,12 @@ fn step_checkpoint(dir: &Path) -> String {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default()
     };
-    format!("{}/{}", part(dir.parent()), part(Some(dir)))
+    format!(
+        "{}/{}{}",
+        part(dir.parent()),
+        part(Some(dir)),
+        weights_tag(dir)
+    )
 }
 
 /// Evaluate every row × seed × column of `study` (in that order) over the settings'
@@ -516,6 +540,23 @@ mod tests {
         assert_eq!(names(9), ["step-000300", "step-000200", "step-000100"]);
         assert!(names(0).is_empty());
         assert!(chosen_checkpoint(&dir).ends_with("/best@400"));
+        // With weights, the key names them: other weights under the same name and step
+        // (a retrained run) make another key, the same weights the same key.
+        std::fs::write(dir.join("best/model.safetensors"), b"weights a").unwrap();
+        let a = chosen_checkpoint(&dir);
+        assert!(a.contains("/best@400#w"), "{a}");
+        std::fs::write(dir.join("best/model.safetensors"), b"weights b").unwrap();
+        let b = chosen_checkpoint(&dir);
+        assert_ne!(a, b);
+        std::fs::write(dir.join("best/model.safetensors"), b"weights a").unwrap();
+        assert_eq!(chosen_checkpoint(&dir), a);
+        let step = dir.join("step-000300");
+        assert!(step_checkpoint(&step).ends_with("/step-000300"));
+        std::fs::write(step.join("model.safetensors"), b"weights a").unwrap();
+        assert_eq!(
+            step_checkpoint(&step).split_once('#').map(|(_, t)| t),
+            a.split_once('#').map(|(_, t)| t)
+        );
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

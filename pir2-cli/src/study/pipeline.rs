@@ -23,6 +23,7 @@ pub use super::evaluate::{
     chosen_checkpoint, config_fingerprint, evaluate, evaluate_best_per_cell, last_step_checkpoints,
     total_episodes, trained_dir, CellLog, Logged,
 };
+use super::evaluate::{fnv1a, FNV_OFFSET};
 use super::{Policy, Scores, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
@@ -567,11 +568,85 @@ pub fn train_into<T: Task>(
         write_atomically(&config_file, config.as_bytes())?;
     }
     let demos = task.demonstrations(out)?;
+    check_data(&out.join(DATA_FILE), &demos, resume)?;
     let trained = train_all(task, &demos, policies, out, resume)?;
     Ok(trained
         .into_iter()
         .map(|t| (t.policy, t.seed, t.scores))
         .collect())
+}
+
+/// File in a training run's directory naming the demonstrations it trains on.
+pub const DATA_FILE: &str = "data.json";
+
+/// What a training run's demonstrations were: episode and frame counts and a fingerprint
+/// (FNV-1a, 64 bits) of every value the trainer reads (per episode its length, then per
+/// frame the fast and slow observations and the action, as little-endian `f32`).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct DataFingerprint {
+    /// Episodes.
+    pub episodes: usize,
+    /// Frames over all episodes.
+    pub frames: usize,
+    /// The fingerprint, 16 hex digits.
+    pub fingerprint: String,
+}
+
+impl DataFingerprint {
+    /// The fingerprint of `demos`.
+    pub fn of(demos: &[Episode]) -> Self {
+        let d = Episodes(demos);
+        let mut h = FNV_OFFSET;
+        let mut frames = 0;
+        for e in 0..d.num_episodes() {
+            let len = d.episode_len(e);
+            frames += len;
+            h = fnv1a(h, &(len as u64).to_le_bytes());
+            for t in 0..len {
+                for v in [d.fast(e, t), d.slow(e, t), d.action(e, t)] {
+                    for x in v {
+                        h = fnv1a(h, &x.to_le_bytes());
+                    }
+                }
+            }
+        }
+        Self {
+            episodes: d.num_episodes(),
+            frames,
+            fingerprint: format!("{h:016x}"),
+        }
+    }
+}
+
+/// Record the demonstrations of a new run in `file`, or with `resume` check that they are
+/// the ones the run started on: demonstrations regenerated differently (another expert, or
+/// a change that alters their numbers) must not continue a run silently. A run begun before
+/// the file existed gets it now.
+fn check_data(file: &Path, demos: &[Episode], resume: bool) -> Result<()> {
+    let now = DataFingerprint::of(demos);
+    if resume {
+        if let Ok(text) = std::fs::read_to_string(file) {
+            let before: DataFingerprint = serde_json::from_str(&text).with_context(|| {
+                format!("--resume: {} is not a data fingerprint", file.display())
+            })?;
+            if before != now {
+                bail!(
+                    "--resume: the demonstrations differ from the ones this run was trained on \
+                     ({} episodes, {} frames, fingerprint {}; now {} episodes, {} frames, \
+                     fingerprint {}, see {}); train into a new directory",
+                    before.episodes,
+                    before.frames,
+                    before.fingerprint,
+                    now.episodes,
+                    now.frames,
+                    now.fingerprint,
+                    file.display()
+                );
+            }
+            return Ok(());
+        }
+    }
+    write_atomically(file, serde_json::to_string_pretty(&now)?.as_bytes())
 }
 
 /// Write `result.json`, `table.md` and `success.png` into `out`.
@@ -646,7 +721,44 @@ impl ProgressMeter {
 
 #[cfg(test)]
 mod tests {
-    use super::{train_jobs, ProgressMeter};
+    use super::{check_data, train_jobs, DataFingerprint, ProgressMeter};
+    use pir2_sim::dataset::Episode;
+
+    #[test]
+    fn a_resumed_run_refuses_other_demonstrations_by_name() {
+        let dir = std::env::temp_dir().join(format!("pir2-data-fp-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("data.json");
+        let demos = |last: f32| {
+            let mut e = Episode::new(2, 1, 1);
+            e.push(&[0.5, 1.0], &[2.0], &[0.25]);
+            e.push(&[0.5, 1.5], &[2.0], &[last]);
+            vec![e]
+        };
+        check_data(&file, &demos(0.5), false).unwrap();
+        let written = std::fs::read_to_string(&file).unwrap();
+        assert!(written.contains("\"frames\": 2"), "{written}");
+        // The same data resume; one changed value does not, and the file is kept.
+        check_data(&file, &demos(0.5), true).unwrap();
+        let e = check_data(&file, &demos(0.5000001), true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("demonstrations differ") && e.contains("data.json"),
+            "{e}"
+        );
+        assert_eq!(std::fs::read_to_string(&file).unwrap(), written);
+        assert_ne!(
+            DataFingerprint::of(&demos(0.5)).fingerprint,
+            DataFingerprint::of(&demos(0.5000001)).fingerprint
+        );
+        // A run from before the file existed gets it on resume.
+        std::fs::remove_file(&file).unwrap();
+        check_data(&file, &demos(0.5), true).unwrap();
+        assert_eq!(std::fs::read_to_string(&file).unwrap(), written);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn every_failed_training_job_is_named_in_the_one_error() {

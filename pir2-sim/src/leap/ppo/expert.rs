@@ -33,7 +33,7 @@ use crate::leap::{episode_seeds, LeapConfig, LeapCubeEnv, LeapModel, NU};
 
 use super::error::Result;
 use super::io::{format_err, TensorReader, TensorWriter};
-use super::mlp::{Activation, Mlp, MlpCache};
+use super::mlp::{Activation, Mlp};
 use super::norm::FrozenNorm;
 use super::task::{actor_dim, BASE_OBS_DIM};
 use crate::leap::math::{blue_side_up_goals, rot_rows_23};
@@ -141,7 +141,7 @@ pub struct PpoExpert {
     env_steps: u64,
     obs: Vec<f32>,
     normed: Vec<f32>,
-    cache: MlpCache,
+    scratch: [Vec<f32>; 2],
 }
 
 impl PpoExpert {
@@ -171,7 +171,7 @@ impl PpoExpert {
             env_steps,
             obs: vec![0.0; d],
             normed: vec![0.0; d],
-            cache: MlpCache::default(),
+            scratch: Default::default(),
         }
     }
 
@@ -330,7 +330,8 @@ impl PpoExpert {
         }
         self.norm
             .apply_clipped(&self.obs, &mut self.normed, self.obs_clip);
-        let mu = self.net.forward(&self.normed, 1, &mut self.cache);
+        // The portable path: demonstrations must not depend on the machine's SIMD kernels.
+        let mu = self.net.forward_portable(&self.normed, &mut self.scratch);
         let mut a = [0.0f32; NU];
         for i in 0..NU {
             a[i] = match self.squash {

@@ -249,6 +249,52 @@ impl Mlp {
         &cache.post[layers]
     }
 
+    /// Forward pass of one row `x` (`input_dim`) with a summation order fixed in the source
+    /// (eight interleaved partial sums per output, added pairwise, then the bias), so that
+    /// the result is the same on every CPU: [`forward`](Self::forward) runs on the `gemm`
+    /// crate, whose kernels are chosen at run time (AVX2, AVX-512, …) and sum in a different
+    /// order on different machines. Data generated with an expert (demonstrations) must not
+    /// depend on the machine that generated them, so experts act through this path. It
+    /// agrees with [`forward`](Self::forward) to rounding. `scratch` holds the two
+    /// activation buffers between calls; returns the output (`output_dim`).
+    pub fn forward_portable<'s>(&self, x: &[f32], scratch: &'s mut [Vec<f32>; 2]) -> &'s [f32] {
+        assert_eq!(
+            x.len(),
+            self.input_dim(),
+            "Mlp::forward_portable: input size"
+        );
+        let layers = self.sizes.len() - 1;
+        let [a, b] = scratch;
+        a.clear();
+        a.extend_from_slice(x);
+        for l in 0..layers {
+            let (fi, fo) = (self.sizes[l], self.sizes[l + 1]);
+            let (wo, bo) = self.offsets(l);
+            let w = &self.params[wo..bo];
+            let bias = &self.params[bo..bo + fo];
+            b.clear();
+            for (row, &bias) in w.chunks_exact(fi).zip(bias) {
+                let mut lane = [0.0f32; 8];
+                let mut wc = row.chunks_exact(8);
+                let mut xc = a.chunks_exact(8);
+                for (w8, x8) in (&mut wc).zip(&mut xc) {
+                    for k in 0..8 {
+                        lane[k] += w8[k] * x8[k];
+                    }
+                }
+                for (k, (wv, xv)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
+                    lane[k] += wv * xv;
+                }
+                let s = ((lane[0] + lane[1]) + (lane[2] + lane[3]))
+                    + ((lane[4] + lane[5]) + (lane[6] + lane[7]));
+                let z = s + bias;
+                b.push(if l + 1 < layers { self.act.apply(z) } else { z });
+            }
+            std::mem::swap(a, b);
+        }
+        a
+    }
+
     /// Backward pass for the last [`forward`](Self::forward) through `cache`: given
     /// `d_out = ∂L/∂output` (`batch × output_dim`), **adds** `∂L/∂params` to `grad`.
     pub fn backward(&self, cache: &mut MlpCache, d_out: &[f32], grad: &mut [f32]) {
@@ -442,6 +488,68 @@ mod tests {
             assert!((a - b).abs() < 1e-5, "{a} vs {b}");
         }
     }
+
+    #[test]
+    fn portable_forward_agrees_with_the_batched_one() {
+        let mut rng = Rng::new(7);
+        let net = Mlp::new(&[57, 61, 33, 16], Activation::Silu, 0.5, &mut rng);
+        let mut cache = MlpCache::default();
+        let mut scratch = Default::default();
+        for _ in 0..5 {
+            let x: Vec<f32> = (0..57).map(|_| rng.normal()).collect();
+            let want = net.forward(&x, 1, &mut cache).to_vec();
+            let got = net.forward_portable(&x, &mut scratch).to_vec();
+            assert_eq!(got.len(), 16);
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-5 * (1.0 + w.abs()), "{g} vs {w}");
+            }
+        }
+    }
+
+    /// The portable path's bits are fixed by the source, not by the CPU: a golden value
+    /// (computed once; the weights span many binades, so a different order of the sums would
+    /// round differently).
+    #[test]
+    fn portable_forward_bits_are_fixed() {
+        let sizes = [19, 11, 3];
+        let n: usize = sizes.windows(2).map(|w| w[1] * (w[0] + 1)).sum();
+        // Weights spanning many binades so that summation order changes the rounding.
+        let params: Vec<f32> = (0..n)
+            .map(|i| {
+                let e = (i * 7 % 23) as i32 - 11;
+                let s = if i % 3 == 0 { -1.0 } else { 1.0 };
+                s * (1.0 + (i % 5) as f32 / 7.0) * 2f32.powi(e)
+            })
+            .collect();
+        let net = Mlp::from_params(&sizes, Activation::Tanh, params).expect("sizes");
+        let x: Vec<f32> = (0..19).map(|i| i as f32 * 0.37 - 3.1).collect();
+        let out = net.forward_portable(&x, &mut Default::default()).to_vec();
+        let bits: Vec<u32> = out.iter().map(|v| v.to_bits()).collect();
+        assert_eq!(bits, GOLDEN_PORTABLE_BITS, "{out:?}");
+        // The golden value does pin the order: summing each row left to right instead
+        // changes the bits of at least one output.
+        let mut h: Vec<f32> = Vec::new();
+        let (w1, b1) = (&net.params[..19 * 11], &net.params[19 * 11..20 * 11]);
+        for (row, b) in w1.chunks_exact(19).zip(b1) {
+            let s = row.iter().zip(&x).fold(0.0f32, |s, (w, v)| s + w * v);
+            h.push((s + b).tanh());
+        }
+        let (w2, b2) = (
+            &net.params[20 * 11..20 * 11 + 33],
+            &net.params[20 * 11 + 33..],
+        );
+        let seq: Vec<u32> = w2
+            .chunks_exact(11)
+            .zip(b2)
+            .map(|(row, b)| (row.iter().zip(&h).fold(0.0f32, |s, (w, v)| s + w * v) + b).to_bits())
+            .collect();
+        assert_ne!(
+            seq, bits,
+            "the test weights do not make the summation order visible"
+        );
+    }
+
+    const GOLDEN_PORTABLE_BITS: [u32; 3] = [1153209119, 1151165958, 1163006705];
 
     #[test]
     fn adam_descends_a_quadratic() {
