@@ -137,8 +137,9 @@ enum Cmd {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// leap-cube and --task: continue an interrupted `pir2 train … --out DIR` with the same
-        /// config (task file) and data: finished policies are kept, unfinished ones continue
-        /// from their last step checkpoint (bit-identically to an uninterrupted run).
+        /// config (task file) and data (both checked against `DIR/config.toml` and
+        /// `DIR/data.json`): finished policies are kept, unfinished ones continue from their
+        /// last step checkpoint (bit-identically to an uninterrupted run on the same kind of CPU).
         #[arg(long)]
         resume: bool,
         /// gr00t: the GR00T N1.7 checkpoint directory (config.json + model.safetensors).

@@ -535,7 +535,9 @@ pub fn run<T: Task>(
 
 /// Train `policies` × the settings' seeds into `out` (a new directory):
 /// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the
-/// chosen checkpoint `best/`; the task's config is written to `out/config.toml`.
+/// chosen checkpoint `best/`; the task's config is written to `out/config.toml` and what the
+/// demonstrations were to `out/data.json` ([`DataFingerprint`]); `resume` refuses a different
+/// config or different demonstrations by name.
 pub fn train_into<T: Task>(
     task: &T,
     policies: &[Policy],
