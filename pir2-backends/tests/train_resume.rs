@@ -126,6 +126,36 @@ fn check(cfg: Config, fused: bool) {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// The study trains side-by-side jobs with their kernels on pools of their own
+/// (`with_kernel_pool`, the global pool's thread count): a job's bits are those of the same
+/// run on the global pool, also while another job runs at the same time.
+#[test]
+fn fused_unet_bits_on_a_pool_of_its_own_are_those_of_the_global_pool() {
+    use pir2_backends::candle::with_kernel_pool;
+    let mut wide = unet();
+    if let ModelConfig::UNet(u) = &mut wide.model {
+        u.widths = vec![32, 64];
+    }
+    let root = std::env::temp_dir().join(format!("pir2-pools-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let result = |(m, r): (CandleModel, TrainReport)| (bits(&m), r.losses);
+    let global = result(run(&wide, true, &root.join("global"), None, false));
+    let (a, b) = std::thread::scope(|s| {
+        let job = |name: &'static str| {
+            let (cfg, dir) = (&wide, root.join(name));
+            s.spawn(move || with_kernel_pool(|| result(run(cfg, true, &dir, None, false))).unwrap())
+        };
+        let (a, b) = (job("a"), job("b"));
+        (a.join().unwrap(), b.join().unwrap())
+    });
+    assert!(
+        global == a,
+        "a job on its own pool differs from the global pool's run"
+    );
+    assert!(global == b, "the second concurrent job differs");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 #[test]
 fn fused_unet_resume_is_bit_identical() {
     check(unet(), true);
