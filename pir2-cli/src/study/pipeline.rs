@@ -632,8 +632,12 @@ impl DataFingerprint {
 /// the file existed gets it now.
 fn check_data(file: &Path, demos: &[Episode], resume: bool) -> Result<()> {
     let now = DataFingerprint::of(demos);
+    let read = match std::fs::read_to_string(file) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        r => Some(r.with_context(|| format!("reading {}", file.display()))?),
+    };
     if resume {
-        if let Ok(text) = std::fs::read_to_string(file) {
+        if let Some(text) = read {
             let before: DataFingerprint = serde_json::from_str(&text).with_context(|| {
                 format!("--resume: {} is not a data fingerprint", file.display())
             })?;
