@@ -11,9 +11,11 @@
 //! - [`control::ControlState`] picks the action of each tick (swap at the elapsed index,
 //!   `x̂` on overrun, temporal ensembling, sync holds);
 //! - [`realtime`] runs them on threads against a [`Clock`]; [`lockstep`] steps them with an
-//!   [`Environment`] where a call takes an injected number of ticks.
+//!   [`Environment`] where a call takes an injected number of ticks, and [`batched`] runs
+//!   a study cell's lock-step episodes side by side with one batched model call per round.
 #![warn(missing_docs)]
 
+pub mod batched;
 pub mod bench;
 pub mod chunk;
 pub mod clock;
@@ -33,6 +35,7 @@ pub mod remote;
 pub mod testing;
 pub mod window;
 
+pub use batched::eval_cell_batched;
 pub use chunk::Chunk;
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
 pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap, PoseGroup};

@@ -307,7 +307,10 @@ where
             .collect();
         handles
             .into_iter()
-            .map(|h| h.join().expect("evaluation thread panicked"))
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|p| Err(Error::panicked("evaluation thread", &*p)))
+            })
             .collect()
     });
     let mut total = (0, 0);
