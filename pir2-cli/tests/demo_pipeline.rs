@@ -188,10 +188,30 @@ fn a_short_training_run_balances_the_ball() {
         timing,
         12,
         77,
-        2,
+        pipeline::EvalPath::Threads(2),
         &|| {},
     )
     .unwrap();
     eprintln!("πR² async, d0 = 1: {ok}/12");
     assert!(ok >= 6, "πR² async after 600 steps: {ok}/12");
+    // The same cell with the episodes in lock-step and their calls batched through the
+    // candle model: another measurement of the same policy (the batched kernels round
+    // differently), so it must succeed as often, not in the same episodes.
+    let (ok_batched, _) = pipeline::closed_loop(
+        &task,
+        &models,
+        Policy::PiR2,
+        &mode,
+        timing,
+        12,
+        77,
+        pipeline::EvalPath::Batched(12),
+        &|| {},
+    )
+    .unwrap();
+    eprintln!("πR² async, d0 = 1, batched: {ok_batched}/12");
+    assert!(
+        ok_batched >= 6,
+        "πR² async after 600 steps, batched: {ok_batched}/12"
+    );
 }

@@ -57,6 +57,13 @@ pub fn with_kernel_pool<R: Send>(f: impl FnOnce() -> R + Send) -> Result<R> {
     Ok(pool.install(f))
 }
 
+/// Threads the candle kernels of a batched call split their work over (the rayon pool the
+/// call runs in: the cores, or `RAYON_NUM_THREADS`). A batch-1 inference call runs on one
+/// thread; a batched one's bits depend on this count.
+pub fn kernel_threads() -> usize {
+    rayon::current_num_threads()
+}
+
 /// Encoded, normalised inputs of one batch (shared by inference and training).
 #[derive(Debug)]
 pub(crate) struct Inputs {

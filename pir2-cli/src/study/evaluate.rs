@@ -3,9 +3,10 @@
 //! after an interruption (`pir2 eval … --resume`).
 //!
 //! A cell's result depends on the checkpoint that ran, the row, the column, the seed, the
-//! episode count and the task's config, nothing else (the lock-step evaluation is
-//! deterministic and independent of the thread count). [`CellLog`] keys the cells it keeps by
-//! exactly that, so a later run reuses a cell only when it would measure the same numbers;
+//! episode count, the task's config and the evaluation path, nothing else (the lock-step
+//! evaluation is deterministic and independent of the thread count; a batched cell, see
+//! [`EvalPath`], also depends on its group size and kernel thread count, and is tagged with
+//! them). [`CellLog`] keys the cells it keeps by exactly that, so a later run reuses a cell only when it would measure the same numbers;
 //! which policies, seeds and columns the config lists, its checkpoint-protocol depth and its
 //! thread count are not part of the key, which is what lets a one-seed table of some policies
 //! grow into the full three-seed one without measuring a cell twice.
@@ -22,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use pir2_backends::candle::CandleModel;
 use pir2_runtime::{LockstepTiming, Mode};
 
-use super::pipeline::{closed_loop, log_line, Models, Trained};
+use super::pipeline::{closed_loop, log_line, EvalPath, Models, Trained};
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.
@@ -30,14 +31,16 @@ pub const CELL_LOG: &str = "cells.jsonl";
 
 /// Config fields a cell does not depend on (left out of [`config_fingerprint`]): which
 /// policies, seeds and columns are evaluated (the key names the cell's own), the
-/// best-of-last depth, whether the diagnostic rows are added, and the thread count.
-const NOT_IN_FINGERPRINT: [&str; 7] = [
+/// best-of-last depth, whether the diagnostic rows are added, the thread count and the
+/// batched-evaluation group (which goes into each cell's key instead).
+const NOT_IN_FINGERPRINT: [&str; 8] = [
     "policies",
     "seeds",
     "d0s",
     "hs",
     "best_of_last",
     "threads",
+    "batch_episodes",
     "diagnostic_rows",
 ];
 
@@ -86,6 +89,10 @@ struct CellKey {
     column: Option<usize>,
     seed: u64,
     episodes: usize,
+    /// How the cell ran when not batch-1 ([`EvalPath::cell_tag`]); absent for batch-1 cells,
+    /// so logs written before batched evaluation existed keep their keys.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    eval: Option<String>,
 }
 
 /// One line of the cell log.
@@ -273,6 +280,7 @@ pub fn evaluate<'m, T: Task>(
 ) -> Result<Vec<Cell>> {
     let s = task.settings();
     let zero = LockstepTiming::zero_latency();
+    let path = EvalPath::of(&s);
     let mut cells = Vec::new();
     for r in &study.rows {
         let (label, policy) = (&r.row.label, r.row.policy);
@@ -287,6 +295,7 @@ pub fn evaluate<'m, T: Task>(
                     column,
                     seed,
                     episodes: s.episodes,
+                    eval: path.cell_tag(),
                 });
                 if let (Some(l), Some(k)) = (logged, &key) {
                     if let Some(res) = l.log.get(k) {
@@ -303,7 +312,7 @@ pub fn evaluate<'m, T: Task>(
                     timing,
                     s.episodes,
                     study.seed_base + seed,
-                    s.threads,
+                    path,
                     &|| pb.inc(1),
                 )?;
                 if let (Some(l), Some(k)) = (logged, key) {
@@ -567,6 +576,7 @@ mod tests {
             column,
             seed,
             episodes: 20,
+            eval: None,
         }
     }
 
@@ -597,6 +607,42 @@ mod tests {
         let e = CellLog::open(&dir, "bbbb".into(), true).unwrap_err();
         assert!(e.to_string().contains(CELL_LOG), "{e}");
         assert_eq!(std::fs::read_to_string(dir.join(CELL_LOG)).unwrap(), before);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn batched_cells_are_keyed_apart_and_logs_without_the_tag_keep_their_keys() {
+        // A batch-1 cell's line carries no `eval` field (as in logs written before batched
+        // evaluation existed) and reads back as a batch-1 key.
+        let line = serde_json::to_string(&Entry {
+            config: "aaaa".into(),
+            key: key("sync flow", Some(1), 0),
+            successes: 7,
+            overruns: 0,
+        })
+        .unwrap();
+        assert!(!line.contains("eval"), "{line}");
+        let old = r#"{"config":"aaaa","checkpoint":"flow-seed0/best@100","label":"sync flow","column":1,"seed":0,"episodes":20,"successes":7,"overruns":0}"#;
+        let e: Entry = serde_json::from_str(old).unwrap();
+        assert_eq!(e.key, key("sync flow", Some(1), 0));
+        // A batched cell of the same checkpoint, row and column is another cell.
+        let dir = tmp("cell-log-batched");
+        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        log.record(key("sync flow", Some(1), 0), 7, 0).unwrap();
+        let mut batched = key("sync flow", Some(1), 0);
+        batched.eval = EvalPath::Batched(32).cell_tag();
+        assert!(batched
+            .eval
+            .as_deref()
+            .unwrap()
+            .starts_with("batched g32 k"));
+        assert_eq!(EvalPath::Threads(2).cell_tag(), None);
+        assert_eq!(log.get(&batched), None);
+        log.record(batched.clone(), 9, 0).unwrap();
+        drop(log);
+        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        assert_eq!(log.get(&key("sync flow", Some(1), 0)), Some((7, 0)));
+        assert_eq!(log.get(&batched), Some((9, 0)));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -633,6 +679,7 @@ mod tests {
             d0s: Vec<usize>,
             best_of_last: usize,
             threads: usize,
+            batch_episodes: usize,
         }
         let base = C {
             episodes: 100,
@@ -642,6 +689,7 @@ mod tests {
             d0s: vec![1],
             best_of_last: 0,
             threads: 1,
+            batch_episodes: 1,
         };
         let f = |c: &C| config_fingerprint(c).unwrap();
         assert_eq!(f(&base).len(), 16);
@@ -651,6 +699,7 @@ mod tests {
             d0s: vec![1, 2, 3],
             best_of_last: 3,
             threads: 2,
+            batch_episodes: 32,
             ..base
         };
         assert_eq!(f(&wider), f(&base));

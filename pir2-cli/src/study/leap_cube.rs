@@ -84,6 +84,14 @@ pub struct LeapStudyConfig {
     pub max_steps: usize,
     /// Worker threads.
     pub threads: usize,
+    /// Episodes of an evaluation cell run side by side with their model calls batched, one
+    /// batched call per round of calls (1: every episode on its own with batch-1 calls,
+    /// `threads` episodes at a time, as before). The batched kernels round differently from
+    /// batch-1 calls, so a batched cell is a measurement of its own, equal in distribution but
+    /// not bit for bit: the cell log keys it apart (by this group size and the kernel thread
+    /// count), and a cell measured one way is never reused for the other. Training's
+    /// closed-loop checkpoint validation always runs batch-1.
+    pub batch_episodes: usize,
     /// Directory of trained policies (`<policy>-seed<s>/best`, as written by
     /// [`train_policies`] / `pir2 train leap-cube` or an earlier study's `checkpoints/`):
     /// policies found there are loaded instead of trained.
@@ -147,6 +155,7 @@ impl Default for LeapStudyConfig {
             flow_steps: 15,
             max_steps: 300,
             threads: 2,
+            batch_episodes: 1,
             pretrained: None,
             policies: POLICIES.to_vec(),
             delays: DelayLaw::Exponential { rate: 1.0 },
@@ -377,6 +386,7 @@ impl Task for LeapCubeTask {
             // Success rates over 20 episodes tie often; the later checkpoint wins a tie.
             later_ties: true,
             best_of_last: c.best_of_last,
+            batch_episodes: c.batch_episodes,
             recipe: Recipe {
                 delays: c.delays,
                 pir2_d_max: c.pir2_d_max,

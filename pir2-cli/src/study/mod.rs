@@ -58,6 +58,9 @@ pub struct Settings {
     pub val_d0: usize,
     /// Worker threads (training jobs, evaluation episodes).
     pub threads: usize,
+    /// Evaluation episodes run side by side with batched model calls (1: batch-1 calls on
+    /// `threads` threads; see [`pipeline::closed_loop`]).
+    pub batch_episodes: usize,
     /// Directory of trained policies (`<policy>-seed<s>/best`) loaded instead of trained.
     pub pretrained: Option<PathBuf>,
     /// A checkpoint whose validation score ties the best so far replaces it (the later step
@@ -93,6 +96,7 @@ impl Settings {
             val_episodes,
             val_d0: 2,
             threads,
+            batch_episodes: 1,
             pretrained: None,
             later_ties: false,
             best_of_last: 0,

@@ -15,6 +15,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pir2_backends::candle::{with_kernel_pool, CandleModel};
 use pir2_backends::config::Config;
 use pir2_backends::train::{compute_stats, Dataset, Progress, TrainConfig, Trainer};
+use pir2_runtime::batched::eval_cell_batched;
 use pir2_runtime::lockstep::eval_cell;
 use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
 use pir2_sim::dataset::Episode;
@@ -24,7 +25,7 @@ pub use super::evaluate::{
     total_episodes, trained_dir, CellLog, Logged,
 };
 use super::evaluate::{fnv1a, FNV_OFFSET};
-use super::{Policy, Scores, Study, StudyResult, Task};
+use super::{Policy, Scores, Settings, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
 /// A progress bar with the studies' style.
@@ -158,8 +159,43 @@ pub fn head_spec<T: Task>(task: &T, policy: Policy) -> HeadSpec {
     }
 }
 
+/// How the episodes of a closed-loop cell run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EvalPath {
+    /// Every episode on its own with batch-1 model calls, this many episodes at a time
+    /// ([`eval_cell`]).
+    Threads(usize),
+    /// Groups of this many episodes side by side, their calls answered by one batched call
+    /// per round ([`eval_cell_batched`]).
+    Batched(usize),
+}
+
+impl EvalPath {
+    /// The path a study's settings ask for: batched when `batch_episodes > 1`.
+    pub fn of(s: &Settings) -> Self {
+        if s.batch_episodes > 1 {
+            EvalPath::Batched(s.batch_episodes)
+        } else {
+            EvalPath::Threads(s.threads)
+        }
+    }
+
+    /// What a cell measured this way is keyed by besides its checkpoint, row and column:
+    /// `None` for batch-1 cells (whose bits do not depend on the thread count), the group
+    /// size and the kernel thread count for batched ones (whose bits do).
+    pub fn cell_tag(&self) -> Option<String> {
+        match self {
+            EvalPath::Threads(_) => None,
+            EvalPath::Batched(g) => Some(format!(
+                "batched g{g} k{}",
+                pir2_backends::candle::kernel_threads()
+            )),
+        }
+    }
+}
+
 /// Closed-loop successes (and overrun ticks) of `policy`'s models under `mode` with `timing`
-/// over `episodes` episodes seeded from `seed`, on `threads` threads.
+/// over `episodes` episodes seeded from `seed`, run as `path` says.
 #[allow(clippy::too_many_arguments)]
 pub fn closed_loop<T: Task>(
     task: &T,
@@ -169,12 +205,30 @@ pub fn closed_loop<T: Task>(
     timing: LockstepTiming,
     episodes: usize,
     seed: u64,
-    threads: usize,
+    path: EvalPath,
     progress: &(dyn Fn() + Sync),
 ) -> Result<(usize, u64)> {
     let make_env = || {
         task.make_env()
             .expect("the task's environment config is valid")
+    };
+    let threads = match path {
+        EvalPath::Threads(t) => t,
+        EvalPath::Batched(group) => {
+            let mut model = (models.make)();
+            return Ok(eval_cell_batched(
+                &make_env,
+                model.as_mut(),
+                head_spec(task, policy),
+                mode,
+                timing,
+                &models.output,
+                episodes,
+                seed,
+                group,
+                progress,
+            )?);
+        }
     };
     let make_model = || (models.make)();
     Ok(eval_cell(
@@ -260,7 +314,7 @@ pub fn train_policy_resumable<T: Task>(
                         val_timing,
                         s.val_episodes,
                         val_seed,
-                        1,
+                        EvalPath::Threads(1),
                         &|| {},
                     )
                 })
