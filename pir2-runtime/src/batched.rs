@@ -1,8 +1,9 @@
 //! Lock-step evaluation with batched model calls: the episodes of a study cell run side by
 //! side, and the calls they make are answered together, one batched call per round.
 //!
-//! Every episode keeps the runtime's own [`ActionHead`] and [`LockstepDriver`]; its head is
-//! given a proxy model that hands each call to a shared round and waits for the answer. A
+//! Every episode keeps the runtime's own [`ActionHead`](crate::ActionHead) and
+//! [`LockstepDriver`](crate::LockstepDriver); its head is given a proxy model that hands each
+//! call to a shared round and waits for the answer. A
 //! round runs when every live episode of the group is either waiting in a call or finished,
 //! so round `r` holds the `r`-th call of each episode still running, in episode order. The
 //! batch's composition therefore follows from the episodes alone, never from thread timing,
@@ -23,13 +24,11 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use crate::control::OutputMap;
 use crate::error::{Error, Result};
-use crate::head::{ActionHead, HeadSpec};
+use crate::head::HeadSpec;
 use crate::io::Environment;
-use crate::lockstep::{LockstepDriver, LockstepTiming};
+use crate::lockstep::{cell_episode, LockstepTiming};
 use crate::mode::Mode;
 use crate::model::{ModelInput, SlowInput, VelocityModel};
-use crate::window::LatencyWindow;
-use pir2_schedule::Rng;
 
 /// The slow input's layout without its data.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -299,20 +298,11 @@ where
                         rounds: Arc::clone(&rounds),
                     };
                     s.spawn(move || -> Result<(bool, u64)> {
-                        let ep_seed = Rng::derive(seed, ep as u64).next_u64();
-                        let window = LatencyWindow::new(20, 0, spec.period, spec.d_max);
-                        let mut head = ActionHead::new(
-                            proxy,
-                            spec,
-                            mode.head_mode(10),
-                            window,
-                            ep_seed ^ 0xA5A5,
-                        )?;
                         let mut env = make_env();
-                        let mut drv = LockstepDriver::new(&head).with_output(output.clone());
+                        // The proxy lives in the episode's head and is dropped with it,
+                        // on success, error or panic alike.
                         let r =
-                            drv.run_episode(&mut env, &mut head, mode, timing, ep_seed, |_, _| {})?;
-                        drop(head);
+                            cell_episode(proxy, &mut env, spec, mode, timing, output, seed, ep)?;
                         progress();
                         Ok((r.success, r.metrics.overruns))
                     })

@@ -252,6 +252,27 @@ impl LockstepDriver {
     }
 }
 
+/// Episode `ep` of a study cell seeded from `seed`: a fresh head around `model` (its seeds
+/// derived from `(seed, ep)`, `d` from a fresh latency window) driven through `env`. Shared
+/// by [`eval_cell`] and [`crate::eval_cell_batched`], so both run an episode the same way.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn cell_episode<E: Environment, M: VelocityModel>(
+    model: M,
+    env: &mut E,
+    spec: HeadSpec,
+    mode: &Mode,
+    timing: LockstepTiming,
+    output: &OutputMap,
+    seed: u64,
+    ep: usize,
+) -> Result<EpisodeResult> {
+    let ep_seed = Rng::derive(seed, ep as u64).next_u64();
+    let window = LatencyWindow::new(20, 0, spec.period, spec.d_max);
+    let mut head = ActionHead::new(model, spec, mode.head_mode(10), window, ep_seed ^ 0xA5A5)?;
+    let mut drv = LockstepDriver::new(&head).with_output(output.clone());
+    drv.run_episode(env, &mut head, mode, timing, ep_seed, |_, _| {})
+}
+
 /// Run `episodes` episodes of one study cell (one mode, one timing) in parallel on
 /// `threads` threads; returns the successes and the overrun ticks over all episodes. Every episode
 /// gets its own environment, head and seeds derived from `(seed, episode)`, so the result
@@ -284,18 +305,16 @@ where
                     let (mut ok, mut overruns) = (0, 0);
                     let mut ep = w;
                     while ep < episodes {
-                        let ep_seed = Rng::derive(seed, ep as u64).next_u64();
-                        let window = LatencyWindow::new(20, 0, spec.period, spec.d_max);
-                        let mut head = ActionHead::new(
+                        let r = cell_episode(
                             make_model(),
+                            &mut env,
                             spec,
-                            mode.head_mode(10),
-                            window,
-                            ep_seed ^ 0xA5A5,
+                            mode,
+                            timing,
+                            output,
+                            seed,
+                            ep,
                         )?;
-                        let mut drv = LockstepDriver::new(&head).with_output(output.clone());
-                        let r =
-                            drv.run_episode(&mut env, &mut head, mode, timing, ep_seed, |_, _| {})?;
                         ok += r.success as usize;
                         overruns += r.metrics.overruns;
                         progress();
