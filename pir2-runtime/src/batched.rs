@@ -17,7 +17,8 @@
 //! Fail closed: an episode that ends with an error or a panic leaves the round at once (its
 //! proxy counts it finished when dropped), so the others never wait for it, and the cell ends
 //! in that episode's error ([`Error::Panicked`] for a panic); a failed batched call is
-//! answered to every waiting episode with the error, and the cell ends in that one error.
+//! answered to every waiting episode with the error, and the cell ends in that one error (a
+//! panic in the batched call too, as [`Error::Panicked`]).
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -310,7 +311,13 @@ where
                 .collect();
             let mut round_error = None;
             while let Some(calls) = rounds.next_round() {
-                match run_round(model, &calls) {
+                // A panic in the model must not leave the episodes waiting for an answer
+                // (the scope would then wait for them forever): it fails the round.
+                let ran = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    run_round(&mut *model, &calls)
+                }))
+                .unwrap_or_else(|p| Err(Error::panicked("batched model call", &*p)));
+                match ran {
                     Ok(answers) => {
                         let mut r = rounds.lock();
                         for ((ep, _), a) in calls.iter().zip(answers) {

@@ -76,6 +76,8 @@ struct Steer {
     max_batch: usize,
     rows: usize,
     fail_at: Option<usize>,
+    /// Panic instead of returning the error at `fail_at`.
+    panic: bool,
     coupled: bool,
     digest: u64,
 }
@@ -89,6 +91,7 @@ impl VelocityModel for Steer {
         self.max_batch = self.max_batch.max(inp.batch);
         self.rows += inp.batch;
         if self.fail_at.is_some_and(|n| self.rows >= n) {
+            assert!(!self.panic, "steer: injected panic");
             return Err(Error::Model("steer: injected failure".into()));
         }
         let SlowInput::Vector { data: slow, dim } = inp.slow else {
@@ -252,6 +255,22 @@ fn a_failing_batched_call_ends_the_cell_in_its_error() {
     });
     assert!(
         err.to_string().contains("injected failure"),
+        "unexpected error: {err}"
+    );
+}
+
+#[test]
+fn a_panicking_batched_call_ends_the_cell_in_one_error_without_a_hang() {
+    let err = within_a_minute(|| {
+        let mut model = Steer {
+            fail_at: Some(200),
+            panic: true,
+            ..Default::default()
+        };
+        batched(modes()[1], 12, 12, &mut model).unwrap_err()
+    });
+    assert!(
+        matches!(&err, Error::Panicked { message, .. } if message.contains("injected panic")),
         "unexpected error: {err}"
     );
 }
