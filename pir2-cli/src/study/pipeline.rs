@@ -212,37 +212,34 @@ pub fn closed_loop<T: Task>(
         task.make_env()
             .expect("the task's environment config is valid")
     };
-    let threads = match path {
-        EvalPath::Threads(t) => t,
-        EvalPath::Batched(group) => {
-            let mut model = (models.make)();
-            return Ok(eval_cell_batched(
-                &make_env,
-                model.as_mut(),
-                head_spec(task, policy),
-                mode,
-                timing,
-                &models.output,
-                episodes,
-                seed,
-                group,
-                progress,
-            )?);
-        }
-    };
-    let make_model = || (models.make)();
-    Ok(eval_cell(
-        &make_env,
-        &make_model,
-        head_spec(task, policy),
-        mode,
-        timing,
-        &models.output,
-        episodes,
-        seed,
-        threads,
-        progress,
-    )?)
+    let spec = head_spec(task, policy);
+    let out = &models.output;
+    Ok(match path {
+        EvalPath::Threads(threads) => eval_cell(
+            &make_env,
+            &|| (models.make)(),
+            spec,
+            mode,
+            timing,
+            out,
+            episodes,
+            seed,
+            threads,
+            progress,
+        )?,
+        EvalPath::Batched(group) => eval_cell_batched(
+            &make_env,
+            (models.make)().as_mut(),
+            spec,
+            mode,
+            timing,
+            out,
+            episodes,
+            seed,
+            group,
+            progress,
+        )?,
+    })
 }
 
 /// Train `policy` on `demos` (seeded); the checkpoint is chosen by closed-loop validation
