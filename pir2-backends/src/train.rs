@@ -295,9 +295,11 @@ impl<'a> Trainer<'a> {
     /// [`TRAIN_TENSORS_FILE`]: raw weights, AdamW moments and step count, EMA, the best pick
     /// so far, the batch generator's random state, the loss history), so a resumed run
     /// continues **bit-identically** to an uninterrupted one with the same configuration,
-    /// data and thread count on the same kind of CPU (the matrix kernels are chosen at run
-    /// time by instruction set, AVX2 or AVX-512 say, and round differently; a run resumed
-    /// on another kind of CPU continues correctly but not bit for bit). The model's own weights are replaced by the checkpoint's. With
+    /// data and thread count on the same kind of CPU. The matrix kernels are chosen at run
+    /// time by instruction set (AVX2 or AVX-512, say), so on another kind of CPU a resumed run
+    /// continues correctly but is not promised to continue bit for bit (measured: an AVX2
+    /// AMD EPYC and an AVX-512 Intel Xeon gave the same bits for the study's U-Net). The
+    /// model's own weights are replaced by the checkpoint's. With
     /// no step checkpoint in the directory the run starts from scratch; a checkpoint written
     /// with a different [`TrainConfig`] or model is an error naming the difference. Steps
     /// after the checkpoint that an interrupted run had logged appear twice in `loss.jsonl`.
