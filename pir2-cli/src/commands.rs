@@ -260,6 +260,8 @@ pub struct EvalOptions {
     pub remote: Option<RemoteOptions>,
     /// Leap cube: continue the interrupted evaluation in `out`.
     pub resume: bool,
+    /// Leap cube: train the listed policies missing from `checkpoint` instead of refusing.
+    pub train_missing: bool,
 }
 
 /// `pir2 eval`: a checkpoint in every mode that fits it at each unit delay (ball-plate,
@@ -271,6 +273,7 @@ pub fn eval(o: &EvalOptions) -> Result<()> {
             data: o.data.as_deref(),
             pretrained: o.checkpoint.as_deref(),
             episodes: o.episodes,
+            train_missing: o.train_missing,
         };
         let out = o
             .out

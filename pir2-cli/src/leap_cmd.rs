@@ -24,6 +24,8 @@ pub struct LeapArgs<'a> {
     pub pretrained: Option<&'a Path>,
     /// Episodes per cell (overrides the config's `episodes`).
     pub episodes: Option<usize>,
+    /// Train policies missing from `pretrained` (sets the config's `train_missing`).
+    pub train_missing: bool,
 }
 
 /// Who demonstrates in `pir2 collect leap-cube`.
@@ -90,6 +92,7 @@ fn load_config(args: &LeapArgs) -> Result<crate::study::leap_cube::LeapStudyConf
     if let Some(e) = args.episodes {
         cfg.episodes = e;
     }
+    cfg.train_missing |= args.train_missing;
     Ok(cfg)
 }
 

@@ -223,10 +223,14 @@ enum Cmd {
         /// The task (leap-cube needs a build with `--features mujoco`).
         #[arg(value_parser = ["ballplate", "leap-cube"], default_value = "ballplate")]
         task: String,
-        /// Checkpoint directory (leap-cube: the output of `pir2 train leap-cube`; policies
-        /// missing there are trained).
+        /// Checkpoint directory (leap-cube: the output of `pir2 train leap-cube`; a listed
+        /// policy × seed without a `best/` there is an error, unless --train-missing).
         #[arg(long)]
         checkpoint: Option<PathBuf>,
+        /// leap-cube: train the listed policies missing from --checkpoint (into --out) instead
+        /// of refusing them.
+        #[arg(long)]
+        train_missing: bool,
         /// Which policy the checkpoint is (ballplate).
         #[arg(long, value_enum)]
         policy: Option<PolicyArg>,
@@ -1033,6 +1037,7 @@ fn run() -> Result<()> {
             connect_timeout,
             tls,
             resume,
+            train_missing,
         } => commands::eval(&EvalOptions {
             task: task(&t),
             checkpoint,
@@ -1053,6 +1058,7 @@ fn run() -> Result<()> {
                 tls: tls.into(),
             }),
             resume,
+            train_missing,
         }),
         Cmd::Run(args) => run::run_command(&(*args).into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),

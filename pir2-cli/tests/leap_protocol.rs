@@ -248,3 +248,69 @@ fn diagnostic_rows_add_the_pir2_checkpoint_as_sync_flow_without_touching_other_c
         config_fingerprint(&on).unwrap()
     );
 }
+
+#[test]
+fn logs_written_before_the_checkpoint_directory_left_the_fingerprint_are_still_read() {
+    use pir2_cli::study::evaluate::{config_fingerprint, earlier_config_fingerprints};
+    // `studies/leap-cube/study.toml` narrowed to seed 0, evaluated with `--checkpoint
+    // runs/leap-study-wide`: the fingerprint its cell logs were written under (sessions
+    // 18-21, `notes/issue-14/study-progress/wide-v2-*-cells.jsonl`) is this config's
+    // earlier one, whichever directory it is evaluated from now.
+    let text = r#"
+        dataset = "runs/leap-playground"
+        train_steps = 20000
+        batch_size = 256
+        lr = 1e-4
+        warmup = 500
+        widths = [64, 128, 256]
+        groups = 8
+        checkpoints = 10
+        val_episodes = 20
+        episodes = 100
+        seeds = [0]
+        d0s = [1, 2, 3]
+        hs = [1, 2, 4, 8]
+        nfe = 2
+        flow_steps = 15
+        max_steps = 600
+        threads = 2
+        policies = ["pi_r2_full"]
+        slow_frames = 2
+        best_of_last = 3
+    "#;
+    let mut cfg: LeapStudyConfig = toml::from_str(text).unwrap();
+    cfg.pretrained = Some("runs/leap-study-wide".into());
+    assert_eq!(
+        earlier_config_fingerprints(&cfg).unwrap(),
+        vec!["09281c1188a6d8e5".to_string()]
+    );
+    let now = config_fingerprint(&cfg).unwrap();
+    cfg.pretrained = Some("elsewhere/leap-study-wide".into());
+    cfg.train_missing = true;
+    assert_eq!(config_fingerprint(&cfg).unwrap(), now);
+}
+
+#[test]
+fn an_evaluation_refuses_a_policy_missing_from_the_checkpoint_directory_before_any_work() {
+    let root = std::env::temp_dir().join(format!("pir2-leap-missing-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let trained = root.join("trained");
+    std::fs::create_dir_all(&trained).unwrap();
+    let out = root.join("out");
+    let cfg = LeapStudyConfig {
+        policies: vec![Policy::Flow],
+        pretrained: Some(trained.to_string_lossy().into_owned()),
+        dataset: root.join("no-such-dataset").to_string_lossy().into_owned(),
+        ..LeapStudyConfig::default()
+    };
+    let e = pir2_cli::study::leap_cube::study_deployment(&cfg, &out, false)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("flow-seed0") && e.contains("--train-missing"),
+        "{e}"
+    );
+    // Refused before the dataset is read or the output directory made.
+    assert!(!out.exists());
+    std::fs::remove_dir_all(&root).unwrap();
+}

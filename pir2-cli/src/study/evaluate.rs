@@ -31,9 +31,11 @@ pub const CELL_LOG: &str = "cells.jsonl";
 
 /// Config fields a cell does not depend on (left out of [`config_fingerprint`]): which
 /// policies, seeds and columns are evaluated (the key names the cell's own), the
-/// best-of-last depth, whether the diagnostic rows are added, the thread count and the
-/// batched-evaluation group (which goes into each cell's key instead).
-const NOT_IN_FINGERPRINT: [&str; 8] = [
+/// best-of-last depth, whether the diagnostic rows are added, the thread count, the
+/// batched-evaluation group (which goes into each cell's key instead), and where the trained
+/// policies are read from and whether missing ones may be trained (the weights' hash in each
+/// key names the checkpoint that ran, wherever it lies).
+const NOT_IN_FINGERPRINT: [&str; 10] = [
     "policies",
     "seeds",
     "d0s",
@@ -42,15 +44,45 @@ const NOT_IN_FINGERPRINT: [&str; 8] = [
     "threads",
     "batch_episodes",
     "diagnostic_rows",
+    "pretrained",
+    "train_missing",
 ];
+
+/// Fields of [`NOT_IN_FINGERPRINT`] that earlier versions hashed: `pretrained` (the
+/// `--checkpoint` path) until cell logs stopped depending on where the checkpoints lie.
+/// `train_missing` did not exist then, so it is left out of the earlier fingerprint too.
+const HASHED_BEFORE: [&str; 1] = ["pretrained"];
 
 /// A short, stable fingerprint of what in `config` a cell depends on: the config as TOML
 /// without the fields in `NOT_IN_FINGERPRINT`, hashed (FNV-1a, 64 bits).
 pub fn config_fingerprint<C: Serialize>(config: &C) -> Result<String> {
+    fingerprint_without(config, |k| NOT_IN_FINGERPRINT.contains(&k))
+}
+
+/// The fingerprints earlier versions of pir2 gave `config` where they differ from
+/// [`config_fingerprint`]: cells logged under them were measured with this config and are
+/// reused ([`CellLog::open`]). One today: the fingerprint that still hashed the
+/// `--checkpoint` path (`pretrained`), so a log written before matches only when resumed
+/// with the same path.
+pub fn earlier_config_fingerprints<C: Serialize>(config: &C) -> Result<Vec<String>> {
+    let now = config_fingerprint(config)?;
+    let before = fingerprint_without(config, |k| {
+        NOT_IN_FINGERPRINT.contains(&k) && !HASHED_BEFORE.contains(&k)
+    })?;
+    Ok(if before == now {
+        Vec::new()
+    } else {
+        vec![before]
+    })
+}
+
+/// The config as TOML without the top-level fields `skip` names, hashed (FNV-1a, 64 bits).
+fn fingerprint_without<C: Serialize>(config: &C, skip: impl Fn(&str) -> bool) -> Result<String> {
     let mut v = toml::Value::try_from(config).context("serialising the config")?;
     if let Some(t) = v.as_table_mut() {
-        for k in NOT_IN_FINGERPRINT {
-            t.remove(k);
+        let skipped: Vec<String> = t.keys().filter(|k| skip(k)).cloned().collect();
+        for k in skipped {
+            t.remove(&k);
         }
     }
     let text = toml::to_string(&v).context("serialising the config")?;
@@ -96,7 +128,7 @@ struct CellKey {
 }
 
 /// One line of the cell log.
-#[derive(Debug, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 struct Entry {
     config: String,
     #[serde(flatten)]
@@ -118,13 +150,20 @@ pub struct CellLog {
 
 impl CellLog {
     /// The log of the study output directory `out` for a config with fingerprint `config`
-    /// ([`config_fingerprint`]). Without `resume` the log starts empty (an existing one is
-    /// an error: the caller refuses non-empty directories first). With `resume`, the cells
-    /// in the log are loaded; a log written for another config is an error naming the file,
-    /// and a last line cut short by an interruption is dropped.
-    pub fn open(out: &Path, config: String, resume: bool) -> Result<Self> {
+    /// ([`config_fingerprint`]; `earlier`: the fingerprints earlier versions gave the same
+    /// config, [`earlier_config_fingerprints`]). Without `resume` the log starts empty (an
+    /// existing one is an error: the caller refuses non-empty directories first). With
+    /// `resume`, the cells in the log are loaded, those logged under an `earlier`
+    /// fingerprint too (the log is then rewritten once with `config` on every line, the
+    /// original kept beside it as `cells.jsonl.<earlier fingerprint>`); a log
+    /// written for another config is an error naming the file, and a last line cut short by
+    /// an interruption is dropped.
+    pub fn open(out: &Path, config: String, earlier: &[String], resume: bool) -> Result<Self> {
         let path = out.join(CELL_LOG);
         let mut done = HashMap::new();
+        // Lines under an earlier fingerprint, and the log with them carrying `config`.
+        let mut migrated = Vec::new();
+        let mut rewritten = String::new();
         if resume && path.exists() {
             let text = std::fs::read_to_string(&path)
                 .with_context(|| format!("reading {}", path.display()))?;
@@ -146,14 +185,26 @@ impl CellLog {
                     }
                     Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
                 };
-                if entry.config != config {
+                if earlier.contains(&entry.config) {
+                    migrated.push(entry.config.clone());
+                    let line = serde_json::to_string(&Entry {
+                        config: config.clone(),
+                        ..entry.clone()
+                    })?;
+                    rewritten.push_str(&line);
+                    rewritten.push('\n');
+                } else if entry.config != config {
                     bail!(
                         "--resume: {} holds cells of another config (fingerprint {}, this one \
-                         {config}); resume with the config it was evaluated with, or evaluate \
-                         into a new directory",
+                         {config}); resume with the config it was evaluated with (a log \
+                         written before the fingerprint left out the checkpoint directory \
+                         also needs the same --checkpoint), or evaluate into a new directory",
                         path.display(),
                         entry.config
                     );
+                } else {
+                    rewritten.push_str(line);
+                    rewritten.push('\n');
                 }
                 kept.push_str(line);
                 kept.push('\n');
@@ -162,8 +213,11 @@ impl CellLog {
             log_line(&format!(
                 "{}: {} cells measured earlier are reused",
                 path.display(),
-                done.len()
+                done.len(),
             ));
+            if let Some(old) = migrated.first() {
+                migrate(&path, old, &kept, &rewritten, migrated.len())?;
+            }
         } else if path.exists() {
             bail!(
                 "{} exists: continue that evaluation with --resume, or choose another --out",
@@ -217,6 +271,35 @@ impl CellLog {
         done.insert(entry.key, (successes, overruns));
         Ok(())
     }
+}
+
+/// Rewrite the cell log at `path` (whose text is `before`) as `after`, the same cells with
+/// `count` of them moved from the earlier fingerprint `old` to this config's, once: the log
+/// as it was is kept beside it as `cells.jsonl.<old>` (never overwritten), and the new text
+/// replaces the log in one rename. From then on the log can be resumed from any checkpoint
+/// directory.
+fn migrate(path: &Path, old: &str, before: &str, after: &str, count: usize) -> Result<()> {
+    let keep = path.with_file_name(format!("{CELL_LOG}.{old}"));
+    if keep.exists() {
+        bail!(
+            "{} holds cells under the earlier fingerprint {old}, but {} exists already: \
+             move it away and resume again",
+            path.display(),
+            keep.display()
+        );
+    }
+    std::fs::write(&keep, before).with_context(|| format!("writing {}", keep.display()))?;
+    let tmp = path.with_file_name(format!("{CELL_LOG}.migrating"));
+    std::fs::write(&tmp, after).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("replacing {}", path.display()))?;
+    log_line(&format!(
+        "{}: {count} cells were logged under this config's earlier fingerprint {old} (which \
+         also hashed the checkpoint directory) and now carry its fingerprint; the log as it \
+         was is kept as {}",
+        path.display(),
+        keep.display()
+    ));
+    Ok(())
 }
 
 /// The cell log of an evaluation and the checkpoint each policy × seed runs (its key).
@@ -583,17 +666,17 @@ mod tests {
     #[test]
     fn the_cell_log_keeps_cells_across_runs_of_the_same_config_only() {
         let dir = tmp("cell-log");
-        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap();
         assert!(log.is_empty());
         log.record(key("sync flow", Some(1), 0), 7, 2).unwrap();
         log.record(key("πR² async", None, 0), 9, 0).unwrap();
         drop(log);
         // Without --resume an existing log is refused by name; nothing is changed.
         let before = std::fs::read_to_string(dir.join(CELL_LOG)).unwrap();
-        let e = CellLog::open(&dir, "aaaa".into(), false).unwrap_err();
+        let e = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap_err();
         assert!(e.to_string().contains("--resume"), "{e}");
         // Resumed with the same config: both cells, keyed exactly.
-        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], true).unwrap();
         assert_eq!(log.len(), 2);
         assert_eq!(log.get(&key("sync flow", Some(1), 0)), Some((7, 2)));
         assert_eq!(log.get(&key("sync flow", Some(2), 0)), None);
@@ -604,7 +687,7 @@ mod tests {
         assert_eq!(log.get(&other_ckpt), None);
         drop(log);
         // Another config: one error naming the file; the log is untouched.
-        let e = CellLog::open(&dir, "bbbb".into(), true).unwrap_err();
+        let e = CellLog::open(&dir, "bbbb".into(), &[], true).unwrap_err();
         assert!(e.to_string().contains(CELL_LOG), "{e}");
         assert_eq!(std::fs::read_to_string(dir.join(CELL_LOG)).unwrap(), before);
         std::fs::remove_dir_all(&dir).unwrap();
@@ -627,7 +710,7 @@ mod tests {
         assert_eq!(e.key, key("sync flow", Some(1), 0));
         // A batched cell of the same checkpoint, row and column is another cell.
         let dir = tmp("cell-log-batched");
-        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap();
         log.record(key("sync flow", Some(1), 0), 7, 0).unwrap();
         let mut batched = key("sync flow", Some(1), 0);
         batched.eval = EvalPath::Batched(32).cell_tag();
@@ -640,7 +723,7 @@ mod tests {
         assert_eq!(log.get(&batched), None);
         log.record(batched.clone(), 9, 0).unwrap();
         drop(log);
-        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], true).unwrap();
         assert_eq!(log.get(&key("sync flow", Some(1), 0)), Some((7, 0)));
         assert_eq!(log.get(&batched), Some((9, 0)));
         std::fs::remove_dir_all(&dir).unwrap();
@@ -649,23 +732,105 @@ mod tests {
     #[test]
     fn a_last_line_cut_short_is_dropped_and_a_bad_line_elsewhere_is_an_error() {
         let dir = tmp("cell-log-cut");
-        let log = CellLog::open(&dir, "aaaa".into(), false).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap();
         log.record(key("sync flow", Some(1), 0), 7, 0).unwrap();
         drop(log);
         let path = dir.join(CELL_LOG);
         let whole = std::fs::read_to_string(&path).unwrap();
         std::fs::write(&path, format!("{whole}{}", &whole[..whole.len() / 2])).unwrap();
-        let log = CellLog::open(&dir, "aaaa".into(), true).unwrap();
+        let log = CellLog::open(&dir, "aaaa".into(), &[], true).unwrap();
         assert_eq!(log.len(), 1);
         assert_eq!(std::fs::read_to_string(&path).unwrap(), whole);
         // Appending after the repair keeps one cell per line.
         log.record(key("sync flow", Some(2), 0), 3, 0).unwrap();
         drop(log);
-        assert_eq!(CellLog::open(&dir, "aaaa".into(), true).unwrap().len(), 2);
+        assert_eq!(
+            CellLog::open(&dir, "aaaa".into(), &[], true).unwrap().len(),
+            2
+        );
         std::fs::write(&path, format!("not json\n{whole}")).unwrap();
-        let e = CellLog::open(&dir, "aaaa".into(), true).unwrap_err();
+        let e = CellLog::open(&dir, "aaaa".into(), &[], true).unwrap_err();
         assert!(e.to_string().contains("line 1"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn cells_logged_under_an_earlier_fingerprint_are_migrated_once_and_the_old_log_kept() {
+        let dir = tmp("cell-log-earlier");
+        let log = CellLog::open(&dir, "old0".into(), &[], false).unwrap();
+        log.record(key("sync flow", Some(1), 0), 7, 2).unwrap();
+        log.record(key("sync flow", Some(2), 0), 5, 0).unwrap();
+        drop(log);
+        let path = dir.join(CELL_LOG);
+        let before = std::fs::read_to_string(&path).unwrap();
+        // Without the earlier fingerprint the log is another config's; nothing changes.
+        let e = CellLog::open(&dir, "new0".into(), &[], true).unwrap_err();
+        assert!(e.to_string().contains("--checkpoint"), "{e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), before);
+        // With it, the cells are reused, the log now carries the new fingerprint on every
+        // line, and the log as it was is kept beside it.
+        let earlier = ["old0".to_string()];
+        let log = CellLog::open(&dir, "new0".into(), &earlier, true).unwrap();
+        assert_eq!(log.get(&key("sync flow", Some(1), 0)), Some((7, 2)));
+        assert_eq!(log.get(&key("sync flow", Some(2), 0)), Some((5, 0)));
+        assert_eq!(
+            std::fs::read_to_string(dir.join("cells.jsonl.old0")).unwrap(),
+            before
+        );
+        assert_eq!(
+            std::fs::read_to_string(&path).unwrap(),
+            before.replace(r#""config":"old0""#, r#""config":"new0""#)
+        );
+        log.record(key("sync flow", Some(3), 0), 3, 0).unwrap();
+        drop(log);
+        // Migrated: it opens without the earlier fingerprint (from any checkpoint directory).
+        let log = CellLog::open(&dir, "new0".into(), &[], true).unwrap();
+        assert_eq!(log.len(), 3);
+        drop(log);
+        // A kept log is never overwritten: a second migration into it is refused by name.
+        std::fs::write(&path, &before).unwrap();
+        let e = CellLog::open(&dir, "new0".into(), &earlier, true).unwrap_err();
+        assert!(e.to_string().contains("cells.jsonl.old0"), "{e}");
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), before);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_checkpoint_directory_left_the_fingerprint_and_its_earlier_value_is_kept() {
+        #[derive(Serialize)]
+        struct C {
+            episodes: usize,
+            pretrained: Option<String>,
+            train_missing: bool,
+        }
+        let at = |p: Option<&str>, train_missing| C {
+            episodes: 100,
+            pretrained: p.map(Into::into),
+            train_missing,
+        };
+        let f = |c: &C| config_fingerprint(c).unwrap();
+        let before = |c: &C| earlier_config_fingerprints(c).unwrap();
+        // Where the checkpoints lie, and whether missing ones may be trained, change nothing.
+        assert_eq!(f(&at(Some("runs/a"), false)), f(&at(Some("runs/b"), true)));
+        assert_eq!(f(&at(Some("runs/a"), false)), f(&at(None, false)));
+        // The earlier fingerprint hashed the path (and knew no `train_missing`): one per path.
+        #[derive(Serialize)]
+        struct Old {
+            episodes: usize,
+            pretrained: Option<String>,
+        }
+        let old = config_fingerprint(&Old {
+            episodes: 100,
+            pretrained: None,
+        })
+        .unwrap();
+        assert_eq!(before(&at(None, true)), Vec::<String>::new());
+        assert_eq!(f(&at(None, true)), old);
+        let a = before(&at(Some("runs/a"), true));
+        assert_eq!(a.len(), 1);
+        assert_ne!(a, before(&at(Some("runs/b"), false)));
+        assert_eq!(a, before(&at(Some("runs/a"), false)));
+        assert_ne!(a[0], f(&at(Some("runs/a"), false)));
     }
 
     #[test]

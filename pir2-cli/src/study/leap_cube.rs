@@ -94,8 +94,14 @@ pub struct LeapStudyConfig {
     pub batch_episodes: usize,
     /// Directory of trained policies (`<policy>-seed<s>/best`, as written by
     /// [`train_policies`] / `pir2 train leap-cube` or an earlier study's `checkpoints/`):
-    /// policies found there are loaded instead of trained.
+    /// policies found there are loaded instead of trained. A listed policy missing there is
+    /// an error naming its run directory, unless [`train_missing`](Self::train_missing).
     pub pretrained: Option<String>,
+    /// With [`pretrained`](Self::pretrained): train a listed policy missing there (into the
+    /// study's `--out`) instead of refusing. Off by default, so that a mistyped path or an
+    /// unfinished run does not start hours of training unasked (`pir2 eval leap-cube
+    /// --train-missing`).
+    pub train_missing: bool,
     /// Policies whose rows are run (all four by default; rows of the others are skipped).
     /// Add `pir2_zero_delay` to train the `d_max = 0` πR² variant of the horizon study.
     pub policies: Vec<Policy>,
@@ -157,6 +163,7 @@ impl Default for LeapStudyConfig {
             threads: 2,
             batch_episodes: 1,
             pretrained: None,
+            train_missing: false,
             policies: POLICIES.to_vec(),
             delays: DelayLaw::Exponential { rate: 1.0 },
             pir2_d_max: 5,
@@ -383,6 +390,7 @@ impl Task for LeapCubeTask {
         );
         Settings {
             pretrained: c.pretrained.as_ref().map(Into::into),
+            train_missing: c.train_missing,
             // Success rates over 20 episodes tie often; the later checkpoint wins a tie.
             later_ties: true,
             best_of_last: c.best_of_last,

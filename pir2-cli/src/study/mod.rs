@@ -63,6 +63,9 @@ pub struct Settings {
     pub batch_episodes: usize,
     /// Directory of trained policies (`<policy>-seed<s>/best`) loaded instead of trained.
     pub pretrained: Option<PathBuf>,
+    /// With `pretrained`: train the policies missing there instead of refusing them
+    /// ([`pipeline::train_all`]).
+    pub train_missing: bool,
     /// A checkpoint whose validation score ties the best so far replaces it (the later step
     /// wins); `false` keeps the first.
     pub later_ties: bool,
@@ -98,6 +101,7 @@ impl Settings {
             threads,
             batch_episodes: 1,
             pretrained: None,
+            train_missing: false,
             later_ties: false,
             best_of_last: 0,
         }

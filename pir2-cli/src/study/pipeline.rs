@@ -21,8 +21,8 @@ use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
 use pir2_sim::dataset::Episode;
 
 pub use super::evaluate::{
-    chosen_checkpoint, config_fingerprint, evaluate, evaluate_best_per_cell, last_step_checkpoints,
-    total_episodes, trained_dir, CellLog, Logged,
+    chosen_checkpoint, config_fingerprint, earlier_config_fingerprints, evaluate,
+    evaluate_best_per_cell, last_step_checkpoints, total_episodes, trained_dir, CellLog, Logged,
 };
 use super::evaluate::{fnv1a, FNV_OFFSET};
 use super::{Policy, Scores, Settings, Study, StudyResult, Task};
@@ -418,9 +418,40 @@ where
     Ok(out.into_iter().map(|t| t.expect("every job ran")).collect())
 }
 
+/// With the settings' `pretrained` and without `train_missing`: an error naming every
+/// `policy × seed` of `policies` × the settings' seeds whose run in `pretrained` has no
+/// chosen checkpoint (`<policy>-seed<s>/best`), instead of training it unasked. A mistyped
+/// `--checkpoint` or an evaluation started before its runs finished would otherwise start
+/// hours of training into the study's output directory.
+pub fn refuse_missing_pretrained(s: &Settings, policies: &[Policy]) -> Result<()> {
+    let Some(dir) = s.pretrained.as_deref().filter(|_| !s.train_missing) else {
+        return Ok(());
+    };
+    let missing: Vec<String> = s
+        .seeds
+        .iter()
+        .flat_map(|&seed| policies.iter().map(move |&p| policy_dir(p, seed)))
+        .filter(|run| !dir.join(run).join("best").is_dir())
+        .collect();
+    if !missing.is_empty() {
+        bail!(
+            "{} holds no trained {} (no `best/` checkpoint); finish {} with `pir2 train … \
+             --out {}`, list only trained policies and seeds in the config, or train {} into \
+             this study's output with --train-missing",
+            dir.display(),
+            missing.join(", "),
+            if missing.len() == 1 { "it" } else { "them" },
+            dir.display(),
+            if missing.len() == 1 { "it" } else { "them" },
+        );
+    }
+    Ok(())
+}
+
 /// Train (or load from the settings' `pretrained`) every policy × seed on the worker
 /// threads; each trained policy's run goes to `ckpt_root/<policy>-seed<s>/` and its chosen
-/// checkpoint to `.../best`.
+/// checkpoint to `.../best`. A run missing from `pretrained` is trained only with the
+/// settings' `train_missing` ([`refuse_missing_pretrained`]).
 pub fn train_all<T: Task>(
     task: &T,
     demos: &[Episode],
@@ -429,6 +460,7 @@ pub fn train_all<T: Task>(
     resume: bool,
 ) -> Result<Vec<Trained>> {
     let s = task.settings();
+    refuse_missing_pretrained(&s, policies)?;
     let steps = task.optimiser().steps;
     let jobs: Vec<(Policy, u64)> = s
         .seeds
@@ -505,12 +537,19 @@ pub fn run<T: Task>(
     out: &Path,
     resume: bool,
 ) -> Result<StudyResult<T::Config>> {
+    // Before anything is loaded or written: a listed run missing from `pretrained`.
+    refuse_missing_pretrained(&task.settings(), &study.policies())?;
     if resume {
         std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     } else {
         prepare_out(out)?;
     }
-    let log = CellLog::open(out, config_fingerprint(task.config())?, resume)?;
+    let log = CellLog::open(
+        out,
+        config_fingerprint(task.config())?,
+        &earlier_config_fingerprints(task.config())?,
+        resume,
+    )?;
     let t0 = Instant::now();
     let mut timings = Vec::new();
     let demos = task.demonstrations(out)?;
@@ -784,7 +823,10 @@ impl ProgressMeter {
 
 #[cfg(test)]
 mod tests {
-    use super::{check_data, train_jobs, DataFingerprint, ProgressMeter};
+    use super::{
+        check_data, refuse_missing_pretrained, train_jobs, DataFingerprint, Policy, ProgressMeter,
+        Settings,
+    };
     use pir2_sim::dataset::Episode;
 
     #[test]
@@ -820,6 +862,35 @@ mod tests {
         std::fs::remove_file(&file).unwrap();
         check_data(&file, &demos(0.5), true).unwrap();
         assert_eq!(std::fs::read_to_string(&file).unwrap(), written);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_run_missing_from_the_trained_policies_is_refused_by_name_unless_asked() {
+        let dir = std::env::temp_dir().join(format!("pir2-pretrained-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("flow-seed0/best")).unwrap();
+        // An unfinished run: step checkpoints, no chosen one.
+        std::fs::create_dir_all(dir.join("rtc-seed0/step-002000")).unwrap();
+        let mut s = Settings::from_config(2, 15, &[0, 1], 10, 2, 2, 1);
+        let policies = [Policy::Flow, Policy::Rtc];
+        // Nothing pretrained: nothing to refuse.
+        refuse_missing_pretrained(&s, &policies).unwrap();
+        s.pretrained = Some(dir.clone());
+        let e = refuse_missing_pretrained(&s, &policies)
+            .unwrap_err()
+            .to_string();
+        for run in ["rtc-seed0", "flow-seed1", "rtc-seed1", "--train-missing"] {
+            assert!(e.contains(run), "{run}: {e}");
+        }
+        assert!(!e.contains("flow-seed0"), "{e}");
+        // Only the trained ones listed: fine.
+        s.seeds = vec![0];
+        refuse_missing_pretrained(&s, &[Policy::Flow]).unwrap();
+        // Asked to train what is missing: fine.
+        s.seeds = vec![0, 1];
+        s.train_missing = true;
+        refuse_missing_pretrained(&s, &policies).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
