@@ -249,6 +249,46 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         assert_eq!(resumed["best_per_cell"], result["best_per_cell"], "{study}");
     }
 
+    // A listed policy missing from --checkpoint (the zero-delay variant was not trained) is
+    // refused by name before anything runs; --train-missing trains it into --out.
+    let with_zero = dir.join("with-zero.toml");
+    std::fs::write(
+        &with_zero,
+        std::fs::read_to_string(&cfg).unwrap() + "policies = [\"flow\", \"pi_r2_zero_delay\"]\n",
+    )
+    .unwrap();
+    let zero_out = dir.join("horizon-zero");
+    let mut eval_zero = vec![
+        "eval",
+        "leap-cube",
+        "--study",
+        "horizon",
+        "--config",
+        s(&with_zero),
+        "--data",
+        s(&data),
+        "--checkpoint",
+        s(&trained),
+        "--out",
+        s(&zero_out),
+    ];
+    let o = pir2(&eval_zero);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("pir2zerodelay-seed0") && err.contains("--train-missing"),
+        "{err}"
+    );
+    assert!(!err.contains("flow-seed0"), "{err}");
+    assert!(!zero_out.exists(), "nothing is written");
+    eval_zero.push("--train-missing");
+    let out = ok(&eval_zero);
+    assert!(out.contains("zero-delay"), "{out}");
+    assert!(zero_out
+        .join("checkpoints/pir2zerodelay-seed0/best")
+        .exists());
+    assert!(!zero_out.join("checkpoints/flow-seed0").exists());
+
     // Ctrl-C during training saves the exact step reached (not only the last step
     // checkpoint); --resume continues from it.
     let long = dir.join("long.toml");
