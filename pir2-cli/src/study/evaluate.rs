@@ -288,9 +288,16 @@ fn migrate(path: &Path, old: &str, before: &str, after: &str, count: usize) -> R
             keep.display()
         );
     }
-    std::fs::write(&keep, before).with_context(|| format!("writing {}", keep.display()))?;
+    // Both files are on disk before the log is replaced, so a crash leaves either the old
+    // log or the new one, and the copy.
+    let write_synced = |p: &Path, text: &str| {
+        std::fs::File::create(p)
+            .and_then(|mut f| f.write_all(text.as_bytes()).and_then(|()| f.sync_all()))
+            .with_context(|| format!("writing {}", p.display()))
+    };
+    write_synced(&keep, before)?;
     let tmp = path.with_file_name(format!("{CELL_LOG}.migrating"));
-    std::fs::write(&tmp, after).with_context(|| format!("writing {}", tmp.display()))?;
+    write_synced(&tmp, after)?;
     std::fs::rename(&tmp, path).with_context(|| format!("replacing {}", path.display()))?;
     log_line(&format!(
         "{}: {count} cells were logged under this config's earlier fingerprint {old} (which \
