@@ -161,8 +161,9 @@ impl CellLog {
     pub fn open(out: &Path, config: String, earlier: &[String], resume: bool) -> Result<Self> {
         let path = out.join(CELL_LOG);
         let mut done = HashMap::new();
-        // Lines under an earlier fingerprint, and the log with them carrying `config`.
-        let mut migrated = Vec::new();
+        // The earlier fingerprint met and how many lines carry it, and the log with those
+        // lines carrying `config`.
+        let mut migrated: Option<(String, usize)> = None;
         let mut rewritten = String::new();
         if resume && path.exists() {
             let text = std::fs::read_to_string(&path)
@@ -186,7 +187,7 @@ impl CellLog {
                     Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
                 };
                 if earlier.contains(&entry.config) {
-                    migrated.push(entry.config.clone());
+                    migrated.get_or_insert_with(|| (entry.config.clone(), 0)).1 += 1;
                     let line = serde_json::to_string(&Entry {
                         config: config.clone(),
                         ..entry.clone()
@@ -215,8 +216,8 @@ impl CellLog {
                 path.display(),
                 done.len(),
             ));
-            if let Some(old) = migrated.first() {
-                migrate(&path, old, &kept, &rewritten, migrated.len())?;
+            if let Some((old, count)) = &migrated {
+                migrate(&path, old, &kept, &rewritten, *count)?;
             }
         } else if path.exists() {
             bail!(

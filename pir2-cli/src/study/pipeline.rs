@@ -434,15 +434,13 @@ pub fn refuse_missing_pretrained(s: &Settings, policies: &[Policy]) -> Result<()
         .filter(|run| !dir.join(run).join("best").is_dir())
         .collect();
     if !missing.is_empty() {
+        let them = if missing.len() == 1 { "it" } else { "them" };
         bail!(
-            "{} holds no trained {} (no `best/` checkpoint); finish {} with `pir2 train … \
-             --out {}`, list only trained policies and seeds in the config, or train {} into \
-             this study's output with --train-missing",
-            dir.display(),
-            missing.join(", "),
-            if missing.len() == 1 { "it" } else { "them" },
-            dir.display(),
-            if missing.len() == 1 { "it" } else { "them" },
+            "{dir} holds no trained {runs} (no `best/` checkpoint); finish {them} with `pir2 \
+             train … --out {dir}`, list only trained policies and seeds in the config, or \
+             train {them} into this study's output with --train-missing",
+            dir = dir.display(),
+            runs = missing.join(", "),
         );
     }
     Ok(())
