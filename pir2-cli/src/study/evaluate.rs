@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use pir2_backends::candle::CandleModel;
 use pir2_runtime::{LockstepTiming, Mode};
 
-use super::pipeline::{closed_loop, log_line, EvalPath, Models, Trained};
+use super::pipeline::{closed_loop, log_line, write_atomically, EvalPath, Models, Trained};
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.
@@ -180,8 +180,7 @@ impl CellLog {
                             "{}: dropped a last line cut short by an interruption",
                             path.display()
                         ));
-                        std::fs::write(&path, &kept)
-                            .with_context(|| format!("rewriting {}", path.display()))?;
+                        write_atomically(&path, kept.as_bytes())?;
                         break;
                     }
                     Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
@@ -289,17 +288,10 @@ fn migrate(path: &Path, old: &str, before: &str, after: &str, count: usize) -> R
             keep.display()
         );
     }
-    // Both files are on disk before the log is replaced, so a crash leaves either the old
-    // log or the new one, and the copy.
-    let write_synced = |p: &Path, text: &str| {
-        std::fs::File::create(p)
-            .and_then(|mut f| f.write_all(text.as_bytes()).and_then(|()| f.sync_all()))
-            .with_context(|| format!("writing {}", p.display()))
-    };
-    write_synced(&keep, before)?;
-    let tmp = path.with_file_name(format!("{CELL_LOG}.migrating"));
-    write_synced(&tmp, after)?;
-    std::fs::rename(&tmp, path).with_context(|| format!("replacing {}", path.display()))?;
+    // The copy is on disk before the log is replaced, so a crash leaves either the old log
+    // or the new one, and the copy.
+    write_atomically(&keep, before.as_bytes())?;
+    write_atomically(path, after.as_bytes())?;
     log_line(&format!(
         "{}: {count} cells were logged under this config's earlier fingerprint {old} (which \
          also hashed the checkpoint directory) and now carry its fingerprint; the log as it \

@@ -5,6 +5,7 @@
 //! There is one closed loop ([`closed_loop`]); what runs the action head comes from a
 //! [`Models`] factory: a local candle model, or a remote one (`pir2 eval --remote`).
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
@@ -63,11 +64,14 @@ pub fn prepare_out(out: &Path) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
 }
 
-/// Write `bytes` to `path` through a temporary file and a rename, so an interrupted write
-/// never leaves a truncated file.
+/// Write `bytes` to `path` through a temporary file, synced to disk, and a rename, so an
+/// interrupted write or a crash leaves either the old file or the new one, never a truncated
+/// one.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::File::create(&tmp)
+        .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
+        .with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
