@@ -248,7 +248,9 @@ enum Cmd {
         out: Option<PathBuf>,
         /// leap-cube: continue an interrupted evaluation in --out with the same config: the
         /// cells in its `cells.jsonl` are reused, the rest are measured (the config's seed
-        /// list may grow, e.g. from a one-seed table to three seeds).
+        /// list may grow, e.g. from a one-seed table to three seeds). SIGINT or SIGTERM ends an
+        /// evaluation after the cell being measured (a second signal at once); every finished
+        /// cell is in the log.
         #[arg(long)]
         resume: bool,
         /// Unit delays.

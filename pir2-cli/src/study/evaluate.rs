@@ -14,6 +14,7 @@
 use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use anyhow::{bail, Context, Result};
@@ -308,12 +309,17 @@ pub struct Logged<'a> {
     pub log: &'a CellLog,
     /// The checkpoint `(policy, seed)` runs, e.g. [`chosen_checkpoint`].
     pub checkpoint: &'a dyn Fn(Policy, u64) -> String,
+    /// Once set (by SIGINT or SIGTERM, `crate::signals::stop_flag`), the evaluation ends
+    /// with an error before it measures another cell: the cells already measured are in the
+    /// log, so resuming measures only the rest. A cell being measured is finished first.
+    pub stop: Option<&'a AtomicBool>,
 }
 
 impl std::fmt::Debug for Logged<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Logged")
             .field("log", &self.log)
+            .field("stop", &self.stop)
             .finish_non_exhaustive()
     }
 }
@@ -385,6 +391,15 @@ pub fn evaluate<'m, T: Task>(
                         pb.inc(s.episodes as u64);
                         log_line(&format!("{what}: {}/{} (logged)", res.0, s.episodes));
                         return Ok(res);
+                    }
+                    if l.stop.is_some_and(|f| f.load(Ordering::SeqCst)) {
+                        bail!(
+                            "evaluation stopped by a signal before {what}: the {} cells \
+                             measured are kept in {}, and resuming in the same directory with \
+                             the same config measures only the rest",
+                            l.log.len(),
+                            l.log.path.display()
+                        );
                     }
                 }
                 let res = closed_loop(
@@ -496,7 +511,9 @@ pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
 /// the best success count of those and of `chosen` (the cells of the chosen checkpoints) is
 /// kept. It selects on the evaluation episodes themselves, so it is optimistic; the study
 /// reports it next to, never instead of, the chosen-checkpoint cells. With `log`, cells are
-/// reused from and kept in the cell log as in [`evaluate`].
+/// reused from and kept in the cell log as in [`evaluate`], and a set `stop` ends the
+/// evaluation before the next cell ([`Logged::stop`]).
+#[allow(clippy::too_many_arguments)]
 pub fn evaluate_best_per_cell<T: Task>(
     task: &T,
     study: &Study,
@@ -504,6 +521,7 @@ pub fn evaluate_best_per_cell<T: Task>(
     k: usize,
     chosen: &[Cell],
     log: Option<&CellLog>,
+    stop: Option<&AtomicBool>,
     pb: &ProgressBar,
 ) -> Result<Vec<Cell>> {
     let mut best = chosen.to_vec();
@@ -557,6 +575,7 @@ pub fn evaluate_best_per_cell<T: Task>(
         let logged = log.map(|log| Logged {
             log,
             checkpoint: &checkpoint,
+            stop,
         });
         let cells = evaluate(task, &sub, &|p, s| &find(p, s).2, logged.as_ref(), pb)?;
         for c in cells {
@@ -605,6 +624,78 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         dir
+    }
+
+    /// A set stop flag (SIGINT / SIGTERM) ends the evaluation before the first cell it would
+    /// measure, with one error naming the log; cells already in the log are still reused,
+    /// nothing is measured or logged after the flag, and a resumed run measures the rest.
+    #[test]
+    fn a_set_stop_flag_ends_the_evaluation_before_the_next_unlogged_cell() {
+        use super::super::ballplate::{BallPlateTask, DemoConfig};
+        use pir2_backends::{Config, Stats};
+
+        let task = BallPlateTask::new(DemoConfig {
+            episodes: 2,
+            seeds: vec![0],
+            d0s: vec![1, 2],
+            width: 16,
+            depth: 1,
+            ..DemoConfig::default()
+        });
+        let spec = task.spec();
+        let model = CandleModel::new(
+            Config {
+                spec,
+                model: task.model(Policy::PiR2),
+            },
+            Stats::identity(&spec),
+            0,
+        )
+        .unwrap();
+        let models = Models::local(&model).unwrap();
+        let row = task
+            .rows()
+            .into_iter()
+            .find(|r| r.policy == Policy::PiR2)
+            .unwrap();
+        let label = row.label.clone();
+        let study = Study::deployment(vec![row], &[1, 2]);
+        let dir = tmp("cell-log-stop");
+        let log = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap();
+        // The first cell is in the log already, with counts no measurement of 2 episodes
+        // could give (so reuse shows).
+        let first = CellKey {
+            checkpoint: "ckpt".into(),
+            label: label.clone(),
+            column: Some(1),
+            seed: 0,
+            episodes: 2,
+            eval: None,
+        };
+        log.record(first, 2, 77).unwrap();
+        let stop = AtomicBool::new(true);
+        let checkpoint = |_: Policy, _: u64| "ckpt".to_string();
+        let logged = Logged {
+            log: &log,
+            checkpoint: &checkpoint,
+            stop: Some(&stop),
+        };
+        let pb = ProgressBar::hidden();
+        let err = evaluate(&task, &study, &|_, _| &models, Some(&logged), &pb)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("stopped by a signal"), "{err}");
+        assert!(err.contains(&format!("{label} d0=2 seed 0")), "{err}");
+        assert!(err.contains(&log.path.display().to_string()), "{err}");
+        assert_eq!(log.len(), 1, "nothing measured after the stop");
+        assert_eq!(pb.position(), 2, "the logged cell was reused");
+        // Resumed (the flag clear): the logged cell is reused, the other measured.
+        stop.store(false, Ordering::SeqCst);
+        let cells = evaluate(&task, &study, &|_, _| &models, Some(&logged), &pb).unwrap();
+        assert_eq!(cells.len(), 2);
+        assert_eq!((cells[0].d0, cells[0].overruns), (1, 77));
+        assert_eq!(cells[1].d0, 2);
+        assert_eq!(log.len(), 2);
     }
 
     #[test]

@@ -532,7 +532,9 @@ pub fn train_all<T: Task>(
 /// table in `table.md` and `success-best-per-cell.png`). Every cell is appended to
 /// `out/cells.jsonl` as soon as it is measured; with `resume`, `out` is an interrupted run
 /// of the same config and its logged cells are reused ([`CellLog`]; the task's
-/// demonstrations must then not write into `out`).
+/// demonstrations must then not write into `out`). SIGINT or SIGTERM
+/// ([`crate::signals::stop_flag`]) ends the evaluation with an error before its next cell
+/// ([`Logged::stop`]).
 pub fn run<T: Task>(
     task: &T,
     study: &Study,
@@ -577,9 +579,12 @@ pub fn run<T: Task>(
         .map(|t| Ok((t.policy, t.seed, Models::local(&t.model)?)))
         .collect::<Result<Vec<_>>>()?;
     let checkpoint = |p, s| chosen_checkpoint(&trained_dir(&trained, p, s));
+    // SIGINT / SIGTERM end the evaluation between cells (the log keeps what was measured).
+    let stop = crate::signals::stop_flag();
     let logged = Logged {
         log: &log,
         checkpoint: &checkpoint,
+        stop: Some(&stop),
     };
     let cells = evaluate(
         task,
@@ -603,7 +608,16 @@ pub fn run<T: Task>(
             (k * total_episodes(task, study)) as u64,
             &format!("best checkpoint per cell (last {k})"),
         );
-        let best = evaluate_best_per_cell(task, study, &trained, k, &cells, Some(&log), &pb)?;
+        let best = evaluate_best_per_cell(
+            task,
+            study,
+            &trained,
+            k,
+            &cells,
+            Some(&log),
+            Some(&stop),
+            &pb,
+        )?;
         pb.finish();
         timings.push(("best per cell".to_string(), t3.elapsed().as_secs_f64()));
         best
