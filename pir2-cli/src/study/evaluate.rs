@@ -15,7 +15,7 @@ use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use anyhow::{bail, Context, Result};
 use indicatif::ProgressBar;
@@ -141,12 +141,14 @@ struct Entry {
 /// The cells a study's evaluation measured so far, kept in `out/cells.jsonl` (one JSON line
 /// per cell, appended and synced as soon as the cell is measured). Opened with `resume`, the
 /// cells of an earlier, interrupted run of the same config are reused instead of measured
-/// again.
+/// again. With a stop flag ([`CellLog::stop_on`]), an evaluation through the log ends
+/// before it measures another cell once the flag is set.
 #[derive(Debug)]
 pub struct CellLog {
     path: PathBuf,
     config: String,
     done: Mutex<HashMap<CellKey, (usize, u64)>>,
+    stop: Option<Arc<AtomicBool>>,
 }
 
 impl CellLog {
@@ -229,7 +231,22 @@ impl CellLog {
             path,
             config,
             done: Mutex::new(done),
+            stop: None,
         })
+    }
+
+    /// Once `flag` is set (by SIGINT or SIGTERM, `crate::signals::stop_flag`), an
+    /// evaluation through this log ends with an error before it measures another cell: the
+    /// cells already measured are in the log, so resuming measures only the rest. A cell
+    /// being measured is finished first, and logged cells are still reused.
+    pub fn stop_on(mut self, flag: Arc<AtomicBool>) -> Self {
+        self.stop = Some(flag);
+        self
+    }
+
+    /// Whether the stop flag is set.
+    fn stopped(&self) -> bool {
+        self.stop.as_ref().is_some_and(|f| f.load(Ordering::SeqCst))
     }
 
     /// Cells in the log.
@@ -305,21 +322,17 @@ fn migrate(path: &Path, old: &str, before: &str, after: &str, count: usize) -> R
 
 /// The cell log of an evaluation and the checkpoint each policy × seed runs (its key).
 pub struct Logged<'a> {
-    /// Where measured cells are kept and looked up.
+    /// Where measured cells are kept and looked up (and whose stop flag is polled before
+    /// each cell, [`CellLog::stop_on`]).
     pub log: &'a CellLog,
     /// The checkpoint `(policy, seed)` runs, e.g. [`chosen_checkpoint`].
     pub checkpoint: &'a dyn Fn(Policy, u64) -> String,
-    /// Once set (by SIGINT or SIGTERM, `crate::signals::stop_flag`), the evaluation ends
-    /// with an error before it measures another cell: the cells already measured are in the
-    /// log, so resuming measures only the rest. A cell being measured is finished first.
-    pub stop: Option<&'a AtomicBool>,
 }
 
 impl std::fmt::Debug for Logged<'_> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Logged")
             .field("log", &self.log)
-            .field("stop", &self.stop)
             .finish_non_exhaustive()
     }
 }
@@ -392,7 +405,7 @@ pub fn evaluate<'m, T: Task>(
                         log_line(&format!("{what}: {}/{} (logged)", res.0, s.episodes));
                         return Ok(res);
                     }
-                    if l.stop.is_some_and(|f| f.load(Ordering::SeqCst)) {
+                    if l.log.stopped() {
                         bail!(
                             "evaluation stopped by a signal before {what}: the {} cells \
                              measured are kept in {}, and resuming in the same directory with \
@@ -511,9 +524,8 @@ pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
 /// the best success count of those and of `chosen` (the cells of the chosen checkpoints) is
 /// kept. It selects on the evaluation episodes themselves, so it is optimistic; the study
 /// reports it next to, never instead of, the chosen-checkpoint cells. With `log`, cells are
-/// reused from and kept in the cell log as in [`evaluate`], and a set `stop` ends the
-/// evaluation before the next cell ([`Logged::stop`]).
-#[allow(clippy::too_many_arguments)]
+/// reused from and kept in the cell log as in [`evaluate`], and the log's stop flag ends the
+/// evaluation before the next cell ([`CellLog::stop_on`]).
 pub fn evaluate_best_per_cell<T: Task>(
     task: &T,
     study: &Study,
@@ -521,7 +533,6 @@ pub fn evaluate_best_per_cell<T: Task>(
     k: usize,
     chosen: &[Cell],
     log: Option<&CellLog>,
-    stop: Option<&AtomicBool>,
     pb: &ProgressBar,
 ) -> Result<Vec<Cell>> {
     let mut best = chosen.to_vec();
@@ -575,7 +586,6 @@ pub fn evaluate_best_per_cell<T: Task>(
         let logged = log.map(|log| Logged {
             log,
             checkpoint: &checkpoint,
-            stop,
         });
         let cells = evaluate(task, &sub, &|p, s| &find(p, s).2, logged.as_ref(), pb)?;
         for c in cells {
@@ -661,7 +671,10 @@ mod tests {
         let label = row.label.clone();
         let study = Study::deployment(vec![row], &[1, 2]);
         let dir = tmp("cell-log-stop");
-        let log = CellLog::open(&dir, "aaaa".into(), &[], false).unwrap();
+        let stop = Arc::new(AtomicBool::new(true));
+        let log = CellLog::open(&dir, "aaaa".into(), &[], false)
+            .unwrap()
+            .stop_on(stop.clone());
         // The first cell is in the log already, with counts no measurement of 2 episodes
         // could give (so reuse shows).
         let first = CellKey {
@@ -673,12 +686,10 @@ mod tests {
             eval: None,
         };
         log.record(first, 2, 77).unwrap();
-        let stop = AtomicBool::new(true);
         let checkpoint = |_: Policy, _: u64| "ckpt".to_string();
         let logged = Logged {
             log: &log,
             checkpoint: &checkpoint,
-            stop: Some(&stop),
         };
         let pb = ProgressBar::hidden();
         let err = evaluate(&task, &study, &|_, _| &models, Some(&logged), &pb)

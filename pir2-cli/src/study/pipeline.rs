@@ -534,7 +534,7 @@ pub fn train_all<T: Task>(
 /// of the same config and its logged cells are reused ([`CellLog`]; the task's
 /// demonstrations must then not write into `out`). SIGINT or SIGTERM
 /// ([`crate::signals::stop_flag`]) ends the evaluation with an error before its next cell
-/// ([`Logged::stop`]).
+/// ([`CellLog::stop_on`]).
 pub fn run<T: Task>(
     task: &T,
     study: &Study,
@@ -579,12 +579,12 @@ pub fn run<T: Task>(
         .map(|t| Ok((t.policy, t.seed, Models::local(&t.model)?)))
         .collect::<Result<Vec<_>>>()?;
     let checkpoint = |p, s| chosen_checkpoint(&trained_dir(&trained, p, s));
-    // SIGINT / SIGTERM end the evaluation between cells (the log keeps what was measured).
-    let stop = crate::signals::stop_flag();
+    // SIGINT / SIGTERM end the evaluation between cells (the log keeps what was measured);
+    // the handlers are installed here, as training installs them, not during collection.
+    let log = log.stop_on(crate::signals::stop_flag());
     let logged = Logged {
         log: &log,
         checkpoint: &checkpoint,
-        stop: Some(&stop),
     };
     let cells = evaluate(
         task,
@@ -608,16 +608,7 @@ pub fn run<T: Task>(
             (k * total_episodes(task, study)) as u64,
             &format!("best checkpoint per cell (last {k})"),
         );
-        let best = evaluate_best_per_cell(
-            task,
-            study,
-            &trained,
-            k,
-            &cells,
-            Some(&log),
-            Some(&stop),
-            &pb,
-        )?;
+        let best = evaluate_best_per_cell(task, study, &trained, k, &cells, Some(&log), &pb)?;
         pb.finish();
         timings.push(("best per cell".to_string(), t3.elapsed().as_secs_f64()));
         best
