@@ -23,12 +23,9 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
-use crate::control::OutputMap;
 use crate::error::{Error, Result};
-use crate::head::HeadSpec;
 use crate::io::Environment;
-use crate::lockstep::{cell_episode, LockstepTiming};
-use crate::mode::Mode;
+use crate::lockstep::{cell_episode, StudyCell};
 use crate::model::{ModelInput, SlowInput, VelocityModel};
 
 /// The slow input's layout without its data.
@@ -258,24 +255,18 @@ fn run_round<M: VelocityModel + ?Sized>(
     Ok(answers)
 }
 
-/// [`crate::eval_cell`] with batched model calls: `episodes` episodes of one study cell
-/// (one mode, one timing) seeded from `seed` as there, run in consecutive groups of `group`
-/// episodes; the episodes of a group run side by side on threads of their own, and their
-/// calls are answered by `model` in rounds, one batched call per round (see the module
-/// docs). Returns the successes and the overrun ticks over all episodes.
+/// [`crate::eval_cell`] with batched model calls: the episodes of `cell`, seeded as there,
+/// run in consecutive groups of `group` episodes; the episodes of a group run side by side
+/// on threads of their own, and their calls are answered by `model` in rounds, one batched
+/// call per round (see the module docs). Returns the successes and the overrun ticks over
+/// all episodes.
 ///
 /// `make_env` is called once per episode. The result does not depend on thread timing; it
 /// depends on `group` (the batches' composition) and on the model's batched arithmetic.
-#[allow(clippy::too_many_arguments)]
 pub fn eval_cell_batched<E, M, FE>(
     make_env: &FE,
     model: &mut M,
-    spec: HeadSpec,
-    mode: &Mode,
-    timing: LockstepTiming,
-    output: &OutputMap,
-    episodes: usize,
-    seed: u64,
+    cell: &StudyCell<'_>,
     group: usize,
     progress: &(dyn Fn() + Sync),
 ) -> Result<(usize, u64)>
@@ -284,6 +275,7 @@ where
     M: VelocityModel + ?Sized,
     FE: Fn() -> E + Sync,
 {
+    let episodes = cell.episodes;
     let group = group.clamp(1, episodes.max(1));
     let mut total = (0usize, 0u64);
     let mut start = 0;
@@ -302,8 +294,7 @@ where
                         let mut env = make_env();
                         // The proxy lives in the episode's head and is dropped with it,
                         // on success, error or panic alike.
-                        let r =
-                            cell_episode(proxy, &mut env, spec, mode, timing, output, seed, ep)?;
+                        let r = cell_episode(proxy, &mut env, cell, ep)?;
                         progress();
                         Ok((r.success, r.metrics.overruns))
                     })

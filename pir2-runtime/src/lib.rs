@@ -45,7 +45,7 @@ pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,
     SlowFrames, SlowSource, View, Views,
 };
-pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming};
+pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming, StudyCell};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};
 pub use mode::{EffectiveDelays, Mode};
 pub use model::{ModelInput, SlowInput, SlowSpec, VelocityModel};

@@ -252,41 +252,57 @@ impl LockstepDriver {
     }
 }
 
-/// Episode `ep` of a study cell seeded from `seed`: a fresh head around `model` (its seeds
-/// derived from `(seed, ep)`, `d` from a fresh latency window) driven through `env`. Shared
-/// by [`eval_cell`] and [`crate::eval_cell_batched`], so both run an episode the same way.
-#[allow(clippy::too_many_arguments)]
+/// One study cell as each of its episodes runs: the action head's spec, the mode and the
+/// timing it runs under, the map from its actions to the environment's, and how many
+/// episodes are run with seeds derived from which seed ([`eval_cell`],
+/// [`crate::eval_cell_batched`]).
+#[derive(Debug, Clone, Copy)]
+pub struct StudyCell<'a> {
+    /// The action head every episode builds.
+    pub head: HeadSpec,
+    /// How the head is run.
+    pub mode: Mode,
+    /// The timing injected into every episode.
+    pub timing: LockstepTiming,
+    /// From the head's actions to the environment's.
+    pub output: &'a OutputMap,
+    /// Episodes in the cell.
+    pub episodes: usize,
+    /// Episode `ep`'s seeds derive from `(seed, ep)`.
+    pub seed: u64,
+}
+
+/// Episode `ep` of `cell`: a fresh head around `model` (its seeds derived from
+/// `(cell.seed, ep)`, `d` from a fresh latency window) driven through `env`. Shared by
+/// [`eval_cell`] and [`crate::eval_cell_batched`], so both run an episode the same way.
 pub(crate) fn cell_episode<E: Environment, M: VelocityModel>(
     model: M,
     env: &mut E,
-    spec: HeadSpec,
-    mode: &Mode,
-    timing: LockstepTiming,
-    output: &OutputMap,
-    seed: u64,
+    cell: &StudyCell<'_>,
     ep: usize,
 ) -> Result<EpisodeResult> {
-    let ep_seed = Rng::derive(seed, ep as u64).next_u64();
+    let spec = cell.head;
+    let ep_seed = Rng::derive(cell.seed, ep as u64).next_u64();
     let window = LatencyWindow::new(20, 0, spec.period, spec.d_max);
-    let mut head = ActionHead::new(model, spec, mode.head_mode(10), window, ep_seed ^ 0xA5A5)?;
-    let mut drv = LockstepDriver::new(&head).with_output(output.clone());
-    drv.run_episode(env, &mut head, mode, timing, ep_seed, |_, _| {})
+    let mut head = ActionHead::new(
+        model,
+        spec,
+        cell.mode.head_mode(10),
+        window,
+        ep_seed ^ 0xA5A5,
+    )?;
+    let mut drv = LockstepDriver::new(&head).with_output(cell.output.clone());
+    drv.run_episode(env, &mut head, &cell.mode, cell.timing, ep_seed, |_, _| {})
 }
 
-/// Run `episodes` episodes of one study cell (one mode, one timing) in parallel on
-/// `threads` threads; returns the successes and the overrun ticks over all episodes. Every episode
-/// gets its own environment, head and seeds derived from `(seed, episode)`, so the result
-/// does not depend on the thread count.
-#[allow(clippy::too_many_arguments)]
+/// Run the episodes of `cell` in parallel on `threads` threads; returns the successes and
+/// the overrun ticks over all episodes. Every episode gets its own environment, head and
+/// seeds derived from `(cell.seed, episode)`, so the result does not depend on the thread
+/// count.
 pub fn eval_cell<E, M, FE, FM>(
     make_env: &FE,
     make_model: &FM,
-    spec: HeadSpec,
-    mode: &Mode,
-    timing: LockstepTiming,
-    output: &OutputMap,
-    episodes: usize,
-    seed: u64,
+    cell: &StudyCell<'_>,
     threads: usize,
     progress: &(dyn Fn() + Sync),
 ) -> Result<(usize, u64)>
@@ -296,6 +312,7 @@ where
     FE: Fn() -> E + Sync,
     FM: Fn() -> M + Sync,
 {
+    let episodes = cell.episodes;
     let threads = threads.clamp(1, episodes.max(1));
     let results: Vec<Result<(usize, u64)>> = std::thread::scope(|s| {
         let handles: Vec<_> = (0..threads)
@@ -305,16 +322,7 @@ where
                     let (mut ok, mut overruns) = (0, 0);
                     let mut ep = w;
                     while ep < episodes {
-                        let r = cell_episode(
-                            make_model(),
-                            &mut env,
-                            spec,
-                            mode,
-                            timing,
-                            output,
-                            seed,
-                            ep,
-                        )?;
+                        let r = cell_episode(make_model(), &mut env, cell, ep)?;
                         ok += r.success as usize;
                         overruns += r.metrics.overruns;
                         progress();

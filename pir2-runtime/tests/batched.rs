@@ -175,16 +175,25 @@ fn within_a_minute<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) ->
     }
 }
 
+/// `episodes` episodes of `mode` from seed 11 (the head from [`spec`], the lock-step timing
+/// of a call taking 2 ticks, no output map).
+fn cell(mode: Mode, episodes: usize, output: &OutputMap) -> StudyCell<'_> {
+    StudyCell {
+        head: spec(&mode),
+        mode,
+        timing: LockstepTiming::for_mode(&mode, 2),
+        output,
+        episodes,
+        seed: 11,
+    }
+}
+
 fn batched(mode: Mode, episodes: usize, group: usize, model: &mut Steer) -> Result<(usize, u64)> {
+    let output = OutputMap::default();
     eval_cell_batched(
         &Reach::default,
         model,
-        spec(&mode),
-        &mode,
-        LockstepTiming::for_mode(&mode, 2),
-        &OutputMap::default(),
-        episodes,
-        11,
+        &cell(mode, episodes, &output),
         group,
         &|| {},
     )
@@ -194,15 +203,11 @@ fn batched(mode: Mode, episodes: usize, group: usize, model: &mut Steer) -> Resu
 fn batched_cells_equal_batch_one_cells_for_a_row_independent_model() {
     within_a_minute(|| {
         for mode in modes() {
+            let output = OutputMap::default();
             let single = eval_cell(
                 &Reach::default,
                 &Steer::default,
-                spec(&mode),
-                &mode,
-                LockstepTiming::for_mode(&mode, 2),
-                &OutputMap::default(),
-                23,
-                11,
+                &cell(mode, 23, &output),
                 2,
                 &|| {},
             )
@@ -283,17 +288,12 @@ fn an_episode_panic_ends_the_cell_in_one_error_without_stalling_the_others() {
             panic_at: (made.fetch_add(1, Ordering::SeqCst) == 3).then_some(4),
             ..Default::default()
         };
-        let mode = modes()[0];
+        let output = OutputMap::default();
         let mut model = Steer::default();
         eval_cell_batched(
             &make_env,
             &mut model,
-            spec(&mode),
-            &mode,
-            LockstepTiming::for_mode(&mode, 2),
-            &OutputMap::default(),
-            9,
-            11,
+            &cell(modes()[0], 9, &output),
             9,
             &|| {},
         )
@@ -314,22 +314,11 @@ fn an_episode_error_ends_the_cell_without_stalling_the_others() {
             steps: 4,
             ensemble: None,
         };
-        let mut sp = spec(&mode);
-        sp.horizon = 0;
+        let output = OutputMap::default();
+        let mut bad = cell(mode, 6, &output);
+        bad.head.horizon = 0;
         let mut model = Steer::default();
-        eval_cell_batched(
-            &Reach::default,
-            &mut model,
-            sp,
-            &mode,
-            LockstepTiming::for_mode(&mode, 2),
-            &OutputMap::default(),
-            6,
-            11,
-            3,
-            &|| {},
-        )
-        .unwrap_err()
+        eval_cell_batched(&Reach::default, &mut model, &bad, 3, &|| {}).unwrap_err()
     });
     assert!(!err.to_string().is_empty());
 }

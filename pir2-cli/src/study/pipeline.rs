@@ -17,7 +17,7 @@ use pir2_backends::candle::{with_kernel_pool, CandleModel};
 use pir2_backends::config::Config;
 use pir2_backends::train::{compute_stats, Dataset, Progress, TrainConfig, Trainer};
 use pir2_runtime::batched::eval_cell_batched;
-use pir2_runtime::lockstep::eval_cell;
+use pir2_runtime::lockstep::{eval_cell, StudyCell};
 use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
 use pir2_sim::dataset::Episode;
 
@@ -216,33 +216,21 @@ pub fn closed_loop<T: Task>(
         task.make_env()
             .expect("the task's environment config is valid")
     };
-    let spec = head_spec(task, policy);
-    let out = &models.output;
+    let cell = StudyCell {
+        head: head_spec(task, policy),
+        mode: *mode,
+        timing,
+        output: &models.output,
+        episodes,
+        seed,
+    };
     Ok(match path {
-        EvalPath::Threads(threads) => eval_cell(
-            &make_env,
-            &|| (models.make)(),
-            spec,
-            mode,
-            timing,
-            out,
-            episodes,
-            seed,
-            threads,
-            progress,
-        )?,
-        EvalPath::Batched(group) => eval_cell_batched(
-            &make_env,
-            (models.make)().as_mut(),
-            spec,
-            mode,
-            timing,
-            out,
-            episodes,
-            seed,
-            group,
-            progress,
-        )?,
+        EvalPath::Threads(threads) => {
+            eval_cell(&make_env, &|| (models.make)(), &cell, threads, progress)?
+        }
+        EvalPath::Batched(group) => {
+            eval_cell_batched(&make_env, (models.make)().as_mut(), &cell, group, progress)?
+        }
     })
 }
 
