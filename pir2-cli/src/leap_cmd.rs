@@ -1,4 +1,4 @@
-//! Entry points of `pir2 collect|train|eval leap-cube`, compiled with or without the `mujoco`
+//! Entry points of `pir2 collect|train|eval|report leap-cube`, compiled with or without the `mujoco`
 //! feature: without it each returns one error saying to rebuild with `--features mujoco`, so
 //! `main.rs` needs no feature gates. The work itself lives in `crate::leap` (feature `mujoco`).
 
@@ -160,6 +160,47 @@ pub fn eval(study: &str, args: &LeapArgs, out: &Path, resume: bool) -> Result<()
     #[cfg(not(feature = "mujoco"))]
     {
         let _ = (study, args, out, resume);
+        anyhow::bail!(NEEDS_MUJOCO)
+    }
+}
+
+/// `pir2 report leap-cube --study deployment|horizon`: the study's tables from the cell log
+/// `cells` alone (`crate::study::report`), printed, and with `out` written there
+/// (`report.json`, `table.md`, plots); `partial` reports a log that lacks cells.
+pub fn report(
+    study: &str,
+    args: &LeapArgs,
+    cells: &Path,
+    out: Option<&Path>,
+    partial: bool,
+) -> Result<()> {
+    #[cfg(feature = "mujoco")]
+    {
+        use crate::study::report;
+        let task = crate::study::leap_cube::LeapCubeTask::new(load_config(args)?)?;
+        let s = match study {
+            "deployment" => task.deployment_study(),
+            "horizon" => task.horizon_study(),
+            other => anyhow::bail!("unknown study {other} (deployment or horizon)"),
+        };
+        let r = report::report(&task, &s, cells, partial)?;
+        println!(
+            "\nLeap cube, {} study from {} ({} episodes per cell, config {}):\n\n{}",
+            r.study,
+            cells.display(),
+            r.config.episodes,
+            r.fingerprint,
+            r.table()
+        );
+        if let Some(out) = out {
+            report::write_report(&task, &r, &s.x_label, out)?;
+            println!("wrote {}/report.json, table.md, success.png", out.display());
+        }
+        Ok(())
+    }
+    #[cfg(not(feature = "mujoco"))]
+    {
+        let _ = (study, args, cells, out, partial);
         anyhow::bail!(NEEDS_MUJOCO)
     }
 }

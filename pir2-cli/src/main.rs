@@ -17,6 +17,7 @@ use pir2_cli::commands::{
     self, CollectOptions, DemoOptions, Emulated, EvalOptions, RemoteOptions, TaskName, TrainOptions,
 };
 use pir2_cli::ep::EpOptions;
+use pir2_cli::leap_cmd::{self, LeapArgs};
 use pir2_cli::run::{self, RunOptions};
 use pir2_cli::serve::{self, ServeOptions, TlsOptions};
 use pir2_runtime::Policy;
@@ -282,6 +283,36 @@ enum Cmd {
         /// With --remote: mutual TLS for a `tls/…` endpoint.
         #[command(flatten)]
         tls: TlsArgs,
+    },
+    /// A study's tables from its cell log alone (`cells.jsonl` of `pir2 eval leap-cube`): the
+    /// chosen checkpoints and the best checkpoint per cell, mean ± std over the config's seeds
+    /// and per seed, as the evaluation computes them, without the checkpoints and without
+    /// simulating; the log is only read.
+    Report {
+        /// The task (leap-cube needs a build with `--features mujoco`).
+        #[arg(value_parser = ["leap-cube"])]
+        task: String,
+        /// Which study.
+        #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
+        study: String,
+        /// TOML config (fields of `LeapStudyConfig`): the rows, seeds and columns to report,
+        /// and the settings the cells were measured with.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Dataset directory (overrides the config's): the one the evaluation was given, since
+        /// the config's fingerprint, under which the cells are logged, includes it.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// The cell log.
+        #[arg(long)]
+        cells: PathBuf,
+        /// Also write `report.json`, `table.md` and the plots here (must not exist or be
+        /// empty).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Report what the log holds when cells are missing (listed), instead of refusing.
+        #[arg(long)]
+        partial: bool,
     },
     /// Run a policy stack on a robot (or its emulators).
     Run(Box<RunArgs>),
@@ -1062,6 +1093,25 @@ fn run() -> Result<()> {
             resume,
             train_missing,
         }),
+        Cmd::Report {
+            task: _,
+            study,
+            config,
+            data,
+            cells,
+            out,
+            partial,
+        } => leap_cmd::report(
+            &study,
+            &LeapArgs {
+                config: config.as_deref(),
+                data: data.as_deref(),
+                ..Default::default()
+            },
+            &cells,
+            out.as_deref(),
+            partial,
+        ),
         Cmd::Run(args) => run::run_command(&(*args).into(), ctrl_c_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd.into(), ctrl_c_flag()),
         Cmd::Plot { input, out } => commands::plot(&input, out.as_deref()),

@@ -24,6 +24,7 @@ fn leap_cube_without_the_feature_says_how_to_build() {
         vec!["collect", "leap-cube", "--out", s(&dir)],
         vec!["train", "leap-cube", "--data", s(&dir), "--out", s(&dir)],
         vec!["eval", "leap-cube", "--study", "horizon", "--out", s(&dir)],
+        vec!["report", "leap-cube", "--cells", s(&dir), "--out", s(&dir)],
     ] {
         let o = pir2(&args);
         assert!(!o.status.success(), "{args:?} should fail");
@@ -247,6 +248,54 @@ fn leap_cube_collect_train_eval_through_the_binary() {
                 .unwrap();
         assert_eq!(resumed["cells"], result["cells"], "{study}");
         assert_eq!(resumed["best_per_cell"], result["best_per_cell"], "{study}");
+
+        // The same tables from the cell log alone, without the checkpoints or the dataset.
+        let report_dir = dir.join(format!("{study}-report"));
+        let out = ok(&[
+            "report",
+            "leap-cube",
+            "--study",
+            study,
+            "--config",
+            s(&eval_cfg),
+            "--data",
+            s(&data),
+            "--cells",
+            s(&log_file),
+            "--out",
+            s(&report_dir),
+        ]);
+        assert!(out.contains(row) && out.contains("Per seed"), "{out}");
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(report_dir.join("report.json")).unwrap())
+                .unwrap();
+        assert_eq!(report["cells"], result["cells"], "{study}: from the log");
+        assert_eq!(
+            report["best_per_cell"], result["best_per_cell"],
+            "{study}: from the log"
+        );
+        assert_eq!(
+            report["missing"].as_array().map(Vec::len),
+            Some(0),
+            "{study}"
+        );
+        // A log without this config's cells (`other`: another step count) is refused.
+        let o = pir2(&[
+            "report",
+            "leap-cube",
+            "--study",
+            study,
+            "--config",
+            s(&other),
+            "--cells",
+            s(&log_file),
+        ]);
+        assert!(!o.status.success());
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains("holds no cell of this config"),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
     }
 
     // A listed policy missing from --checkpoint (the zero-delay variant was not trained) is

@@ -207,6 +207,25 @@ fn the_committed_study_config_is_the_papers_protocol() {
     }
 }
 
+/// The horizon study's config is the study config with its batched cells, nothing else.
+#[test]
+fn the_committed_horizon_config_is_the_study_config_batched() {
+    let read = |name: &str| -> LeapStudyConfig {
+        let path = format!("{}/../studies/leap-cube/{name}", env!("CARGO_MANIFEST_DIR"));
+        let text = std::fs::read_to_string(&path).expect("a committed study config");
+        toml::from_str(&text).expect("a valid study config")
+    };
+    let (study, horizon) = (read("study.toml"), read("horizon.toml"));
+    assert_eq!(study.batch_episodes, 1);
+    assert_eq!(
+        horizon,
+        LeapStudyConfig {
+            batch_episodes: 100,
+            ..study
+        }
+    );
+}
+
 #[test]
 fn diagnostic_rows_add_the_pir2_checkpoint_as_sync_flow_without_touching_other_cells() {
     use pir2_cli::study::evaluate::config_fingerprint;

@@ -92,3 +92,45 @@ pub fn table_keyed(cells: &[Cell], labels: &[String], columns: &[usize], key: &s
     }
     out
 }
+
+/// A Markdown table of each seed's success rate: one row per label, one column per value of
+/// `columns` (named `key=`), holding the rates of `seeds` in that order as `a / b / c`, `–`
+/// for a seed without the cell.
+pub fn per_seed_table(
+    cells: &[Cell],
+    labels: &[String],
+    columns: &[usize],
+    key: &str,
+    seeds: &[u64],
+) -> String {
+    let names: Vec<String> = seeds.iter().map(u64::to_string).collect();
+    let mut out = format!("| policy / mode (seeds {}) |", names.join(" / "));
+    for c in columns {
+        out += &format!(" {key}={c} |");
+    }
+    out += "\n|---|";
+    for _ in columns {
+        out += "---|";
+    }
+    out += "\n";
+    for l in labels {
+        if !cells.iter().any(|c| &c.label == l) {
+            continue;
+        }
+        out += &format!("| {l} |");
+        for &col in columns {
+            let rates: Vec<String> = seeds
+                .iter()
+                .map(|&s| {
+                    cells
+                        .iter()
+                        .find(|c| &c.label == l && c.d0 == col && c.seed == s)
+                        .map_or_else(|| "–".to_string(), |c| format!("{:.2}", c.rate()))
+                })
+                .collect();
+            out += &format!(" {} |", rates.join(" / "));
+        }
+        out += "\n";
+    }
+    out
+}

@@ -114,28 +114,44 @@ fn weights_tag(dir: &Path) -> String {
 
 /// What identifies a measured cell besides the config.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
-struct CellKey {
+pub(crate) struct CellKey {
     /// The checkpoint that ran (see [`chosen_checkpoint`]).
-    checkpoint: String,
-    label: String,
+    pub(crate) checkpoint: String,
+    pub(crate) label: String,
     /// The column; `None` for a row measured once for every column.
-    column: Option<usize>,
-    seed: u64,
-    episodes: usize,
+    pub(crate) column: Option<usize>,
+    pub(crate) seed: u64,
+    pub(crate) episodes: usize,
     /// How the cell ran when not batch-1 ([`EvalPath::cell_tag`]); absent for batch-1 cells,
     /// so logs written before batched evaluation existed keep their keys.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    eval: Option<String>,
+    pub(crate) eval: Option<String>,
 }
 
 /// One line of the cell log.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-struct Entry {
-    config: String,
+pub(crate) struct Entry {
+    pub(crate) config: String,
     #[serde(flatten)]
-    key: CellKey,
-    successes: usize,
-    overruns: u64,
+    pub(crate) key: CellKey,
+    pub(crate) successes: usize,
+    pub(crate) overruns: u64,
+}
+
+/// The cells of the log text `text` (read from `path`), each with its line, and whether a
+/// last line cut short by an interruption (only ever the last line, and only without its
+/// newline) was left out. Any other line that is not a cell is an error naming it.
+pub(crate) fn parse_log<'t>(text: &'t str, path: &Path) -> Result<(Vec<(Entry, &'t str)>, bool)> {
+    let lines: Vec<&str> = text.split_terminator('\n').collect();
+    let mut entries = Vec::with_capacity(lines.len());
+    for (i, line) in lines.iter().enumerate() {
+        match serde_json::from_str::<Entry>(line) {
+            Ok(e) => entries.push((e, *line)),
+            Err(_) if i + 1 == lines.len() && !text.ends_with('\n') => return Ok((entries, true)),
+            Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
+        }
+    }
+    Ok((entries, false))
 }
 
 /// The cells a study's evaluation measured so far, kept in `out/cells.jsonl` (one JSON line
@@ -171,23 +187,9 @@ impl CellLog {
         if resume && path.exists() {
             let text = std::fs::read_to_string(&path)
                 .with_context(|| format!("reading {}", path.display()))?;
-            let lines: Vec<&str> = text.split_terminator('\n').collect();
+            let (entries, cut) = parse_log(&text, &path)?;
             let mut kept = String::new();
-            for (i, line) in lines.iter().enumerate() {
-                let entry = match serde_json::from_str::<Entry>(line) {
-                    Ok(e) => e,
-                    // A write cut short by a crash or a kill: only ever the last line, and
-                    // only without its newline.
-                    Err(_) if i + 1 == lines.len() && !text.ends_with('\n') => {
-                        log_line(&format!(
-                            "{}: dropped a last line cut short by an interruption",
-                            path.display()
-                        ));
-                        write_atomically(&path, kept.as_bytes())?;
-                        break;
-                    }
-                    Err(e) => bail!("{} line {}: not a study cell: {e}", path.display(), i + 1),
-                };
+            for (entry, line) in entries {
                 if earlier.contains(&entry.config) {
                     migrated.get_or_insert_with(|| (entry.config.clone(), 0)).1 += 1;
                     let line = serde_json::to_string(&Entry {
@@ -212,6 +214,13 @@ impl CellLog {
                 kept.push_str(line);
                 kept.push('\n');
                 done.insert(entry.key, (entry.successes, entry.overruns));
+            }
+            if cut {
+                log_line(&format!(
+                    "{}: dropped a last line cut short by an interruption",
+                    path.display()
+                ));
+                write_atomically(&path, kept.as_bytes())?;
             }
             log_line(&format!(
                 "{}: {} cells measured earlier are reused",

@@ -7,6 +7,9 @@
 //! evaluate every row × seed × column through the lock-step runtime → `result.json`,
 //! `table.md`, `success.png`.
 //!
+//! [`report`] rebuilds a study's tables from its cell log alone (`pir2 report`), without the
+//! checkpoints and without simulating anything.
+//!
 //! Shipped tasks: [`ballplate`] (the embedded default, `pir2 demo`) and, with feature
 //! `mujoco`, `leap_cube`. A new task is one file: a type implementing [`Task`] (plus its
 //! environment, an [`Environment`] of the runtime).
@@ -27,6 +30,7 @@ pub mod gr00t_features;
 pub mod leap_cube;
 pub mod open_loop;
 pub mod pipeline;
+pub mod report;
 
 use std::path::{Path, PathBuf};
 
