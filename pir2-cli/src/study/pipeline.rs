@@ -271,7 +271,7 @@ pub fn train_policy_resumable<T: Task>(
     let tc = TrainConfig {
         seed,
         schedule: policy.schedule(&s.recipe),
-        checkpoint_every: Some((base.steps / s.checkpoints.max(1)).max(1)),
+        checkpoint_every: Some(checkpoint_every(base.steps, s.checkpoints)),
         ..base
     };
     let (val_mode, val_timing) = task.validation(policy);
@@ -323,6 +323,12 @@ pub fn train_policy_resumable<T: Task>(
     }
     trainer.run(&mut model, &Episodes(demos))?;
     Ok((model, scores))
+}
+
+/// Training steps between two step checkpoints of a run of `steps` steps that writes
+/// `checkpoints` of them (the trainer also writes one at the last step).
+pub fn checkpoint_every(steps: usize, checkpoints: usize) -> usize {
+    (steps / checkpoints.max(1)).max(1)
 }
 
 /// One trained `(policy, seed)`.

@@ -31,7 +31,9 @@ use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
 use super::evaluate::{config_fingerprint, earlier_config_fingerprints, parse_log, Entry};
-use super::pipeline::{log_line, policy_dir, prepare_out, write_atomically, EvalPath};
+use super::pipeline::{
+    checkpoint_every, log_line, policy_dir, prepare_out, write_atomically, EvalPath,
+};
 use super::{cells, Cell, Study, Sweep, Task};
 use crate::plot::plot_series;
 
@@ -139,7 +141,7 @@ impl<C> LogReport<C> {
 /// The steps at which a run of `steps` training steps writes its `checkpoints` step
 /// checkpoints (every `steps / checkpoints` steps and at the end, as the pipeline trains).
 pub fn checkpoint_steps(steps: usize, checkpoints: usize) -> Vec<usize> {
-    let every = (steps / checkpoints.max(1)).max(1);
+    let every = checkpoint_every(steps, checkpoints);
     (1..=steps)
         .filter(|s| s % every == 0 || *s == steps)
         .collect()
