@@ -71,15 +71,7 @@ pub fn table(cells: &[Cell], labels: &[String], d0s: &[usize]) -> String {
 
 /// [`table`] with the columns named `key=` (`d0`, `h`).
 pub fn table_keyed(cells: &[Cell], labels: &[String], columns: &[usize], key: &str) -> String {
-    let mut out = String::from("| policy / mode |");
-    for c in columns {
-        out += &format!(" {key}={c} |");
-    }
-    out += "\n|---|";
-    for _ in columns {
-        out += "---|";
-    }
-    out += "\n";
+    let mut out = header("policy / mode", columns, key);
     for s in to_series(cells, labels, columns) {
         out += &format!("| {} |", s.label);
         for &c in columns {
@@ -104,15 +96,11 @@ pub fn per_seed_table(
     seeds: &[u64],
 ) -> String {
     let names: Vec<String> = seeds.iter().map(u64::to_string).collect();
-    let mut out = format!("| policy / mode (seeds {}) |", names.join(" / "));
-    for c in columns {
-        out += &format!(" {key}={c} |");
-    }
-    out += "\n|---|";
-    for _ in columns {
-        out += "---|";
-    }
-    out += "\n";
+    let mut out = header(
+        &format!("policy / mode (seeds {})", names.join(" / ")),
+        columns,
+        key,
+    );
     for l in labels {
         if !cells.iter().any(|c| &c.label == l) {
             continue;
@@ -132,5 +120,20 @@ pub fn per_seed_table(
         }
         out += "\n";
     }
+    out
+}
+
+/// The header and separator lines of a Markdown table whose first column is `first` and
+/// whose other columns are named `key=<value>`.
+fn header(first: &str, columns: &[usize], key: &str) -> String {
+    let mut out = format!("| {first} |");
+    for c in columns {
+        out += &format!(" {key}={c} |");
+    }
+    out += "\n|---|";
+    for _ in columns {
+        out += "---|";
+    }
+    out += "\n";
     out
 }

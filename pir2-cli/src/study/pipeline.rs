@@ -763,19 +763,41 @@ pub fn write_outputs<T: Task>(
     std::fs::write(out.join("result.json"), json)
         .with_context(|| format!("writing {}", out.join("result.json").display()))?;
     std::fs::write(out.join("table.md"), result.table())?;
-    let series = super::to_series(&result.cells, &result.labels, &result.columns);
+    plot_study(
+        &task.title(&result.study),
+        x_label,
+        &result.labels,
+        &result.columns,
+        &result.cells,
+        &result.best_per_cell,
+        out,
+    )
+}
+
+/// `success.png` of `cells` (the chosen checkpoints) in `out`, and with `best_per_cell`
+/// cells `success-best-per-cell.png` beside it.
+pub fn plot_study(
+    title: &str,
+    x_label: &str,
+    labels: &[String],
+    columns: &[usize],
+    cells: &[super::Cell],
+    best_per_cell: &[super::Cell],
+    out: &Path,
+) -> Result<()> {
+    let series = super::to_series(cells, labels, columns);
     plot_series(
         &out.join("success.png"),
-        &task.title(&result.study),
+        title,
         x_label,
         "success rate",
         &series,
     )?;
-    if !result.best_per_cell.is_empty() {
-        let series = super::to_series(&result.best_per_cell, &result.labels, &result.columns);
+    if !best_per_cell.is_empty() {
+        let series = super::to_series(best_per_cell, labels, columns);
         plot_series(
             &out.join("success-best-per-cell.png"),
-            &format!("{} (best checkpoint per cell)", task.title(&result.study)),
+            &format!("{title} (best checkpoint per cell)"),
             x_label,
             "success rate",
             &series,

@@ -32,10 +32,9 @@ use serde::{Deserialize, Serialize};
 
 use super::evaluate::{config_fingerprint, earlier_config_fingerprints, parse_log, Entry};
 use super::pipeline::{
-    checkpoint_every, log_line, policy_dir, prepare_out, write_atomically, EvalPath,
+    checkpoint_every, log_line, plot_study, policy_dir, prepare_out, write_atomically, EvalPath,
 };
 use super::{cells, Cell, Study, Sweep, Task};
-use crate::plot::plot_series;
 
 /// The logged cells of a study by checkpoint, row label, column and seed: successes and
 /// overruns.
@@ -418,26 +417,15 @@ pub fn write_report<T: Task>(
         serde_json::to_string_pretty(report)?.as_bytes(),
     )?;
     write_atomically(&out.join("table.md"), report.table().as_bytes())?;
-    let title = task.title(&report.study);
-    let series = cells::to_series(&report.cells, &report.labels, &report.columns);
-    plot_series(
-        &out.join("success.png"),
-        &title,
+    plot_study(
+        &task.title(&report.study),
         x_label,
-        "success rate",
-        &series,
-    )?;
-    if !report.best_per_cell.is_empty() {
-        let series = cells::to_series(&report.best_per_cell, &report.labels, &report.columns);
-        plot_series(
-            &out.join("success-best-per-cell.png"),
-            &format!("{title} (best checkpoint per cell)"),
-            x_label,
-            "success rate",
-            &series,
-        )?;
-    }
-    Ok(())
+        &report.labels,
+        &report.columns,
+        &report.cells,
+        &report.best_per_cell,
+        out,
+    )
 }
 
 #[cfg(test)]
