@@ -53,8 +53,38 @@ pub fn plot_series(
 ) -> Result<()> {
     register_font();
     let root = BitMapBackend::new(path, (1240, 620)).into_drawing_area();
-    root.fill(&WHITE)
+    draw_series_plot(&root, title, x_desc, y_desc, series)
         .map_err(|e| anyhow!("plot {}: {e}", path.display()))?;
+    root.present()
+        .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
+    Ok(())
+}
+
+/// Draws [`plot_series`]'s figure on `root` (whole image: title, chart, legend panel).
+fn draw_series_plot(
+    root: &DrawingArea<BitMapBackend<'_>, plotters::coord::Shift>,
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+    series: &[Series],
+) -> Result<()> {
+    root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+    // The title spans the whole image, in the largest size up to 24 px that fits its
+    // width, so a long title is never cut at the edges.
+    let (width, _) = root.dim_in_pixel();
+    let mut title_size = 24.0;
+    while title_size > 10.0 {
+        let (w, _) = root
+            .estimate_text_size(title, &("sans-serif", title_size).into_text_style(root))
+            .map_err(|e| anyhow!("{e}"))?;
+        if w + 32 <= width {
+            break;
+        }
+        title_size -= 1.0;
+    }
+    let root = root
+        .titled(title, ("sans-serif", title_size))
+        .map_err(|e| anyhow!("{e}"))?;
     // The legend gets its own panel on the right so it never hides a data point.
     let (plot_area, legend_area) = root.split_horizontally(900);
     let (mut xmin, mut xmax) = (f64::MAX, f64::MIN);
@@ -65,7 +95,7 @@ pub fn plot_series(
         }
     }
     if xmin > xmax {
-        return Err(anyhow!("nothing to plot for {}", path.display()));
+        return Err(anyhow!("nothing to plot"));
     }
     let pad = ((xmax - xmin) * 0.08).max(0.3);
     // Integer x values (delays, horizons) get integer ticks.
@@ -74,7 +104,6 @@ pub fn plot_series(
         .flat_map(|s| &s.points)
         .all(|p| p.0.fract() == 0.0);
     let mut chart = ChartBuilder::on(&plot_area)
-        .caption(title, ("sans-serif", 24))
         .margin(16)
         .x_label_area_size(44)
         .y_label_area_size(56)
@@ -119,7 +148,7 @@ pub fn plot_series(
     let font = ("sans-serif", 15).into_font();
     for (i, s) in series.iter().enumerate() {
         let c = COLORS[i % COLORS.len()];
-        let y = 70 + 28 * i as i32;
+        let y = 40 + 28 * i as i32;
         legend_area
             .draw(&PathElement::new(vec![(8, y), (36, y)], c.stroke_width(3)))
             .map_err(|e| anyhow!("{e}"))?;
@@ -130,8 +159,6 @@ pub fn plot_series(
             .draw(&Text::new(s.label.clone(), (44, y - 8), font.clone()))
             .map_err(|e| anyhow!("{e}"))?;
     }
-    root.present()
-        .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
     Ok(())
 }
 
@@ -245,4 +272,55 @@ pub fn plot_result(v: &serde_json::Value, out: &Path) -> Result<()> {
         _ => ("success vs unit delay", "unit delay d0 (ticks)"),
     };
     plot_series(out, title, x, "success rate", &series)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Renders the series plot into memory; returns the RGB buffer and the image width.
+    fn render(title: &str) -> (Vec<u8>, usize) {
+        register_font();
+        let (w, h) = (1240usize, 620usize);
+        let mut buf = vec![0u8; w * h * 3];
+        {
+            let root =
+                BitMapBackend::with_buffer(&mut buf, (w as u32, h as u32)).into_drawing_area();
+            let series = vec![Series {
+                label: "a".into(),
+                points: vec![(1.0, 0.5, 0.1), (2.0, 0.4, 0.05)],
+            }];
+            draw_series_plot(&root, title, "x", "y", &series).unwrap();
+            root.present().unwrap();
+        }
+        (buf, w)
+    }
+
+    /// Dark pixels in the title band (the top 30 rows) within `cols` of the image.
+    fn title_ink(buf: &[u8], w: usize, cols: std::ops::Range<usize>) -> usize {
+        (0..30)
+            .flat_map(|y| cols.clone().map(move |x| (y * w + x) * 3))
+            .filter(|&i| buf[i] < 128 && buf[i + 1] < 128 && buf[i + 2] < 128)
+            .count()
+    }
+
+    #[test]
+    fn a_long_title_fits_the_image() {
+        let long = "Leap cube (deployment study): success (mean ± std over 3 seeds) \
+                    (best checkpoint per cell), with some more words to be sure";
+        let (buf, w) = render(long);
+        assert!(title_ink(&buf, w, 0..w) > 200, "the title is drawn");
+        assert_eq!(
+            title_ink(&buf, w, 0..8),
+            0,
+            "the title reaches the left edge"
+        );
+        assert_eq!(
+            title_ink(&buf, w, w - 8..w),
+            0,
+            "the title reaches the right edge"
+        );
+        let (short, _) = render("short");
+        assert!(title_ink(&short, w, 0..w) > 50);
+    }
 }
