@@ -752,7 +752,9 @@ fn check_data(file: &Path, demos: &[Episode], resume: bool) -> Result<()> {
     write_atomically(file, serde_json::to_string_pretty(&now)?.as_bytes())
 }
 
-/// Write `result.json`, `table.md` and `success.png` into `out`.
+/// Write `result.json`, `table.md` and `success.png` into `out`. The JSON and the table are
+/// written atomically, so an interrupted write leaves the previous file whole, never a
+/// truncated one.
 pub fn write_outputs<T: Task>(
     task: &T,
     result: &StudyResult<T::Config>,
@@ -760,9 +762,8 @@ pub fn write_outputs<T: Task>(
     out: &Path,
 ) -> Result<()> {
     let json = serde_json::to_string_pretty(result)?;
-    std::fs::write(out.join("result.json"), json)
-        .with_context(|| format!("writing {}", out.join("result.json").display()))?;
-    std::fs::write(out.join("table.md"), result.table())?;
+    write_atomically(&out.join("result.json"), json.as_bytes())?;
+    write_atomically(&out.join("table.md"), result.table().as_bytes())?;
     plot_study(
         &task.title(&result.study),
         x_label,
