@@ -69,19 +69,15 @@ fn draw_series_plot(
     series: &[Series],
 ) -> Result<()> {
     root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
-    // The title spans the whole image, in the largest size up to 24 px that fits its
-    // width, so a long title is never cut at the edges.
+    // The title spans the whole image at 24 px, scaled down (text width is proportional to
+    // the size; 10 px at least) when that is wider than the image less a 16 px margin per
+    // side, so a long title is never cut at the edges.
     let (width, _) = root.dim_in_pixel();
-    let mut title_size = 24.0;
-    while title_size > 10.0 {
-        let (w, _) = root
-            .estimate_text_size(title, &("sans-serif", title_size).into_text_style(root))
-            .map_err(|e| anyhow!("{e}"))?;
-        if w + 32 <= width {
-            break;
-        }
-        title_size -= 1.0;
-    }
+    let (w24, _) = root
+        .estimate_text_size(title, &("sans-serif", 24.0).into_text_style(root))
+        .map_err(|e| anyhow!("{e}"))?;
+    let fit = f64::from(width.saturating_sub(32)) / f64::from(w24.max(1));
+    let title_size = (24.0 * fit).floor().clamp(10.0, 24.0);
     let root = root
         .titled(title, ("sans-serif", title_size))
         .map_err(|e| anyhow!("{e}"))?;
