@@ -142,15 +142,55 @@ impl Default for MlpConfig {
 }
 
 /// How `τ` conditions the U-Net's FiLM layers.
+///
+/// Every residual block modulates its hidden state with `h ← (1 + γ)·h + β`. The variants differ
+/// in which parameters compute `(γ, β)`:
+///
+/// | variant | parameters per block | input of the projection |
+/// |---|---|---|
+/// | [`Shared`](Self::Shared) | one `Linear(E+G → 2C)` | mean `τ` embedding over the chunk, global cond |
+/// | [`PerPositionHeads`](Self::PerPositionHeads) | one `Linear(E+G → 2C)` **per slot** (`L` of them) | the slot's `τ` embedding, global cond |
+/// | [`PerPositionTau`](Self::PerPositionTau) | the shared one plus one zero-initialised `Linear(E → 2C)` shared by all slots | shared input, plus the slot's `τ` embedding |
+///
+/// A block at resolution `L` (`L = H` at the full-resolution level, `H/2^i` after `i`
+/// down-samplings) has one slot per position of its activation; slot `l` covers chunk positions
+/// `[l·H/L, (l+1)·H/L)` and its `τ` part is `mish` of the mean `τ` embedding over them. At full
+/// resolution a slot is one chunk position, so each position `p` has its own head `head_p`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum FilmMode {
     /// One `(γ, β)` per sample from the mean `τ` embedding (baselines, shared `τ`).
     Shared,
-    /// One `(γ_p, β_p)` per chunk position: the shared pair plus a zero-initialised
-    /// per-position term, so a fresh (or finetuned-from-shared) model starts position-uniform.
+    /// The paper's architecture: every block has one FiLM head per slot (per chunk position at
+    /// full resolution), `(γ_l, β_l) = head_l([mish(ē_l), global])`. Each head is initialised as
+    /// a copy of the shared head (the same draws as [`Shared`](Self::Shared) with the same seed,
+    /// tiled), and a shared checkpoint fine-tuned with heads has its shared pair copied into
+    /// every head, so at a position-uniform `τ` the model computes exactly the shared model's
+    /// function at its first step; the heads then specialise in training.
     #[default]
-    PerPosition,
+    PerPositionHeads,
+    /// Ablation (not the paper's): the shared pair plus a zero-initialised projection, shared
+    /// by all slots, of each slot's `τ` embedding. Position reaches the modulation only through
+    /// `τ_p`. Read as `per_position` in configs of pir2 ≤ 0.1 (the default then).
+    #[serde(rename = "per_position_tau", alias = "per_position")]
+    PerPositionTau,
+}
+
+impl FilmMode {
+    /// What a DiT config written before per-position heads existed means (the shared head
+    /// fed per-token `τ`).
+    pub fn legacy() -> Self {
+        Self::PerPositionTau
+    }
+
+    /// Short label for tables and logs.
+    pub fn label(self) -> &'static str {
+        match self {
+            Self::Shared => "shared FiLM",
+            Self::PerPositionHeads => "per-position FiLM heads",
+            Self::PerPositionTau => "shared FiLM on per-position τ (ablation)",
+        }
+    }
 }
 
 /// Conditional U-Net 1D (diffusion-policy design) with per-position FiLM.
@@ -179,7 +219,7 @@ impl Default for UNetConfig {
             groups: 8,
             tau_dim: 64,
             dvis_dim: 16,
-            film: FilmMode::PerPosition,
+            film: FilmMode::PerPositionHeads,
         }
     }
 }
@@ -198,6 +238,12 @@ pub struct DitConfig {
     pub mlp_ratio: usize,
     /// Sinusoidal `τ` embedding width.
     pub tau_dim: usize,
+    /// AdaLN of the blocks and of the output: [`FilmMode::PerPositionHeads`] (the paper's: one
+    /// modulation head per token position, each a copy of the shared head, adaLN-zero) or one
+    /// shared head fed each token's `τ` embedding ([`FilmMode::PerPositionTau`]; `shared` is
+    /// the same network). A config written before this field existed means the shared head.
+    #[serde(default = "FilmMode::legacy")]
+    pub ada: FilmMode,
 }
 
 impl Default for DitConfig {
@@ -208,6 +254,7 @@ impl Default for DitConfig {
             heads: 4,
             mlp_ratio: 4,
             tau_dim: 64,
+            ada: FilmMode::PerPositionHeads,
         }
     }
 }

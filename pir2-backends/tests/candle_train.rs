@@ -98,7 +98,7 @@ fn unet_learns_a_known_function() {
             groups: 4,
             tau_dim: 16,
             dvis_dim: 4,
-            film: FilmMode::PerPosition,
+            film: FilmMode::PerPositionHeads,
         }),
     };
     learns_function(cfg, 300, 6e-3, 0.2);
@@ -139,17 +139,22 @@ fn same_seed_same_weights() {
 
 fn one_call(m: &mut CandleModel) -> Vec<f32> {
     let h = m.spec().horizon;
-    let x: Vec<f32> = (0..h * A).map(|i| (i as f32 * 0.37).sin()).collect();
     let tau: Vec<f32> = (0..h)
         .map(|p| if p == 0 { -1.0 } else { p as f32 / h as f32 })
         .collect();
+    call_at(m, &tau)
+}
+
+fn call_at(m: &mut CandleModel, tau: &[f32]) -> Vec<f32> {
+    let h = m.spec().horizon;
+    let x: Vec<f32> = (0..h * A).map(|i| (i as f32 * 0.37).sin()).collect();
     let o = obs(0.3);
     let input = ModelInput {
         batch: 1,
         horizon: h,
         action_dim: A,
         x: &x,
-        tau: &tau,
+        tau,
         obs_fast: &o,
         n_obs: 2,
         fast_dim: F,
@@ -370,6 +375,7 @@ fn dit_trains_and_its_delay_embedding_starts_at_zero() {
             heads: 4,
             mlp_ratio: 2,
             tau_dim: 16,
+            ada: FilmMode::PerPositionHeads,
         }),
     };
     let data = dataset(32, 16, 6);
@@ -431,9 +437,24 @@ fn finetune_from_shared_film_starts_position_uniform() {
     .unwrap();
     shared.save(&dir).unwrap();
     let mut shared = CandleModel::load(&dir).unwrap();
-    let mut pp = CandleModel::init_from(&dir, unet(FilmMode::PerPosition)).unwrap();
+    // The ablation (a zero-initialised shared projection of τ_p): equal at any τ.
+    let mut pp = CandleModel::init_from(&dir, unet(FilmMode::PerPositionTau)).unwrap();
     assert!(pp.vars().iter().any(|(n, _)| n.contains("film_pos")));
     assert_eq!(one_call(&mut shared), one_call(&mut pp));
+    // The paper's heads: every head a copy of the shared head, so the first forward equals the
+    // base's at a position-uniform τ (the base's own regime), to 1e-6.
+    let mut heads = CandleModel::init_from(&dir, unet(FilmMode::PerPositionHeads)).unwrap();
+    assert!(heads.vars().iter().any(|(n, _)| n.contains("film_heads")));
+    assert!(!heads.vars().iter().any(|(n, _)| n.ends_with(".film.weight")));
+    for t in [0.0, 0.4, 1.0] {
+        let tau = vec![t; 8];
+        let (a, b) = (call_at(&mut shared, &tau), call_at(&mut heads, &tau));
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() <= 1e-6 * x.abs().max(1.0), "τ = {t}: {x} vs {y}");
+        }
+    }
+    // At a staircase τ the heads see each position's own τ, the shared head only the mean.
+    assert_ne!(one_call(&mut shared), one_call(&mut heads));
     // A plain load with the wrong architecture still fails, naming a tensor.
     assert!(matches!(
         CandleModel::init_from(&dir, mlp_config(8)),
@@ -499,7 +520,7 @@ fn hidden_front_draws_train_every_architecture() {
             groups: 4,
             tau_dim: 8,
             dvis_dim: 2,
-            film: FilmMode::PerPosition,
+            film: FilmMode::PerPositionHeads,
         }),
         ModelConfig::Dit(DitConfig {
             width: 16,
@@ -507,6 +528,7 @@ fn hidden_front_draws_train_every_architecture() {
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 8,
+            ada: FilmMode::PerPositionHeads,
         }),
     ] {
         let cfg = Config {
@@ -562,4 +584,105 @@ fn held_out_loss_matches_the_trainers_first_step_and_falls_with_training() {
     );
     let after = held_out_loss(&mut model, data.as_slice(), schedule, 64, 4, 6).unwrap();
     assert!(after < 0.5 * before, "{before} -> {after}");
+}
+
+/// The per-position heads specialise in training: they start as copies of one head and, after a
+/// few πR² steps (per-position τ), the heads of one block differ from each other.
+#[test]
+fn per_position_heads_specialise_in_training() {
+    let cfg = Config {
+        spec: spec(8),
+        model: ModelConfig::UNet(UNetConfig {
+            widths: vec![8, 16],
+            kernel: 3,
+            groups: 4,
+            tau_dim: 8,
+            dvis_dim: 2,
+            film: FilmMode::PerPositionHeads,
+        }),
+    };
+    let data = dataset(8, 12, 8);
+    let mut m = CandleModel::new(
+        cfg.clone(),
+        compute_stats(data.as_slice(), &cfg.spec).unwrap(),
+        0,
+    )
+    .unwrap();
+    let heads = |m: &CandleModel| -> Vec<f32> {
+        let (_, v) = m
+            .vars()
+            .iter()
+            .find(|(n, _)| n == "down.0.res0.film_heads.weight")
+            .unwrap();
+        v.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let spread = |w: &[f32]| -> f32 {
+        let per = w.len() / 8;
+        (1..8)
+            .flat_map(|p| (0..per).map(move |i| (p, i)))
+            .map(|(p, i)| (w[p * per + i] - w[i]).abs())
+            .fold(0.0, f32::max)
+    };
+    assert_eq!(spread(&heads(&m)), 0.0, "heads start as copies");
+    let s = TrainSchedule::PiR2(PiR2Draws {
+        n: Some(2),
+        delay: DelayDist::Uniform { max: 2 },
+        ..PiR2Draws::default()
+    });
+    Trainer::new(TrainConfig {
+        batch_size: 8,
+        ..quick(20, 1e-3, s)
+    })
+    .run(&mut m, data.as_slice())
+    .unwrap();
+    let after = spread(&heads(&m));
+    assert!(after > 1e-4, "heads did not specialise: spread {after}");
+}
+
+/// A DiT finetuned with per-position AdaLN heads from a shared-head checkpoint starts as that
+/// checkpoint: every head is a copy of the shared head, and the shared head already read each
+/// token's own τ, so the first forward is equal at any τ.
+#[test]
+fn dit_finetuned_with_heads_starts_as_its_shared_checkpoint() {
+    use pir2_backends::config::DitConfig;
+    let dir = std::env::temp_dir().join(format!("pir2-ft-dit-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let dit = |ada| Config {
+        spec: spec(8),
+        model: ModelConfig::Dit(DitConfig {
+            width: 16,
+            depth: 2,
+            heads: 2,
+            mlp_ratio: 2,
+            tau_dim: 8,
+            ada,
+        }),
+    };
+    let shared = CandleModel::new(
+        dit(FilmMode::PerPositionTau),
+        pir2_backends::Stats::identity(&spec(8)),
+        4,
+    )
+    .unwrap();
+    // adaLN-zero starts at zero: perturb every weight so the modulation carries signal.
+    let mut rng = Rng::new(9);
+    for (_, v) in shared.vars() {
+        let t = v.as_tensor();
+        let noise: Vec<f32> = (0..t.elem_count())
+            .map(|_| rng.uniform_range(-0.2, 0.2))
+            .collect();
+        let noise = candle_core::Tensor::from_vec(noise, t.dims(), t.device()).unwrap();
+        v.set(&(t + noise).unwrap()).unwrap();
+    }
+    shared.save(&dir).unwrap();
+    let mut shared = CandleModel::load(&dir).unwrap();
+    let mut heads = CandleModel::init_from(&dir, dit(FilmMode::PerPositionHeads)).unwrap();
+    assert!(heads.vars().iter().any(|(n, _)| n == "blocks.0.ada_heads.weight"));
+    assert!(heads.vars().iter().any(|(n, _)| n == "final.ada_heads.bias"));
+    let (a, b) = (one_call(&mut shared), one_call(&mut heads));
+    assert!(a.iter().any(|v| v.abs() > 1e-3), "the head must compute something");
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() <= 1e-5 * x.abs().max(1.0), "{x} vs {y}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
 }

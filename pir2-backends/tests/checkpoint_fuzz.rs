@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{
-    Config, DitConfig, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig,
+    Config, DitConfig, FilmMode, MlpConfig, ModelConfig, SlowSpec, Spec, Stats, UNetConfig,
 };
 use pir2_tests::fuzz_cases;
 use proptest::prelude::*;
@@ -57,6 +57,7 @@ fn checkpoints(name: &str) -> Dir {
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 4,
+            ada: FilmMode::PerPositionHeads,
         }),
     ];
     for (i, model) in models.into_iter().enumerate() {

@@ -729,9 +729,10 @@ mod exported {
             }));
         }
         for (slow, film) in [
-            (SlowSpec::Vector { dim: 6 }, Film::PerPosition),
+            (SlowSpec::Vector { dim: 6 }, Film::PerPositionHeads),
             (SlowSpec::Tokens { tokens: 2, dim: 3 }, Film::Shared),
-            (SlowSpec::None, Film::PerPosition),
+            (SlowSpec::None, Film::PerPositionTau),
+            (SlowSpec::Tokens { tokens: 2, dim: 3 }, Film::PerPositionHeads),
         ] {
             let d = dims(slow);
             v.push(ModelSpec::Unet(UnetSpec {
@@ -904,10 +905,10 @@ mod candle_models {
                     dvis_dim: 4,
                 }),
             };
-            let film = if i == 2 {
-                FilmMode::Shared
-            } else {
-                FilmMode::PerPosition
+            let film = match i {
+                2 => FilmMode::Shared,
+                1 => FilmMode::PerPositionTau,
+                _ => FilmMode::PerPositionHeads,
             };
             let unet = Config {
                 spec: s,

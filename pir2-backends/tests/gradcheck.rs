@@ -114,7 +114,7 @@ fn unet_gradients_match_finite_differences() {
             groups: 4,
             tau_dim: 8,
             dvis_dim: 2,
-            film: FilmMode::PerPosition,
+            film: FilmMode::PerPositionHeads,
         }),
     });
 }
@@ -129,6 +129,7 @@ fn dit_gradients_match_finite_differences() {
             heads: 2,
             mlp_ratio: 2,
             tau_dim: 8,
+            ada: FilmMode::PerPositionHeads,
         }),
     });
 }

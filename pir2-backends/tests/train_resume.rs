@@ -19,7 +19,7 @@ fn unet() -> Config {
             groups: 4,
             tau_dim: 8,
             dvis_dim: 2,
-            film: FilmMode::PerPosition,
+            film: FilmMode::PerPositionHeads,
         }),
     }
 }

@@ -2,6 +2,7 @@
 //! loads the scene; nothing is trained).
 #![cfg(feature = "mujoco")]
 
+use pir2_backends::config::FilmMode;
 use pir2_cli::study::leap_cube::{LeapCubeTask, LeapStudyConfig};
 use pir2_cli::study::{Sweep, Task};
 use pir2_runtime::{DelayLaw, LockstepTiming, Mode, Policy};
@@ -89,23 +90,33 @@ fn defaults_are_the_papers_simulation_protocol() {
 #[test]
 fn the_zero_delay_policy_is_the_horizon_studys_and_validates_at_zero_latency() {
     let t = task(LeapStudyConfig {
-        policies: vec![Policy::Flow, Policy::PiR2, Policy::PiR2ZeroDelay],
+        policies: vec![
+            Policy::Flow,
+            Policy::PiR2,
+            Policy::PiR2ZeroDelay,
+            Policy::PiR2ZeroDelayFull,
+        ],
         ..LeapStudyConfig::default()
     });
-    // Not a deployment-study row (it cannot run with a delay) ...
-    assert!(!t.rows().iter().any(|r| r.policy == Policy::PiR2ZeroDelay));
-    // ... but a horizon-study row, at zero latency.
-    let h = t.horizon_study();
-    let zd = h
-        .rows
-        .iter()
-        .find(|r| r.row.policy == Policy::PiR2ZeroDelay)
-        .expect("a zero-delay row");
-    assert_eq!(zd.sweep, Sweep::Once(LockstepTiming::zero_latency()));
-    assert!(h.policies().contains(&Policy::PiR2ZeroDelay));
-    let (mode, timing) = t.validation(Policy::PiR2ZeroDelay);
-    assert!(matches!(mode, Mode::PiR2Async { .. }));
-    assert_eq!(timing, LockstepTiming::zero_latency());
+    for zp in [Policy::PiR2ZeroDelay, Policy::PiR2ZeroDelayFull] {
+        // Not a deployment-study row (it cannot run with a delay) ...
+        assert!(!t.rows().iter().any(|r| r.policy == zp));
+        // ... but a horizon-study row, at zero latency.
+        let h = t.horizon_study();
+        let zd = h
+            .rows
+            .iter()
+            .find(|r| r.row.policy == zp)
+            .expect("a zero-delay row");
+        assert_eq!(zd.sweep, Sweep::Once(LockstepTiming::zero_latency()));
+        assert!(h.policies().contains(&zp));
+        let (mode, timing) = t.validation(zp);
+        assert!(matches!(mode, Mode::PiR2Async { .. }));
+        assert_eq!(timing, LockstepTiming::zero_latency());
+    }
+    // The paper's variant runs the full streaming ramp (n = H), the extra n = `nfe`.
+    let (full, _) = t.validation(Policy::PiR2ZeroDelayFull);
+    assert!(matches!(full, Mode::PiR2Async { nfe: None, .. }));
     // Others validate at the settings' unit delay.
     let (mode, timing) = t.validation(Policy::PiR2);
     assert_eq!(mode, t.validation_mode(Policy::PiR2));
@@ -202,9 +213,46 @@ fn the_committed_study_config_is_the_papers_protocol() {
         Policy::PiR2Hidden,
         Policy::PiR2Full,
         Policy::PiR2ZeroDelay,
+        Policy::PiR2ZeroDelayFull,
     ] {
         assert!(cfg.policies.contains(&p), "{p:?}");
     }
+    // The paper's architecture: one FiLM head per chunk position for the πR² policies.
+    assert_eq!(cfg.pir2_film, FilmMode::PerPositionHeads);
+}
+
+/// The ablation configs (a shared FiLM projection of per-position τ) keep the fingerprint their
+/// committed cells were logged under, and differ from the heads study only in the FiLM and in
+/// the paper's zero-delay policy.
+#[test]
+fn the_ablation_configs_keep_the_fingerprint_of_their_committed_cells() {
+    use pir2_cli::study::evaluate::config_fingerprint;
+    let read = |name: &str| -> LeapStudyConfig {
+        let path = format!("{}/../studies/leap-cube/{name}", env!("CARGO_MANIFEST_DIR"));
+        let text = std::fs::read_to_string(&path).expect("a committed study config");
+        toml::from_str(&text).expect("a valid study config")
+    };
+    for name in [
+        "ablation-per-position-tau.toml",
+        "ablation-per-position-tau-horizon.toml",
+    ] {
+        let cfg = read(name);
+        assert_eq!(cfg.pir2_film, FilmMode::PerPositionTau, "{name}");
+        assert_eq!(config_fingerprint(&cfg).unwrap(), "668fe64c89fa9b53", "{name}");
+    }
+    let (heads, ablation) = (read("study.toml"), read("ablation-per-position-tau.toml"));
+    assert_ne!(
+        config_fingerprint(&heads).unwrap(),
+        config_fingerprint(&ablation).unwrap()
+    );
+    assert_eq!(
+        LeapStudyConfig {
+            pir2_film: heads.pir2_film,
+            policies: heads.policies.clone(),
+            ..ablation
+        },
+        heads
+    );
 }
 
 /// The horizon study's config is the study config with its batched cells, nothing else.
@@ -215,15 +263,23 @@ fn the_committed_horizon_config_is_the_study_config_batched() {
         let text = std::fs::read_to_string(&path).expect("a committed study config");
         toml::from_str(&text).expect("a valid study config")
     };
-    let (study, horizon) = (read("study.toml"), read("horizon.toml"));
-    assert_eq!(study.batch_episodes, 1);
-    assert_eq!(
-        horizon,
-        LeapStudyConfig {
-            batch_episodes: 100,
-            ..study
-        }
-    );
+    for (s, h) in [
+        ("study.toml", "horizon.toml"),
+        (
+            "ablation-per-position-tau.toml",
+            "ablation-per-position-tau-horizon.toml",
+        ),
+    ] {
+        let (study, horizon) = (read(s), read(h));
+        assert_eq!(study.batch_episodes, 1);
+        assert_eq!(
+            horizon,
+            LeapStudyConfig {
+                batch_episodes: 100,
+                ..study
+            }
+        );
+    }
 }
 
 #[test]
@@ -296,6 +352,7 @@ fn logs_written_before_the_checkpoint_directory_left_the_fingerprint_are_still_r
         policies = ["pi_r2_full"]
         slow_frames = 2
         best_of_last = 3
+        pir2_film = "per_position_tau"
     "#;
     let mut cfg: LeapStudyConfig = toml::from_str(text).unwrap();
     cfg.pretrained = Some("runs/leap-study-wide".into());

@@ -31,10 +31,15 @@ pub enum Policy {
     /// Standard chunked flow matching (deployed sync, naive async, or with ensembling).
     Flow,
     /// πR², small `n`, trained for zero delay only (`d_max = 0`: every staircase draw has
-    /// `d = 0`, the streaming ramp). This is the policy of the zero-latency horizon study:
+    /// `d = 0`, a ramp of `n` slots). A labelled extra of the zero-latency horizon study:
     /// deployed with a head whose `d_max` is 0, it acts on the newest observation within the
     /// tick (lock-step with zero-tick calls only).
     PiR2ZeroDelay,
+    /// The paper's zero-delay variant: trained for `d = 0` only (`d_max = 0`) on the full
+    /// streaming ramp (`n = H`, one action emitted per call, every action's last step in the
+    /// call that emits it: `τ*_p = (H−1−p)/H`, which the step advances to `1 − p/H`). The
+    /// policy of the paper's horizon study; lock-step with zero-tick calls only.
+    PiR2ZeroDelayFull,
 }
 
 /// The law of the per-batch delay draws of πR² and train-time RTC.
@@ -132,13 +137,14 @@ pub struct Deployment {
 
 impl Policy {
     /// Every policy, in table order.
-    pub const ALL: [Policy; 6] = [
+    pub const ALL: [Policy; 7] = [
         Policy::PiR2,
         Policy::PiR2Hidden,
         Policy::PiR2Full,
         Policy::Rtc,
         Policy::Flow,
         Policy::PiR2ZeroDelay,
+        Policy::PiR2ZeroDelayFull,
     ];
 
     /// The largest delay the policy must handle (the trained `d_max`; the head's latency
@@ -147,7 +153,7 @@ impl Policy {
     pub fn d_max(self, r: &Recipe) -> usize {
         match self {
             Policy::Rtc | Policy::Flow => r.rtc_d_max,
-            Policy::PiR2ZeroDelay => 0,
+            Policy::PiR2ZeroDelay | Policy::PiR2ZeroDelayFull => 0,
             Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full => r.pir2_d_max,
         }
     }
@@ -181,6 +187,13 @@ impl Policy {
             // The exponential law over {0..0} draws d = 0 every time.
             Policy::PiR2ZeroDelay => TrainSchedule::PiR2(PiR2Draws {
                 delay: DelayDist::Exponential { max: 0, rate: 1.0 },
+                ..base
+            }),
+            // n = None with the fresh alignment: n_max(H, 0) = H, the full streaming ramp.
+            Policy::PiR2ZeroDelayFull => TrainSchedule::PiR2(PiR2Draws {
+                delay: DelayDist::Exponential { max: 0, rate: 1.0 },
+                n: None,
+                alignment: Alignment::Fresh,
                 ..base
             }),
         }
@@ -248,6 +261,14 @@ impl Policy {
             Policy::PiR2ZeroDelay => vec![(
                 format!("πR² zero delay (n={})", r.nfe),
                 fresh(FrontMode::Visible),
+            )],
+            Policy::PiR2ZeroDelayFull => vec![(
+                "πR² zero delay, paper streaming ramp".into(),
+                Mode::PiR2Async {
+                    nfe: None,
+                    alignment: Alignment::Fresh,
+                    front: FrontMode::Visible,
+                },
             )],
         };
         rows.into_iter()
@@ -321,6 +342,38 @@ mod tests {
             assert_eq!(d.len(), 1);
             assert!(matches!(d[0].mode, Mode::PiR2Async { nfe: Some(2), .. }));
         }
+    }
+
+    /// The paper's zero-delay variant trains and runs the full streaming ramp at d = 0:
+    /// H − 1 ramp slots after the emitted one, every action's last step in the call that emits
+    /// it, and the step leaves the streaming ramp `1 − p/H`.
+    #[test]
+    fn the_paper_zero_delay_policy_is_the_streaming_ramp() {
+        let r = Recipe::paper_sim();
+        let p = Policy::PiR2ZeroDelayFull;
+        let TrainSchedule::PiR2(draws) = p.schedule(&r) else {
+            panic!("a πR² schedule");
+        };
+        let mut rng = pir2_schedule::Rng::new(5);
+        assert!((0..100).all(|_| draws.delay.sample(&mut rng) == 0));
+        assert_eq!((draws.n, draws.alignment), (None, Alignment::Fresh));
+        assert_eq!(p.d_max(&r), 0);
+        let h = 16;
+        let s = pir2_schedule::Staircase::new(h, 0, draws.n, draws.alignment).unwrap();
+        assert_eq!(s.nfe(), h);
+        for q in 0..h {
+            assert!((s.tau(q) - (h - 1 - q) as f32 / h as f32).abs() < 1e-6);
+            assert!((s.tau_after(q) - (1.0 - q as f32 / h as f32)).abs() < 1e-6);
+        }
+        let d = p.deployments(&r);
+        assert!(matches!(
+            d[0].mode,
+            Mode::PiR2Async {
+                nfe: None,
+                alignment: Alignment::Fresh,
+                ..
+            }
+        ));
     }
 
     #[test]

@@ -1,7 +1,9 @@
 //! DiT action head: a state token and `H` action tokens; blocks alternate cross-attention to
 //! the slow tokens (even blocks) and self-attention (odd blocks), each followed by an MLP,
-//! all modulated by **per-position AdaLN**
-//! (shift/scale/gate per token from that position's `τ` embedding, adaLN-zero init).
+//! all modulated by **per-position AdaLN**: shift/scale/gate per token from that position's `τ`
+//! embedding, through one modulation head per token position (the paper's, the default;
+//! `ada = per_position_tau` keeps one shared head), adaLN-zero init. Heads are copies of the
+//! shared head, so a model finetuned with heads from a shared checkpoint starts as it.
 //!
 //! Tokens: state = `W_s·fast_enc`; action `p` = `W_a·x_p + pos_p + e(d_vis)`, where `e` is a
 //! learned delay embedding with `d_vis_max + 1` entries, zero-initialised (so a model
@@ -14,7 +16,7 @@ use candle_core::{Device, Module, Tensor, D};
 
 use super::layers::{layer_norm, sinusoidal_tau, CResult, Init, ParamStore};
 use super::Inputs;
-use crate::config::{DitConfig, SlowSpec, Spec};
+use crate::config::{DitConfig, FilmMode, SlowSpec, Spec};
 
 fn softmax_last(x: &Tensor) -> CResult<Tensor> {
     let m = x.max_keepdim(D::Minus1)?.detach();
@@ -69,10 +71,44 @@ impl Attention {
     }
 }
 
+/// AdaLN modulation: one shared head, or one head per token position.
+#[derive(Debug)]
+enum Ada {
+    Shared(candle_nn::Linear),
+    /// Weight `[N, out, in]`, bias `[N, out]`.
+    Heads(Tensor, Tensor),
+}
+
+impl Ada {
+    fn new(ps: &mut ParamStore, name: &str, heads: Option<usize>, din: usize, dout: usize) -> CResult<Self> {
+        Ok(match heads {
+            None => Ada::Shared(ps.linear_zero(name, din, dout)?),
+            Some(n) => Ada::Heads(
+                ps.param(&format!("{name}_heads.weight"), &[n, dout, din], Init::Zeros)?,
+                ps.param(&format!("{name}_heads.bias"), &[n, dout], Init::Zeros)?,
+            ),
+        })
+    }
+
+    /// `c` `[B, N, D]` → `[B, N, out]`.
+    fn forward(&self, c: &Tensor) -> CResult<Tensor> {
+        match self {
+            Ada::Shared(l) => l.forward(c),
+            Ada::Heads(w, b) => c
+                .transpose(0, 1)?
+                .contiguous()?
+                .matmul(&w.transpose(1, 2)?)?
+                .broadcast_add(&b.unsqueeze(1)?)?
+                .transpose(0, 1)?
+                .contiguous(),
+        }
+    }
+}
+
 #[derive(Debug)]
 struct Block {
     /// Per-token modulation: shift/scale/gate for the attention and for the MLP (6·D).
-    ada: candle_nn::Linear,
+    ada: Ada,
     attn: Attention,
     /// Cross-attention to the slow tokens (else self-attention).
     cross: bool,
@@ -113,7 +149,7 @@ pub(crate) struct Dit {
     tau_l1: candle_nn::Linear,
     slow_in: Option<(candle_nn::Linear, Tensor)>,
     blocks: Vec<Block>,
-    final_ada: candle_nn::Linear,
+    final_ada: Ada,
     out: candle_nn::Linear,
     tau_dim: usize,
     h: usize,
@@ -138,6 +174,8 @@ impl Dit {
                 ps.param("slow_pos", &[s.tokens(), d], Init::Uniform(0.02))?,
             )),
         };
+        // One head per token: the state token and the H action tokens.
+        let heads = (c.ada == FilmMode::PerPositionHeads).then_some(spec.horizon + 1);
         let mut blocks = Vec::with_capacity(c.depth);
         for i in 0..c.depth {
             let nm = format!("blocks.{i}");
@@ -146,7 +184,7 @@ impl Dit {
             let cross = !spec.slow.is_empty() && i % 2 == 0;
             let attn_name = format!("{nm}.{}", if cross { "cross_attn" } else { "self_attn" });
             blocks.push(Block {
-                ada: ps.linear_zero(&format!("{nm}.ada"), d, 6 * d)?,
+                ada: Ada::new(ps, &format!("{nm}.ada"), heads, d, 6 * d)?,
                 attn: Attention::new(ps, &attn_name, d, d, c.heads)?,
                 cross,
                 fc1: ps.linear(&format!("{nm}.mlp.0"), d, c.mlp_ratio * d)?,
@@ -154,7 +192,7 @@ impl Dit {
                 d,
             });
         }
-        let final_ada = ps.linear_zero("final.ada", d, 2 * d)?;
+        let final_ada = Ada::new(ps, "final.ada", heads, d, 2 * d)?;
         let out = ps.linear_zero("final.out", d, spec.action_dim)?;
         Ok(Self {
             state_in,

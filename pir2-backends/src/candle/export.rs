@@ -55,7 +55,8 @@ pub fn spec_from_config(cfg: &Config, stats: &Stats) -> Result<ModelSpec, Export
             d_vis_max,
             film: match u.film {
                 FilmMode::Shared => Film::Shared,
-                FilmMode::PerPosition => Film::PerPosition,
+                FilmMode::PerPositionHeads => Film::PerPositionHeads,
+                FilmMode::PerPositionTau => Film::PerPositionTau,
             },
             norm,
         })),

@@ -203,6 +203,76 @@ impl Lin {
     }
 }
 
+/// `L` linear heads applied slot by slot: weight `[L, out, in]`, bias `[L, out]` (the
+/// per-position FiLM heads). Inputs and outputs are slot-major: `x [L, m, in]`, `y [L, m, out]`.
+#[derive(Debug)]
+pub(crate) struct Heads {
+    pub(crate) w: usize,
+    pub(crate) b: usize,
+    pub(crate) l: usize,
+    pub(crate) din: usize,
+    pub(crate) dout: usize,
+}
+
+impl Heads {
+    /// `y[l, i, :] = W_l · x[l, i, :] + b_l`.
+    pub(crate) fn fwd(
+        &self,
+        par: Parallelism,
+        p: &[Vec<f32>],
+        x: &[f32],
+        m: usize,
+        y: &mut Vec<f32>,
+    ) {
+        let (din, dout) = (self.din, self.dout);
+        y.resize(self.l * m * dout, 0.0);
+        for li in 0..self.l {
+            let yl = &mut y[li * m * dout..(li + 1) * m * dout];
+            let bias = &p[self.b][li * dout..(li + 1) * dout];
+            for row in yl.chunks_exact_mut(dout) {
+                row.copy_from_slice(bias);
+            }
+            let xl = &x[li * m * din..(li + 1) * m * din];
+            let wl = &p[self.w][li * dout * din..(li + 1) * dout * din];
+            if small(par, m) {
+                mm_nt(m, dout, din, yl, xl, wl);
+            } else {
+                mm(par, m, dout, din, yl, true, xl, din, 1, wl, 1, din);
+            }
+        }
+    }
+
+    /// Accumulate `dW_l`, `db_l` and `dx` (slot-major, accumulated).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn bwd(
+        &self,
+        par: Parallelism,
+        p: &[Vec<f32>],
+        g: &mut [Vec<f32>],
+        x: &[f32],
+        dy: &[f32],
+        m: usize,
+        dx: &mut [f32],
+    ) {
+        let (din, dout) = (self.din, self.dout);
+        for li in 0..self.l {
+            let dyl = &dy[li * m * dout..(li + 1) * m * dout];
+            let xl = &x[li * m * din..(li + 1) * m * din];
+            let gw = &mut g[self.w][li * dout * din..(li + 1) * dout * din];
+            mm(par, dout, din, m, gw, true, dyl, 1, dout, xl, din, 1);
+            let db = &mut g[self.b][li * dout..(li + 1) * dout];
+            for row in dyl.chunks_exact(dout) {
+                for (d, &v) in db.iter_mut().zip(row) {
+                    *d += v;
+                }
+            }
+            let wl = &p[self.w][li * dout * din..(li + 1) * dout * din];
+            let dxl = &mut dx[li * m * din..(li + 1) * m * din];
+            mm(par, m, din, dout, dxl, true, dyl, dout, 1, wl, din, 1);
+        }
+    }
+}
+
 /// How a convolution maps output positions to input positions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum ConvMode {

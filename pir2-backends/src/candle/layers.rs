@@ -86,6 +86,49 @@ impl ParamStore {
         Ok(candle_nn::Linear::new(w, Some(bias)))
     }
 
+    /// `n` copies of one `nn.Linear` drawn exactly as [`ParamStore::linear`] draws it (same
+    /// random numbers in the same order): weight `[n, out, in]`, bias `[n, out]`. Per-position
+    /// heads initialised from the shared head, so a model with heads starts as the shared model
+    /// with the same seed.
+    pub(crate) fn linear_heads(
+        &mut self,
+        name: &str,
+        n: usize,
+        din: usize,
+        dout: usize,
+    ) -> CResult<(Tensor, Tensor)> {
+        let b = 1.0 / (din as f32).sqrt();
+        let w: Vec<f32> = (0..din * dout)
+            .map(|_| self.rng.uniform_range(-b, b))
+            .collect();
+        let bias: Vec<f32> = (0..dout).map(|_| self.rng.uniform_range(-b, b)).collect();
+        let w = self.param_from(&format!("{name}.weight"), &[n, dout, din], &w)?;
+        let bias = self.param_from(&format!("{name}.bias"), &[n, dout], &bias)?;
+        Ok((w, bias))
+    }
+
+    /// A parameter whose value is `tile` repeated to fill `shape`.
+    fn param_from(&mut self, name: &str, shape: &[usize], tile: &[f32]) -> CResult<Tensor> {
+        let n = shape
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .ok_or_else(|| {
+                candle_core::Error::Msg(format!("weight `{name}`: shape {shape:?} overflows"))
+            })?;
+        self.used = self.used.saturating_add(n);
+        if let Some(budget) = self.budget.filter(|b| self.used > *b) {
+            return Err(candle_core::Error::Msg(format!(
+                "the configuration needs more weight values than the checkpoint holds \
+                 ({budget}); exceeded at `{name}` {shape:?}"
+            )));
+        }
+        let data: Vec<f32> = tile.iter().copied().cycle().take(n).collect();
+        let var = Var::from_vec(data, shape, &self.dev)?;
+        let t = var.as_tensor().clone();
+        self.vars.push((name.to_owned(), var));
+        Ok(t)
+    }
+
     /// A zero-initialised linear layer (AdaLN-zero, per-position FiLM deltas, output heads).
     pub(crate) fn linear_zero(
         &mut self,

@@ -329,10 +329,13 @@ impl CandleModel {
 
     /// Start a finetune: a new model with `config` (same spec as the checkpoint) whose weights
     /// come from the checkpoint wherever it has them. Tensors the checkpoint lacks must be
-    /// zero-initialised extensions (per-position FiLM `film_pos`, the `d_vis` / delay
-    /// embeddings), so the new model computes exactly what the checkpoint did: e.g. a
-    /// shared-FiLM U-Net finetuned as per-position starts position-uniform. Any other missing
-    /// tensor, a shape mismatch or a leftover tensor is an error naming it.
+    /// zero-initialised extensions (the ablation's `film_pos`, the `d_vis` / delay
+    /// embeddings) or per-position modulation heads, which start as copies of the checkpoint's
+    /// shared head of the same layer (`<layer>_heads.*` ← `<layer>.*`: the U-Net's
+    /// `film_heads`, the DiT's `ada_heads`; the shared head is then consumed). So the new model computes exactly what the checkpoint did at a
+    /// position-uniform `τ`: a shared-FiLM U-Net finetuned with heads starts position-uniform
+    /// and its heads specialise in training. Any other missing tensor, a shape mismatch or a
+    /// leftover tensor is an error naming it.
     pub fn init_from(dir: &Path, config: Config) -> Result<Self> {
         let mut ck = Checkpoint::load(dir)?;
         ck.config.spec.expect_eq(&config.spec)?;
@@ -343,8 +346,25 @@ impl CandleModel {
             if extension(name) && !ck.tensors.contains_key(name) {
                 continue;
             }
-            let t = ck.take(name, var.dims())?;
-            var.set(&Tensor::from_vec(t.data, t.shape, &Device::Cpu)?)?;
+            let dims = var.dims();
+            // `<layer>_heads.{weight,bias}` ← `<layer>.{weight,bias}` (U-Net `film_heads`,
+            // DiT `ada_heads`).
+            let shared = ["weight", "bias"]
+                .iter()
+                .find_map(|k| {
+                    name.strip_suffix(&format!("_heads.{k}"))
+                        .map(|layer| format!("{layer}.{k}"))
+                })
+                .filter(|s| !ck.tensors.contains_key(name) && ck.tensors.contains_key(s));
+            let data = match shared {
+                Some(s) => {
+                    let t = ck.take(&s, &dims[1..])?;
+                    let n: usize = dims.iter().product();
+                    t.data.iter().copied().cycle().take(n).collect()
+                }
+                None => ck.take(name, dims)?.data,
+            };
+            var.set(&Tensor::from_vec(data, dims, &Device::Cpu)?)?;
         }
         ck.expect_consumed()?;
         model.weights_changed();

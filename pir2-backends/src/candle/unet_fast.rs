@@ -12,7 +12,7 @@ use std::collections::HashMap;
 
 use gemm::Parallelism;
 
-use super::kernels::{mish1, mish_and_grad, Conv, ConvMode, GnMish, Lin};
+use super::kernels::{mish1, mish_and_grad, Conv, ConvMode, GnMish, Heads, Lin};
 use super::layers::{sinusoidal_tau, CResult};
 use crate::config::{FilmMode, Spec, UNetConfig};
 
@@ -23,8 +23,10 @@ struct Res {
     n0: GnMish,
     c1: Conv,
     n1: GnMish,
-    film: Lin,
+    /// The shared head (absent with per-position heads).
+    film: Option<Lin>,
     film_pos: Option<Lin>,
+    heads: Option<Heads>,
     res: Option<Conv>,
     cout: usize,
     lvl: usize,
@@ -44,6 +46,7 @@ struct Ws {
     t2: Vec<f32>,
     t3: Vec<f32>,
     t4: Vec<f32>,
+    t5: Vec<f32>,
     s0: Vec<f32>,
 }
 
@@ -58,13 +61,28 @@ impl Res {
         l: usize,
         shared: &[f32],
         pooled: Option<&[f32]>,
+        heads_in: Option<&[f32]>,
         y: &mut Vec<f32>,
     ) {
         let c = self.cout;
         self.c0.fwd(par, p, x, b, l, &mut self.z0);
         self.n0.fwd(par, p, &self.z0, b, l, &mut self.a0);
-        self.film.fwd(par, p, shared, b, &mut self.fs);
+        if let (Some(hd), Some(u)) = (&self.heads, heads_in) {
+            // Slot-major [L, B, 2C] → [B, L, 2C].
+            hd.fwd(par, p, u, b, &mut self.fs);
+            self.f.resize(b * l * 2 * c, 0.0);
+            for li in 0..l {
+                for bi in 0..b {
+                    self.f[(bi * l + li) * 2 * c..(bi * l + li + 1) * 2 * c]
+                        .copy_from_slice(&self.fs[(li * b + bi) * 2 * c..(li * b + bi + 1) * 2 * c]);
+                }
+            }
+        } else {
+            let film = self.film.as_ref().expect("a block without heads has the shared head");
+            film.fwd(par, p, shared, b, &mut self.fs);
+        }
         match (&self.film_pos, pooled) {
+            _ if self.heads.is_some() => {}
             (Some(fp), Some(pl)) => {
                 fp.fwd(par, p, pl, b * l, &mut self.f);
                 for (i, row) in self.f.chunks_exact_mut(2 * c).enumerate() {
@@ -122,6 +140,7 @@ impl Res {
         l: usize,
         shared: &[f32],
         pooled: Option<&[f32]>,
+        heads_in: Option<(&[f32], &mut [f32])>,
         mut dx: Option<&mut [f32]>,
         dshared: &mut [f32],
         dpooled: Option<&mut [f32]>,
@@ -166,16 +185,28 @@ impl Res {
         if let (Some(fp), Some(pl)) = (&self.film_pos, pooled) {
             fp.bwd(par, p, g, pl, &ws.t3, b * l, dpooled.map(|d| (d, true)));
         }
-        ws.t4.clear();
-        ws.t4.resize(b * 2 * c, 0.0);
-        for r in 0..b * l {
-            let bi = r / l;
-            for i in 0..2 * c {
-                ws.t4[bi * 2 * c + i] += ws.t3[r * 2 * c + i];
+        if let (Some(hd), Some((u, du))) = (&self.heads, heads_in) {
+            // [B, L, 2C] → slot-major [L, B, 2C].
+            ws.t5.resize(b * l * 2 * c, 0.0);
+            for li in 0..l {
+                for bi in 0..b {
+                    ws.t5[(li * b + bi) * 2 * c..(li * b + bi + 1) * 2 * c]
+                        .copy_from_slice(&ws.t3[(bi * l + li) * 2 * c..(bi * l + li + 1) * 2 * c]);
+                }
             }
+            hd.bwd(par, p, g, u, &ws.t5, b, du);
+        } else {
+            ws.t4.clear();
+            ws.t4.resize(b * 2 * c, 0.0);
+            for r in 0..b * l {
+                let bi = r / l;
+                for i in 0..2 * c {
+                    ws.t4[bi * 2 * c + i] += ws.t3[r * 2 * c + i];
+                }
+            }
+            let film = self.film.as_ref().expect("a block without heads has the shared head");
+            film.bwd(par, p, g, shared, &ws.t4, b, Some((dshared, true)));
         }
-        self.film
-            .bwd(par, p, g, shared, &ws.t4, b, Some((dshared, true)));
         self.n0.bwd(par, p, g, &ws.t1, b, l, &mut ws.t2);
         self.c0.bwd(par, p, g, x, &ws.t2, b, l, dx, &mut ws.s0);
     }
@@ -226,6 +257,13 @@ pub(crate) struct FastUNet {
     a: usize,
     levels: usize,
     per_pos: bool,
+    /// Per-position FiLM heads (the paper's variant).
+    heads: bool,
+    /// Per level: head inputs `[mish(ē_l), global]`, slot-major `[L, B, cs]`; the pre-mish
+    /// slot means `ē_l` `[L, B, E]`; the gradient of the head inputs.
+    hin: Vec<Vec<f32>>,
+    hmean: Vec<Vec<f32>>,
+    dhin: Vec<Vec<f32>>,
     fe: usize,
     sw: usize,
     tokens: usize,
@@ -283,18 +321,35 @@ impl FastUNet {
             ))
         };
         let e = c.tau_dim;
-        let per_pos = c.film == FilmMode::PerPosition;
+        let per_pos = c.film == FilmMode::PerPositionTau;
+        let with_heads = c.film == FilmMode::PerPositionHeads;
         let fe = spec.fast_encoded_dim();
         let sw = spec.slow.width();
         let cs = e + fe + sw + c.dvis_dim;
         let k = c.kernel;
+        let h = spec.horizon;
         let res = |n: &str, cin: usize, cout: usize, lvl: usize| -> CResult<Res> {
             Ok(Res {
                 c0: conv(&format!("{n}.block0.conv"), cin, cout, k, ConvMode::Same)?,
                 n0: gn(&format!("{n}.block0.gn"), cout)?,
                 c1: conv(&format!("{n}.block1.conv"), cout, cout, k, ConvMode::Same)?,
                 n1: gn(&format!("{n}.block1.gn"), cout)?,
-                film: lin(&format!("{n}.film"), cs, 2 * cout)?,
+                film: if with_heads {
+                    None
+                } else {
+                    Some(lin(&format!("{n}.film"), cs, 2 * cout)?)
+                },
+                heads: if with_heads {
+                    Some(Heads {
+                        w: idx(format!("{n}.film_heads.weight"))?,
+                        b: idx(format!("{n}.film_heads.bias"))?,
+                        l: h >> lvl,
+                        din: cs,
+                        dout: 2 * cout,
+                    })
+                } else {
+                    None
+                },
                 film_pos: if per_pos {
                     Some(lin(&format!("{n}.film_pos"), e, 2 * cout)?)
                 } else {
@@ -412,6 +467,10 @@ impl FastUNet {
             a,
             levels: n,
             per_pos,
+            heads: with_heads,
+            hin: vec![Vec::new(); n],
+            hmean: vec![Vec::new(); n],
+            dhin: vec![Vec::new(); n],
             fe,
             sw,
             tokens: spec.slow.tokens(),
@@ -528,6 +587,33 @@ impl FastUNet {
                 }
             }
         }
+        if self.heads {
+            for lvl in 0..self.levels {
+                let l = h >> lvl;
+                let w = h / l;
+                let inv = 1.0 / w as f32;
+                let (hm, hi) = (&mut self.hmean[lvl], &mut self.hin[lvl]);
+                hm.clear();
+                hm.resize(l * b * e, 0.0);
+                hi.resize(l * b * cs, 0.0);
+                for li in 0..l {
+                    for bi in 0..b {
+                        let m = &mut hm[(li * b + bi) * e..(li * b + bi + 1) * e];
+                        for q in li * w..(li + 1) * w {
+                            for (d, &v) in m.iter_mut().zip(&self.emb[(bi * h + q) * e..(bi * h + q + 1) * e]) {
+                                *d += v;
+                            }
+                        }
+                        let row = &mut hi[(li * b + bi) * cs..(li * b + bi + 1) * cs];
+                        for (o, mv) in row[..e].iter_mut().zip(m.iter_mut()) {
+                            *mv *= inv;
+                            *o = mish1(*mv);
+                        }
+                        row[e..].copy_from_slice(&self.shared[bi * cs + e..(bi + 1) * cs]);
+                    }
+                }
+            }
+        }
         // The network.
         let n0 = b * h * self.a;
         self.acts[0].clear();
@@ -543,6 +629,11 @@ impl FastUNet {
                     } else {
                         None
                     };
+                    let heads_in = if self.heads {
+                        Some(self.hin[lvl].as_slice())
+                    } else {
+                        None
+                    };
                     self.blocks[blk].fwd(
                         par,
                         p,
@@ -551,6 +642,7 @@ impl FastUNet {
                         l,
                         &self.shared,
                         pooled,
+                        heads_in,
                         &mut out,
                     );
                     self.acts[y] = out;
@@ -609,6 +701,12 @@ impl FastUNet {
                 d.resize(b * (h >> lvl) * e, 0.0);
             }
         }
+        for (d, u) in self.dhin.iter_mut().zip(&self.hin) {
+            d.clear();
+            if self.heads {
+                d.resize(u.len(), 0.0);
+            }
+        }
         for &op in self.ops.iter().rev() {
             match op {
                 Op::Res { blk, x, y } => {
@@ -628,6 +726,11 @@ impl FastUNet {
                     } else {
                         Some(self.gacts[x].as_mut_slice())
                     };
+                    let heads_in = if self.heads {
+                        Some((self.hin[lvl].as_slice(), self.dhin[lvl].as_mut_slice()))
+                    } else {
+                        None
+                    };
                     self.blocks[blk].bwd(
                         par,
                         p,
@@ -638,6 +741,7 @@ impl FastUNet {
                         l,
                         &self.shared,
                         pooled,
+                        heads_in,
                         dx,
                         &mut self.dshared,
                         dpooled,
@@ -712,6 +816,33 @@ impl FastUNet {
             }
             for (d, &v) in self.demb.iter_mut().zip(&self.emb) {
                 *d *= mish_and_grad(v).1;
+            }
+        }
+        if self.heads {
+            // Head inputs → slot means (through mish) → full resolution; global part → shared.
+            for lvl in 0..self.levels {
+                let l = h >> lvl;
+                let w = h / l;
+                let inv = 1.0 / w as f32;
+                let (du, hm) = (&self.dhin[lvl], &self.hmean[lvl]);
+                for li in 0..l {
+                    for bi in 0..b {
+                        let row = &du[(li * b + bi) * cs..(li * b + bi + 1) * cs];
+                        let m = &hm[(li * b + bi) * e..(li * b + bi + 1) * e];
+                        for q in li * w..(li + 1) * w {
+                            let de = &mut self.demb[(bi * h + q) * e..(bi * h + q + 1) * e];
+                            for k in 0..e {
+                                de[k] += row[k] * mish_and_grad(m[k]).1 * inv;
+                            }
+                        }
+                        for (d, &v) in self.dshared[bi * cs + e..(bi + 1) * cs]
+                            .iter_mut()
+                            .zip(&row[e..])
+                        {
+                            *d += v;
+                        }
+                    }
+                }
             }
         }
         let dd = self.dvis_dim;
@@ -866,10 +997,11 @@ mod tests {
 
     fn variants() -> Vec<(SlowSpec, FilmMode)> {
         vec![
-            (SlowSpec::Vector { dim: 2 }, FilmMode::PerPosition),
+            (SlowSpec::Vector { dim: 2 }, FilmMode::PerPositionHeads),
+            (SlowSpec::Vector { dim: 2 }, FilmMode::PerPositionTau),
             (
                 SlowSpec::Tokens { tokens: 3, dim: 2 },
-                FilmMode::PerPosition,
+                FilmMode::PerPositionHeads,
             ),
             (SlowSpec::None, FilmMode::Shared),
         ]
@@ -956,7 +1088,7 @@ mod tests {
 
     #[test]
     fn fused_gradients_match_finite_differences() {
-        let mut m = model(SlowSpec::Vector { dim: 2 }, FilmMode::PerPosition, 21);
+        let mut m = model(SlowSpec::Vector { dim: 2 }, FilmMode::PerPositionHeads, 21);
         let s = *m.spec();
         let b = 2;
         let o = Owned::new(&m, b, 5);

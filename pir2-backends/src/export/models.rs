@@ -258,8 +258,10 @@ impl MlpSpec {
 pub enum Film {
     /// One `(γ, β)` per sample from the shared condition.
     Shared,
-    /// The shared pair plus a per-position term `film_pos(mish(pool_L(e))_l)`.
-    PerPosition,
+    /// The paper's: one head per slot, `(γ_l, β_l) = film_heads_l([mish(ē_l), global])`.
+    PerPositionHeads,
+    /// Ablation: the shared pair plus a per-position term `film_pos(mish(pool_L(e))_l)`.
+    PerPositionTau,
 }
 
 /// The conditional U-Net 1D, as the candle `UNet` computes it.
@@ -268,7 +270,9 @@ pub enum Film {
 ///   `ω_k = exp(−k·ln(10⁴)/(E/2 − 1))`.
 /// * shared condition `[mish(mean_p e_p), encoded fast, mean over tokens of normalised slow, e(d_vis)]`.
 /// * residual block `N`: `N.block0` (conv k → GroupNorm `gn` → Mish), FiLM
-///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]`, `h·(1 + γ) + β`, `N.block1`, `+ N.res(x)`
+///   `(γ, β) = N.film(shared) [+ N.film_pos(mish(pool_L(e)))]` or, with per-position heads,
+///   `(γ_l, β_l) = N.film_heads[l]([mish(ē_l), global])` (`ē_l`: the mean of `e` over the chunk
+///   positions slot `l` covers), `h·(1 + γ) + β`, `N.block1`, `+ N.res(x)`
 ///   (1×1 conv) or `+ x`.
 /// * `down.{i}.res0/res1`, `down.{i}.down` (conv 3, stride 2) except at the last level; `mid.0/1`;
 ///   `up.{j}.res0/res1` on `concat(h, skip)`, then nearest ×2 and `up.{j}.up` (conv 3);
@@ -338,11 +342,16 @@ impl UnetSpec {
             v.push((format!("{n}.gn.weight"), vec![o]));
             v.push((format!("{n}.gn.bias"), vec![o]));
         };
-        let res = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize| {
+        let res = |v: &mut Vec<(String, Vec<usize>)>, n: &str, i: usize, o: usize, l: usize| {
             block(v, &format!("{n}.block0"), i, o);
             block(v, &format!("{n}.block1"), o, o);
-            lin(v, &format!("{n}.film"), cs, 2 * o);
-            if self.film == Film::PerPosition {
+            if self.film == Film::PerPositionHeads {
+                v.push((format!("{n}.film_heads.weight"), vec![l, 2 * o, cs]));
+                v.push((format!("{n}.film_heads.bias"), vec![l, 2 * o]));
+            } else {
+                lin(v, &format!("{n}.film"), cs, 2 * o);
+            }
+            if self.film == Film::PerPositionTau {
                 lin(v, &format!("{n}.film_pos"), e, 2 * o);
             }
             if i != o {
@@ -357,9 +366,10 @@ impl UnetSpec {
         ));
         let dims = self.all_dims();
         let n = self.widths.len();
+        let hz = self.dims.horizon;
         for i in 0..n {
-            res(&mut v, &format!("down.{i}.res0"), dims[i], dims[i + 1]);
-            res(&mut v, &format!("down.{i}.res1"), dims[i + 1], dims[i + 1]);
+            res(&mut v, &format!("down.{i}.res0"), dims[i], dims[i + 1], hz >> i);
+            res(&mut v, &format!("down.{i}.res1"), dims[i + 1], dims[i + 1], hz >> i);
             if i + 1 < n {
                 conv(
                     &mut v,
@@ -371,11 +381,11 @@ impl UnetSpec {
             }
         }
         let w = self.widths[n - 1];
-        res(&mut v, "mid.0", w, w);
-        res(&mut v, "mid.1", w, w);
+        res(&mut v, "mid.0", w, w, hz >> (n - 1));
+        res(&mut v, "mid.1", w, w, hz >> (n - 1));
         for (j, i) in (1..n).rev().enumerate() {
-            res(&mut v, &format!("up.{j}.res0"), 2 * dims[i + 1], dims[i]);
-            res(&mut v, &format!("up.{j}.res1"), dims[i], dims[i]);
+            res(&mut v, &format!("up.{j}.res0"), 2 * dims[i + 1], dims[i], hz >> i);
+            res(&mut v, &format!("up.{j}.res1"), dims[i], dims[i], hz >> i);
             conv(&mut v, &format!("up.{j}.up"), dims[i], dims[i], 3);
         }
         let w0 = self.widths[0];
@@ -421,7 +431,7 @@ impl UnetSpec {
         Ok(o.mish(&y))
     }
 
-    /// `shared`: `[B, E+G]`; `pos`: `mish(pool_L(e))` `[B, L, E]` (per-position FiLM only).
+    /// `shared`: `[B, E+G]`; `pos`: `mish(pool_L(e))` (ablation) or `mish(ē)` (heads), `[B, L, E]`.
     #[allow(clippy::too_many_arguments)]
     fn res_block<O: Ops, W: WeightSource>(
         &self,
@@ -437,6 +447,12 @@ impl UnetSpec {
     ) -> Result<O::T, ExportError> {
         let h = self.conv_block(o, w, &format!("{n}.block0"), x, i, out)?;
         let c = out as i64;
+        if let (Film::PerPositionHeads, Some(p)) = (self.film, pos) {
+            let f = self.film_heads(o, w, n, shared, p, out, len)?; // [B, L, 2C]
+            let f = o.transpose(&f, &[0, 2, 1]);
+            let f = o.reshape(&f, &[-1, 2, c, len as i64]);
+            return self.film_rest(o, w, n, x, &h, &f, i, out, len as i64);
+        }
         let f = linear(
             o,
             w,
@@ -448,7 +464,7 @@ impl UnetSpec {
         )?;
         let mut f = o.reshape(&f, &[-1, 2, c, 1]);
         let mut l = 1;
-        if let (Film::PerPosition, Some(p)) = (self.film, pos) {
+        if let (Film::PerPositionTau, Some(p)) = (self.film, pos) {
             let fp = linear(
                 o,
                 w,
@@ -463,12 +479,74 @@ impl UnetSpec {
             f = o.add(&fp, &f);
             l = len as i64;
         }
-        let scale = o.slice(&f, 1, 0, 1);
+        self.film_rest(o, w, n, x, &h, &f, i, out, l)
+    }
+
+    /// The per-slot heads `[B, L, 2C]`: the global part of every head in one product, the `τ`
+    /// part slot by slot (ONNX has no batched product with a per-slot weight here).
+    #[allow(clippy::too_many_arguments)]
+    fn film_heads<O: Ops, W: WeightSource>(
+        &self,
+        o: &mut O,
+        w: &W,
+        n: &str,
+        shared: &O::T,
+        pos: &O::T,
+        out: usize,
+        len: usize,
+    ) -> Result<O::T, ExportError> {
+        let (e, cs, c2) = (self.tau_dim, self.shared_dim(), 2 * out);
+        let wt = w.weight(UNET, &format!("{n}.film_heads.weight"), &[len, c2, cs])?;
+        let bt = w.weight(UNET, &format!("{n}.film_heads.bias"), &[len, c2])?;
+        let g = o.slice(shared, 1, e as i64, cs as i64);
+        let wg: Vec<f32> = wt.chunks_exact(cs).flat_map(|r| r[e..].to_vec()).collect();
+        let fg = o.linear(&g, &format!("{n}.film_heads.global"), &wg, None, cs - e, len * c2);
+        let fg = o.reshape(&fg, &[-1, len as i64, c2 as i64]);
+        let mut slots = Vec::with_capacity(len);
+        for l in 0..len {
+            let wl: Vec<f32> = wt[l * c2 * cs..(l + 1) * c2 * cs]
+                .chunks_exact(cs)
+                .flat_map(|r| r[..e].to_vec())
+                .collect();
+            let pl = o.slice(pos, 1, l as i64, l as i64 + 1);
+            slots.push(o.linear(
+                &pl,
+                &format!("{n}.film_heads.{l}"),
+                &wl,
+                Some(&bt[l * c2..(l + 1) * c2]),
+                e,
+                c2,
+            ));
+        }
+        let ft = if len == 1 {
+            slots.remove(0)
+        } else {
+            o.concat(&slots, 1)
+        };
+        Ok(o.add(&ft, &fg))
+    }
+
+    /// FiLM `h·(1 + γ) + β` with `f` `[B, 2, C, l]`, then `block1` and the residual.
+    #[allow(clippy::too_many_arguments)]
+    fn film_rest<O: Ops, W: WeightSource>(
+        &self,
+        o: &mut O,
+        w: &W,
+        n: &str,
+        x: &O::T,
+        h: &O::T,
+        f: &O::T,
+        i: usize,
+        out: usize,
+        l: i64,
+    ) -> Result<O::T, ExportError> {
+        let c = out as i64;
+        let scale = o.slice(f, 1, 0, 1);
         let scale = o.reshape(&scale, &[-1, c, l]);
         let bias = o.slice(&f, 1, 1, 2);
         let bias = o.reshape(&bias, &[-1, c, l]);
         let scale1 = o.offset(&scale, 1.0);
-        let hs = o.mul(&h, &scale1);
+        let hs = o.mul(h, &scale1);
         let hb = o.add(&hs, &bias);
         let h = self.conv_block(o, w, &format!("{n}.block1"), &hb, out, out)?;
         let r = if i != out {
@@ -564,18 +642,26 @@ impl UnetSpec {
         // Mish on the τ part only (follows backends 6c7db0e).
         let shared = o.concat(&parts, 1);
         // Per-position term, pooled per level: [B, H >> i, E].
-        let pos = o.mish(&emb);
+        // Ablation: mish, then the mean over each slot; heads: the mean, then mish.
+        let pos = match self.film {
+            Film::PerPositionTau => o.mish(&emb),
+            _ => emb.clone(),
+        };
         let mut pooled = Vec::with_capacity(n);
         for i in 0..n {
             let l = hz >> i;
-            if self.film == Film::Shared {
-                pooled.push(None);
+            let p = if self.film == Film::Shared {
+                None
             } else if l == hz {
-                pooled.push(Some(pos.clone()));
+                Some(pos.clone())
             } else {
                 let r = o.reshape(&pos, &[-1, l as i64, (hz / l) as i64, e as i64]);
-                pooled.push(Some(o.mean(&r, 2)));
-            }
+                Some(o.mean(&r, 2))
+            };
+            pooled.push(match (self.film, p) {
+                (Film::PerPositionHeads, Some(p)) => Some(o.mish(&p)),
+                (_, p) => p,
+            });
         }
 
         let dims = self.all_dims();

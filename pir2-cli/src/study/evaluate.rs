@@ -54,8 +54,15 @@ const NOT_IN_FINGERPRINT: [&str; 10] = [
 /// `train_missing` did not exist then, so it is left out of the earlier fingerprint too.
 const HASHED_BEFORE: [&str; 1] = ["pretrained"];
 
+/// Fields added after cells were logged, with the value every config of before implied: a
+/// config holding that value leaves the field out of its fingerprint, so the cells measured
+/// then keep matching it. `pir2_film`: the πR² U-Nets were the shared-projection ablation
+/// until the paper's per-position heads became the default.
+const IMPLIED_BEFORE: [(&str, &str); 1] = [("pir2_film", "per_position_tau")];
+
 /// A short, stable fingerprint of what in `config` a cell depends on: the config as TOML
-/// without the fields in `NOT_IN_FINGERPRINT`, hashed (FNV-1a, 64 bits).
+/// without the fields in `NOT_IN_FINGERPRINT` (and those of `IMPLIED_BEFORE` holding their
+/// implied value), hashed (FNV-1a, 64 bits).
 pub fn config_fingerprint<C: Serialize>(config: &C) -> Result<String> {
     fingerprint_without(config, |k| NOT_IN_FINGERPRINT.contains(&k))
 }
@@ -81,7 +88,16 @@ pub fn earlier_config_fingerprints<C: Serialize>(config: &C) -> Result<Vec<Strin
 fn fingerprint_without<C: Serialize>(config: &C, skip: impl Fn(&str) -> bool) -> Result<String> {
     let mut v = toml::Value::try_from(config).context("serialising the config")?;
     if let Some(t) = v.as_table_mut() {
-        let skipped: Vec<String> = t.keys().filter(|k| skip(k)).cloned().collect();
+        let skipped: Vec<String> = t
+            .iter()
+            .filter(|(k, v)| {
+                skip(k)
+                    || IMPLIED_BEFORE
+                        .iter()
+                        .any(|(f, val)| f == k && v.as_str() == Some(val))
+            })
+            .map(|(k, _)| k.clone())
+            .collect();
         for k in skipped {
             t.remove(&k);
         }

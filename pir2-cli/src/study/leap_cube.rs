@@ -35,14 +35,16 @@ use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, 
 pub const POLICIES: [Policy; 4] = [Policy::PiR2, Policy::PiR2Full, Policy::Rtc, Policy::Flow];
 
 /// Every policy the Leap study can train (the default four, the front-hidden πR² and the
-/// zero-delay πR² of the horizon study).
-pub const ALL_POLICIES: [Policy; 6] = [
+/// zero-delay πR² policies of the horizon study: the paper's streaming ramp and the n-slot
+/// extra).
+pub const ALL_POLICIES: [Policy; 7] = [
     Policy::PiR2,
     Policy::PiR2Hidden,
     Policy::PiR2Full,
     Policy::Rtc,
     Policy::Flow,
     Policy::PiR2ZeroDelay,
+    Policy::PiR2ZeroDelayFull,
 ];
 
 /// The study's scale. Defaults: the reduced scale run on this machine (paper values in the
@@ -103,7 +105,8 @@ pub struct LeapStudyConfig {
     /// --train-missing`).
     pub train_missing: bool,
     /// Policies whose rows are run (all four by default; rows of the others are skipped).
-    /// Add `pir2_zero_delay` to train the `d_max = 0` πR² variant of the horizon study.
+    /// Add `pi_r2_zero_delay_full` to train the paper's `d_max = 0` πR² variant of the horizon
+    /// study (the full streaming ramp), `pi_r2_zero_delay` for the `n`-slot extra.
     pub policies: Vec<Policy>,
     /// Law of the training delay draws (paper: exponential, rate 1, over `{0..d_max}`;
     /// `{ law = "uniform" }` draws `U{1..d_max}`).
@@ -127,6 +130,13 @@ pub struct LeapStudyConfig {
     /// Add the "naive async + TE" row (ACT temporal ensembling, which the paper uses only on
     /// the real robot) next to the paper's plain-swap naive async.
     pub te_row: bool,
+    /// FiLM of the πR² policies' U-Nets (the baselines keep the shared head, as the paper):
+    /// `per_position_heads` (the paper's: one head per chunk position, each initialised as a
+    /// copy of the shared head; the default) or `per_position_tau` (the ablation: the shared
+    /// head plus one zero-initialised projection of each position's `τ` embedding, shared by all
+    /// positions; what pir2 ≤ 0.1 trained, so a config without this field that was written
+    /// then means it: see `studies/leap-cube/ablation-per-position-tau.toml`).
+    pub pir2_film: FilmMode,
     /// The paper picks "the best epoch per seed" for each cell. With `best_of_last` = k > 0
     /// the study also evaluates every cell with the last k step checkpoints of each training
     /// run besides the chosen one and reports the best per cell as a second, labelled table
@@ -172,6 +182,7 @@ impl Default for LeapStudyConfig {
             d_vis_max: 0,
             slow_frames: 2,
             te_row: true,
+            pir2_film: FilmMode::PerPositionHeads,
             best_of_last: 0,
             diagnostic_rows: false,
         }
@@ -337,6 +348,18 @@ impl LeapCubeTask {
                 sweep: Sweep::Once(zero),
             });
         }
+        if c.policies.contains(&Policy::PiR2ZeroDelayFull) {
+            let r = Policy::PiR2ZeroDelayFull
+                .deployments(&self.settings().recipe)
+                .remove(0);
+            out.push(StudyRow {
+                row: Row {
+                    label: "πR² zero-delay policy, d_max = 0, paper streaming ramp".into(),
+                    ..r
+                },
+                sweep: Sweep::Once(zero),
+            });
+        }
         if c.policies.contains(&Policy::PiR2ZeroDelay) {
             let r = Policy::PiR2ZeroDelay
                 .deployments(&self.settings().recipe)
@@ -425,11 +448,12 @@ impl Task for LeapCubeTask {
         ))
     }
 
-    /// U-Net with per-position FiLM for the πR² policies, shared FiLM for the baselines.
+    /// U-Net with per-position FiLM ([`LeapStudyConfig::pir2_film`]) for the πR² policies,
+    /// shared FiLM for the baselines.
     fn model(&self, policy: Policy) -> ModelConfig {
         let film = match policy {
             Policy::Rtc | Policy::Flow => FilmMode::Shared,
-            _ => FilmMode::PerPosition,
+            _ => self.cfg.pir2_film,
         };
         ModelConfig::UNet(UNetConfig {
             widths: self.cfg.widths.clone(),
@@ -499,7 +523,7 @@ impl Task for LeapCubeTask {
     /// The zero-delay policy is validated at zero latency (it cannot run with a delay);
     /// every other policy in its first row's mode.
     fn validation(&self, policy: Policy) -> (Mode, LockstepTiming) {
-        if policy == Policy::PiR2ZeroDelay {
+        if matches!(policy, Policy::PiR2ZeroDelay | Policy::PiR2ZeroDelayFull) {
             let r = self.settings().recipe;
             let mode = policy.deployments(&r).remove(0).mode;
             return (mode, LockstepTiming::zero_latency());

@@ -127,7 +127,13 @@ impl PolicySection {
         use pir2_runtime::Policy as P;
         match kind {
             DeployKind::PiR2Async | DeployKind::PiR2Sync => {
-                &[P::PiR2, P::PiR2Hidden, P::PiR2Full, P::PiR2ZeroDelay]
+                &[
+                    P::PiR2,
+                    P::PiR2Hidden,
+                    P::PiR2Full,
+                    P::PiR2ZeroDelay,
+                    P::PiR2ZeroDelayFull,
+                ]
             }
             DeployKind::SyncFlow | DeployKind::NaiveAsync => &[P::Flow],
             DeployKind::Rtc => &[P::Rtc],
