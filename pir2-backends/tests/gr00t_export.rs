@@ -65,8 +65,11 @@ fn config(case: &str) -> Gr00tN17Config {
 }
 
 /// A fixture (`alt`, `plain`) as a fine-tuned step directory: its weights plus a random
-/// (nonzero) delay table of `D_VIS_MAX + 1` rows.
-fn step_dir(case: &str, dir: &Path) {
+/// (nonzero) delay table of `D_VIS_MAX + 1` rows; with `heads`, πR²'s per-position AdaLN
+/// heads (`<layer>_heads`, one per DiT token) in place of each shared modulation, every head
+/// the shared pair plus noise of its own, so that a graph reading one head for all tokens
+/// fails the comparison.
+fn step_dir(case: &str, dir: &Path, heads: bool) {
     let dev = Device::Cpu;
     let mut all: HashMap<String, Tensor> = candle_core::safetensors::load(
         fixtures().join(format!("{case}.weights.safetensors")),
@@ -78,6 +81,33 @@ fn step_dir(case: &str, dir: &Path) {
         format!("{PREFIX}{DELAY_EMBEDDING}"),
         Tensor::from_vec(noise(rows * d_in, 5, 0.5), (rows, d_in), &dev).unwrap(),
     );
+    if heads {
+        let n = H + 1;
+        let layers: Vec<String> = all
+            .keys()
+            .filter_map(|k| {
+                k.strip_suffix(".weight")
+                    .filter(|l| l.ends_with("norm1.linear") || l.ends_with("model.proj_out_1"))
+                    .filter(|l| l.contains("model."))
+                    .map(str::to_string)
+            })
+            .collect();
+        assert!(!layers.is_empty());
+        for (li, layer) in layers.iter().enumerate() {
+            for (k, seed) in [("weight", 100), ("bias", 200)] {
+                let t = all.remove(&format!("{layer}.{k}")).unwrap();
+                let mut dims = vec![n];
+                dims.extend(t.dims());
+                let tiled = t.unsqueeze(0).unwrap().broadcast_as(dims.as_slice()).unwrap();
+                let m = tiled.elem_count();
+                let scale = t.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+                let jitter =
+                    Tensor::from_vec(noise(m, seed + li as u64, 0.3 * scale), dims.as_slice(), &dev)
+                        .unwrap();
+                all.insert(format!("{layer}_heads.{k}"), (tiled + jitter).unwrap());
+            }
+        }
+    }
     candle_core::safetensors::save(&all, dir.join("model.safetensors")).unwrap();
     std::fs::copy(
         fixtures().join(format!("{case}.config.json")),
@@ -129,12 +159,13 @@ fn exported(
     dir: &Path,
     cfg: &EmbodimentConfig,
     storage: WeightStorage,
+    heads: bool,
 ) -> (Gr00tN17Head, Gr00tActionHead, Normalizer) {
     let step = dir.join("step");
     let out = dir.join("export");
     std::fs::create_dir_all(&step).unwrap();
     std::fs::create_dir_all(&out).unwrap();
-    step_dir(case, &step);
+    step_dir(case, &step, heads);
     let head = Gr00tN17Head::load(&step, &Device::Cpu).unwrap();
     let files = export_gr00t_n17(&head, H)
         .unwrap()
@@ -277,9 +308,14 @@ fn onnx_velocity(
 /// One fixture through export + the ONNX stack against candle; the comparison must see the
 /// delay table and the per-position timesteps.
 fn parity(case: &str, storage: WeightStorage) {
-    let dir = Scratch::new(&format!("{case}-{storage:?}"));
+    parity_with(case, storage, false);
+}
+
+fn parity_with(case: &str, storage: WeightStorage, heads: bool) {
+    let dir = Scratch::new(&format!("{case}-{storage:?}-{heads}"));
     let cfg = embodiment(case);
-    let (head, mut onnx, norm) = exported(case, &dir.0, &cfg, storage);
+    let (head, mut onnx, norm) = exported(case, &dir.0, &cfg, storage, heads);
+    assert_eq!(head.position_heads(), heads.then_some(H + 1));
     let c = head.config().clone();
     let (d_vl, d_in, n_obs) = (c.backbone_embedding_dim, c.input_embedding_dim, cfg.n_obs);
     let a = cfg.action_dim();
@@ -372,11 +408,18 @@ fn exported_plain_head_matches_candle_through_the_onnx_stack() {
     parity("plain", WeightStorage::Auto);
 }
 
+/// πR²'s per-position AdaLN heads (one per DiT token, each different) through the export:
+/// ONNX Runtime's velocity equals candle's.
+#[test]
+fn exported_head_with_per_position_adaln_heads_matches_candle() {
+    parity_with("alt", WeightStorage::Auto, true);
+}
+
 #[test]
 fn exported_backbone_post_processing_matches_candle() {
     let dir = Scratch::new("vlsa");
     let cfg = embodiment("alt");
-    let (head, _, _) = exported("alt", &dir.0, &cfg, WeightStorage::Auto);
+    let (head, _, _) = exported("alt", &dir.0, &cfg, WeightStorage::Auto, false);
     let d = head.config().backbone_embedding_dim;
     let raw = noise(T * d, 9, 2.0);
     let want = head

@@ -513,6 +513,102 @@ fn trainable_head_starts_as_the_base_head() {
     assert_eq!(bits(&again), bits(&moved));
 }
 
+/// πR²'s per-position AdaLN heads: a trainable head turned into the per-position form starts
+/// as the base head (each head a copy of the shared pair, so any timesteps give the base's
+/// velocity), its heads are the trainable tensors in place of the shared ones, one gradient
+/// step makes them differ by position, and saved weights load back with the heads.
+#[test]
+fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
+    let dir = Scratch::new("heads");
+    save(&weights("alt"), &dir.0.join("model.safetensors"));
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        dir.0.join("config.json"),
+    )
+    .unwrap();
+    let base = Case::load("alt");
+    let emb = base.get("in.embodiment_id");
+    let x = base.get("in.actions");
+    let (b, h, _) = x.dims3().unwrap();
+    let shared = Gr00tN17Head::load_trainable(&dir.0, 0, &Device::Cpu).unwrap();
+    let heads = Gr00tN17Head::load_trainable(&dir.0, 0, &Device::Cpu)
+        .unwrap()
+        .with_position_heads(h)
+        .unwrap();
+    assert_eq!(shared.position_heads(), None);
+    assert_eq!(heads.position_heads(), Some(1 + h));
+    let names: Vec<&str> = heads
+        .trainable_vars()
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .collect();
+    assert!(names.contains(&"action_head.model.transformer_blocks.0.norm1.linear_heads.weight"));
+    assert!(names.contains(&"action_head.model.proj_out_1_heads.bias"));
+    assert!(!names.iter().any(|n| n.ends_with("norm1.linear.weight")));
+    assert!(!names.contains(&"action_head.model.proj_out_1.weight"));
+    // A wrong count is refused by name.
+    let e = heads.clone().with_position_heads(h + 1).unwrap_err();
+    assert!(e.to_string().contains("per-position AdaLN heads"), "{e}");
+
+    // Per-position timesteps that differ along the chunk (a staircase).
+    let ta: Vec<u32> = (0..b * h).map(|i| (999 - 60 * (i % h)) as u32).collect();
+    let tt: Vec<u32> = (0..b * (1 + h))
+        .map(|i| if i % (1 + h) == 0 { 999 } else { (999 - 60 * (i % (1 + h) - 1)) as u32 })
+        .collect();
+    let actions = Tensor::from_vec(ta, (b, h), &Device::Cpu).unwrap();
+    let tokens = Tensor::from_vec(tt, (b, 1 + h), &Device::Cpu).unwrap();
+    let per = Timesteps::PerPosition {
+        actions: &actions,
+        tokens: &tokens,
+    };
+    let d0 = Tensor::new(&[0u32, 0], &Device::Cpu).unwrap();
+    let run = |m: &Gr00tN17Head, ts: Timesteps<'_>| -> Tensor {
+        let vl = m.process_backbone(base.get("in.backbone_features")).unwrap();
+        let s = m.encode_state(base.get("in.state"), emb).unwrap();
+        let vlt = VlTokens {
+            d_vis: Some(&d0),
+            ..base.vl(&vl)
+        };
+        m.velocity(&s, x, ts, &vlt, emb).unwrap()
+    };
+    for ts in [Timesteps::Shared(base.get("in.timesteps")), per] {
+        let (a, c) = (run(&shared, ts), run(&heads, ts));
+        assert!(rel_err(&c, &a) < 1e-6, "first forward differs: {}", rel_err(&c, &a));
+    }
+    // One step on a per-position loss: the heads of one layer no longer agree.
+    let v = run(&heads, per);
+    let grads = v.sqr().unwrap().mean_all().unwrap().backward().unwrap();
+    let (_, w) = heads
+        .trainable_vars()
+        .iter()
+        .find(|(n, _)| n == "action_head.model.proj_out_1_heads.weight")
+        .unwrap();
+    let g = grads.get(w.as_tensor()).expect("a gradient for the heads");
+    w.set(&(w.as_tensor() - (g * 1e3).unwrap()).unwrap()).unwrap();
+    let wv = w.as_tensor();
+    let spread = (wv.narrow(0, 1, 1).unwrap() - wv.narrow(0, 2, 1).unwrap())
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert!(spread > 0.0, "heads 1 and 2 did not specialise");
+    let moved = run(&heads, per);
+    // Saved and loaded back as an inference head, with its heads.
+    let out = Scratch::new("heads-out");
+    heads.save_weights(&out.0.join("model.safetensors")).unwrap();
+    std::fs::copy(
+        fixtures().join("alt.config.json"),
+        out.0.join("config.json"),
+    )
+    .unwrap();
+    let back = Gr00tN17Head::load(&out.0, &Device::Cpu).unwrap();
+    assert_eq!(back.position_heads(), Some(1 + h));
+    assert!(rel_err(&run(&back, per), &moved) < 1e-6);
+}
+
 #[test]
 fn dropout_applies_in_the_training_forward_only_and_is_keyed_by_seed_step_and_site() {
     use pir2_backends::candle::gr00t_n17::{DitDropout, DropoutSite};

@@ -147,6 +147,12 @@ impl Policy {
         Policy::PiR2ZeroDelayFull,
     ];
 
+    /// Whether the policy's network gives every chunk position its own modulation head (the
+    /// paper's architecture for πR²; the baselines keep the shared head).
+    pub fn per_position_heads(self) -> bool {
+        !matches!(self, Policy::Rtc | Policy::Flow)
+    }
+
     /// The largest delay the policy must handle (the trained `d_max`; the head's latency
     /// window is capped there): the recipe's πR² or RTC `d_max` (the flow baselines share
     /// RTC's window), 0 for the zero-delay policy.

@@ -142,6 +142,40 @@ impl Emitter<'_> {
         Ok(self.g.linear(x, name, w, Some(b), i, o))
     }
 
+    /// An AdaLN modulation of `x [B, N, in]`: GR00T's shared layer, or πR²'s per-position
+    /// heads (`name_heads.weight [N, out, in]`) when the head has them — token `i` through
+    /// head `i`, one batched `MatMul` over the tokens.
+    fn ada(
+        &mut self,
+        x: &str,
+        name: &str,
+        tokens: usize,
+        i: usize,
+        o: usize,
+    ) -> Result<String, ExportError> {
+        let heads = format!("{name}_heads.weight");
+        if !self.w.map.contains_key(&heads) {
+            return self.linear(x, name, i, o);
+        }
+        let w = self.w.get(&heads, &[tokens, o, i])?;
+        let b = self.w.get(&format!("{name}_heads.bias"), &[tokens, o])?;
+        // [N, out, in] → [N, in, out]
+        let mut wt = vec![0f32; w.len()];
+        for n in 0..tokens {
+            for r in 0..o {
+                for c in 0..i {
+                    wt[(n * i + c) * o + r] = w[(n * o + r) * i + c];
+                }
+            }
+        }
+        let wn = self.g.weight(&format!("{name}_heads.weight"), &[tokens, i, o], &wt);
+        let bn = self.g.weight(&format!("{name}_heads.bias"), &[tokens, o], b);
+        let xu = self.g.unsqueeze(x, &[-2]); // [B, N, 1, in]
+        let m = self.g.op("MatMul", &[&xu, &wn], vec![]); // [B, N, 1, out]
+        let m = self.g.reshape(&m, &[0, tokens as i64, o as i64]);
+        Ok(self.g.add(&m, &bn))
+    }
+
     /// GR00T's `CategorySpecificLinear`: `x [B,S,in] · W[ids] [B,in,out] + b[ids]`.
     fn category_linear(
         &mut self,
@@ -257,7 +291,7 @@ impl Emitter<'_> {
         &mut self,
         x: &str,
         name: &str,
-        temb: Option<&str>,
+        temb: Option<(&str, usize)>,
         source: Option<(&str, usize)>,
         bias: Option<&str>,
         dim: usize,
@@ -267,9 +301,9 @@ impl Emitter<'_> {
         eps: f64,
     ) -> Result<String, ExportError> {
         let mut h = match temb {
-            Some(temb) => {
+            Some((temb, tokens)) => {
                 let st = self.g.silu(temb);
-                let m = self.linear(&st, &format!("{name}.norm1.linear"), dim, 2 * dim)?;
+                let m = self.ada(&st, &format!("{name}.norm1.linear"), tokens, dim, 2 * dim)?;
                 let scale = self.g.slice(&m, -1, 0, dim as i64);
                 let scale = self.g.offset(&scale, 1.0);
                 let shift = self.g.slice(&m, -1, dim as i64, 2 * dim as i64);
@@ -467,7 +501,7 @@ fn dit(c: &Gr00tN17Config, w: &Weights, h: usize) -> Result<ModelProto, ExportEr
         x = e.block(
             &x,
             &format!("model.transformer_blocks.{i}"),
-            Some(&temb),
+            Some((&temb, n)),
             is_cross.then_some((vl.as_str(), d_vl)),
             bias.as_deref(),
             d,
@@ -478,7 +512,7 @@ fn dit(c: &Gr00tN17Config, w: &Weights, h: usize) -> Result<ModelProto, ExportEr
         )?;
     }
     let st = e.g.silu(&temb);
-    let m = e.linear(&st, "model.proj_out_1", d, 2 * d)?;
+    let m = e.ada(&st, "model.proj_out_1", n, d, 2 * d)?;
     let shift = e.g.slice(&m, -1, 0, d as i64);
     let scale = e.g.slice(&m, -1, d as i64, 2 * d as i64);
     let scale = e.g.offset(&scale, 1.0);

@@ -397,8 +397,15 @@ pub fn train(
     let device = pir2_backends::candle::device(&o.device)?;
     let emb = EmbodimentConfig::load(&o.embodiment)
         .with_context(|| format!("embodiment {}", o.embodiment.display()))?;
-    let head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &device)
+    let mut head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &device)
         .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
+    // The paper's architecture: πR² gives every DiT token its own AdaLN head, initialised from
+    // the checkpoint's shared pair (the baselines keep GR00T's shared modulation).
+    if emb.policy.trained.per_position_heads() {
+        head = head
+            .with_position_heads(emb.horizon)
+            .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
+    }
     let c = head.config().clone();
     let ck = o.checkpoint.display();
     let ed = o.embodiment.display();

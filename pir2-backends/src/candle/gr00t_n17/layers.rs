@@ -38,6 +38,24 @@ impl Loader<'_> {
         Ok(t)
     }
 
+    /// An AdaLN modulation `name` (`torch.nn.Linear(input, output)` in GR00T): πR²'s
+    /// per-position heads `name_heads.{weight [N, output, input], bias [N, output]}` when the
+    /// checkpoint holds them (one head per DiT token, `N` from the file), else GR00T's shared
+    /// layer.
+    pub(super) fn ada(&mut self, name: &str, input: usize, output: usize) -> Result<Ada> {
+        let heads = format!("{}{name}_heads.weight", self.prefix);
+        match self.index.shape(&heads).map(<[usize]>::to_vec) {
+            Some(shape) => {
+                let n = shape.first().copied().unwrap_or(0).max(1);
+                Ok(Ada::Heads {
+                    w: self.tensor(&format!("{name}_heads.weight"), &[n, output, input])?,
+                    b: self.tensor(&format!("{name}_heads.bias"), &[n, output])?,
+                })
+            }
+            None => Ok(Ada::Shared(self.linear(name, input, output)?)),
+        }
+    }
+
     /// `torch.nn.Linear(input, output)`: `weight [output, input]`, `bias [output]`.
     pub(super) fn linear(&mut self, name: &str, input: usize, output: usize) -> Result<Linear> {
         let w = self.tensor(&format!("{name}.weight"), &[output, input])?;
@@ -76,6 +94,50 @@ pub(super) struct Linear(candle_nn::Linear);
 impl Linear {
     pub(super) fn forward(&self, x: &Tensor) -> Result<Tensor> {
         Ok(self.0.forward(x)?)
+    }
+}
+
+/// An AdaLN modulation: GR00T's one layer shared by every token, or πR²'s one head per DiT
+/// token (state token first), each initialised as a copy of the shared layer.
+#[derive(Debug, Clone)]
+pub(super) enum Ada {
+    /// `temb [B, 1 or N, D]` → `[B, 1 or N, out]`.
+    Shared(Linear),
+    /// Weight `[N, out, in]`, bias `[N, out]`: token `i` through head `i`.
+    Heads { w: Tensor, b: Tensor },
+}
+
+impl Ada {
+    /// `x`: the activated timestep embedding `[B, 1, D]` (per sample) or `[B, N, D]` (per
+    /// token); with heads the result is per token, `[B, N, out]`.
+    pub(super) fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Ada::Shared(l) => l.forward(x),
+            Ada::Heads { w, b } => {
+                let n = w.dim(0)?;
+                let (bs, t, d) = x.dims3()?;
+                if t != n && t != 1 {
+                    return Err(Error::shape(
+                        "DiT tokens (per-position AdaLN heads)",
+                        format!("1 or {n}"),
+                        t,
+                    ));
+                }
+                let x = x.broadcast_as((bs, n, d))?.transpose(0, 1)?.contiguous()?;
+                Ok(x.matmul(&w.transpose(1, 2)?)?
+                    .broadcast_add(&b.unsqueeze(1)?)?
+                    .transpose(0, 1)?
+                    .contiguous()?)
+            }
+        }
+    }
+
+    /// The shared layer's weight `[out, in]` and bias `[out]` (`None` for heads).
+    pub(super) fn shared(&self) -> Option<(&Tensor, &Tensor)> {
+        match self {
+            Ada::Shared(l) => Some((l.0.weight(), l.0.bias()?)),
+            Ada::Heads { .. } => None,
+        }
     }
 }
 
@@ -290,7 +352,7 @@ impl Attention {
 pub(super) enum Norm1 {
     /// GR00T's `AdaLayerNorm`: `LN(x)·(1 + scale) + shift`, `[scale, shift] = W·silu(temb) + b`
     /// with `temb` per sample `[B, 1, D]` or per token `[B, N, D]`.
-    Ada(Linear),
+    Ada(Ada),
     /// A plain LayerNorm with affine parameters.
     Affine(AffineNorm),
 }
@@ -325,7 +387,7 @@ impl Block {
         eps: f64,
     ) -> Result<Self> {
         let norm1 = if ada {
-            Norm1::Ada(l.linear(&format!("{name}.norm1.linear"), dim, 2 * dim)?)
+            Norm1::Ada(l.ada(&format!("{name}.norm1.linear"), dim, 2 * dim)?)
         } else {
             Norm1::Affine(l.layer_norm(&format!("{name}.norm1"), dim, eps)?)
         };

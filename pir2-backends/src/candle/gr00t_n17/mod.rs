@@ -43,8 +43,10 @@
 //! `(seed, step, site)`. [`Gr00tN17Head::velocity`] (inference, export, `pir2 run`) never
 //! drops. The frozen `vlln` / VL self-attention never drop either: GR00T puts frozen modules
 //! in `eval` mode, which is what lets their output be cached. Per-position AdaLN here means
-//! every token's AdaLN and output modulation read that token's own timestep embedding
-//! through the pretrained (shared) `norm1.linear` and `proj_out_1` weights.
+//! every token's AdaLN and output modulation read that token's own timestep embedding;
+//! [`Gr00tN17Head::with_position_heads`] makes those modulations one head per token (the
+//! paper's architecture, initialised from the shared pair), and a checkpoint holding
+//! `<layer>_heads.*` tensors loads with them.
 //!
 //! Loading ([`Gr00tN17Head::load`]) reads `config.json` ([`Gr00tN17Config`]) and the
 //! `action_head.*` tensors of `model.safetensors` or of a sharded checkpoint
@@ -88,8 +90,8 @@ pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 
 use crate::error::{Error, Result};
 use layers::{
-    action_time_features, attention_bias, dit_time_features, sinusoidal_table, AffineNorm, Block,
-    CategoryLinear, CategoryMlp, Linear, Loader,
+    action_time_features, attention_bias, dit_time_features, sinusoidal_table, Ada, AffineNorm,
+    Block, CategoryLinear, CategoryMlp, Linear, Loader, Norm1,
 };
 
 /// Prefix of the action head's tensors in a GR00T checkpoint.
@@ -257,7 +259,7 @@ struct Dit {
     blocks: Vec<Block>,
     /// Whether block `i` cross-attends.
     cross: Vec<bool>,
-    proj_out_1: Linear,
+    proj_out_1: Ada,
     proj_out_2: Linear,
 }
 
@@ -440,7 +442,7 @@ impl Gr00tN17Head {
             )?,
             blocks,
             cross,
-            proj_out_1: l.linear("model.proj_out_1", d_in, 2 * d_in)?,
+            proj_out_1: l.ada("model.proj_out_1", d_in, 2 * d_in)?,
             proj_out_2: l.linear("model.proj_out_2", d_in, dc.output_dim)?,
         };
         let action_decoder =
@@ -497,6 +499,83 @@ impl Gr00tN17Head {
             params: std::mem::take(&mut l.loaded),
             vars,
         })
+    }
+
+    /// πR²'s one architectural change: every AdaLN modulation of the DiT (each block's
+    /// `norm1.linear` and the output's `proj_out_1`) becomes one head per DiT token — the
+    /// state token and `horizon` action tokens — each a copy of the shared layer
+    /// (`<layer>_heads.weight [1 + horizon, out, in]`, `<layer>_heads.bias [1 + horizon, out]`,
+    /// replacing `<layer>.{weight,bias}`). The head then computes exactly what it computed
+    /// before, for any timesteps, and a trainable head's heads are variables that specialise in
+    /// training. A head that already has per-position heads is returned unchanged if their
+    /// count is `1 + horizon`, else it is an error naming the count.
+    ///
+    /// Cost: `(1 + horizon)×` the modulation parameters (`2·D_in²` per block and for the
+    /// output): for N1.7 at full size (`D_in` 1536, 16 blocks, `horizon` 50) about 4.1·10⁹
+    /// parameters; the multiply-adds per call equal the shared layer's applied per token.
+    pub fn with_position_heads(mut self, horizon: usize) -> Result<Self> {
+        let n = horizon + 1;
+        let trainable = !self.vars.is_empty();
+        let mut layers: Vec<(String, &mut Ada)> = self
+            .dit
+            .blocks
+            .iter_mut()
+            .enumerate()
+            .filter_map(|(i, b)| match &mut b.norm1 {
+                Norm1::Ada(a) => Some((format!("model.transformer_blocks.{i}.norm1.linear"), a)),
+                Norm1::Affine(_) => None,
+            })
+            .collect();
+        layers.push(("model.proj_out_1".to_string(), &mut self.dit.proj_out_1));
+        let mut renamed = Vec::new();
+        for (name, ada) in layers {
+            let Some((w, b)) = ada.shared() else {
+                if let Ada::Heads { w, .. } = ada {
+                    if w.dim(0)? != n {
+                        return Err(Error::shape(
+                            "per-position AdaLN heads (1 + horizon)",
+                            n,
+                            w.dim(0)?,
+                        ));
+                    }
+                }
+                continue;
+            };
+            let (out, inp) = w.dims2()?;
+            let mut wt = w.unsqueeze(0)?.broadcast_as((n, out, inp))?.contiguous()?;
+            let mut bt = b.unsqueeze(0)?.broadcast_as((n, out))?.contiguous()?;
+            let mut vars = Vec::new();
+            if trainable {
+                for (t, k) in [(&mut wt, "weight"), (&mut bt, "bias")] {
+                    let v = Var::from_tensor(t)?;
+                    *t = v.as_tensor().clone();
+                    vars.push((format!("{PREFIX}{name}_heads.{k}"), v));
+                }
+            }
+            renamed.push((name, wt.clone(), bt.clone(), vars));
+            *ada = Ada::Heads { w: wt, b: bt };
+        }
+        for (name, wt, bt, vars) in renamed {
+            for (k, t) in [("weight", wt), ("bias", bt)] {
+                let old = format!("{PREFIX}{name}.{k}");
+                if let Some(p) = self.params.iter_mut().find(|(n, _)| *n == old) {
+                    *p = (format!("{PREFIX}{name}_heads.{k}"), t);
+                }
+                self.vars.retain(|(n, _)| *n != old);
+            }
+            self.vars.extend(vars);
+        }
+        self.vars.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(self)
+    }
+
+    /// Whether the DiT's AdaLN modulations are per-position heads, and how many tokens they
+    /// serve (`1 + horizon`).
+    pub fn position_heads(&self) -> Option<usize> {
+        match &self.dit.proj_out_1 {
+            Ada::Heads { w, .. } => w.dim(0).ok(),
+            Ada::Shared(_) => None,
+        }
     }
 
     /// The trainable parameters by checkpoint name (`action_head.…`), sorted by name; empty
