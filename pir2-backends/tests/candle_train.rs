@@ -445,12 +445,18 @@ fn finetune_from_shared_film_starts_position_uniform() {
     // base's at a position-uniform τ (the base's own regime), to 1e-6.
     let mut heads = CandleModel::init_from(&dir, unet(FilmMode::PerPositionHeads)).unwrap();
     assert!(heads.vars().iter().any(|(n, _)| n.contains("film_heads")));
-    assert!(!heads.vars().iter().any(|(n, _)| n.ends_with(".film.weight")));
+    assert!(!heads
+        .vars()
+        .iter()
+        .any(|(n, _)| n.ends_with(".film.weight")));
     for t in [0.0, 0.4, 1.0] {
         let tau = vec![t; 8];
         let (a, b) = (call_at(&mut shared, &tau), call_at(&mut heads, &tau));
         for (x, y) in a.iter().zip(&b) {
-            assert!((x - y).abs() <= 1e-6 * x.abs().max(1.0), "τ = {t}: {x} vs {y}");
+            assert!(
+                (x - y).abs() <= 1e-6 * x.abs().max(1.0),
+                "τ = {t}: {x} vs {y}"
+            );
         }
     }
     // At a staircase τ the heads see each position's own τ, the shared head only the mean.
@@ -677,10 +683,19 @@ fn dit_finetuned_with_heads_starts_as_its_shared_checkpoint() {
     shared.save(&dir).unwrap();
     let mut shared = CandleModel::load(&dir).unwrap();
     let mut heads = CandleModel::init_from(&dir, dit(FilmMode::PerPositionHeads)).unwrap();
-    assert!(heads.vars().iter().any(|(n, _)| n == "blocks.0.ada_heads.weight"));
-    assert!(heads.vars().iter().any(|(n, _)| n == "final.ada_heads.bias"));
+    assert!(heads
+        .vars()
+        .iter()
+        .any(|(n, _)| n == "blocks.0.ada_heads.weight"));
+    assert!(heads
+        .vars()
+        .iter()
+        .any(|(n, _)| n == "final.ada_heads.bias"));
     let (a, b) = (one_call(&mut shared), one_call(&mut heads));
-    assert!(a.iter().any(|v| v.abs() > 1e-3), "the head must compute something");
+    assert!(
+        a.iter().any(|v| v.abs() > 1e-3),
+        "the head must compute something"
+    );
     for (x, y) in a.iter().zip(&b) {
         assert!((x - y).abs() <= 1e-5 * x.abs().max(1.0), "{x} vs {y}");
     }

@@ -732,7 +732,10 @@ mod exported {
             (SlowSpec::Vector { dim: 6 }, Film::PerPositionHeads),
             (SlowSpec::Tokens { tokens: 2, dim: 3 }, Film::Shared),
             (SlowSpec::None, Film::PerPositionTau),
-            (SlowSpec::Tokens { tokens: 2, dim: 3 }, Film::PerPositionHeads),
+            (
+                SlowSpec::Tokens { tokens: 2, dim: 3 },
+                Film::PerPositionHeads,
+            ),
         ] {
             let d = dims(slow);
             v.push(ModelSpec::Unet(UnetSpec {

@@ -98,12 +98,25 @@ fn step_dir(case: &str, dir: &Path, heads: bool) {
                 let t = all.remove(&format!("{layer}.{k}")).unwrap();
                 let mut dims = vec![n];
                 dims.extend(t.dims());
-                let tiled = t.unsqueeze(0).unwrap().broadcast_as(dims.as_slice()).unwrap();
+                let tiled = t
+                    .unsqueeze(0)
+                    .unwrap()
+                    .broadcast_as(dims.as_slice())
+                    .unwrap();
                 let m = tiled.elem_count();
-                let scale = t.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-                let jitter =
-                    Tensor::from_vec(noise(m, seed + li as u64, 0.3 * scale), dims.as_slice(), &dev)
-                        .unwrap();
+                let scale = t
+                    .abs()
+                    .unwrap()
+                    .max_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap();
+                let jitter = Tensor::from_vec(
+                    noise(m, seed + li as u64, 0.3 * scale),
+                    dims.as_slice(),
+                    &dev,
+                )
+                .unwrap();
                 all.insert(format!("{layer}_heads.{k}"), (tiled + jitter).unwrap());
             }
         }

@@ -553,7 +553,13 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
     // Per-position timesteps that differ along the chunk (a staircase).
     let ta: Vec<u32> = (0..b * h).map(|i| (999 - 60 * (i % h)) as u32).collect();
     let tt: Vec<u32> = (0..b * (1 + h))
-        .map(|i| if i % (1 + h) == 0 { 999 } else { (999 - 60 * (i % (1 + h) - 1)) as u32 })
+        .map(|i| {
+            if i % (1 + h) == 0 {
+                999
+            } else {
+                (999 - 60 * (i % (1 + h) - 1)) as u32
+            }
+        })
         .collect();
     let actions = Tensor::from_vec(ta, (b, h), &Device::Cpu).unwrap();
     let tokens = Tensor::from_vec(tt, (b, 1 + h), &Device::Cpu).unwrap();
@@ -563,7 +569,9 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
     };
     let d0 = Tensor::new(&[0u32, 0], &Device::Cpu).unwrap();
     let run = |m: &Gr00tN17Head, ts: Timesteps<'_>| -> Tensor {
-        let vl = m.process_backbone(base.get("in.backbone_features")).unwrap();
+        let vl = m
+            .process_backbone(base.get("in.backbone_features"))
+            .unwrap();
         let s = m.encode_state(base.get("in.state"), emb).unwrap();
         let vlt = VlTokens {
             d_vis: Some(&d0),
@@ -573,7 +581,11 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
     };
     for ts in [Timesteps::Shared(base.get("in.timesteps")), per] {
         let (a, c) = (run(&shared, ts), run(&heads, ts));
-        assert!(rel_err(&c, &a) < 1e-6, "first forward differs: {}", rel_err(&c, &a));
+        assert!(
+            rel_err(&c, &a) < 1e-6,
+            "first forward differs: {}",
+            rel_err(&c, &a)
+        );
     }
     // One step on a per-position loss: the heads of one layer no longer agree.
     let v = run(&heads, per);
@@ -584,7 +596,8 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
         .find(|(n, _)| n == "action_head.model.proj_out_1_heads.weight")
         .unwrap();
     let g = grads.get(w.as_tensor()).expect("a gradient for the heads");
-    w.set(&(w.as_tensor() - (g * 1e3).unwrap()).unwrap()).unwrap();
+    w.set(&(w.as_tensor() - (g * 1e3).unwrap()).unwrap())
+        .unwrap();
     let wv = w.as_tensor();
     let spread = (wv.narrow(0, 1, 1).unwrap() - wv.narrow(0, 2, 1).unwrap())
         .unwrap()
@@ -598,7 +611,9 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
     let moved = run(&heads, per);
     // Saved and loaded back as an inference head, with its heads.
     let out = Scratch::new("heads-out");
-    heads.save_weights(&out.0.join("model.safetensors")).unwrap();
+    heads
+        .save_weights(&out.0.join("model.safetensors"))
+        .unwrap();
     std::fs::copy(
         fixtures().join("alt.config.json"),
         out.0.join("config.json"),

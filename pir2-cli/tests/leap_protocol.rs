@@ -238,7 +238,11 @@ fn the_ablation_configs_keep_the_fingerprint_of_their_committed_cells() {
     ] {
         let cfg = read(name);
         assert_eq!(cfg.pir2_film, FilmMode::PerPositionTau, "{name}");
-        assert_eq!(config_fingerprint(&cfg).unwrap(), "668fe64c89fa9b53", "{name}");
+        assert_eq!(
+            config_fingerprint(&cfg).unwrap(),
+            "668fe64c89fa9b53",
+            "{name}"
+        );
     }
     let (heads, ablation) = (read("study.toml"), read("ablation-per-position-tau.toml"));
     assert_ne!(
@@ -327,9 +331,9 @@ fn diagnostic_rows_add_the_pir2_checkpoint_as_sync_flow_without_touching_other_c
 #[test]
 fn logs_written_before_the_checkpoint_directory_left_the_fingerprint_are_still_read() {
     use pir2_cli::study::evaluate::{config_fingerprint, earlier_config_fingerprints};
-    // `studies/leap-cube/study.toml` narrowed to seed 0, evaluated with `--checkpoint
+    // `studies/leap-cube/ablation-per-position-tau.toml` narrowed to seed 0, evaluated with `--checkpoint
     // runs/leap-study-wide`: the fingerprint its cell logs were written under (sessions
-    // 18-21, `notes/issue-14/study-progress/wide-v2-*-cells.jsonl`) is this config's
+    // 18-21, `studies/leap-cube/results/ablation-per-position-tau/*-cells.jsonl`) is this config's
     // earlier one, whichever directory it is evaluated from now.
     let text = r#"
         dataset = "runs/leap-playground"
@@ -389,4 +393,41 @@ fn an_evaluation_refuses_a_policy_missing_from_the_checkpoint_directory_before_a
     // Refused before the dataset is read or the output directory made.
     assert!(!out.exists());
     std::fs::remove_dir_all(&root).unwrap();
+}
+
+/// The committed expert (`studies/leap-cube/expert/`, MuJoCo Playground's published policy)
+/// regenerates the study's demonstrations: a short batch of its first seed carries the
+/// fingerprint those episodes have in the full dataset (`4882c66b901ef2c7` over all 148).
+#[test]
+fn the_committed_expert_regenerates_the_demonstrations() {
+    use pir2_cli::leap_cmd::ExpertChoice;
+    use pir2_cli::study::leap_cube::{collect_leap, load_demos};
+    use pir2_cli::study::pipeline::DataFingerprint;
+    let expert = std::path::PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../studies/leap-cube/expert/leap-playground.safetensors"
+    ));
+    let out = std::env::temp_dir().join(format!("pir2-leap-expert-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let stop = std::sync::atomic::AtomicBool::new(false);
+    collect_leap(
+        &out,
+        &[0],
+        4,
+        pir2_sim::dataset::WriteMode::New,
+        &ExpertChoice::Weights(vec![expert]),
+        &stop,
+    )
+    .unwrap();
+    let demos: Vec<_> = load_demos(&out)
+        .unwrap()
+        .iter()
+        .map(|e| e.with_slow_frames(2))
+        .collect();
+    let f = DataFingerprint::of(&demos);
+    std::fs::remove_dir_all(&out).unwrap();
+    assert_eq!(
+        (f.episodes, f.frames, f.fingerprint.as_str()),
+        (0, 0, "measure")
+    );
 }

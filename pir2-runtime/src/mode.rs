@@ -61,6 +61,25 @@ pub struct EffectiveDelays {
 }
 
 impl Mode {
+    /// πR² with the asynchronous slow channel, `n` NFEs per action, the fresh alignment and
+    /// the front visible (the usual deployment).
+    pub fn pir2_async(n: usize) -> Self {
+        Mode::PiR2Async {
+            nfe: Some(n),
+            alignment: Alignment::Fresh,
+            front: FrontMode::Visible,
+        }
+    }
+
+    /// πR² with the asynchronous slow channel on the paper's full-chunk ramp.
+    pub fn pir2_async_full_ramp() -> Self {
+        Mode::PiR2Async {
+            nfe: None,
+            alignment: Alignment::Paper,
+            front: FrontMode::Visible,
+        }
+    }
+
     /// Short name for tables.
     pub fn name(&self) -> &'static str {
         match self {

@@ -80,11 +80,21 @@ enum Ada {
 }
 
 impl Ada {
-    fn new(ps: &mut ParamStore, name: &str, heads: Option<usize>, din: usize, dout: usize) -> CResult<Self> {
+    fn new(
+        ps: &mut ParamStore,
+        name: &str,
+        heads: Option<usize>,
+        din: usize,
+        dout: usize,
+    ) -> CResult<Self> {
         Ok(match heads {
             None => Ada::Shared(ps.linear_zero(name, din, dout)?),
             Some(n) => Ada::Heads(
-                ps.param(&format!("{name}_heads.weight"), &[n, dout, din], Init::Zeros)?,
+                ps.param(
+                    &format!("{name}_heads.weight"),
+                    &[n, dout, din],
+                    Init::Zeros,
+                )?,
                 ps.param(&format!("{name}_heads.bias"), &[n, dout], Init::Zeros)?,
             ),
         })

@@ -93,7 +93,10 @@ impl ResBlock {
                 None,
                 Some(ps.linear_heads(&format!("{name}.film_heads"), l, cs, 2 * cout)?),
             ),
-            _ => (Some(ps.linear(&format!("{name}.film"), cs, 2 * cout)?), None),
+            _ => (
+                Some(ps.linear(&format!("{name}.film"), cs, 2 * cout)?),
+                None,
+            ),
         };
         let film_pos = match film {
             FilmMode::PerPositionTau => {
@@ -122,7 +125,9 @@ impl ResBlock {
         let b = c.shared.dim(0)?;
         if let (Some((w, bias)), Some(u)) = (&self.heads, c.heads_in) {
             // [L, B, cs] × [L, cs, 2C] → [L, B, 2C] → [B, L, 2C]
-            let f = u.matmul(&w.transpose(1, 2)?)?.broadcast_add(&bias.unsqueeze(1)?)?;
+            let f = u
+                .matmul(&w.transpose(1, 2)?)?
+                .broadcast_add(&bias.unsqueeze(1)?)?;
             return f.transpose(0, 1)?.contiguous();
         }
         let film = self.film.as_ref().ok_or_else(|| {
@@ -191,8 +196,30 @@ impl UNet {
             let nm = format!("down.{i}");
             let lv = spec.horizon >> i;
             down.push(Level {
-                r0: ResBlock::new(ps, &format!("{nm}.res0"), din, dout, k, gr, cs, e, c.film, lv)?,
-                r1: ResBlock::new(ps, &format!("{nm}.res1"), dout, dout, k, gr, cs, e, c.film, lv)?,
+                r0: ResBlock::new(
+                    ps,
+                    &format!("{nm}.res0"),
+                    din,
+                    dout,
+                    k,
+                    gr,
+                    cs,
+                    e,
+                    c.film,
+                    lv,
+                )?,
+                r1: ResBlock::new(
+                    ps,
+                    &format!("{nm}.res1"),
+                    dout,
+                    dout,
+                    k,
+                    gr,
+                    cs,
+                    e,
+                    c.film,
+                    lv,
+                )?,
                 resample: if i + 1 < n {
                     Some(ps.conv1d(&format!("{nm}.down"), dout, dout, 3, 2)?)
                 } else {
@@ -224,7 +251,18 @@ impl UNet {
                     c.film,
                     lv,
                 )?,
-                r1: ResBlock::new(ps, &format!("{nm}.res1"), din, din, k, gr, cs, e, c.film, lv)?,
+                r1: ResBlock::new(
+                    ps,
+                    &format!("{nm}.res1"),
+                    din,
+                    din,
+                    k,
+                    gr,
+                    cs,
+                    e,
+                    c.film,
+                    lv,
+                )?,
                 resample: Some(ps.conv1d(&format!("{nm}.up"), din, din, 3, 1)?),
             });
         }
@@ -490,8 +528,13 @@ mod tests {
         let mut n_heads = 0;
         for (n, v) in heads.vars() {
             let hv = flat(v.as_tensor());
-            if let Some(base) = n.strip_suffix(".film_heads.weight").map(|b| format!("{b}.film.weight"))
-                .or_else(|| n.strip_suffix(".film_heads.bias").map(|b| format!("{b}.film.bias")))
+            if let Some(base) = n
+                .strip_suffix(".film_heads.weight")
+                .map(|b| format!("{b}.film.weight"))
+                .or_else(|| {
+                    n.strip_suffix(".film_heads.bias")
+                        .map(|b| format!("{b}.film.bias"))
+                })
             {
                 let s = &sv[&base];
                 assert_eq!(hv.len() % s.len(), 0);
@@ -503,10 +546,17 @@ mod tests {
                 assert_eq!(hv, sv[n.as_str()], "{n} differs from the shared model's");
             }
         }
-        assert_eq!(n_heads, 2 * 8, "one head weight and bias per residual block");
+        assert_eq!(
+            n_heads,
+            2 * 8,
+            "one head weight and bias per residual block"
+        );
         let tau = taus(true);
         for (a, b) in films(&mut shared, &tau).iter().zip(films(&mut heads, &tau)) {
-            let (a, b) = (flat(&a.broadcast_as(b.dims()).unwrap().contiguous().unwrap()), flat(&b));
+            let (a, b) = (
+                flat(&a.broadcast_as(b.dims()).unwrap().contiguous().unwrap()),
+                flat(&b),
+            );
             for (x, y) in a.iter().zip(&b) {
                 assert!((x - y).abs() <= 1e-6 * x.abs().max(1.0), "{x} vs {y}");
             }
@@ -527,7 +577,8 @@ mod tests {
                 for x in &mut v[..width] {
                     *x += 0.5;
                 }
-                var.set(&Tensor::from_vec(v, t.dims(), t.device()).unwrap()).unwrap();
+                var.set(&Tensor::from_vec(v, t.dims(), t.device()).unwrap())
+                    .unwrap();
             }
         }
         let after = flat(&films(&mut m, &tau)[0]);

@@ -73,12 +73,16 @@ impl Res {
             self.f.resize(b * l * 2 * c, 0.0);
             for li in 0..l {
                 for bi in 0..b {
-                    self.f[(bi * l + li) * 2 * c..(bi * l + li + 1) * 2 * c]
-                        .copy_from_slice(&self.fs[(li * b + bi) * 2 * c..(li * b + bi + 1) * 2 * c]);
+                    self.f[(bi * l + li) * 2 * c..(bi * l + li + 1) * 2 * c].copy_from_slice(
+                        &self.fs[(li * b + bi) * 2 * c..(li * b + bi + 1) * 2 * c],
+                    );
                 }
             }
         } else {
-            let film = self.film.as_ref().expect("a block without heads has the shared head");
+            let film = self
+                .film
+                .as_ref()
+                .expect("a block without heads has the shared head");
             film.fwd(par, p, shared, b, &mut self.fs);
         }
         match (&self.film_pos, pooled) {
@@ -204,7 +208,10 @@ impl Res {
                     ws.t4[bi * 2 * c + i] += ws.t3[r * 2 * c + i];
                 }
             }
-            let film = self.film.as_ref().expect("a block without heads has the shared head");
+            let film = self
+                .film
+                .as_ref()
+                .expect("a block without heads has the shared head");
             film.bwd(par, p, g, shared, &ws.t4, b, Some((dshared, true)));
         }
         self.n0.bwd(par, p, g, &ws.t1, b, l, &mut ws.t2);
@@ -600,7 +607,10 @@ impl FastUNet {
                     for bi in 0..b {
                         let m = &mut hm[(li * b + bi) * e..(li * b + bi + 1) * e];
                         for q in li * w..(li + 1) * w {
-                            for (d, &v) in m.iter_mut().zip(&self.emb[(bi * h + q) * e..(bi * h + q + 1) * e]) {
+                            for (d, &v) in m
+                                .iter_mut()
+                                .zip(&self.emb[(bi * h + q) * e..(bi * h + q + 1) * e])
+                            {
                                 *d += v;
                             }
                         }

@@ -168,8 +168,12 @@ impl Emitter<'_> {
                 }
             }
         }
-        let wn = self.g.weight(&format!("{name}_heads.weight"), &[tokens, i, o], &wt);
-        let bn = self.g.weight(&format!("{name}_heads.bias"), &[tokens, o], b);
+        let wn = self
+            .g
+            .weight(&format!("{name}_heads.weight"), &[tokens, i, o], &wt);
+        let bn = self
+            .g
+            .weight(&format!("{name}_heads.bias"), &[tokens, o], b);
         let xu = self.g.unsqueeze(x, &[-2]); // [B, N, 1, in]
         let m = self.g.op("MatMul", &[&xu, &wn], vec![]); // [B, N, 1, out]
         let m = self.g.reshape(&m, &[0, tokens as i64, o as i64]);

@@ -368,8 +368,20 @@ impl UnetSpec {
         let n = self.widths.len();
         let hz = self.dims.horizon;
         for i in 0..n {
-            res(&mut v, &format!("down.{i}.res0"), dims[i], dims[i + 1], hz >> i);
-            res(&mut v, &format!("down.{i}.res1"), dims[i + 1], dims[i + 1], hz >> i);
+            res(
+                &mut v,
+                &format!("down.{i}.res0"),
+                dims[i],
+                dims[i + 1],
+                hz >> i,
+            );
+            res(
+                &mut v,
+                &format!("down.{i}.res1"),
+                dims[i + 1],
+                dims[i + 1],
+                hz >> i,
+            );
             if i + 1 < n {
                 conv(
                     &mut v,
@@ -384,7 +396,13 @@ impl UnetSpec {
         res(&mut v, "mid.0", w, w, hz >> (n - 1));
         res(&mut v, "mid.1", w, w, hz >> (n - 1));
         for (j, i) in (1..n).rev().enumerate() {
-            res(&mut v, &format!("up.{j}.res0"), 2 * dims[i + 1], dims[i], hz >> i);
+            res(
+                &mut v,
+                &format!("up.{j}.res0"),
+                2 * dims[i + 1],
+                dims[i],
+                hz >> i,
+            );
             res(&mut v, &format!("up.{j}.res1"), dims[i], dims[i], hz >> i);
             conv(&mut v, &format!("up.{j}.up"), dims[i], dims[i], 3);
         }
@@ -500,7 +518,14 @@ impl UnetSpec {
         let bt = w.weight(UNET, &format!("{n}.film_heads.bias"), &[len, c2])?;
         let g = o.slice(shared, 1, e as i64, cs as i64);
         let wg: Vec<f32> = wt.chunks_exact(cs).flat_map(|r| r[e..].to_vec()).collect();
-        let fg = o.linear(&g, &format!("{n}.film_heads.global"), &wg, None, cs - e, len * c2);
+        let fg = o.linear(
+            &g,
+            &format!("{n}.film_heads.global"),
+            &wg,
+            None,
+            cs - e,
+            len * c2,
+        );
         let fg = o.reshape(&fg, &[-1, len as i64, c2 as i64]);
         let mut slots = Vec::with_capacity(len);
         for l in 0..len {

@@ -73,6 +73,8 @@ pub struct LogReport<C> {
     pub columns: Vec<usize>,
     /// Seeds.
     pub seeds: Vec<u64>,
+    /// Evaluation episodes per cell and seed.
+    pub episodes: usize,
     /// The cells of the chosen checkpoints (`d0` holds the column value).
     pub cells: Vec<Cell>,
     /// Step checkpoints besides the chosen one each best-per-cell cell considers (0: none).
@@ -93,9 +95,15 @@ impl<C> LogReport<C> {
     /// the best checkpoint per cell the same way, and what is missing.
     pub fn table(&self) -> String {
         let seeds: Vec<String> = self.seeds.iter().map(u64::to_string).collect();
+        // The binomial standard error of a cell's mean over the seeds' episodes, at its
+        // largest (p = 1/2): the sampling error a difference of two cells carries √2 times.
+        let n = (self.seeds.len() * self.episodes).max(1) as f64;
         let mut t = format!(
-            "Chosen checkpoints, mean ± std over seeds {}:\n\n",
-            seeds.join(", ")
+            "Chosen checkpoints (the primary protocol), mean ± population std (÷ n) over seeds \
+             {}; a cell mean's binomial standard error is at most {:.3} ({} episodes):\n\n",
+            seeds.join(", "),
+            (0.25 / n).sqrt(),
+            n
         );
         t += &cells::table_keyed(&self.cells, &self.labels, &self.columns, &self.key);
         t += "\nPer seed:\n\n";
@@ -110,8 +118,10 @@ impl<C> LogReport<C> {
             t += &format!(
                 "\nBest checkpoint per cell (the paper's protocol; optimistic: per seed, the best \
                  of the chosen checkpoint and the last {} other step checkpoints, selected on \
-                 the evaluation episodes), mean ± std over seeds:\n\n",
-                self.best_of_last
+                 the evaluation episodes: a maximum of {} candidates on the test episodes, biased \
+                 upward), mean ± population std over seeds:\n\n",
+                self.best_of_last,
+                self.best_of_last + 1
             );
             t += &cells::table_keyed(&self.best_per_cell, &self.labels, &self.columns, &self.key);
             t += "\nPer seed:\n\n";
@@ -394,6 +404,7 @@ pub fn report<T: Task>(
         key: study.key.clone(),
         columns: study.columns.clone(),
         seeds: s.seeds.clone(),
+        episodes: s.episodes,
         cells,
         best_of_last: k,
         best_per_cell,

@@ -8,7 +8,7 @@
 //! `HandState`, fingertip sensor structs, all packed little-endian) as reproduced in community
 //! XHand driver repositories, and the community RS-485 drivers' framing
 //! (`55 AA | src | dst | cmd | len LE | payload | CRC-16/XMODEM LE`). See
-//! `notes/issue-7.md`.
+//! `docs/xhand-protocol.md`.
 
 /// First sync byte.
 pub const SYNC0: u8 = 0x55;

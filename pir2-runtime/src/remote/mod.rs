@@ -24,7 +24,7 @@
 //! [`Link::check_exposure`] refuses to listen beyond this machine without TLS unless the
 //! user accepts the risk explicitly (`pir2 serve --insecure`).
 //!
-//! Faults (see `notes/issue-9.md` for the measured behaviour):
+//! Faults (see `docs/remote-faults.md` for the measured behaviour):
 //! - a message larger than [`Link::max_message_bytes`] is dropped by the transport before it
 //!   is reassembled; a policy request over [`PolicyServerConfig::max_request_bytes`] or
 //!   [`PolicyServerConfig::max_batch`] is refused with an error reply; a message that does

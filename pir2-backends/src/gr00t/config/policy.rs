@@ -126,15 +126,13 @@ impl PolicySection {
     pub fn trained_for(kind: DeployKind) -> &'static [pir2_runtime::Policy] {
         use pir2_runtime::Policy as P;
         match kind {
-            DeployKind::PiR2Async | DeployKind::PiR2Sync => {
-                &[
-                    P::PiR2,
-                    P::PiR2Hidden,
-                    P::PiR2Full,
-                    P::PiR2ZeroDelay,
-                    P::PiR2ZeroDelayFull,
-                ]
-            }
+            DeployKind::PiR2Async | DeployKind::PiR2Sync => &[
+                P::PiR2,
+                P::PiR2Hidden,
+                P::PiR2Full,
+                P::PiR2ZeroDelay,
+                P::PiR2ZeroDelayFull,
+            ],
             DeployKind::SyncFlow | DeployKind::NaiveAsync => &[P::Flow],
             DeployKind::Rtc => &[P::Rtc],
         }
