@@ -8,12 +8,11 @@
 //! `cargo bench -p pir2-backends --bench film` (`PIR2_BENCH_ITERS`, default 300 timed calls per
 //! cell; `PIR2_BENCH_TRAIN_STEPS`, default 5 timed steps per cell, 0 skips training).
 
-use std::time::Instant;
+mod common;
 
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, FilmMode, ModelConfig, SlowSpec, Spec, Stats, UNetConfig};
-use pir2_backends::train::{Episode, TrainConfig, Trainer};
-use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
+use pir2_runtime::{ModelInput, SlowInput};
 
 fn spec() -> Spec {
     Spec {
@@ -49,8 +48,8 @@ fn env_usize(name: &str, default: usize) -> usize {
         .unwrap_or(default)
 }
 
-/// Median µs of one NFE at batch 1 (staircase τ).
-fn nfe_us(m: &mut CandleModel, iters: usize) -> f64 {
+/// Per-call µs of one NFE at batch 1 (staircase τ).
+fn nfe_us(m: &mut CandleModel, iters: usize) -> common::Timing {
     let s = spec();
     let mut rng = pir2_schedule::Rng::new(1);
     let mut normal = |n: usize| {
@@ -79,59 +78,7 @@ fn nfe_us(m: &mut CandleModel, iters: usize) -> f64 {
         },
         d_vis: &[0],
     };
-    let mut out = vec![0f32; s.horizon * s.action_dim];
-    for _ in 0..iters.div_ceil(5).max(5) {
-        m.velocity(&input, &mut out).expect("warm-up call");
-    }
-    let mut us: Vec<f64> = (0..iters)
-        .map(|_| {
-            let t = Instant::now();
-            m.velocity(&input, &mut out).expect("timed call");
-            t.elapsed().as_secs_f64() * 1e6
-        })
-        .collect();
-    us.sort_by(f64::total_cmp);
-    us[us.len() / 2]
-}
-
-/// Seconds per training step (batch 256) after one warm-up step.
-fn train_step_s(cfg: &Config, steps: usize) -> f64 {
-    let s = cfg.spec;
-    let mut rng = pir2_schedule::Rng::new(2);
-    let data: Vec<Episode> = (0..20)
-        .map(|_| {
-            let mut ep = Episode::new(s.fast_dim, s.slow.len(), s.action_dim);
-            let mut f = vec![0.0; s.fast_dim];
-            let mut sl = vec![0.0; s.slow.len()];
-            let mut a = vec![0.0; s.action_dim];
-            for _ in 0..100 {
-                rng.fill_normal(&mut f);
-                rng.fill_normal(&mut sl);
-                rng.fill_normal(&mut a);
-                ep.push(&f, &sl, &a);
-            }
-            ep
-        })
-        .collect();
-    let mut m = CandleModel::new(cfg.clone(), Stats::identity(&s), 0).expect("candle model");
-    let tc = TrainConfig {
-        steps: steps + 1,
-        batch_size: 256,
-        warmup: 1,
-        ..TrainConfig::default()
-    };
-    let mut first = None;
-    let mut last = Instant::now();
-    Trainer::new(tc)
-        .on_progress(|p| {
-            if p.step == 1 {
-                first = Some(Instant::now());
-            }
-            last = Instant::now();
-        })
-        .run(&mut m, data.as_slice())
-        .expect("training");
-    last.duration_since(first.expect("ran")).as_secs_f64() / steps as f64
+    common::time(m, &input, iters)
 }
 
 fn main() {
@@ -167,7 +114,7 @@ fn main() {
             .build()
             .expect("thread pool");
         rows.iter()
-            .map(|r| pool.install(|| train_step_s(&r.4, steps)))
+            .map(|r| pool.install(|| common::train_step_s(&r.4, true, steps)))
             .collect()
     } else {
         vec![f64::NAN; rows.len()]
@@ -177,18 +124,19 @@ fn main() {
          {steps} training steps at batch 256 on {threads} threads; ratio = / shared"
     );
     println!(
-        "{:<20} {:>11} {:>11} {:>10} {:>7} {:>10} {:>7}",
-        "FiLM", "parameters", "FiLM params", "NFE µs", "ratio", "s/step", "ratio"
+        "{:<20} {:>11} {:>11} {:>10} {:>10} {:>7} {:>10} {:>7}",
+        "FiLM", "parameters", "FiLM params", "NFE µs", "p90 µs", "ratio", "s/step", "ratio"
     );
-    let (base_us, base_step) = (rows[0].3, train[0]);
+    let (base_us, base_step) = (rows[0].3.median_us, train[0]);
     for (r, t) in rows.iter().zip(&train) {
         println!(
-            "{:<20} {:>11} {:>11} {:>10.1} {:>6.2}x {:>10.3} {:>6.2}x",
+            "{:<20} {:>11} {:>11} {:>10.1} {:>10.1} {:>6.2}x {:>10.3} {:>6.2}x",
             r.0,
             r.1,
             r.2,
-            r.3,
-            r.3 / base_us,
+            r.3.median_us,
+            r.3.p90_us,
+            r.3.median_us / base_us,
             t,
             t / base_step
         );

@@ -13,11 +13,12 @@
 //! defaults in this crate). `candle-graph` is candle's op-by-op graph (the path before the
 //! hand-written kernels), `candle` the default (hand-written kernels for the U-Net).
 
-use std::time::Instant;
+mod common;
 
+use common::{time, train_step_s};
 use pir2_backends::candle::CandleModel;
 use pir2_backends::config::{Config, MlpConfig, ModelConfig, SlowSpec, Spec, Stats};
-use pir2_backends::train::{Episode, TrainConfig, Trainer};
+
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 fn leap_spec() -> Spec {
@@ -51,30 +52,6 @@ fn configs() -> Vec<(&'static str, Config)> {
         ("unet", leap),
         ("unet-L", paper),
     ]
-}
-
-struct Timing {
-    median_us: f64,
-    p90_us: f64,
-}
-
-fn time(model: &mut dyn VelocityModel, input: &ModelInput<'_>, iters: usize) -> Timing {
-    let mut out = vec![0f32; input.batch * input.horizon * input.action_dim];
-    for _ in 0..iters.div_ceil(5).max(5) {
-        model.velocity(input, &mut out).expect("warm-up call");
-    }
-    let mut us: Vec<f64> = (0..iters)
-        .map(|_| {
-            let t = Instant::now();
-            model.velocity(input, &mut out).expect("timed call");
-            t.elapsed().as_secs_f64() * 1e6
-        })
-        .collect();
-    us.sort_by(f64::total_cmp);
-    Timing {
-        median_us: us[us.len() / 2],
-        p90_us: us[(us.len() * 9) / 10],
-    }
 }
 
 #[allow(unused_variables, unused_mut)]
@@ -186,47 +163,6 @@ fn main() {
     if steps > 0 {
         train_table(steps);
     }
-}
-
-/// Seconds per training step (batch 256) after one warm-up step.
-fn train_step_s(cfg: &Config, fused: bool, steps: usize) -> f64 {
-    let spec = cfg.spec;
-    let mut rng = pir2_schedule::Rng::new(2);
-    let data: Vec<Episode> = (0..20)
-        .map(|_| {
-            let mut ep = Episode::new(spec.fast_dim, spec.slow.len(), spec.action_dim);
-            let mut f = vec![0.0; spec.fast_dim];
-            let mut s = vec![0.0; spec.slow.len()];
-            let mut a = vec![0.0; spec.action_dim];
-            for _ in 0..100 {
-                rng.fill_normal(&mut f);
-                rng.fill_normal(&mut s);
-                rng.fill_normal(&mut a);
-                ep.push(&f, &s, &a);
-            }
-            ep
-        })
-        .collect();
-    let mut m = CandleModel::new(cfg.clone(), Stats::identity(&spec), 0).expect("candle model");
-    let tc = TrainConfig {
-        steps: steps + 1,
-        batch_size: 256,
-        warmup: 1,
-        ..TrainConfig::default()
-    };
-    let mut first = None;
-    let mut last = Instant::now();
-    Trainer::new(tc)
-        .fused(fused)
-        .on_progress(|p| {
-            if p.step == 1 {
-                first = Some(Instant::now());
-            }
-            last = Instant::now();
-        })
-        .run(&mut m, data.as_slice())
-        .expect("training");
-    last.duration_since(first.expect("ran")).as_secs_f64() / steps as f64
 }
 
 fn train_table(steps: usize) {

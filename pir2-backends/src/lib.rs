@@ -5,10 +5,10 @@
 //! implement [`pir2_runtime::model::VelocityModel`], checkpoints (safetensors + JSON), and the
 //! trainer ([`train`]). Native backends sit behind their own features: ONNX Runtime (`ort`,
 //! `ort::OrtModel`) and libtorch (`tch`, `tch::TchModel`). ONNX export ([`export`]) is pure
-//! Rust and always available. The GR00T-N1.7 xArm6 + XHand stack is behind feature `gr00t`
-//! (module `gr00t`, `docs/gr00t-contract.md`). GR00T N1.7's action head itself also runs in
-//! candle ([`candle::gr00t_n17`]), loaded straight from a GR00T checkpoint's safetensors,
-//! with πR²'s per-position timesteps.
+//! Rust and always available. Everything GR00T lives in one module, [`gr00t`]: N1.7's action
+//! head in candle with its exporter and its πR² trainer (`gr00t::n17`, feature `candle`),
+//! loaded straight from a GR00T checkpoint's safetensors, and the xArm6 + XHand deployment
+//! stack over ONNX Runtime (feature `gr00t`, `docs/gr00t-contract.md`).
 //!
 //! Models work in normalised action space; see [`config`].
 #![warn(missing_docs)]
@@ -17,7 +17,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod error;
 pub mod export;
-#[cfg(feature = "gr00t")]
+#[cfg(any(feature = "candle", feature = "gr00t"))]
 pub mod gr00t;
 
 #[cfg(feature = "candle")]

@@ -40,15 +40,14 @@ use crate::error::{Error, Result};
 
 mod batcher;
 mod data;
-pub mod gr00t;
 mod optim;
 mod state;
 
-use batcher::Batcher;
-use data::check_dataset;
+pub(crate) use batcher::Batcher;
+pub(crate) use data::check_dataset;
 pub use data::{compute_stats, Dataset, Episode};
-use optim::{clip_grad_store, clip_grads, AdamW};
-use state::{latest_step_checkpoint, remove_interrupted, State, INTERRUPTED_PREFIX};
+pub(crate) use optim::{clip_grad_store, clip_grads, AdamW};
+pub(crate) use state::{latest_step_checkpoint, remove_interrupted, State, INTERRUPTED_PREFIX};
 
 // ---------------------------------------------------------------- config
 
@@ -138,7 +137,7 @@ impl TrainConfig {
         self.min_lr + 0.5 * (self.lr - self.min_lr) * (1.0 + (std::f64::consts::PI * p).cos())
     }
 
-    fn validate(&self, h: usize) -> Result<()> {
+    pub(crate) fn validate(&self, h: usize) -> Result<()> {
         if self.steps == 0 || self.batch_size == 0 {
             return Err(Error::config("train.steps/batch_size", "must be >= 1"));
         }
@@ -208,7 +207,7 @@ pub struct TrainReport {
     pub best: Option<CheckpointRecord>,
 }
 
-type ProgressFn<'a> = Box<dyn FnMut(&Progress) + 'a>;
+pub(crate) type ProgressFn<'a> = Box<dyn FnMut(&Progress) + 'a>;
 type ValidateFn<'a> = Box<dyn FnMut(&mut CandleModel, usize) -> f64 + 'a>;
 
 /// Files the trainer adds to every step checkpoint so a run can continue from it

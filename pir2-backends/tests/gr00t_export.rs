@@ -1,4 +1,4 @@
-//! The GR00T N1.7 ONNX export (`pir2_backends::export::gr00t_n17`) against the candle head it
+//! The GR00T N1.7 ONNX export (`pir2_backends::gr00t::n17::export`) against the candle head it
 //! was exported from: NVIDIA's reference fixtures `alt` (N1.7's layout) and `plain` (plain
 //! DiT with sinusoidal positions), real tensor names and tiny sizes, each with a nonzero delay
 //! table, exported, loaded by the ONNX GR00T stack (`Gr00tActionHead`: the contract checks,
@@ -12,11 +12,11 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
-use pir2_backends::candle::gr00t_n17::{
+use pir2_backends::gr00t::contract::{feed, Bindings, Graph, VL_SELF_ATTENTION};
+use pir2_backends::gr00t::n17::export::{export_gr00t_n17, WeightStorage};
+use pir2_backends::gr00t::n17::{
     timestep_bucket, Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens, DELAY_EMBEDDING, PREFIX,
 };
-use pir2_backends::export::gr00t_n17::{export_gr00t_n17, WeightStorage};
-use pir2_backends::gr00t::contract::{feed, Bindings, Graph, VL_SELF_ATTENTION};
 use pir2_backends::gr00t::testing::statistics_json;
 use pir2_backends::gr00t::weights::SideWeights;
 use pir2_backends::gr00t::{

@@ -10,7 +10,7 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use pir2_backends::candle::gr00t_n17::{Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens};
+use pir2_backends::gr00t::n17::{Gr00tN17Config, Gr00tN17Head, Timesteps, VlTokens};
 use pir2_backends::Error;
 
 const CASES: [&str; 2] = ["alt", "plain"];
@@ -626,7 +626,7 @@ fn per_position_adaln_heads_start_as_the_base_head_and_specialise() {
 
 #[test]
 fn dropout_applies_in_the_training_forward_only_and_is_keyed_by_seed_step_and_site() {
-    use pir2_backends::candle::gr00t_n17::{DitDropout, DropoutSite};
+    use pir2_backends::gr00t::n17::{DitDropout, DropoutSite};
     let c = Case::load("alt");
     let cfg = c.head.config().dit.clone();
     // The fixture's config is N1.7's: `dropout` 0.2 with `final_dropout`.

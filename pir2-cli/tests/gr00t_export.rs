@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use candle_core::{Device, Tensor};
-use pir2_backends::candle::gr00t_n17::{head_tensor_shapes, Gr00tN17Config, PREFIX};
+use pir2_backends::gr00t::n17::{head_tensor_shapes, Gr00tN17Config, PREFIX};
 use pir2_backends::gr00t::testing::{
     python_from_env, tiny_embodiment, write_tiny_checkpoint, D_VL, TOKENS,
 };

@@ -14,6 +14,7 @@ use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use pir2_backends::gr00t::n17::train::PrecomputedFeatures;
 use pir2_backends::gr00t::testing::{
     add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint,
     write_tiny_checkpoint_with_width,
@@ -22,7 +23,6 @@ use pir2_backends::gr00t::{
     load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, PromptTokenizer,
 };
 use pir2_backends::ort::OrtOptions;
-use pir2_backends::train::gr00t::PrecomputedFeatures;
 use pir2_cli::study::gr00t_features::{extract, partial_path, progress_path, Gr00tFeaturesOptions};
 use pir2_sim::dataset::{ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S};
 

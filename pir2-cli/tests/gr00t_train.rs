@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
+use pir2_backends::gr00t::n17::Gr00tN17Head;
 use pir2_backends::gr00t::Normalizer;
 use pir2_backends::gr00t::{EmbodimentConfig, Norm};
 use pir2_cli::study::gr00t::{train, Gr00tTargets, Gr00tTrainOptions};

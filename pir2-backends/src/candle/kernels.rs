@@ -152,16 +152,7 @@ impl Lin {
         y: &mut Vec<f32>,
     ) {
         y.resize(m * self.dout, 0.0);
-        for row in y.chunks_exact_mut(self.dout) {
-            row.copy_from_slice(&p[self.b]);
-        }
-        if small(par, m) {
-            mm_nt(m, self.dout, self.din, y, x, &p[self.w]);
-        } else {
-            mm(
-                par, m, self.dout, self.din, y, true, x, self.din, 1, &p[self.w], 1, self.din,
-            );
-        }
+        linear_fwd(par, &p[self.w], &p[self.b], x, m, self.din, self.dout, y);
     }
 
     /// Accumulate `dW`, `db`; `dx` (if given) is overwritten (`acc = false`) or accumulated.
@@ -176,30 +167,68 @@ impl Lin {
         m: usize,
         dx: Option<(&mut [f32], bool)>,
     ) {
-        let (din, dout) = (self.din, self.dout);
-        mm(
-            par,
-            dout,
-            din,
-            m,
-            &mut g[self.w],
-            true,
-            dy,
-            1,
-            dout,
-            x,
-            din,
-            1,
-        );
-        let db = &mut g[self.b];
-        for row in dy[..m * dout].chunks_exact(dout) {
-            for (d, &v) in db.iter_mut().zip(row) {
-                *d += v;
-            }
+        let (gw, gb) = two_mut(g, self.w, self.b);
+        linear_bwd(par, &p[self.w], gw, gb, x, dy, m, self.din, self.dout, dx);
+    }
+}
+
+/// `y[m, dout] = x[m, din] · wᵀ + b` into a `y` of `m·dout` values (`w` `[dout, din]`).
+#[allow(clippy::too_many_arguments)]
+fn linear_fwd(
+    par: Parallelism,
+    w: &[f32],
+    b: &[f32],
+    x: &[f32],
+    m: usize,
+    din: usize,
+    dout: usize,
+    y: &mut [f32],
+) {
+    for row in y[..m * dout].chunks_exact_mut(dout) {
+        row.copy_from_slice(b);
+    }
+    if small(par, m) {
+        mm_nt(m, dout, din, y, x, w);
+    } else {
+        mm(par, m, dout, din, y, true, x, din, 1, w, 1, din);
+    }
+}
+
+/// Backward of [`linear_fwd`]: accumulate `gw += dyᵀ·x`, `gb += Σ dy`; `dx` (if given) is
+/// overwritten (`acc = false`) or accumulated with `dy · w`.
+#[allow(clippy::too_many_arguments)]
+fn linear_bwd(
+    par: Parallelism,
+    w: &[f32],
+    gw: &mut [f32],
+    gb: &mut [f32],
+    x: &[f32],
+    dy: &[f32],
+    m: usize,
+    din: usize,
+    dout: usize,
+    dx: Option<(&mut [f32], bool)>,
+) {
+    mm(par, dout, din, m, gw, true, dy, 1, dout, x, din, 1);
+    for row in dy[..m * dout].chunks_exact(dout) {
+        for (d, &v) in gb.iter_mut().zip(row) {
+            *d += v;
         }
-        if let Some((dx, acc)) = dx {
-            mm(par, m, din, dout, dx, acc, dy, dout, 1, &p[self.w], din, 1);
-        }
+    }
+    if let Some((dx, acc)) = dx {
+        mm(par, m, din, dout, dx, acc, dy, dout, 1, w, din, 1);
+    }
+}
+
+/// Two distinct elements of `v` mutably.
+fn two_mut(v: &mut [Vec<f32>], a: usize, b: usize) -> (&mut [f32], &mut [f32]) {
+    assert_ne!(a, b, "two_mut: the same buffer twice");
+    if a < b {
+        let (lo, hi) = v.split_at_mut(b);
+        (&mut lo[a], &mut hi[0])
+    } else {
+        let (lo, hi) = v.split_at_mut(a);
+        (&mut hi[0], &mut lo[b])
     }
 }
 
@@ -227,18 +256,16 @@ impl Heads {
         let (din, dout) = (self.din, self.dout);
         y.resize(self.l * m * dout, 0.0);
         for li in 0..self.l {
-            let yl = &mut y[li * m * dout..(li + 1) * m * dout];
-            let bias = &p[self.b][li * dout..(li + 1) * dout];
-            for row in yl.chunks_exact_mut(dout) {
-                row.copy_from_slice(bias);
-            }
-            let xl = &x[li * m * din..(li + 1) * m * din];
-            let wl = &p[self.w][li * dout * din..(li + 1) * dout * din];
-            if small(par, m) {
-                mm_nt(m, dout, din, yl, xl, wl);
-            } else {
-                mm(par, m, dout, din, yl, true, xl, din, 1, wl, 1, din);
-            }
+            linear_fwd(
+                par,
+                &p[self.w][li * dout * din..(li + 1) * dout * din],
+                &p[self.b][li * dout..(li + 1) * dout],
+                &x[li * m * din..(li + 1) * m * din],
+                m,
+                din,
+                dout,
+                &mut y[li * m * dout..(li + 1) * m * dout],
+            );
         }
     }
 
@@ -255,20 +282,20 @@ impl Heads {
         dx: &mut [f32],
     ) {
         let (din, dout) = (self.din, self.dout);
+        let (gw, gb) = two_mut(g, self.w, self.b);
         for li in 0..self.l {
-            let dyl = &dy[li * m * dout..(li + 1) * m * dout];
-            let xl = &x[li * m * din..(li + 1) * m * din];
-            let gw = &mut g[self.w][li * dout * din..(li + 1) * dout * din];
-            mm(par, dout, din, m, gw, true, dyl, 1, dout, xl, din, 1);
-            let db = &mut g[self.b][li * dout..(li + 1) * dout];
-            for row in dyl.chunks_exact(dout) {
-                for (d, &v) in db.iter_mut().zip(row) {
-                    *d += v;
-                }
-            }
-            let wl = &p[self.w][li * dout * din..(li + 1) * dout * din];
-            let dxl = &mut dx[li * m * din..(li + 1) * m * din];
-            mm(par, m, din, dout, dxl, true, dyl, dout, 1, wl, din, 1);
+            linear_bwd(
+                par,
+                &p[self.w][li * dout * din..(li + 1) * dout * din],
+                &mut gw[li * dout * din..(li + 1) * dout * din],
+                &mut gb[li * dout..(li + 1) * dout],
+                &x[li * m * din..(li + 1) * m * din],
+                &dy[li * m * dout..(li + 1) * m * dout],
+                m,
+                din,
+                dout,
+                Some((&mut dx[li * m * din..(li + 1) * m * din], true)),
+            );
         }
     }
 }

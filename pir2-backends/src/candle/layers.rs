@@ -48,7 +48,8 @@ impl ParamStore {
         }
     }
 
-    pub(crate) fn param(&mut self, name: &str, shape: &[usize], init: Init) -> CResult<Tensor> {
+    /// Count `shape`'s values against the budget; their number.
+    fn reserve(&mut self, name: &str, shape: &[usize]) -> CResult<usize> {
         let n = shape
             .iter()
             .try_fold(1usize, |a, &d| a.checked_mul(d))
@@ -62,6 +63,11 @@ impl ParamStore {
                  ({budget}); exceeded at `{name}` {shape:?}"
             )));
         }
+        Ok(n)
+    }
+
+    pub(crate) fn param(&mut self, name: &str, shape: &[usize], init: Init) -> CResult<Tensor> {
+        let n = self.reserve(name, shape)?;
         let data: Vec<f32> = match init {
             Init::Zeros => vec![0.0; n],
             Init::Ones => vec![1.0; n],
@@ -109,19 +115,7 @@ impl ParamStore {
 
     /// A parameter whose value is `tile` repeated to fill `shape`.
     fn param_from(&mut self, name: &str, shape: &[usize], tile: &[f32]) -> CResult<Tensor> {
-        let n = shape
-            .iter()
-            .try_fold(1usize, |a, &d| a.checked_mul(d))
-            .ok_or_else(|| {
-                candle_core::Error::Msg(format!("weight `{name}`: shape {shape:?} overflows"))
-            })?;
-        self.used = self.used.saturating_add(n);
-        if let Some(budget) = self.budget.filter(|b| self.used > *b) {
-            return Err(candle_core::Error::Msg(format!(
-                "the configuration needs more weight values than the checkpoint holds \
-                 ({budget}); exceeded at `{name}` {shape:?}"
-            )));
-        }
+        let n = self.reserve(name, shape)?;
         let data: Vec<f32> = tile.iter().copied().cycle().take(n).collect();
         let var = Var::from_vec(data, shape, &self.dev)?;
         let t = var.as_tensor().clone();

@@ -21,7 +21,6 @@
 mod device;
 pub(crate) mod dit;
 pub mod export;
-pub mod gr00t_n17;
 pub(crate) mod kernels;
 pub(crate) mod layers;
 pub(crate) mod mlp;

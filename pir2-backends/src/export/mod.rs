@@ -7,8 +7,6 @@
 //! input/output names and shapes.
 
 pub mod contract;
-#[cfg(feature = "candle")]
-pub mod gr00t_n17;
 pub mod graph;
 pub mod models;
 pub mod ops;

@@ -27,7 +27,6 @@
 //! A remote backbone is any other [`SlowEncoder`] returning `[T, D_vl]` tokens (see
 //! [`super::run::BackboneChoice::Custom`]).
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use pir2_runtime::{SlowEncoder, SlowFeatures, SlowFrame, View};
@@ -37,206 +36,12 @@ use super::config::{
 };
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
 use super::error::{Gr00tError, Result};
-use super::head::VlLayout;
 use super::image::{gr00t_n17_transform, Rgb};
+use super::prompt::{PromptTokenizer, Sequence, VlLayout};
 use super::split::SplitBackbone;
-use super::tokenizer::{chat_sequence, ChatTemplate};
+use super::tokenizer::build_sequence;
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
-
-/// Turns prompt text into token ids. Implement it to plug in the model's real tokenizer.
-pub trait PromptTokenizer: Send {
-    /// Ids of the prompt text (no special tokens, no padding).
-    fn encode(&self, text: &str) -> Result<Vec<i64>>;
-    /// Id of the padding token.
-    fn pad_id(&self) -> i64;
-    /// Id of the image placeholder token.
-    fn image_token_id(&self) -> i64;
-    /// The chat template the prompt is rendered through ([`build_sequence`]); `None` (the
-    /// default): image placeholders first, then the bare prompt's tokens.
-    fn chat_template(&self) -> Option<&ChatTemplate> {
-        None
-    }
-    /// What this tokenizer is, for run summaries (default: "a custom tokenizer").
-    fn describe(&self) -> String {
-        "a custom tokenizer".into()
-    }
-}
-
-/// A vocabulary-file tokenizer: one token per line, id = line number (0-based).
-///
-/// Text is lower-cased and split on whitespace, with ASCII punctuation as separate tokens;
-/// a word missing from the vocabulary is split greedily into the longest known prefix and
-/// `##`-continuations (WordPiece), else it becomes `<unk>`. The file must contain `<pad>`,
-/// `<unk>` and `<image>`.
-#[derive(Debug, Clone)]
-pub struct VocabTokenizer {
-    source: PathBuf,
-    vocab: HashMap<String, i64>,
-    pad: i64,
-    unk: i64,
-    image: i64,
-}
-
-impl VocabTokenizer {
-    /// Special tokens that must be present.
-    pub const SPECIALS: [&'static str; 3] = ["<pad>", "<unk>", "<image>"];
-
-    /// Read a vocabulary file.
-    pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        Self::from_lines(text.lines(), path)
-    }
-
-    /// Build from lines (`path` names the source in errors).
-    pub fn from_lines<'a>(lines: impl Iterator<Item = &'a str>, path: &Path) -> Result<Self> {
-        let mut vocab = HashMap::new();
-        for (i, l) in lines.enumerate() {
-            let tok = l.trim_end_matches(['\r', '\n']);
-            if !tok.is_empty() {
-                vocab.entry(tok.to_string()).or_insert(i as i64);
-            }
-        }
-        let get = |t: &str| {
-            vocab.get(t).copied().ok_or_else(|| Gr00tError::Parse {
-                path: path.to_path_buf(),
-                message: format!("vocabulary has no `{t}` token (needs {:?})", Self::SPECIALS),
-            })
-        };
-        Ok(VocabTokenizer {
-            source: path.to_path_buf(),
-            pad: get("<pad>")?,
-            unk: get("<unk>")?,
-            image: get("<image>")?,
-            vocab,
-        })
-    }
-
-    fn word(&self, w: &str, out: &mut Vec<i64>) {
-        if let Some(&id) = self.vocab.get(w) {
-            out.push(id);
-            return;
-        }
-        let chars: Vec<(usize, char)> = w.char_indices().collect();
-        let mut start = 0;
-        let mut pieces = Vec::new();
-        while start < chars.len() {
-            let mut end = chars.len();
-            let mut found = None;
-            while end > start {
-                let a = chars[start].0;
-                let b = if end < chars.len() {
-                    chars[end].0
-                } else {
-                    w.len()
-                };
-                let piece = if start == 0 {
-                    w[a..b].to_string()
-                } else {
-                    format!("##{}", &w[a..b])
-                };
-                if let Some(&id) = self.vocab.get(&piece) {
-                    found = Some(id);
-                    break;
-                }
-                end -= 1;
-            }
-            match found {
-                Some(id) => {
-                    pieces.push(id);
-                    start = end;
-                }
-                None => {
-                    out.push(self.unk);
-                    return;
-                }
-            }
-        }
-        out.extend(pieces);
-    }
-}
-
-impl PromptTokenizer for VocabTokenizer {
-    fn encode(&self, text: &str) -> Result<Vec<i64>> {
-        let mut out = Vec::new();
-        let lower = text.to_lowercase();
-        for raw in lower.split_whitespace() {
-            let mut cur = String::new();
-            for c in raw.chars() {
-                if c.is_ascii_punctuation() {
-                    if !cur.is_empty() {
-                        self.word(&cur, &mut out);
-                        cur.clear();
-                    }
-                    self.word(&c.to_string(), &mut out);
-                } else {
-                    cur.push(c);
-                }
-            }
-            if !cur.is_empty() {
-                self.word(&cur, &mut out);
-            }
-        }
-        Ok(out)
-    }
-    fn pad_id(&self) -> i64 {
-        self.pad
-    }
-    fn image_token_id(&self) -> i64 {
-        self.image
-    }
-    fn describe(&self) -> String {
-        format!("vocabulary `{}` (no chat template)", self.source.display())
-    }
-}
-
-/// Token ids, attention mask and layout of one prompt (see the module docs).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Sequence {
-    /// `input_ids`, length `T`.
-    pub ids: Vec<i64>,
-    /// `attention_mask` (1 = valid), length `T`.
-    pub attention: Vec<i64>,
-    /// The layout for the DiT.
-    pub layout: VlLayout,
-    /// Prompt tokens dropped by truncation.
-    pub truncated: usize,
-}
-
-/// The backbone's token sequence for `prompt`: through the tokenizer's chat template when it
-/// has one (GR00T N1.7: see [`super::tokenizer`]; `T = image_tokens + text_tokens` positions,
-/// padded on the template's side, a prompt too long for `text_tokens` is an error), else
-/// `[image placeholder × image_tokens] + prompt tokens`, padded/truncated to `text_tokens`.
-pub fn build_sequence(
-    tok: &dyn PromptTokenizer,
-    prompt: &str,
-    cfg: &PromptConfig,
-) -> Result<Sequence> {
-    if let Some(chat) = tok.chat_template() {
-        return chat_sequence(tok, chat, prompt, cfg);
-    }
-    let text = tok.encode(prompt)?;
-    let n = text.len().min(cfg.text_tokens);
-    let t = cfg.image_tokens + cfg.text_tokens;
-    let mut ids = vec![tok.image_token_id(); cfg.image_tokens];
-    ids.extend_from_slice(&text[..n]);
-    ids.resize(t, tok.pad_id());
-    let valid = cfg.image_tokens + n;
-    let attention: Vec<i64> = (0..t).map(|i| i64::from(i < valid)).collect();
-    let layout = VlLayout {
-        image_mask: (0..t).map(|i| i < cfg.image_tokens).collect(),
-        attention_mask: (0..t).map(|i| i < valid).collect(),
-    };
-    Ok(Sequence {
-        ids,
-        attention,
-        layout,
-        truncated: text.len() - n,
-    })
-}
 
 /// Preprocess an HWC `u8` RGB camera image with `cfg` (GR00T N1.7's transform by default,
 /// [`super::image`]) and normalise it into `out` as CHW `f32` `[3, s, s]`,
@@ -679,6 +484,7 @@ impl SlowEncoder for Gr00tBackbone {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gr00t::tokenizer::VocabTokenizer;
 
     fn vocab() -> VocabTokenizer {
         let lines = [

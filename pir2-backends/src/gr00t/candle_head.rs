@@ -17,7 +17,7 @@ use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 use super::config::{EmbodimentConfig, Normalizer};
 use super::error::{Gr00tError, Result};
 use super::head::VlLayout;
-use crate::candle::gr00t_n17::{timestep_bucket, Gr00tN17Head, Timesteps, VlTokens};
+use crate::gr00t::n17::{timestep_bucket, Gr00tN17Head, Timesteps, VlTokens};
 
 /// GR00T N1.7's action head in candle behind the ONNX head's interface (module docs).
 #[derive(Debug)]

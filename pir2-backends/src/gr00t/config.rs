@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::error::{Gr00tError, Result};
-use super::tokenizer::ChatTemplate;
+use super::prompt::ChatTemplate;
 
 mod normalizer;
 mod policy;

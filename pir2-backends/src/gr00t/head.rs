@@ -28,18 +28,9 @@ use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 use super::config::{CheckpointFiles, EmbodimentConfig, Normalizer};
 use super::contract::{feed, Bindings, Graph, ACTION_DECODER, ACTION_ENCODER, DIT, STATE_ENCODER};
 use super::error::{Gr00tError, Result};
+pub use super::prompt::VlLayout;
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
-
-/// Which tokens of the backbone sequence are image tokens and which are valid (not padding);
-/// fed to the DiT as `image_mask` / `backbone_attention_mask` when it declares them.
-#[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct VlLayout {
-    /// `true` for image tokens, length `T`.
-    pub image_mask: Vec<bool>,
-    /// `true` for valid tokens, length `T`.
-    pub attention_mask: Vec<bool>,
-}
 
 /// Sizes read from the ONNX files and the side weights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,4 +1,11 @@
-//! The GR00T-N1.7 xArm6 + XHand stack (feature `gr00t`).
+//! Everything GR00T, cut by what it is:
+//!
+//! - [`n17`] (feature `candle`): N1.7's action head in candle, loaded from a GR00T checkpoint,
+//!   with πR²'s per-position timesteps and AdaLN heads; beside it its ONNX exporter
+//!   (`n17::export`) and its πR² fine-tuning trainer (`n17::train`);
+//! - the xArm6 + XHand deployment stack (feature `gr00t`), below.
+//!
+//! # The deployment stack (feature `gr00t`)
 //!
 //! No weights ship with pir2: this module runs a user's export of a πR²-fine-tuned GR00T N1.7
 //! checkpoint through ONNX Runtime, following the split of GR00T's own exporter
@@ -39,37 +46,62 @@
 //! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`;
 //! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
-pub mod backbone;
 #[cfg(feature = "candle")]
+pub mod n17;
+
+#[cfg(feature = "gr00t")]
+pub mod backbone;
+#[cfg(all(feature = "gr00t", feature = "candle"))]
 pub mod candle_head;
+#[cfg(feature = "gr00t")]
 pub mod config;
+#[cfg(feature = "gr00t")]
 pub mod contract;
+#[cfg(feature = "gr00t")]
 pub mod error;
+#[cfg(feature = "gr00t")]
 pub mod head;
+#[cfg(feature = "gr00t")]
 pub mod image;
+#[cfg(feature = "gr00t")]
+pub mod prompt;
+#[cfg(feature = "gr00t")]
 pub mod run;
+#[cfg(feature = "gr00t")]
 pub mod split;
+#[cfg(feature = "gr00t")]
 pub mod testing;
+#[cfg(feature = "gr00t")]
 pub mod tokenizer;
+#[cfg(feature = "gr00t")]
 pub mod weights;
 
-pub use backbone::{
-    build_sequence, preprocess_image, Gr00tBackbone, PromptTokenizer, VocabTokenizer,
-};
-#[cfg(feature = "candle")]
+#[cfg(feature = "gr00t")]
+pub use backbone::{preprocess_image, Gr00tBackbone};
+#[cfg(all(feature = "gr00t", feature = "candle"))]
 pub use candle_head::Gr00tCandleHead;
+#[cfg(feature = "gr00t")]
 pub use config::{
     policy_name, ActionLimits, BackboneForm, CheckpointFiles, DeployKind, EmbodimentConfig, Group,
     GroupFormat, GroupLimits, ImageConfig, ImagePipeline, ModeOverrides, Norm, Normalizer,
     PolicySection, SafetySection, VisionConfig, DEFAULT_SLOW_GRACE_MS, EMBED_TOKENS_KEY,
     PAPER_TASKS,
 };
+#[cfg(feature = "gr00t")]
 pub use error::{Gr00tError, Result};
+#[cfg(feature = "gr00t")]
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
-#[cfg(feature = "candle")]
+#[cfg(feature = "gr00t")]
+pub use prompt::{PromptTokenizer, Sequence};
+#[cfg(all(feature = "gr00t", feature = "candle"))]
 pub use run::load_candle_head;
+#[cfg(feature = "gr00t")]
 pub use run::{
     load_action_head, run_gr00t, run_gr00t_report, BackboneChoice, Gr00tRunOptions, Gr00tRunReport,
     HeadChoice,
 };
-pub use tokenizer::{formalize_language, load_tokenizer, ChatTemplate, HfTokenizer, PaddingSide};
+#[cfg(feature = "gr00t")]
+pub use tokenizer::{
+    build_sequence, formalize_language, load_tokenizer, ChatTemplate, HfTokenizer, PaddingSide,
+    VocabTokenizer,
+};

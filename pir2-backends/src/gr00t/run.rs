@@ -32,12 +32,13 @@ use pir2_runtime::{
     Mode, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
 };
 
-use super::backbone::{Gr00tBackbone, PromptTokenizer};
+use super::backbone::Gr00tBackbone;
 use super::config::{
     read_embodiment_id, CheckpointFiles, EmbodimentConfig, ModeOverrides, Normalizer,
 };
 use super::error::{Gr00tError, Result};
 use super::head::{Gr00tActionHead, VlLayout};
+use super::prompt::PromptTokenizer;
 use super::tokenizer::load_tokenizer;
 use crate::ort::OrtOptions;
 
@@ -259,7 +260,7 @@ pub fn load_action_head(
         read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
     let mut head = Gr00tActionHead::load(&files, &cfg, norm, embodiment_id, ort)?;
     let tok = load_tokenizer(&files, &cfg.prompt)?;
-    let layout = super::backbone::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
+    let layout = super::tokenizer::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
     if let Some(t) = head.dims().vl_tokens {
         if t != layout.image_mask.len() {
             return Err(Gr00tError::Contract {
@@ -329,7 +330,7 @@ pub fn load_candle_head(
         read_embodiment_id(&files.embodiment_id, &cfg.embodiment_tag)?.unwrap_or(cfg.embodiment_id);
     let mut head = super::Gr00tCandleHead::load(step, &cfg, norm, embodiment_id)?;
     let tok = load_tokenizer(&files, &cfg.prompt)?;
-    let layout = super::backbone::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
+    let layout = super::tokenizer::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
     head.set_vl_layout(layout);
     Ok((head, prompt))
 }

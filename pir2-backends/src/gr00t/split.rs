@@ -31,10 +31,10 @@
 
 use std::path::Path;
 
-use super::backbone::{PromptTokenizer, Sequence};
 use super::config::{CheckpointFiles, ImageConfig, PromptConfig, VisionConfig};
 use super::contract::{feed, Bindings, Graph, DEEPSTACK_INPUTS, LLM, VIT};
 use super::error::{Gr00tError, Result};
+use super::prompt::{PromptTokenizer, Sequence};
 use super::weights::read_table_rows;
 use crate::ort::OrtOptions;
 

@@ -20,9 +20,9 @@ use std::time::Duration;
 
 use pir2_runtime::{Clock, SlowFrame, SlowSource, View};
 
-use super::backbone::build_sequence;
 use super::config::{CheckpointFiles, EmbodimentConfig};
 use super::error::{Gr00tError, Result};
+use super::tokenizer::build_sequence;
 use super::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
 
 /// `D_in` of the synthetic graphs (action-token width).

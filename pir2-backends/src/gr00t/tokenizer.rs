@@ -24,149 +24,14 @@
 //! [`load_tokenizer`] picks the checkpoint's tokenizer: `tokenizer.json` when present, else
 //! the older `vocab.txt` ([`VocabTokenizer`], no chat template).
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
-use serde::{Deserialize, Serialize};
-use unicode_categories::UnicodeCategories;
-
-use super::backbone::{PromptTokenizer, Sequence, VocabTokenizer};
 use super::config::{CheckpointFiles, PromptConfig};
 use super::error::{Gr00tError, Result};
-use super::head::VlLayout;
-
-/// Which end of the sequence padding goes to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PaddingSide {
-    /// Padding first, the prompt last (GR00T's processor pads on the left).
-    #[default]
-    Left,
-    /// The prompt first, padding last.
-    Right,
-}
-
-/// The chat template around the image tokens and the instruction (see the module docs).
-///
-/// The rendered text is
-/// `begin + (image_begin + image_token × k + image_end) × images + instruction + end`,
-/// with `k = prompt.image_tokens / images` and the instruction formalised when
-/// `formalize_language` is set. In `embodiment.toml`:
-///
-/// ```toml
-/// [prompt.chat]
-/// begin = "<|im_start|>user\n"
-/// image_begin = "<|vision_start|>"
-/// image_token = "<|image_pad|>"
-/// image_end = "<|vision_end|>"
-/// end = "<|im_end|>\n"
-/// pad_token = "<|endoftext|>"
-/// images = 1
-/// formalize_language = true
-/// padding = "left"
-/// ```
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ChatTemplate {
-    /// Text before the first image: the user turn's header (a system turn, if the checkpoint
-    /// was trained with one, goes here too).
-    pub begin: String,
-    /// Text before each image's placeholder tokens.
-    pub image_begin: String,
-    /// The image placeholder token (one id in the tokenizer), repeated once per image token.
-    pub image_token: String,
-    /// Text after each image's placeholder tokens.
-    pub image_end: String,
-    /// Text after the instruction: the end of the user turn.
-    pub end: String,
-    /// The padding token (one id in the tokenizer).
-    pub pad_token: String,
-    /// Image blocks in the turn (GR00T: camera views × frames); `prompt.image_tokens` is
-    /// split evenly between them. pir2 feeds one frame per view, so this is the number of
-    /// camera views: every slow frame must carry that many images (one `--camera` or
-    /// `--frames` per view, in this order), and `backbone.onnx` receives them stacked as
-    /// `pixel_values` `[images, 3, s, s]`.
-    pub images: usize,
-    /// Lower-case the instruction and drop what is neither a word character nor whitespace
-    /// (GR00T's `formalize_language`, on by default).
-    pub formalize_language: bool,
-    /// Where padding goes when the prompt is shorter than the sequence.
-    pub padding: PaddingSide,
-}
-
-impl Default for ChatTemplate {
-    fn default() -> Self {
-        ChatTemplate {
-            begin: "<|im_start|>user\n".into(),
-            image_begin: "<|vision_start|>".into(),
-            image_token: "<|image_pad|>".into(),
-            image_end: "<|vision_end|>".into(),
-            end: "<|im_end|>\n".into(),
-            pad_token: "<|endoftext|>".into(),
-            images: 1,
-            formalize_language: true,
-            padding: PaddingSide::Left,
-        }
-    }
-}
-
-/// GR00T's instruction clean-up: lower-case, then keep only word characters (Unicode
-/// letters and numbers, `_`) and whitespace — Python's `re.sub(r"[^\w\s]", "", s.lower())`.
-pub fn formalize_language(text: &str) -> String {
-    text.to_lowercase()
-        .chars()
-        .filter(|&c| {
-            c == '_'
-                || c.is_letter()
-                || c.is_number()
-                || c.is_whitespace()
-                // Python's `\s` also matches the ASCII separators 0x1c..=0x1f.
-                || ('\u{1c}'..='\u{1f}').contains(&c)
-        })
-        .collect()
-}
-
-impl ChatTemplate {
-    /// The rendered text for `instruction` with `tokens_per_image` placeholders per image.
-    pub fn render(&self, instruction: &str, tokens_per_image: usize) -> String {
-        let language = if self.formalize_language {
-            formalize_language(instruction)
-        } else {
-            instruction.to_string()
-        };
-        let mut s = String::with_capacity(
-            self.begin.len()
-                + self.images
-                    * (self.image_begin.len()
-                        + self.image_token.len() * tokens_per_image
-                        + self.image_end.len())
-                + language.len()
-                + self.end.len(),
-        );
-        s.push_str(&self.begin);
-        for _ in 0..self.images {
-            s.push_str(&self.image_begin);
-            for _ in 0..tokens_per_image {
-                s.push_str(&self.image_token);
-            }
-            s.push_str(&self.image_end);
-        }
-        s.push_str(&language);
-        s.push_str(&self.end);
-        s
-    }
-
-    /// Placeholders per image for `image_tokens` in total (an error unless it divides).
-    pub fn tokens_per_image(&self, image_tokens: usize) -> Result<usize> {
-        if self.images == 0 || image_tokens % self.images != 0 {
-            return Err(Gr00tError::Config(format!(
-                "prompt.image_tokens = {image_tokens} must be a positive multiple of \
-                 prompt.chat.images = {}",
-                self.images
-            )));
-        }
-        Ok(image_tokens / self.images)
-    }
-}
+pub use super::prompt::{
+    formalize_language, ChatTemplate, PaddingSide, PromptTokenizer, Sequence, VlLayout,
+};
 
 /// Token ids, mask and layout of `prompt` through `chat`'s template, with `tok`'s ids:
 /// `prompt.image_tokens + prompt.text_tokens` positions, where the template and the
@@ -324,6 +189,168 @@ pub fn load_tokenizer(
             vocab: files.vocab.clone(),
         })
     }
+}
+
+/// A vocabulary-file tokenizer: one token per line, id = line number (0-based).
+///
+/// Text is lower-cased and split on whitespace, with ASCII punctuation as separate tokens;
+/// a word missing from the vocabulary is split greedily into the longest known prefix and
+/// `##`-continuations (WordPiece), else it becomes `<unk>`. The file must contain `<pad>`,
+/// `<unk>` and `<image>`.
+#[derive(Debug, Clone)]
+pub struct VocabTokenizer {
+    source: PathBuf,
+    vocab: HashMap<String, i64>,
+    pad: i64,
+    unk: i64,
+    image: i64,
+}
+
+impl VocabTokenizer {
+    /// Special tokens that must be present.
+    pub const SPECIALS: [&'static str; 3] = ["<pad>", "<unk>", "<image>"];
+
+    /// Read a vocabulary file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_lines(text.lines(), path)
+    }
+
+    /// Build from lines (`path` names the source in errors).
+    pub fn from_lines<'a>(lines: impl Iterator<Item = &'a str>, path: &Path) -> Result<Self> {
+        let mut vocab = HashMap::new();
+        for (i, l) in lines.enumerate() {
+            let tok = l.trim_end_matches(['\r', '\n']);
+            if !tok.is_empty() {
+                vocab.entry(tok.to_string()).or_insert(i as i64);
+            }
+        }
+        let get = |t: &str| {
+            vocab.get(t).copied().ok_or_else(|| Gr00tError::Parse {
+                path: path.to_path_buf(),
+                message: format!("vocabulary has no `{t}` token (needs {:?})", Self::SPECIALS),
+            })
+        };
+        Ok(VocabTokenizer {
+            source: path.to_path_buf(),
+            pad: get("<pad>")?,
+            unk: get("<unk>")?,
+            image: get("<image>")?,
+            vocab,
+        })
+    }
+
+    fn word(&self, w: &str, out: &mut Vec<i64>) {
+        if let Some(&id) = self.vocab.get(w) {
+            out.push(id);
+            return;
+        }
+        let chars: Vec<(usize, char)> = w.char_indices().collect();
+        let mut start = 0;
+        let mut pieces = Vec::new();
+        while start < chars.len() {
+            let mut end = chars.len();
+            let mut found = None;
+            while end > start {
+                let a = chars[start].0;
+                let b = if end < chars.len() {
+                    chars[end].0
+                } else {
+                    w.len()
+                };
+                let piece = if start == 0 {
+                    w[a..b].to_string()
+                } else {
+                    format!("##{}", &w[a..b])
+                };
+                if let Some(&id) = self.vocab.get(&piece) {
+                    found = Some(id);
+                    break;
+                }
+                end -= 1;
+            }
+            match found {
+                Some(id) => {
+                    pieces.push(id);
+                    start = end;
+                }
+                None => {
+                    out.push(self.unk);
+                    return;
+                }
+            }
+        }
+        out.extend(pieces);
+    }
+}
+
+impl PromptTokenizer for VocabTokenizer {
+    fn encode(&self, text: &str) -> Result<Vec<i64>> {
+        let mut out = Vec::new();
+        let lower = text.to_lowercase();
+        for raw in lower.split_whitespace() {
+            let mut cur = String::new();
+            for c in raw.chars() {
+                if c.is_ascii_punctuation() {
+                    if !cur.is_empty() {
+                        self.word(&cur, &mut out);
+                        cur.clear();
+                    }
+                    self.word(&c.to_string(), &mut out);
+                } else {
+                    cur.push(c);
+                }
+            }
+            if !cur.is_empty() {
+                self.word(&cur, &mut out);
+            }
+        }
+        Ok(out)
+    }
+    fn pad_id(&self) -> i64 {
+        self.pad
+    }
+    fn image_token_id(&self) -> i64 {
+        self.image
+    }
+    fn describe(&self) -> String {
+        format!("vocabulary `{}` (no chat template)", self.source.display())
+    }
+}
+
+/// The backbone's token sequence for `prompt`: through the tokenizer's chat template when it
+/// has one (GR00T N1.7: see [`super::tokenizer`]; `T = image_tokens + text_tokens` positions,
+/// padded on the template's side, a prompt too long for `text_tokens` is an error), else
+/// `[image placeholder × image_tokens] + prompt tokens`, padded/truncated to `text_tokens`.
+pub fn build_sequence(
+    tok: &dyn PromptTokenizer,
+    prompt: &str,
+    cfg: &PromptConfig,
+) -> Result<Sequence> {
+    if let Some(chat) = tok.chat_template() {
+        return chat_sequence(tok, chat, prompt, cfg);
+    }
+    let text = tok.encode(prompt)?;
+    let n = text.len().min(cfg.text_tokens);
+    let t = cfg.image_tokens + cfg.text_tokens;
+    let mut ids = vec![tok.image_token_id(); cfg.image_tokens];
+    ids.extend_from_slice(&text[..n]);
+    ids.resize(t, tok.pad_id());
+    let valid = cfg.image_tokens + n;
+    let attention: Vec<i64> = (0..t).map(|i| i64::from(i < valid)).collect();
+    let layout = VlLayout {
+        image_mask: (0..t).map(|i| i < cfg.image_tokens).collect(),
+        attention_mask: (0..t).map(|i| i < valid).collect(),
+    };
+    Ok(Sequence {
+        ids,
+        attention,
+        layout,
+        truncated: text.len() - n,
+    })
 }
 
 #[cfg(test)]

@@ -42,6 +42,9 @@ pub enum TchError {
         /// libtorch's message.
         message: String,
     },
+    /// The model definition being traced refused its weights or shapes.
+    #[error(transparent)]
+    Export(#[from] crate::export::ExportError),
 }
 
 /// Options for [`TchModel`].
@@ -234,7 +237,7 @@ pub fn export_torchscript<W: crate::export::ops::WeightSource>(
     spec: &crate::export::ModelSpec,
     weights: &W,
     path: &Path,
-) -> crate::Result<()> {
+) -> Result<(), TchError> {
     use crate::export::models::Inputs;
     use crate::export::SlowSpec;
     let has_slow = spec.dims().slow != SlowSpec::None;

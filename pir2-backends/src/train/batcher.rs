@@ -3,37 +3,37 @@
 use super::*;
 
 /// Encodes one sample's raw action chunk in place: `(episode, frame, chunk)`.
-pub(super) type ChunkEncoder<'a> = dyn FnMut(usize, usize, &mut [f32]) -> Result<()> + 'a;
+pub(crate) type ChunkEncoder<'a> = dyn FnMut(usize, usize, &mut [f32]) -> Result<()> + 'a;
 
 /// Builds training batches into reusable host buffers.
-pub(super) struct Batcher {
-    pub(super) spec: Spec,
-    pub(super) stats: Stats,
-    pub(super) schedule: TrainSchedule,
-    pub(super) b: usize,
-    pub(super) rng: Rng,
+pub(crate) struct Batcher {
+    pub(crate) spec: Spec,
+    pub(crate) stats: Stats,
+    pub(crate) schedule: TrainSchedule,
+    pub(crate) b: usize,
+    pub(crate) rng: Rng,
     /// Cumulative frame counts per episode.
-    pub(super) cum: Vec<usize>,
-    pub(super) draw: Draw,
-    pub(super) act: Vec<f32>,
-    pub(super) eps: Vec<f32>,
-    pub(super) x: Vec<f32>,
-    pub(super) tau: Vec<f32>,
-    pub(super) target: Vec<f32>,
-    pub(super) mask: Vec<f32>,
+    pub(crate) cum: Vec<usize>,
+    pub(crate) draw: Draw,
+    pub(crate) act: Vec<f32>,
+    pub(crate) eps: Vec<f32>,
+    pub(crate) x: Vec<f32>,
+    pub(crate) tau: Vec<f32>,
+    pub(crate) target: Vec<f32>,
+    pub(crate) mask: Vec<f32>,
     /// Normalised ground-truth chunks (for self-rollout).
-    pub(super) gt: Vec<f32>,
-    pub(super) epsb: Vec<f32>,
-    pub(super) fast: Vec<f32>,
-    pub(super) slow: Vec<f32>,
-    pub(super) dvis: Vec<u32>,
+    pub(crate) gt: Vec<f32>,
+    pub(crate) epsb: Vec<f32>,
+    pub(crate) fast: Vec<f32>,
+    pub(crate) slow: Vec<f32>,
+    pub(crate) dvis: Vec<u32>,
     /// Per sample, the `(episode, frame)` whose slow features it sees (`t − d_vis`, clamped
     /// at the episode start): for trainers that fetch slow features themselves.
-    pub(super) slow_frame: Vec<(usize, usize)>,
+    pub(crate) slow_frame: Vec<(usize, usize)>,
 }
 
 impl Batcher {
-    pub(super) fn new<D: Dataset + ?Sized>(
+    pub(crate) fn new<D: Dataset + ?Sized>(
         data: &D,
         spec: &Spec,
         stats: &Stats,
@@ -74,7 +74,7 @@ impl Batcher {
     /// (`ShardedSingleStepDataset.get_effective_episode_length`), instead of every frame
     /// with the last action repeated past the end. The frames left are drawn uniformly;
     /// returns how many there are.
-    pub(super) fn full_chunks_only<D: Dataset + ?Sized>(&mut self, data: &D) -> usize {
+    pub(crate) fn full_chunks_only<D: Dataset + ?Sized>(&mut self, data: &D) -> usize {
         let h = self.spec.horizon;
         let mut total = 0;
         for (e, c) in self.cum.iter_mut().enumerate() {
@@ -84,7 +84,7 @@ impl Batcher {
         total
     }
 
-    pub(super) fn fill<D: Dataset + ?Sized>(&mut self, data: &D) -> Result<()> {
+    pub(crate) fn fill<D: Dataset + ?Sized>(&mut self, data: &D) -> Result<()> {
         self.fill_encoded(data, None)
     }
 
@@ -92,7 +92,7 @@ impl Batcher {
     /// `encode(episode, frame, chunk)` (the chunk `[H, A]` of raw actions from `frame` on,
     /// the last action repeated past the episode's end) instead of the per-frame statistics:
     /// for targets that depend on the sample (relative actions). The draws are the same.
-    pub(super) fn fill_encoded<D: Dataset + ?Sized>(
+    pub(crate) fn fill_encoded<D: Dataset + ?Sized>(
         &mut self,
         data: &D,
         mut encode: Option<&mut ChunkEncoder<'_>>,
@@ -148,7 +148,7 @@ impl Batcher {
         Ok(())
     }
 
-    pub(super) fn input(&self) -> ModelInput<'_> {
+    pub(crate) fn input(&self) -> ModelInput<'_> {
         let slow = match self.spec.slow {
             SlowSpec::None => SlowInput::None,
             SlowSpec::Vector { dim } => SlowInput::Vector {
@@ -176,7 +176,7 @@ impl Batcher {
     }
 
     /// Replace a fraction of the samples by states the model reached itself (see [`SelfRollout`]).
-    pub(super) fn self_roll(&mut self, model: &mut CandleModel, r: SelfRollout) -> Result<()> {
+    pub(crate) fn self_roll(&mut self, model: &mut CandleModel, r: SelfRollout) -> Result<()> {
         let (h, a) = (self.spec.horizon, self.spec.action_dim);
         let rows: Vec<bool> = (0..self.b).map(|_| self.rng.uniform() < r.prob).collect();
         if !rows.iter().any(|&s| s) {

@@ -84,7 +84,7 @@ impl Dataset for [Episode] {
     }
 }
 
-pub(super) fn check_dataset<D: Dataset + ?Sized>(data: &D, spec: &Spec) -> Result<()> {
+pub(crate) fn check_dataset<D: Dataset + ?Sized>(data: &D, spec: &Spec) -> Result<()> {
     if data.num_episodes() == 0 {
         return Err(Error::Dataset("no episodes".into()));
     }

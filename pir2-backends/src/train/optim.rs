@@ -3,7 +3,7 @@
 use super::*;
 
 /// Global grad norm of candle gradients; scales them in place when it exceeds `clip`.
-pub(super) fn clip_grad_store(
+pub(crate) fn clip_grad_store(
     grads: &mut candle_core::backprop::GradStore,
     vars: &[candle_core::Var],
     clip: Option<f64>,
@@ -29,7 +29,7 @@ pub(super) fn clip_grad_store(
 }
 
 /// Global grad norm (f64 accumulation); scales the gradients in place when it exceeds `clip`.
-pub(super) fn clip_grads(grads: &mut [Vec<f32>], clip: Option<f64>) -> f32 {
+pub(crate) fn clip_grads(grads: &mut [Vec<f32>], clip: Option<f64>) -> f32 {
     let sq: f64 = grads
         .iter()
         .map(|g| g.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
@@ -51,18 +51,18 @@ pub(super) fn clip_grads(grads: &mut [Vec<f32>], clip: Option<f64>) -> f32 {
 /// AdamW on host buffers, the same update as `candle_nn::AdamW` (decoupled weight decay,
 /// bias-corrected moments), with state that can be saved and restored.
 #[derive(Debug, Clone)]
-pub(super) struct AdamW {
-    pub(super) beta1: f64,
-    pub(super) beta2: f64,
-    pub(super) eps: f64,
-    pub(super) weight_decay: f64,
-    pub(super) t: u64,
-    pub(super) m: Vec<Vec<f32>>,
-    pub(super) v: Vec<Vec<f32>>,
+pub(crate) struct AdamW {
+    pub(crate) beta1: f64,
+    pub(crate) beta2: f64,
+    pub(crate) eps: f64,
+    pub(crate) weight_decay: f64,
+    pub(crate) t: u64,
+    pub(crate) m: Vec<Vec<f32>>,
+    pub(crate) v: Vec<Vec<f32>>,
 }
 
 impl AdamW {
-    pub(super) fn new(cfg: &TrainConfig, params: &[Vec<f32>]) -> Self {
+    pub(crate) fn new(cfg: &TrainConfig, params: &[Vec<f32>]) -> Self {
         Self {
             beta1: cfg.betas.0,
             beta2: cfg.betas.1,
@@ -74,7 +74,7 @@ impl AdamW {
         }
     }
 
-    pub(super) fn step(&mut self, params: &mut [Vec<f32>], grads: &[Vec<f32>], lr: f64) {
+    pub(crate) fn step(&mut self, params: &mut [Vec<f32>], grads: &[Vec<f32>], lr: f64) {
         self.t += 1;
         let (b1, b2) = (self.beta1, self.beta2);
         let scale_m = (1.0 / (1.0 - b1.powi(self.t as i32))) as f32;

@@ -4,33 +4,33 @@
 use super::*;
 
 /// Everything a run carries from one step to the next.
-pub(super) struct State {
+pub(crate) struct State {
     /// Steps done.
-    pub(super) step: usize,
+    pub(crate) step: usize,
     /// Raw (trained) weights, in [`CandleModel::vars`] order.
-    pub(super) params: Vec<Vec<f32>>,
-    pub(super) opt: AdamW,
-    pub(super) ema: Option<Vec<Vec<f32>>>,
-    pub(super) best: Option<(f64, Vec<Vec<f32>>)>,
-    pub(super) report: TrainReport,
+    pub(crate) params: Vec<Vec<f32>>,
+    pub(crate) opt: AdamW,
+    pub(crate) ema: Option<Vec<Vec<f32>>>,
+    pub(crate) best: Option<(f64, Vec<Vec<f32>>)>,
+    pub(crate) report: TrainReport,
 }
 
 /// The JSON part of a step checkpoint's training state.
 #[derive(Debug, Serialize, Deserialize)]
-pub(super) struct StateMeta {
-    pub(super) step: usize,
-    pub(super) adam_t: u64,
-    pub(super) rng: [u64; 4],
-    pub(super) best_score: Option<f64>,
-    pub(super) config: TrainConfig,
-    pub(super) report: TrainReport,
+pub(crate) struct StateMeta {
+    pub(crate) step: usize,
+    pub(crate) adam_t: u64,
+    pub(crate) rng: [u64; 4],
+    pub(crate) best_score: Option<f64>,
+    pub(crate) config: TrainConfig,
+    pub(crate) report: TrainReport,
 }
 
 impl State {
     /// Write the step checkpoint `dir` (the model's files, written by `write_model` into the
     /// directory it is given, + training state): into a
     /// uniquely named temp directory, every file fsynced, then renamed into place.
-    pub(super) fn save_step(
+    pub(crate) fn save_step(
         &self,
         write_model: impl FnOnce(&Path) -> Result<()>,
         dir: &Path,
@@ -74,7 +74,7 @@ impl State {
     }
 
     /// Read the training state of the step checkpoint `dir`; returns the batch generator.
-    pub(super) fn load(&mut self, dir: &Path, cfg: &TrainConfig, names: &[String]) -> Result<Rng> {
+    pub(crate) fn load(&mut self, dir: &Path, cfg: &TrainConfig, names: &[String]) -> Result<Rng> {
         let path = dir.join(TRAIN_STATE_FILE);
         let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
         let meta: StateMeta = serde_json::from_str(&text).map_err(|e| Error::Format {
@@ -144,10 +144,10 @@ impl State {
 
 /// The step checkpoint with the highest step that carries a training state, if any.
 /// Name prefix of the training state a stopped run leaves ([`Trainer::stop_on`]).
-pub(super) const INTERRUPTED_PREFIX: &str = "interrupted-";
+pub(crate) const INTERRUPTED_PREFIX: &str = "interrupted-";
 
 /// Remove the `interrupted-*` training states of a finished run in `out`.
-pub(super) fn remove_interrupted(out: &Path) -> Result<()> {
+pub(crate) fn remove_interrupted(out: &Path) -> Result<()> {
     let Ok(rd) = std::fs::read_dir(out) else {
         return Ok(());
     };
@@ -162,7 +162,7 @@ pub(super) fn remove_interrupted(out: &Path) -> Result<()> {
     Ok(())
 }
 
-pub(super) fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
+pub(crate) fn latest_step_checkpoint(out: &Path) -> Result<Option<PathBuf>> {
     let rd = match std::fs::read_dir(out) {
         Ok(rd) => rd,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),

@@ -39,12 +39,12 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use candle_core::Device;
-use pir2_backends::candle::gr00t_n17::Gr00tN17Head;
-use pir2_backends::gr00t::{EmbodimentConfig, Normalizer};
-use pir2_backends::train::gr00t::{
+use pir2_backends::gr00t::n17::train::{
     head_fingerprint, tree_fingerprint, vl_cache_key, ActionTargets, Gr00tTrainSpec, Gr00tTrainer,
     PrecomputedFeatures, VlCache,
 };
+use pir2_backends::gr00t::n17::Gr00tN17Head;
+use pir2_backends::gr00t::{EmbodimentConfig, Normalizer};
 use pir2_backends::train::{Episode, Progress, TrainConfig, TrainReport};
 use pir2_runtime::{DelayLaw, Recipe};
 use pir2_sim::dataset::{check_selection, read_selected, FeatureSelection, FeatureStats};
@@ -336,7 +336,7 @@ fn write_or_check(path: &Path, text: &str, resume: bool) -> Result<()> {
 /// embodiment `emb` (from `embodiment`): history, widths, slot, timestep buckets, horizon.
 fn check_head_fits(
     emb: &EmbodimentConfig,
-    c: &pir2_backends::candle::gr00t_n17::Gr00tN17Config,
+    c: &pir2_backends::gr00t::n17::Gr00tN17Config,
     checkpoint: &Path,
     embodiment: &Path,
 ) -> Result<()> {
@@ -601,7 +601,7 @@ fn find_in(dirs: &[&Path], name: &str, what: &str) -> Result<PathBuf> {
 /// export leaves nothing behind. The backbone (`onnx/backbone.onnx`) and the tokenizer are
 /// not part of the head and are not written.
 pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
-    use pir2_backends::export::gr00t_n17::{export_gr00t_n17, WeightStorage};
+    use pir2_backends::gr00t::n17::export::{export_gr00t_n17, WeightStorage};
 
     if out.exists() {
         let empty = out.is_dir()
@@ -637,15 +637,15 @@ pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
     check_head_fits(&emb, &c, step, &emb_path)?;
     let delay = format!(
         "{}{}",
-        pir2_backends::candle::gr00t_n17::PREFIX,
-        pir2_backends::candle::gr00t_n17::DELAY_EMBEDDING
+        pir2_backends::gr00t::n17::PREFIX,
+        pir2_backends::gr00t::n17::DELAY_EMBEDDING
     );
     let Some(table) = head.delay_embedding() else {
         bail!(
             "{}: no delay table `{delay}` in {}; export a πR²-fine-tuned head (a `pir2 train \
              gr00t` step directory), not a base GR00T checkpoint",
             step.display(),
-            pir2_backends::candle::gr00t_n17::SINGLE_FILE
+            pir2_backends::gr00t::n17::SINGLE_FILE
         );
     };
     if table.dims() != [emb.d_vis_max + 1, c.input_embedding_dim] {

@@ -32,9 +32,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant, UNIX_EPOCH};
 
 use anyhow::{bail, Context, Result};
+use pir2_backends::gr00t::n17::train::tree_fingerprint;
 use pir2_backends::gr00t::{load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone};
 use pir2_backends::ort::OrtOptions;
-use pir2_backends::train::gr00t::tree_fingerprint;
 use pir2_sim::dataset::{
     check_ffmpeg, ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S,
 };

@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use candle_core::{Device, Tensor};
+use pir2_backends::gr00t::n17::train::ActionTargets;
 use pir2_backends::gr00t::{EmbodimentConfig, Group, GroupFormat, Norm};
-use pir2_backends::train::gr00t::ActionTargets;
 use pir2_cli::study::gr00t::Gr00tTargets;
 use pir2_runtime::{EnvSpec, EnvStep, Environment, ModelInput, OutputMap, VelocityModel};
 use pir2_sim::dataset::{Dataset, FeatureSelection};

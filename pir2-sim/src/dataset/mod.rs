@@ -67,9 +67,7 @@ mod write;
 
 pub use collect::*;
 pub use read::*;
-pub use select::{
-    check_selection, float_features, read_selected, FeatureSelection, FloatFeature, ReadOptions,
-};
+pub use select::{check_selection, float_features, read_selected, FeatureSelection, FloatFeature};
 pub use spec::*;
 pub use stats::*;
 pub use video::{

@@ -14,7 +14,6 @@ use std::path::Path;
 use arrow_array::cast::AsArray;
 use arrow_array::Array;
 
-use super::select::{Columns, ReadOptions};
 use super::*;
 
 /// A dataset loaded into memory.
@@ -706,4 +705,102 @@ pub(super) fn read_tasks(path: &Path) -> Result<Vec<String>> {
     }
     pairs.sort_by_key(|p| p.0);
     Ok(pairs.into_iter().map(|p| p.1).collect())
+}
+
+/// Which columns hold the fast/slow/action features (ours by default; LeRobot datasets of
+/// other robots may name theirs differently).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ReadOptions {
+    /// Column of the fast observation.
+    pub fast_key: String,
+    /// Column of the slow observation; absent from the file = no slow channel.
+    pub slow_key: String,
+    /// Column of the action.
+    pub action_key: String,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        Self {
+            fast_key: KEY_FAST.into(),
+            slow_key: KEY_SLOW.into(),
+            action_key: KEY_ACTION.into(),
+        }
+    }
+}
+
+/// Column groups to read: each channel is its keys' columns concatenated per frame.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) struct Columns {
+    pub(super) fast: Vec<String>,
+    pub(super) slow: Vec<String>,
+    pub(super) action: Vec<String>,
+    /// A slow group missing from a data file means "no slow channel" (our own layout, where
+    /// `observation.environment_state` is optional) instead of an error.
+    pub(super) slow_optional: bool,
+    /// Width each key must have (from `info.json`), when known.
+    pub(super) widths: Vec<(String, usize)>,
+}
+
+impl Columns {
+    /// The columns of [`ReadOptions`] (one key per channel, the slow one optional).
+    pub(super) fn of(opts: &ReadOptions) -> Self {
+        Columns {
+            fast: vec![opts.fast_key.clone()],
+            slow: vec![opts.slow_key.clone()],
+            action: vec![opts.action_key.clone()],
+            slow_optional: true,
+            widths: Vec::new(),
+        }
+    }
+
+    /// The three groups with their display names (keys joined by `+`).
+    pub(super) fn groups(&self) -> [(&[String], String); 3] {
+        [
+            (&self.fast[..], self.fast.join("+")),
+            (&self.slow[..], self.slow.join("+")),
+            (&self.action[..], self.action.join("+")),
+        ]
+    }
+
+    /// Read one group of `batch`: its keys' columns concatenated per row, and the total width.
+    /// An optional slow group absent from the file reads as width 0.
+    pub(super) fn read_group(
+        &self,
+        batch: &RecordBatch,
+        path: &Path,
+        keys: &[String],
+        optional: bool,
+    ) -> Result<(Vec<f32>, usize)> {
+        if keys.is_empty() || (optional && keys.iter().any(|k| batch.column_by_name(k).is_none())) {
+            return Ok((Vec::new(), 0));
+        }
+        let n = batch.num_rows();
+        let mut parts = Vec::with_capacity(keys.len());
+        for k in keys {
+            let (values, w) = vec_column(batch, path, k)?;
+            if let Some((_, want)) = self.widths.iter().find(|(key, _)| key == k) {
+                if w != *want {
+                    return Err(Error::ColumnType {
+                        path: path.into(),
+                        column: k.clone(),
+                        expected: format!("rows of width {want} (its shape in meta/info.json)"),
+                        found: format!("rows of width {w}"),
+                    });
+                }
+            }
+            parts.push((values, w));
+        }
+        let width: usize = parts.iter().map(|p| p.1).sum();
+        if parts.len() == 1 {
+            return Ok(parts.pop().map(|p| (p.0, width)).unwrap_or_default());
+        }
+        let mut out = Vec::with_capacity(n * width);
+        for i in 0..n {
+            for (values, w) in &parts {
+                out.extend_from_slice(&values[i * w..(i + 1) * w]);
+            }
+        }
+        Ok((out, width))
+    }
 }

@@ -57,7 +57,7 @@
 //!
 //! ```no_run
 //! use candle_core::{Device, Tensor};
-//! use pir2_backends::candle::gr00t_n17::{Gr00tN17Head, Timesteps, VlTokens};
+//! use pir2_backends::gr00t::n17::{Gr00tN17Head, Timesteps, VlTokens};
 //! # fn main() -> pir2_backends::Result<()> {
 //! let dev = Device::Cpu;
 //! let head = Gr00tN17Head::load("GR00T_N17_CHECKPOINT".as_ref(), &dev)?;
@@ -76,7 +76,9 @@
 
 mod config;
 mod dropout;
+pub mod export;
 mod layers;
+pub mod train;
 mod weights;
 
 use std::path::Path;

@@ -28,10 +28,10 @@
 use std::collections::HashMap;
 use std::path::Path;
 
-use super::graph::{attr, GraphBuilder};
-use super::proto::{AttrValue, DataType, Dim, ExternalData, ModelProto};
-use super::ExportError;
-use crate::candle::gr00t_n17::{
+use crate::export::graph::{attr, GraphBuilder};
+use crate::export::proto::{AttrValue, DataType, Dim, ExternalData, ModelProto};
+use crate::export::ExportError;
+use crate::gr00t::n17::{
     action_time_frequencies, dit_time_frequencies, sinusoidal_table_values, Gr00tN17Config,
     Gr00tN17Head, DELAY_EMBEDDING, PREFIX,
 };

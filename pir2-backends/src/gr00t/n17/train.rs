@@ -6,7 +6,7 @@
 //! its projectors, position embedding, DiT and decoder are candle `Var`s, the backbone
 //! post-processing (`vlln`, VL self-attention) stays frozen with the backbone, and a
 //! zero-initialised delay table `e(d_vis)` is added to the action tokens. The draws and the
-//! resumable machinery are the trainer's own ([`super::Trainer`]): the same [`TrainConfig`]
+//! resumable machinery are the trainer's own ([`crate::train::Trainer`]): the same [`TrainConfig`]
 //! (AdamW, cosine LR with warm-up, grad-norm clip, seed), the same batch sampler, step
 //! checkpoints with the full training state, `interrupted-*` states, bit-identical resume.
 //!
@@ -38,7 +38,7 @@
 //! optimiser state and update are on the host. Only the CPU has been run; the `cuda` and
 //! `metal` features have not been compiled here.
 //!
-//! Not done here: EMA, self-rollout and validation hooks of [`super::Trainer`] are refused
+//! Not done here: EMA, self-rollout and validation hooks of [`crate::train::Trainer`] are refused
 //! by name.
 
 use std::fs::File;
@@ -47,10 +47,18 @@ use std::io::{BufWriter, Read, Seek, SeekFrom};
 use candle_core::{DType, Var};
 use sha2::{Digest, Sha256};
 
-use super::*;
-use crate::candle::gr00t_n17::{
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use candle_core::Tensor;
+
+use crate::config::{SlowSpec, Spec, Stats};
+use crate::error::{Error, Result};
+use crate::gr00t::n17::{
     is_trained, timestep_bucket, DitDropout, Gr00tN17Head, TensorIndex, Timesteps, VlTokens,
 };
+use crate::train::*;
 
 /// The embodiment as the trainer sees it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -277,9 +285,7 @@ pub fn vl_cache_key(head: &Gr00tN17Head, dataset: &str, features: &str) -> Resul
     h.update([0]);
     h.update(format!("{:?}", head.config()).as_bytes());
     for (name, t) in head.parameters() {
-        let short = name
-            .strip_prefix(crate::candle::gr00t_n17::PREFIX)
-            .unwrap_or(name);
+        let short = name.strip_prefix(crate::gr00t::n17::PREFIX).unwrap_or(name);
         if is_trained(short) {
             continue;
         }
