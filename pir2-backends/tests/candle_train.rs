@@ -1,4 +1,7 @@
 //! Training, sampling, checkpoints and determinism of the candle backend.
+//!
+//! One file on purpose: the tests share the datasets and model configs of `common` and one call
+//! helper.
 
 mod common;
 

@@ -2,6 +2,8 @@
 //! contract's names and shapes (made in set-up by `pir2_backends::gr00t::testing`, i.e.
 //! `make_graphs.py` run with `$PIR2_PYTHON` after `source .native/env.sh`).
 //!
+//! One file on purpose: every test shares the synthetic checkpoint made once in set-up.
+//!
 //! Covers: the action head's delay embedding and per-position timesteps, contract violations
 //! (wrong name, rank, dim, type, missing statistic, delay-table shape), and the whole stack
 //! end to end through the real-time driver at 25 Hz on the xArm6 + XHand emulators.

@@ -1,5 +1,7 @@
 //! The candle GR00T N1.7 action head against NVIDIA's reference implementation.
 //!
+//! One file on purpose: every test reads the same reference fixtures and helpers.
+//!
 //! The fixtures in `tests/fixtures/gr00t_n17_head/` were written by `make_fixture.py` there,
 //! which runs Isaac-GR00T's own `Gr00tN1d7ActionHead` (tiny random configurations, fixed
 //! seed) and saves its weights under their real tensor names, its inputs and its outputs.

@@ -1,5 +1,8 @@
 //! The control side of the state machine: which action goes out at each tick.
 //!
+//! One file on purpose: the control state's swap, overrun, hold and ensembling rules act on the
+//! same buffers, tick by tick.
+//!
 //! Per tick the driver (real-time or lock-step) reads fresh proprioception, publishes it,
 //! swaps in a new chunk if one is ready ([`ControlState::deliver`]), sends one action
 //! ([`ControlState::action`]) and advances. Nothing here allocates or blocks.

@@ -1,5 +1,8 @@
 //! Model definitions written once against [`Ops`], so ONNX export and TorchScript tracing
 //! compute exactly the same function from the same weights.
+//!
+//! One file on purpose: the three model definitions (MLP, U-Net, and their shared τ features and
+//! normalisation) must stay in step with the candle models, definition by definition.
 
 use super::contract::{ContractDims, SlowSpec};
 use super::ops::{Ops, Unary, WeightSource};

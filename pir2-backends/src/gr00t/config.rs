@@ -1,5 +1,9 @@
 //! The embodiment configuration (serde TOML/JSON) and GR00T's normalisation statistics.
 //!
+//! One file on purpose: the embodiment TOML schema and its validation (every cross-field check
+//! names the field) must be read together; the statistics and the policy section live in
+//! `config/`.
+//!
 //! [`EmbodimentConfig::xarm6_xhand`] is the paper's real-robot setup: 45-d proprioception
 //! (6 arm joints, 12 hand joints, 12 hand torques, 15 fingertip forces), 18-d absolute joint
 //! targets, `H = 50` at 25 Hz, `d_max = d_vis_max = 5`, and the four task prompts of the

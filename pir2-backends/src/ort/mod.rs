@@ -1,5 +1,8 @@
 //! ONNX Runtime backend ([`OrtModel`], feature `ort`).
 //!
+//! One file on purpose: the contract check, session set-up and the `VelocityModel` calls share
+//! the session and its bound shapes; providers are in `provider.rs`.
+//!
 //! # The graph contract
 //!
 //! One ONNX graph per model, called once per NFE (see [`crate::export::contract`]):

@@ -1,5 +1,8 @@
 //! A live USB (UVC) or other V4L2 camera as the slow channel's image source (Linux only).
 //!
+//! One file on purpose: the device's lifecycle (open, negotiate, map buffers, stream, stop) is
+//! one state machine over one file descriptor; the raw ioctl layer is `sys.rs`.
+//!
 //! [`V4l2Camera`] talks to `/dev/videoN` with the kernel's V4L2 ioctls directly (no
 //! libv4l): it yields HWC `u8` RGB frames through [`SlowSource`], stamped with the time the
 //! *driver* says the frame was captured, so that the slow channel's age (`d_vis`) counts

@@ -1,6 +1,9 @@
 //! UFACTORY xArm wire protocol as controller firmware speaks it: command frames (port 502),
 //! the version string, and the report streams (ports 30001–30003).
 //!
+//! One file on purpose: the frame layouts, the register table and their encoders/decoders are the
+//! protocol reference in one place, read side by side with UFACTORY's SDK.
+//!
 //! This module doc is the crate's reference for the protocol. **Source:** UFACTORY's
 //! official Python SDK, `xarm-python-sdk` 1.18.4 (PyPI; repository
 //! xArm-Developer/xArm-Python-SDK), files `xarm/core/comm/base.py` (stream framing, report

@@ -1,4 +1,7 @@
 //! The LeRobotDataset v3.0 reader.
+//!
+//! One file on purpose: parquet reading, column typing and the LeRobot metadata checks work on
+//! the same column descriptions (`Columns`).
 
 use crate::error::{Error, Result};
 use arrow_array::types::{Float32Type, Float64Type, Int32Type, Int64Type, UInt64Type};

@@ -1,6 +1,9 @@
 //! Export of a (πR²-fine-tuned) GR00T N1.7 action head to the ONNX layout of the GR00T stack
 //! (`docs/gr00t-contract.md`, checked by `pir2_backends::gr00t::contract` on load).
 //!
+//! One file on purpose: each exported graph is the ONNX twin of one piece of the candle head,
+//! emitted by one small emitter over the same weights.
+//!
 //! The head is read with [`Gr00tN17Head::load`] (a `pir2 train gr00t` step directory or any
 //! N1.7 checkpoint with a delay table) and written, without Python, as:
 //!

@@ -1,6 +1,10 @@
 //! GR00T N1.7's action head in candle, loaded from a GR00T checkpoint's safetensors, with
 //! πR²'s per-position timesteps.
 //!
+//! One file on purpose: the head's loading, its forward (state/action encoders, DiT, decoder) and
+//! its per-position heads share one set of tensors and shape checks; the layers, weights, dropout
+//! and config are in the files beside it.
+//!
 //! The architecture and the tensor names are those of NVIDIA's Isaac-GR00T N1.7
 //! (`Gr00tN1d7ActionHead`); every tensor lives under `action_head.` in the checkpoint:
 //!

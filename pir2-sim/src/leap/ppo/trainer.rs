@@ -1,6 +1,9 @@
 //! The PPO trainer: batched environments, rollouts, GAE, clipped-surrogate updates,
 //! observation normalisation, checkpoints.
 //!
+//! One file on purpose: rollout, GAE and the clipped-surrogate update share the rollout buffers
+//! and one iteration's order.
+//!
 //! # One iteration
 //! 1. **Rollout.** `n_envs` environments, `rollout_len` steps each, with the Gaussian
 //!    policy `a ~ N(μ(x̂), σ²)` (`x̂` = normalised actor observation, `σ` state-independent);
