@@ -24,7 +24,8 @@ use serde::{Deserialize, Serialize};
 use pir2_backends::candle::CandleModel;
 use pir2_runtime::{LockstepTiming, Mode};
 
-use super::pipeline::{closed_loop, log_line, write_atomically, EvalPath, Models, Trained};
+use super::closed_loop::{closed_loop, EvalPath, Models, Trained};
+use super::output::{log_line, write_atomically};
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.
