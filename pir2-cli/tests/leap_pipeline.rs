@@ -2,7 +2,7 @@
 //! per cell; checks the dataset, the tables and the output files.
 #![cfg(feature = "mujoco")]
 
-use pir2_cli::leap_cmd::ExpertChoice;
+use pir2_cli::study::leap_cube::ExpertChoice;
 use pir2_cli::study::leap_cube::{collect_leap, study_deployment, study_horizon, LeapStudyConfig};
 use pir2_sim::dataset::{read_dataset, WriteMode};
 

@@ -400,7 +400,7 @@ fn an_evaluation_refuses_a_policy_missing_from_the_checkpoint_directory_before_a
 /// fingerprint those episodes have in the full dataset (`4882c66b901ef2c7` over all 148).
 #[test]
 fn the_committed_expert_regenerates_the_demonstrations() {
-    use pir2_cli::leap_cmd::ExpertChoice;
+    use pir2_cli::study::leap_cube::ExpertChoice;
     use pir2_cli::study::leap_cube::{collect_leap, load_demos};
     use pir2_cli::study::pipeline::DataFingerprint;
     let expert = std::path::PathBuf::from(concat!(

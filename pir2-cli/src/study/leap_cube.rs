@@ -11,7 +11,7 @@
 //! deviations are separate, labelled rows (temporal ensembling: `te_row`), never the
 //! default.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -25,8 +25,6 @@ use pir2_sim::dataset::{
 };
 use pir2_sim::leap::ppo::PpoExpert;
 use pir2_sim::leap::{CollectConfig, LeapConfig, LeapCubeEnv, LeapModel, MpcConfig, NU};
-
-use crate::leap_cmd::ExpertChoice;
 
 use super::pipeline::{self, bar, log_line};
 use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, Task};
@@ -46,6 +44,19 @@ pub const ALL_POLICIES: [Policy; 7] = [
     Policy::PiR2ZeroDelay,
     Policy::PiR2ZeroDelayFull,
 ];
+
+/// Who demonstrates in `pir2 collect leap-cube` ([`collect_leap`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExpertChoice {
+    /// The sampling MPC on the privileged state (`fast`: the cheaper recipe).
+    Mpc {
+        /// The faster, weaker recipe.
+        fast: bool,
+    },
+    /// Trained policy weights (`pir2-ppo-expert-v1`), used deterministically: one file for
+    /// every seed, or one per seed.
+    Weights(Vec<PathBuf>),
+}
 
 /// The study's scale. Defaults: the reduced scale run on this machine (paper values in the
 /// field docs).

@@ -23,8 +23,8 @@ pub use super::evaluate::{
     chosen_checkpoint, config_fingerprint, earlier_config_fingerprints, evaluate,
     evaluate_best_per_cell, last_step_checkpoints, total_episodes, trained_dir, CellLog, Logged,
 };
-pub use super::output::{bar, log_line, prepare_out, write_atomically};
 use super::evaluate::{fnv1a, FNV_OFFSET};
+pub use super::output::{bar, log_line, prepare_out, write_atomically};
 use super::{Policy, Scores, Settings, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
