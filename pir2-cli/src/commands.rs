@@ -19,7 +19,7 @@ pub struct DemoOptions {
     /// A smaller, faster run.
     #[arg(long)]
     pub quick: bool,
-    /// TOML config (fields of `DemoConfig`); flags override it.
+    /// TOML config (fields of `DemoConfig`: steps, lr, nfe, ...); flags override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Output directory (must not exist or be empty; default: `runs/demo-<time>`).
@@ -41,7 +41,7 @@ pub fn demo(o: &DemoOptions) -> Result<()> {
         "pir2 demo → {}  ({} demos, {} steps/policy, {} episodes/cell, seeds {:?})",
         out.display(),
         cfg.demos,
-        cfg.train_steps,
+        cfg.steps,
         cfg.episodes,
         cfg.seeds
     );

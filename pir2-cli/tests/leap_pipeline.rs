@@ -50,7 +50,7 @@ fn leap_pipeline_runs_end_to_end() {
 
     let cfg = LeapStudyConfig {
         dataset: data.to_string_lossy().into_owned(),
-        train_steps: 3,
+        steps: 3,
         batch_size: 8,
         warmup: 1,
         widths: vec![8, 16],

@@ -65,8 +65,11 @@ pub enum ExpertChoice {
 pub struct LeapStudyConfig {
     /// Dataset directory (collected with [`collect_leap`]).
     pub dataset: String,
-    /// Optimiser steps per policy (paper: far more; not stated per policy).
-    pub train_steps: usize,
+    /// Optimiser steps per policy (paper: far more; not stated per policy). TOML `steps` or
+    /// `train_steps`; written as `train_steps`, the earlier name, so that the fingerprints of
+    /// logged cells and the committed configs stay as they are.
+    #[serde(rename = "train_steps", alias = "steps")]
+    pub steps: usize,
     /// Batch size (paper 256).
     pub batch_size: usize,
     /// Peak learning rate (paper 1e-4, cosine).
@@ -166,7 +169,7 @@ impl Default for LeapStudyConfig {
     fn default() -> Self {
         Self {
             dataset: "runs/leap-dataset".into(),
-            train_steps: 400,
+            steps: 400,
             batch_size: 64,
             lr: 1e-3,
             warmup: 40,
@@ -481,11 +484,11 @@ impl Task for LeapCubeTask {
     fn optimiser(&self) -> TrainConfig {
         let c = &self.cfg;
         TrainConfig {
-            steps: c.train_steps,
+            steps: c.steps,
             batch_size: c.batch_size,
             lr: c.lr,
             min_lr: 0.0,
-            warmup: c.warmup.min(c.train_steps.saturating_sub(1)),
+            warmup: c.warmup.min(c.steps.saturating_sub(1)),
             betas: (0.95, 0.999),
             weight_decay: 1e-6,
             grad_clip: Some(1.0),
@@ -747,4 +750,24 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path, resume: bool) -> Result<
     let task = LeapCubeTask::new(cfg.clone())?;
     let study = task.horizon_study();
     pipeline::run(&task, &study, out, resume)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::LeapStudyConfig;
+    use crate::study::evaluate::config_fingerprint;
+
+    #[test]
+    fn the_step_count_is_read_as_steps_or_train_steps_under_one_fingerprint() {
+        let new: LeapStudyConfig = toml::from_str("steps = 20000").unwrap();
+        let old: LeapStudyConfig = toml::from_str("train_steps = 20000").unwrap();
+        assert_eq!(new, old);
+        assert_eq!(new.steps, 20000);
+        assert_eq!(
+            config_fingerprint(&new).unwrap(),
+            config_fingerprint(&old).unwrap()
+        );
+        let text = toml::to_string(&new).unwrap();
+        assert!(text.contains("train_steps = 20000"), "{text}");
+    }
 }

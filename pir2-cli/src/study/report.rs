@@ -499,7 +499,7 @@ mod tests {
                 seeds: vec![0, 1],
                 d0s: vec![1, 2],
                 episodes: 10,
-                train_steps: 100,
+                steps: 100,
                 checkpoints: 5,
                 ..DemoConfig::default()
             }),

@@ -183,7 +183,7 @@ pub struct TrainOptions {
     /// Checkpoint directory (must not exist, unless --resume).
     #[arg(long)]
     pub out: PathBuf,
-    /// TOML config (ballplate: fields of `DemoConfig`: train_steps, lr, nfe, ...; leap-cube:
+    /// TOML config (ballplate: fields of `DemoConfig`: steps, lr, nfe, ...; leap-cube:
     /// `LeapStudyConfig`).
     #[arg(long)]
     pub config: Option<PathBuf>,
