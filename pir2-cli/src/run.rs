@@ -1,6 +1,10 @@
 //! `pir2 run gr00t-xarm-xhand`: the GR00T-N1.7 xArm6 + XHand stack on a robot (feature
 //! `gr00t`; with feature `remote` the backbone features may come from `pir2 serve slow`).
 //!
+//! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
+//! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
+//! bottom in one place; each piece is a short function.
+//!
 //! Wiring: `pir2_backends::gr00t::run_gr00t_report` (action head one NFE per 25 Hz tick on
 //! the action worker, backbone on the slow worker) on the safety-wrapped xArm6 + XHand
 //! composite of `pir2-robots`, either the real devices (`--xarm ADDR --xhand DEVICE`) or
@@ -14,10 +18,6 @@
 //! (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT` takes the backbone features
 //! (camera + backbone on another machine) from `pir2 serve slow`. A local camera is opened
 //! before any robot is connected, so a wrong device fails while nothing is powered.
-//!
-//! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
-//! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
-//! bottom in one place; each piece is a short function.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;

@@ -8,6 +8,9 @@
 //! data file) added to a copy of the fixture decodes as Pillow does. Needs `ffmpeg` and
 //! `$PIR2_PYTHON` with `av`, `onnx`, `pillow` and `pyarrow` (scripts/setup-native.sh;
 //! `source .native/env.sh`).
+//!
+//! One file on purpose: the tests share the fixture, the tiny checkpoints and the Python
+//! references built at its top.
 #![cfg(feature = "gr00t")]
 
 use std::ffi::OsString;

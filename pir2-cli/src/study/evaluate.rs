@@ -2,6 +2,10 @@
 //! best-checkpoint-per-cell protocol, and the cell log that lets a long evaluation continue
 //! after an interruption (`pir2 eval … --resume`).
 //!
+//! One file on purpose: the cell log's key and the evaluation that fills it must agree bit for
+//! bit (a cell is reused only when it would measure the same numbers), so they are read
+//! together; a third of the file is their tests.
+//!
 //! A cell's result depends on the checkpoint that ran, the row, the column, the seed, the
 //! episode count, the task's config and the evaluation path, nothing else (the lock-step
 //! evaluation is deterministic and independent of the thread count; a batched cell, see

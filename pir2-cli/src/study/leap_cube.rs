@@ -2,6 +2,9 @@
 //! LeRobotDataset v3.0, Conditional U-Net 1D policies, the deployment study (modes × unit
 //! delay) and the zero-delay horizon study (sync flow `h ∈ {1, 2, 4, 8}` vs πR²).
 //!
+//! One file on purpose: a task is one file (see [`super`]): its config, demonstrations,
+//! model, rows and studies, each field of the config documented against the paper.
+//!
 //! Defaults of [`LeapStudyConfig`]: the paper's simulation protocol (its appendix, which
 //! wins where the paper's main text differs: exponential training delays `p(d) ∝ e^{−d}`
 //! over `{0..d_max}` with πR² `d_max` 5 and train-time RTC `d_max` 10, `K = 15` Euler steps

@@ -2,6 +2,10 @@
 //! closed-loop checkpoint validation → evaluate rows × seeds × columns through the lock-step
 //! runtime → `result.json`, `table.md`, `success.png`.
 //!
+//! One file on purpose: the stages in the order a study runs them (training jobs, the resumable
+//! training directory and its data check, the run, the outputs), with their tests; the closed
+//! loop and the evaluation they call are [`super::closed_loop`] and [`super::evaluate`].
+//!
 //! There is one closed loop ([`closed_loop`]); what runs the action head comes from a
 //! [`Models`] factory: a local candle model, or a remote one (`pir2 eval --remote`).
 
