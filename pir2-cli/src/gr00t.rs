@@ -1,6 +1,6 @@
 //! `pir2 gr00t <verb>`: the GR00T N1.7 commands (feature `gr00t`; a build without it offers
 //! the same verbs and options, and each says how to build it). The work is
-//! [`crate::study::gr00t`]'s and [`crate::bench::gr00t`]'s; this module prints what a user
+//! [`crate::study::gr00t`]'s and `crate::bench::gr00t`'s; this module prints what a user
 //! reads.
 
 use std::path::PathBuf;
