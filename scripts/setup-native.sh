@@ -51,7 +51,7 @@ have jinja2 3.1.6 || "$pip" -q install "jinja2==3.1.6"
 # (pir2-backends/tests/gr00t_image.rs), the libraries GR00T's processor uses.
 have albumentations 2.0.8 || "$pip" -q install "albumentations==2.0.8"
 have opencv-python-headless 4.14.0.94 || "$pip" -q install "opencv-python-headless==4.14.0.94"
-# PyAV (LeRobot's video decoding backend): the Python reference of `pir2 features gr00t`'s
+# PyAV (LeRobot's video decoding backend): the Python reference of `pir2 gr00t features`'s
 # frame decoding (pir2-cli/tests/gr00t_features.rs). 18.1.0: the last release for Python 3.11.
 have av 18.1.0 || "$pip" -q install "av==18.1.0"
 # Pillow + pyarrow: the Python reference of image-typed camera features (PNG/JPEG bytes in the
@@ -59,12 +59,12 @@ have av 18.1.0 || "$pip" -q install "av==18.1.0"
 # writes its image dataset with pyarrow.
 have pillow 13.0.0 || "$pip" -q install "pillow==13.0.0"
 have pyarrow 26.0.1 || "$pip" -q install "pyarrow==26.0.1"
-# The `ffmpeg` program: `pir2 features gr00t` decodes the datasets' camera videos with it
+# The `ffmpeg` program: `pir2 gr00t features` decodes the datasets' camera videos with it
 # (AV1, LeRobot's default codec, and H.264). Debian/Ubuntu package `ffmpeg`.
 if ! command -v ffmpeg >/dev/null 2>&1; then
   echo "[setup-native] installing ffmpeg (apt)"
   { apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; } \
-    || echo "[setup-native] could not install ffmpeg: install it (apt-get install ffmpeg) for pir2 features gr00t" >&2
+    || echo "[setup-native] could not install ffmpeg: install it (apt-get install ffmpeg) for pir2 gr00t features" >&2
 fi
 # UFACTORY's official xArm SDK: the real client of the xArm emulator in the native tests.
 have xarm-python-sdk 1.18.4 || "$pip" -q install "xarm-python-sdk==1.18.4"

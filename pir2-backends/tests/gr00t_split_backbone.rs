@@ -155,7 +155,7 @@ fn split_backbone_equals_the_fused_composition() {
     std::fs::remove_dir_all(&fused_dir).ok();
 }
 
-/// `set_prompt` (a new task for an already loaded backbone, as `pir2 features gr00t` does
+/// `set_prompt` (a new task for an already loaded backbone, as `pir2 gr00t features` does
 /// between episodes) gives bit for bit what a backbone loaded with that prompt gives: the
 /// split form re-reads the token-table rows and recomputes the positions.
 #[test]

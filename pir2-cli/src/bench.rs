@@ -1,4 +1,5 @@
-//! `pir2 bench`: measurements printed side by side in one run (medians and ratios).
+//! `pir2 bench` (and `pir2 gr00t bench`): measurements printed side by side in one run (medians
+//! and ratios).
 
 use std::time::{Duration, Instant};
 
@@ -89,7 +90,7 @@ pub fn runtime(seconds: f64) -> Result<String> {
     Ok(out)
 }
 
-/// `pir2 bench gr00t`: one-NFE latency of a GR00T export's action head (batch 1, on the
+/// `pir2 gr00t bench`: one-NFE latency of a GR00T export's action head (batch 1, on the
 /// execution provider asked for) and the `d` it implies at 25 Hz (the paper's robot rate)
 /// and at the embodiment's rate; with a backbone (`backbone.onnx`, or GR00T's split
 /// `vit_*.onnx` + `llm_*.onnx`), the latency of one frame's features

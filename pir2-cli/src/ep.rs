@@ -1,19 +1,30 @@
 //! `--ep cpu|cuda|tensorrt`, `--ep-device N`, `--trt-cache DIR`: where ONNX Runtime runs the
-//! GR00T graphs (`pir2 run`, `pir2 serve`, `pir2 bench gr00t`).
+//! GR00T graphs (`pir2 run`, `pir2 serve`, `pir2 gr00t bench`).
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 
-/// The execution provider a command asked for (plain options; resolved against the loaded
-/// ONNX Runtime library when the graphs are loaded).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// The execution provider a command asked for (resolved against the loaded ONNX Runtime
+/// library when the graphs are loaded).
+#[derive(Debug, Clone, PartialEq, Eq, clap::Args)]
 pub struct EpOptions {
-    /// `cpu`, `cuda` or `tensorrt`.
+    /// ONNX Runtime execution provider for the GR00T graphs. `cuda` and `tensorrt` need the
+    /// GPU build of ONNX Runtime (PyPI `onnxruntime-gpu`, same version) in ORT_DYLIB_PATH;
+    /// a library without the provider is one error at start, never a CPU fallback.
+    #[arg(long = "ep", id = "ep", value_name = "EP", value_parser = ["cpu", "cuda", "tensorrt"], default_value = "cpu")]
     pub name: String,
-    /// CUDA device id (GPU providers).
+    /// CUDA device id for --ep cuda|tensorrt.
+    #[arg(
+        long = "ep-device",
+        id = "ep_device",
+        value_name = "EP_DEVICE",
+        default_value_t = 0
+    )]
     pub device: i32,
-    /// TensorRT engine and timing cache directory.
+    /// --ep tensorrt: keep built engines and the timing cache here (the first start builds
+    /// them, which takes minutes; later starts load them).
+    #[arg(long)]
     pub trt_cache: Option<PathBuf>,
 }
 

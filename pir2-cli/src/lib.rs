@@ -4,15 +4,18 @@
 //! ([`study`]: a [`study::Task`] collected, trained and evaluated under latency through the
 //! lock-step runtime; [`study::dataset`]: a policy trained on a user's own state-only
 //! LeRobotDataset v3.0 from a `task.toml`, validated on held-out episodes), plots, benchmarks,
-//! and one function per subcommand ([`commands`]).
-//! `main.rs` only parses arguments.
+//! and one function per subcommand: [`tasks`] (`collect|train|eval|report TASK`, the stock
+//! tasks from one registry), [`gr00t`] (`pir2 gr00t …`), [`run`], [`serve`] and
+//! [`commands`] (the rest). Each subcommand's options are a struct deriving clap's `Args`
+//! (the doc comments are the help), so `main.rs` only parses and dispatches.
 
 pub mod bench;
 pub mod commands;
 pub mod ep;
-pub mod leap_cmd;
+pub mod gr00t;
 pub mod plot;
 pub mod run;
 pub mod serve;
 pub mod signals;
 pub mod study;
+pub mod tasks;

@@ -1,4 +1,6 @@
-//! PNG plots (plotters with an embedded DejaVu font: no system fonts needed).
+//! PNG plots (plotters with an embedded DejaVu font: no system fonts needed): study series
+//! and run traces. A leaf: it knows nothing of studies (`study::cells` turns a study's cells
+//! into [`Series`]).
 
 use std::path::Path;
 use std::sync::Once;
@@ -237,37 +239,6 @@ pub fn plot_trace(path: &Path, trace: &RunTrace) -> Result<()> {
     root.present()
         .map_err(|e| anyhow!("writing {}: {e}", path.display()))?;
     Ok(())
-}
-
-/// Plot a study's `result.json` (labels, cells, columns; results written before the columns
-/// were recorded give them as `config.d0s`).
-pub fn plot_result(v: &serde_json::Value, out: &Path) -> Result<()> {
-    #[derive(Deserialize)]
-    struct StudyFile {
-        labels: Vec<String>,
-        cells: Vec<crate::study::Cell>,
-        #[serde(default)]
-        key: Option<String>,
-        #[serde(default)]
-        columns: Option<Vec<usize>>,
-        #[serde(default)]
-        config: serde_json::Value,
-    }
-    let r: StudyFile = serde_json::from_value(v.clone())?;
-    let columns = match r.columns {
-        Some(c) => c,
-        None => serde_json::from_value(r.config["d0s"].clone())
-            .map_err(|e| anyhow!("the result names no columns (nor config.d0s): {e}"))?,
-    };
-    let series = crate::study::to_series(&r.cells, &r.labels, &columns);
-    let (title, x) = match r.key.as_deref() {
-        Some("h") => (
-            "success vs execution horizon",
-            "execution horizon h (ticks)",
-        ),
-        _ => ("success vs unit delay", "unit delay d0 (ticks)"),
-    };
-    plot_series(out, title, x, "success rate", &series)
 }
 
 #[cfg(test)]

@@ -1,6 +1,10 @@
 //! `pir2 run gr00t-xarm-xhand`: the GR00T-N1.7 xArm6 + XHand stack on a robot (feature
 //! `gr00t`; with feature `remote` the backbone features may come from `pir2 serve slow`).
 //!
+//! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
+//! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
+//! bottom in one place; each piece is a short function.
+//!
 //! Wiring: `pir2_backends::gr00t::run_gr00t_report` (action head one NFE per 25 Hz tick on
 //! the action worker, backbone on the slow worker) on the safety-wrapped xArm6 + XHand
 //! composite of `pir2-robots`, either the real devices (`--xarm ADDR --xhand DEVICE`) or
@@ -14,10 +18,6 @@
 //! (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT` takes the backbone features
 //! (camera + backbone on another machine) from `pir2 serve slow`. A local camera is opened
 //! before any robot is connected, so a wrong device fails while nothing is powered.
-//!
-//! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
-//! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
-//! bottom in one place; each piece is a short function.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -26,91 +26,128 @@ use std::sync::Arc;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-/// Options of `pir2 run` (the binary fills them from its arguments).
-#[derive(Debug, Clone)]
+/// Options of `pir2 run`.
+#[derive(Debug, Clone, clap::Args)]
 pub struct RunOptions {
     /// The stack to run.
+    #[arg(value_parser = ["gr00t-xarm-xhand"])]
     pub stack: String,
     /// Checkpoint directory (export layout in docs/gr00t-contract.md).
+    #[arg(long)]
     pub checkpoint: PathBuf,
     /// Task: a key of the embodiment's tasks (`catch_book`, …) or one of their prompts
     /// verbatim ("catch the book").
+    #[arg(long)]
     pub task: String,
     /// Accept a `--task` that is not a configured task and send it as the prompt verbatim.
+    #[arg(long)]
     pub free_prompt: bool,
     /// xArm controller address (command port 502 unless given as host:port).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     pub xarm: Option<String>,
     /// XHand serial device (RS-485 adapter).
+    #[arg(long, required_unless_present = "emulate", conflicts_with = "emulate")]
     pub xhand: Option<PathBuf>,
     /// Clear a latched xArm error/warning (collision, emergency stop) at connect instead of
     /// refusing to start.
+    #[arg(long)]
     pub clear_errors: bool,
     /// Start the xArm6 and XHand emulators in-process and run against them (synthetic
     /// camera unless --remote-slow).
+    #[arg(long)]
     pub emulate: bool,
     /// Use the synthetic camera with real robots.
+    #[arg(long)]
     pub synthetic_camera: bool,
-    /// Live V4L2 camera nodes (`/dev/videoN`, Linux), one per camera view of the embodiment
-    /// (`prompt.chat.images`), in view order.
+    /// A live V4L2 (USB/UVC) camera, e.g. /dev/video0 (Linux): frames are stamped with the
+    /// driver's capture time, so the slow channel's age counts from the sensor. Repeat it
+    /// once per camera view of the embodiment (`prompt.chat.images`), in its view order.
+    #[arg(long, conflicts_with_all = ["frames", "remote_slow", "synthetic_camera"])]
     pub camera: Vec<PathBuf>,
-    /// With `camera`: the frame size to ask for, `WIDTHxHEIGHT` (`None`: nearest 640×480).
+    /// With --camera: frame size WIDTHxHEIGHT, which the camera must offer (default: the
+    /// offered size nearest 640x480); the same for every camera.
+    #[arg(long, requires = "camera")]
     pub camera_size: Option<String>,
-    /// With `camera`: the pixel format to ask for (`mjpeg`, `yuyv`, `rgb24`; `None`: the
-    /// camera's best at the size).
+    /// With --camera: pixel format (default: the best the camera offers at the size).
+    #[arg(long, requires = "camera", value_parser = ["mjpeg", "yuyv", "rgb24"])]
     pub camera_format: Option<String>,
-    /// Replay the recorded frames of these folders (`.png`/`.jpg`, file-name order, looping)
-    /// as the cameras, one folder per view in view order, one frame per `frame_ms`.
+    /// Replay recorded frames as the camera: every .png/.jpg of this folder in file-name
+    /// order, looping (GR00T's preprocessing applies as to a live camera). Repeat it once per
+    /// camera view, in the embodiment's view order.
+    #[arg(long, conflicts_with_all = ["remote_slow", "synthetic_camera"])]
     pub frames: Vec<PathBuf>,
-    /// With `frames`: ms between replayed frames.
+    /// With --frames: ms between frames.
+    #[arg(long, default_value_t = 33)]
     pub frame_ms: u64,
     /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
+    #[arg(long)]
     pub remote_slow: Option<String>,
     /// Run the action head on `pir2 serve policy --gr00t-checkpoint` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.3:7447`) instead of in this process; needs feature `remote`. The
     /// checkpoint directory is still read here (embodiment, statistics, vocabulary) and the
     /// head is checked before any robot is connected. Each call's round trip is part of the
     /// measured call latency, so `d` grows with the network.
+    #[arg(long)]
     pub remote_policy: Option<String>,
-    /// Run the fine-tuned head in candle from this `pir2 train gr00t` step directory instead
-    /// of the checkpoint's ONNX head graphs (the checkpoint gives everything else).
+    /// Run the fine-tuned action head in candle from this `pir2 gr00t train` step directory
+    /// (model.safetensors + config.json) instead of the checkpoint's ONNX head graphs; the
+    /// checkpoint still gives the backbone, tokenizer, statistics and embodiment (the step's
+    /// run must have the same statistics.json and embodiment.toml).
+    #[arg(long, conflicts_with = "remote_policy")]
     pub candle_head: Option<PathBuf>,
     /// With --remote-policy: how long one request may take before it is sent again, ms.
+    #[arg(long, default_value_t = 200)]
     pub policy_timeout_ms: u64,
     /// With --remote-policy: requests in a row without a reply before the run stops the
     /// robot (safety stop).
+    #[arg(long, default_value_t = 10)]
     pub max_failed_calls: u32,
     /// With --remote-policy: seconds to wait for the policy server at start-up.
+    #[arg(long, default_value_t = 10.0)]
     pub connect_timeout: f64,
-    /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
-    pub tls: crate::serve::TlsOptions,
     /// Stop after this many control ticks.
+    #[arg(long, conflicts_with = "seconds")]
     pub ticks: Option<u64>,
     /// Stop after this many seconds (rounded to ticks of the embodiment's rate).
+    #[arg(long)]
     pub seconds: Option<f64>,
     /// Seconds to wait for the first backbone features.
+    #[arg(long, default_value_t = 60.0)]
     pub slow_timeout: f64,
     /// Stale-slow stop: stop the robot once the backbone features are older than the
-    /// checkpoint's `d_vis_max` ticks for longer than this, ms (`None`: the embodiment's
-    /// `safety.slow_grace_ms`, 200 ms if its `[safety]` table does not set it).
+    /// checkpoint's d_vis_max ticks for longer than this, ms (default: the embodiment's
+    /// `safety.slow_grace_ms`, 200 if unset).
+    #[arg(long)]
     pub slow_grace_ms: Option<f64>,
     /// Write the run summary (and the per-call trace) as JSON here; a failed run writes its
     /// error instead. The file must not exist (a report is never replaced).
+    #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Deployment: `pir2_async`, `pir2_sync`, `sync_flow`, `naive_async` or `rtc` (`None`:
-    /// the checkpoint's `[policy] mode`).
+    /// Deployment (default: the checkpoint's `[policy] mode`, else pir2_async). A mode the
+    /// action head was not trained for (`[policy] trained`) is refused.
+    #[arg(long, value_parser = ["pir2_async", "pir2_sync", "sync_flow", "naive_async", "rtc"])]
     pub mode: Option<String>,
-    /// πR² NFEs per action (`None`: the checkpoint's; another value is refused).
+    /// πR²: NFEs per action (must equal the checkpoint's `[policy] nfe`).
+    #[arg(long)]
     pub nfe: Option<usize>,
-    /// Euler steps `K` of the flow baselines (`None`: the checkpoint's).
+    /// Flow baselines and train-time RTC: Euler steps K per chunk.
+    #[arg(long)]
     pub flow_steps: Option<usize>,
-    /// Sync flow's `h` (`None`: the checkpoint's).
+    /// Sync flow: actions executed per chunk.
+    #[arg(long)]
     pub h: Option<usize>,
-    /// Naive async: temporal ensembling decay (`None`: the checkpoint's).
+    /// Naive async: ACT temporal ensembling with this decay m.
+    #[arg(long, conflicts_with = "no_ensemble")]
     pub ensemble: Option<f32>,
-    /// Naive async: plain swap whatever the checkpoint says.
+    /// Naive async: plain swap even if the checkpoint's `[policy] ensemble` is set.
+    #[arg(long)]
     pub no_ensemble: bool,
-    /// Where ONNX Runtime runs the local action head and backbone.
+    /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
+    #[command(flatten)]
+    pub tls: crate::serve::TlsOptions,
+    /// Where ONNX Runtime runs the action head and the backbone.
+    #[command(flatten)]
     pub ep: crate::ep::EpOptions,
 }
 

@@ -26,16 +26,23 @@ use pir2_backends::candle::CandleModel;
 use crate::study::pipeline::Models;
 
 /// Mutual TLS for the remote channels (all three files or none) and the explicit
-/// `--insecure` for a server listening beyond this machine without TLS.
-#[derive(Debug, Clone, Default)]
+/// `--insecure` for a server listening beyond this machine without TLS
+/// (`--tls-ca/--tls-cert/--tls-key`, `--insecure`).
+#[derive(Debug, Clone, Default, clap::Args)]
 pub struct TlsOptions {
-    /// The CA (PEM) both sides trust.
+    /// The CA (PEM) both sides trust; with --tls-cert and --tls-key, endpoints are
+    /// `tls/HOST:PORT` and both sides verify each other (mutual TLS).
+    #[arg(long = "tls-ca", id = "tls_ca", value_name = "TLS_CA", requires_all = ["tls_cert", "tls_key"])]
     pub ca: Option<PathBuf>,
-    /// This side's certificate (PEM), signed by `ca`.
+    /// This side's certificate (PEM), signed by --tls-ca.
+    #[arg(long = "tls-cert", id = "tls_cert", value_name = "TLS_CERT", requires_all = ["tls_ca", "tls_key"])]
     pub cert: Option<PathBuf>,
     /// This side's private key (PEM).
+    #[arg(long = "tls-key", id = "tls_key", value_name = "TLS_KEY", requires_all = ["tls_ca", "tls_cert"])]
     pub key: Option<PathBuf>,
-    /// Listen on a non-loopback address without TLS.
+    /// Servers: listen on a non-loopback address without TLS. Anyone on that network can
+    /// then read the features, query the policy or impersonate the server.
+    #[arg(long)]
     pub insecure: bool,
 }
 
@@ -66,8 +73,8 @@ impl TlsOptions {
     }
 }
 
-/// What `pir2 serve …` runs (the binary fills it from its arguments).
-#[derive(Debug, Clone)]
+/// What `pir2 serve …` runs.
+#[derive(Debug, Clone, clap::Subcommand)]
 pub enum ServeOptions {
     /// Answer action-head (one-NFE) requests until Ctrl-C: a candle checkpoint
     /// (`--checkpoint`, for `pir2 eval --remote`) or a GR00T export's ONNX action head
@@ -75,42 +82,62 @@ pub enum ServeOptions {
     Policy {
         /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
         /// `best/` directory `pir2 train` writes.
+        #[arg(
+            long,
+            required_unless_present = "gr00t_checkpoint",
+            conflicts_with = "gr00t_checkpoint"
+        )]
         checkpoint: Option<PathBuf>,
         /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
         /// weights + statistics) is served; feature `gr00t`.
+        #[arg(long, requires = "task")]
         gr00t_checkpoint: Option<PathBuf>,
         /// With --gr00t-checkpoint: the task (key or prompt) whose prompt layout (image and
         /// text token masks) the DiT is fed; must be the robot's `--task`.
+        #[arg(long)]
         task: Option<String>,
         /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
         /// `d` follows the round trip). Zero in deployment.
+        #[arg(long, default_value_t = 0)]
         inject_delay_ms: u64,
         /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
         listen: String,
         /// Key the requests arrive on.
+        #[arg(long, default_value = "pir2/policy")]
         key: String,
         /// Mutual TLS and `--insecure`.
+        #[command(flatten)]
         tls: TlsOptions,
         /// Where ONNX Runtime runs the GR00T action head.
+        #[command(flatten)]
         ep: crate::ep::EpOptions,
     },
     /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
     Slow {
         /// Zenoh endpoint to listen on.
+        #[arg(long, default_value = "tcp/127.0.0.1:7448")]
         listen: String,
         /// Key the features are published on (clock pings on `<key>/clock`).
+        #[arg(long, default_value = "pir2/slow")]
         key: String,
         /// The GR00T ONNX backbone of this checkpoint (feature `gr00t`) on a synthetic camera.
+        #[arg(long, required_unless_present = "stub", conflicts_with = "stub")]
         gr00t_checkpoint: Option<PathBuf>,
         /// Task (key or prompt) whose prompt the GR00T backbone encodes.
+        #[arg(long, requires = "gr00t_checkpoint")]
         task: Option<String>,
         /// A stub: a counter camera of this many values and a pass-through encoder.
+        #[arg(long)]
         stub: Option<usize>,
         /// Camera frame period, ms.
+        #[arg(long, default_value_t = 60)]
         frame_ms: u64,
         /// Mutual TLS and `--insecure`.
+        #[command(flatten)]
         tls: TlsOptions,
         /// Where ONNX Runtime runs the GR00T backbone.
+        #[command(flatten)]
         ep: crate::ep::EpOptions,
     },
 }

@@ -282,7 +282,7 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
 
 /// `--ep cuda|tensorrt` on the CPU build of ONNX Runtime (what CI installs): one error naming
 /// the library and the provider, before any robot is connected (the emulators are never
-/// started: no "warm-up done" line). `pir2 bench gr00t` prints the one-NFE latency and the
+/// started: no "warm-up done" line). `pir2 gr00t bench` prints the one-NFE latency and the
 /// `d` it implies at 25 Hz, on the CPU.
 #[test]
 fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay() {
@@ -304,8 +304,8 @@ fn gpu_providers_are_refused_by_name_and_bench_gr00t_reports_the_implied_delay()
     }
     let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
         .args([
-            "bench",
             "gr00t",
+            "bench",
             "--seconds",
             "0.2",
             "--task",
@@ -514,7 +514,7 @@ fn relative_arm_actions_run_on_the_emulators() {
 
 /// A checkpoint with GR00T's split backbone export (`vit_fp32.onnx` + `llm_fp32.onnx` + the
 /// token table in `model.safetensors`, tiny stand-ins) instead of a fused `backbone.onnx`:
-/// `pir2 run` and `pir2 bench gr00t` pick it by its files and say so; a half split set is one
+/// `pir2 run` and `pir2 gr00t bench` pick it by its files and say so; a half split set is one
 /// error naming the missing file, before any robot; GR00T's bfloat16 LLM runs with its
 /// boundary converted, and one whose bfloat16 ops the CPU provider cannot run is one error.
 #[test]
@@ -537,8 +537,8 @@ fn run_gr00t_takes_gr00ts_split_backbone_export() {
     assert_eq!(v["trace"]["ticks"], 30);
     let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
         .args([
-            "bench",
             "gr00t",
+            "bench",
             "--seconds",
             "0.1",
             "--task",

@@ -14,7 +14,7 @@ use common::Scratch;
 fn tiny() -> DemoConfig {
     DemoConfig {
         demos: 12,
-        train_steps: 200,
+        steps: 200,
         batch_size: 32,
         checkpoints: 2,
         val_episodes: 2,
@@ -162,7 +162,7 @@ fn every_stage_runs_as_its_own_subcommand() {
 #[test]
 fn a_short_training_run_balances_the_ball() {
     let cfg = DemoConfig {
-        train_steps: 600,
+        steps: 600,
         batch_size: 64,
         width: 64,
         depth: 3,

@@ -1,7 +1,7 @@
 //! Issue 20's chain through the binary, tiny: a synthetic N1.7-shaped checkpoint (GR00T's
 //! tensor names, random weights, sized for the xArm6 + XHand embodiment and the synthetic
-//! backbone of `pir2_backends::gr00t::testing`) → `pir2 train gr00t` (2 steps) → `pir2
-//! export --gr00t` → `pir2 run gr00t-xarm-xhand --emulate` (25 ticks); and the export's
+//! backbone of `pir2_backends::gr00t::testing`) → `pir2 gr00t train` (2 steps) → `pir2
+//! gr00t export` → `pir2 run gr00t-xarm-xhand --emulate` (25 ticks); and the export's
 //! input errors. Needs `source .native/env.sh` (ONNX Runtime for the run, `$PIR2_PYTHON`
 //! with `onnx` for the synthetic backbone graph).
 #![cfg(feature = "gr00t")]
@@ -161,9 +161,10 @@ fn features(path: &Path, frames: usize) {
 
 fn export(step: &Path, out: &Path) -> (Output, String) {
     pir2(&[
+        OsStr::new("gr00t"),
         OsStr::new("export"),
         step.as_os_str(),
-        OsStr::new("--gr00t"),
+        OsStr::new("--out"),
         out.as_os_str(),
     ])
 }

@@ -1,13 +1,16 @@
-//! `pir2 features gr00t` on a tiny LeRobotDataset v3.0 with camera videos (the committed
+//! `pir2 gr00t features` on a tiny LeRobotDataset v3.0 with camera videos (the committed
 //! fixture `pir2-sim/tests/fixtures/lerobot_video`, made by `make_lerobot_video.py` with PyAV:
 //! 2 episodes of 5 and 7 frames, an AV1 and an H.264 view of 32×24 px, episodes concatenated
 //! in one file per view): the frames pir2 decodes equal PyAV's (LeRobot's decoding backend)
 //! under LeRobot's timestamp rule; the features file holds, row for row, what the backbone
-//! gives on those frames, agrees with the deployment path, is accepted by `pir2 train gr00t`,
+//! gives on those frames, agrees with the deployment path, is accepted by `pir2 gr00t train`,
 //! and an interrupted run resumes to the same bytes. An image-typed camera (PNG/JPEG in the
 //! data file) added to a copy of the fixture decodes as Pillow does. Needs `ffmpeg` and
 //! `$PIR2_PYTHON` with `av`, `onnx`, `pillow` and `pyarrow` (scripts/setup-native.sh;
 //! `source .native/env.sh`).
+//!
+//! One file on purpose: the tests share the fixture, the tiny checkpoints and the Python
+//! references built at its top.
 #![cfg(feature = "gr00t")]
 
 use std::ffi::OsString;
@@ -23,7 +26,9 @@ use pir2_backends::gr00t::{
     load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, PromptTokenizer,
 };
 use pir2_backends::ort::OrtOptions;
-use pir2_cli::study::gr00t_features::{extract, partial_path, progress_path, Gr00tFeaturesOptions};
+use pir2_cli::study::gr00t::features::{
+    extract, partial_path, progress_path, Gr00tFeaturesOptions,
+};
 use pir2_sim::dataset::{ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S};
 
 mod common;
@@ -250,8 +255,8 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
 
     let args = |out: &Path, extra: &[&str]| -> Vec<std::ffi::OsString> {
         let mut v: Vec<std::ffi::OsString> = vec![
-            "features".into(),
             "gr00t".into(),
+            "features".into(),
             "--checkpoint".into(),
             ck.clone().into(),
             "--data".into(),
@@ -275,7 +280,7 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
     );
     assert!(!partial_path(&feats).exists() && !progress_path(&feats).exists());
 
-    // What `pir2 train gr00t` reads.
+    // What `pir2 gr00t train` reads.
     let pf = PrecomputedFeatures::open(&feats).unwrap();
     assert_eq!((pf.frames(), pf.tokens(), pf.dim()), (12, 8, D_VL));
     let rows = embedding_rows(&feats, 12, 8 * D_VL);
@@ -448,7 +453,7 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
         "the resumed file differs"
     );
 
-    // `pir2 train gr00t --features` takes the file (the `alt` head has D_vl = 20).
+    // `pir2 gr00t train --features` takes the file (the `alt` head has D_vl = 20).
     let head = root.join("head");
     alt_checkpoint(&head);
     let out = root.join("run");
@@ -606,7 +611,7 @@ fn image_camera_features_are_the_backbone_on_pillows_pixels() {
     assert_eq!(data.video_keys, VIEWS);
     let cams = vec![VIEWS[0].to_string(), SIDE.to_string()];
     data.check_views(&cams).unwrap();
-    // The state-only reader (`pir2 train gr00t`) still reads the dataset.
+    // The state-only reader (`pir2 gr00t train`) still reads the dataset.
     assert_eq!(
         pir2_sim::dataset::read_selected(&data_dir, &state_and_action())
             .unwrap()

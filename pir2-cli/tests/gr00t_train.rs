@@ -1,4 +1,4 @@
-//! `pir2 train gr00t` end to end on a synthetic N1.7-shaped checkpoint (the tiny `alt`
+//! `pir2 gr00t train` end to end on a synthetic N1.7-shaped checkpoint (the tiny `alt`
 //! configuration of the reference fixtures: GR00T's real tensor names), a synthetic
 //! LeRobotDataset v3.0 and synthetic backbone features: the run trains, its step checkpoint
 //! loads back as a GR00T head with the delay table, an interrupted run resumes
@@ -121,7 +121,7 @@ fn options(i: &Inputs, out: &str) -> Gr00tTrainOptions {
     o
 }
 
-/// `pir2 train gr00t` on the inputs `i` into `out`, with `extra` flags.
+/// `pir2 gr00t train` on the inputs `i` into `out`, with `extra` flags.
 fn train_cli(i: &Inputs, out: &Path, extra: &[&str]) -> Vec<std::ffi::OsString> {
     let mut args = train_args(&i.ck, &i.data, &i.emb, &i.feats, out);
     args.extend(extra.iter().map(Into::into));

@@ -1,4 +1,4 @@
-//! A relative end-effector pose group through `pir2 train gr00t`, end to end: a synthetic
+//! A relative end-effector pose group through `pir2 gr00t train`, end to end: a synthetic
 //! N1.7-shaped checkpoint wide enough for a 9-value `xyz_rot6d` pose (the tiny `alt` fixture
 //! of `gr00t_train.rs` with its action encoder/decoder and state encoder widened to
 //! `max_action_dim = max_state_dim = 10`, under GR00T's tensor names), a dataset whose state

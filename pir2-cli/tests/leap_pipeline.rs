@@ -2,7 +2,7 @@
 //! per cell; checks the dataset, the tables and the output files.
 #![cfg(feature = "mujoco")]
 
-use pir2_cli::leap_cmd::ExpertChoice;
+use pir2_cli::study::leap_cube::ExpertChoice;
 use pir2_cli::study::leap_cube::{collect_leap, study_deployment, study_horizon, LeapStudyConfig};
 use pir2_sim::dataset::{read_dataset, WriteMode};
 
@@ -50,7 +50,7 @@ fn leap_pipeline_runs_end_to_end() {
 
     let cfg = LeapStudyConfig {
         dataset: data.to_string_lossy().into_owned(),
-        train_steps: 3,
+        steps: 3,
         batch_size: 8,
         warmup: 1,
         widths: vec![8, 16],

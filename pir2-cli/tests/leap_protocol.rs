@@ -401,7 +401,7 @@ fn an_evaluation_refuses_a_policy_missing_from_the_checkpoint_directory_before_a
 /// episodes in the full dataset (fingerprint `4882c66b901ef2c7`) where that is present.
 #[test]
 fn the_committed_expert_regenerates_the_demonstrations() {
-    use pir2_cli::leap_cmd::ExpertChoice;
+    use pir2_cli::study::leap_cube::ExpertChoice;
     use pir2_cli::study::leap_cube::{collect_leap, load_demos};
     use pir2_cli::study::pipeline::DataFingerprint;
     let expert = std::path::PathBuf::from(concat!(

@@ -571,7 +571,7 @@ impl UnetSpec {
         let c = out as i64;
         let scale = o.slice(f, 1, 0, 1);
         let scale = o.reshape(&scale, &[-1, c, l]);
-        let bias = o.slice(&f, 1, 1, 2);
+        let bias = o.slice(f, 1, 1, 2);
         let bias = o.reshape(&bias, &[-1, c, l]);
         let scale1 = o.offset(&scale, 1.0);
         let hs = o.mul(h, &scale1);

@@ -335,7 +335,7 @@ impl Gr00tBackbone {
     /// the embodiment's view order): `[T, D_vl]`, the ViT + LLM features **before** `vlln`
     /// and the VL self-attention. The same preprocessing, prompt and graphs as
     /// [`Self::encode_views`], which applies those two frozen pieces of the action head on
-    /// top; this is what `pir2 train gr00t --features` takes (the trainer applies them
+    /// top; this is what `pir2 gr00t train --features` takes (the trainer applies them
     /// itself).
     pub fn backbone_embeddings(&mut self, views: &[(&[u8], (usize, usize))]) -> Result<&[f32]> {
         self.run_backbone(views.iter().copied())?;

@@ -1,5 +1,5 @@
 //! [`Gr00tCandleHead`]: the fine-tuned GR00T N1.7 action head run in candle, directly from a
-//! `pir2 train gr00t` step directory, in place of the four ONNX graphs.
+//! `pir2 gr00t train` step directory, in place of the four ONNX graphs.
 //!
 //! It is a [`VelocityModel`] with exactly the ONNX stack's glue ([`super::Gr00tActionHead`]):
 //! the normalised state padded to `max_state_dim` per history step, `x` padded to `A_max`,
@@ -95,7 +95,7 @@ impl Gr00tCandleHead {
             return Err(bad(format!(
                 "the delay table `action_head.delay_embedding.weight` has {} rows, the \
                  embodiment needs d_vis_max + 1 = {} (a base checkpoint has none: run a \
-                 `pir2 train gr00t` step directory)",
+                 `pir2 gr00t train` step directory)",
                 rows.map_or("no".to_string(), |r| r.to_string()),
                 cfg.d_vis_max + 1
             )));

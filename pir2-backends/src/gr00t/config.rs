@@ -315,7 +315,7 @@ pub struct EmbodimentConfig {
     pub state_token_timestep: Option<i64>,
     /// The dataset's video features of the camera views, in view order (one per
     /// `prompt.chat.images`), e.g. `["observation.images.ego_view"]`: which videos
-    /// `pir2 features gr00t` reads for each frame. Empty (the default): not named.
+    /// `pir2 gr00t features` reads for each frame. Empty (the default): not named.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub cameras: Vec<String>,
     /// State groups, in vector order.

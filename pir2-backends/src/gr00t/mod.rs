@@ -36,7 +36,7 @@
 //!   checkpoint layout;
 //! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
 //! - `candle_head` (feature `candle`): `Gr00tCandleHead`, the same interface over the candle
-//!   N1.7 head of a `pir2 train gr00t` step directory (no ONNX head graphs);
+//!   N1.7 head of a `pir2 gr00t train` step directory (no ONNX head graphs);
 //! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
 //!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
 //! - [`tokenizer`]: the VLM's `tokenizer.json` ([`HfTokenizer`]) and GR00T N1.7's chat

@@ -83,7 +83,7 @@ pub enum HeadChoice {
     /// The checkpoint's action head, already loaded (e.g. by a pre-flight check before any
     /// robot was connected); its VL layout is set by the run.
     Loaded(Box<Gr00tActionHead>),
-    /// The fine-tuned head in candle ([`super::Gr00tCandleHead`], from a `pir2 train gr00t`
+    /// The fine-tuned head in candle ([`super::Gr00tCandleHead`], from a `pir2 gr00t train`
     /// step directory, see [`load_candle_head`]) instead of the checkpoint's ONNX head
     /// graphs; its VL layout is set by the run.
     #[cfg(feature = "candle")]
@@ -278,7 +278,7 @@ pub fn load_action_head(
     Ok((head, prompt))
 }
 
-/// [`load_action_head`] for the candle head of `step` (a `pir2 train gr00t` step directory)
+/// [`load_action_head`] for the candle head of `step` (a `pir2 gr00t train` step directory)
 /// in place of the checkpoint's ONNX head graphs; the embodiment, statistics, slot and
 /// tokenizer are the checkpoint's. If the step's run (the step directory or the one above it)
 /// has a `statistics.json` or `embodiment.toml`, it must equal the checkpoint's: the head

@@ -23,8 +23,10 @@ use super::{Policy, Row, Settings, Study, StudyResult, Task};
 pub struct DemoConfig {
     /// Demonstrations to collect.
     pub demos: usize,
-    /// Optimiser steps per policy.
-    pub train_steps: usize,
+    /// Optimiser steps per policy (TOML `steps` or `train_steps`; written as `train_steps`,
+    /// the earlier name, so that results read the same).
+    #[serde(rename = "train_steps", alias = "steps")]
+    pub steps: usize,
     /// Batch size.
     pub batch_size: usize,
     /// Peak learning rate.
@@ -55,7 +57,7 @@ impl Default for DemoConfig {
     fn default() -> Self {
         Self {
             demos: 200,
-            train_steps: 2000,
+            steps: 2000,
             batch_size: 128,
             lr: 1e-3,
             checkpoints: 4,
@@ -77,7 +79,7 @@ impl DemoConfig {
     pub fn quick() -> Self {
         Self {
             demos: 100,
-            train_steps: 1000,
+            steps: 1000,
             episodes: 30,
             val_episodes: 10,
             checkpoints: 2,
@@ -183,11 +185,11 @@ impl Task for BallPlateTask {
     fn optimiser(&self) -> TrainConfig {
         let c = &self.cfg;
         TrainConfig {
-            steps: c.train_steps,
+            steps: c.steps,
             batch_size: c.batch_size,
             lr: c.lr,
             min_lr: c.lr * 0.01,
-            warmup: (c.train_steps / 20).max(1),
+            warmup: (c.steps / 20).max(1),
             betas: (0.9, 0.999),
             weight_decay: 1e-4,
             grad_clip: Some(1.0),
@@ -336,7 +338,7 @@ pub fn train_checkpoint(
     let ds = pir2_sim::dataset::read_dataset(data)
         .with_context(|| format!("reading dataset {}", data.display()))?;
     let task = BallPlateTask::new(cfg.clone());
-    let pb = indicatif::ProgressBar::new(cfg.train_steps as u64);
+    let pb = indicatif::ProgressBar::new(cfg.steps as u64);
     let (model, scores) = pipeline::train_policy(
         &task,
         &ds.episodes,
@@ -386,4 +388,20 @@ pub fn default_out_dir() -> PathBuf {
         .map(|d| d.as_secs())
         .unwrap_or(0);
     PathBuf::from("runs").join(format!("demo-{t}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::DemoConfig;
+
+    #[test]
+    fn the_step_count_is_read_as_steps_or_train_steps_and_written_as_train_steps() {
+        let new: DemoConfig = toml::from_str("steps = 7").unwrap();
+        let old: DemoConfig = toml::from_str("train_steps = 7").unwrap();
+        assert_eq!(new, old);
+        assert_eq!(new.steps, 7);
+        let text = toml::to_string(&new).unwrap();
+        assert!(text.contains("train_steps = 7"), "{text}");
+        assert!(toml::from_str::<DemoConfig>("steps = 7\ntrain_steps = 7").is_err());
+    }
 }

@@ -1,9 +1,12 @@
 //! A study's results: one [`Cell`] per row × seed × column, aggregated over seeds into
-//! plot series and a Markdown table.
+//! plot series and a Markdown table, and a study's `result.json` plotted ([`plot_result`]).
 
+use std::path::Path;
+
+use anyhow::{anyhow, Result};
 use serde::{Deserialize, Serialize};
 
-use crate::plot::Series;
+use crate::plot::{plot_series, Series};
 
 /// One cell of a study: a row (policy + mode) at one `d0` and seed.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -62,6 +65,37 @@ pub fn to_series(cells: &[Cell], labels: &[String], d0s: &[usize]) -> Vec<Series
         })
         .filter(|s| !s.points.is_empty())
         .collect()
+}
+
+/// Plot a study's `result.json` (labels, cells, columns; results written before the columns
+/// were recorded give them as `config.d0s`).
+pub fn plot_result(v: &serde_json::Value, out: &Path) -> Result<()> {
+    #[derive(Deserialize)]
+    struct StudyFile {
+        labels: Vec<String>,
+        cells: Vec<Cell>,
+        #[serde(default)]
+        key: Option<String>,
+        #[serde(default)]
+        columns: Option<Vec<usize>>,
+        #[serde(default)]
+        config: serde_json::Value,
+    }
+    let r: StudyFile = serde_json::from_value(v.clone())?;
+    let columns = match r.columns {
+        Some(c) => c,
+        None => serde_json::from_value(r.config["d0s"].clone())
+            .map_err(|e| anyhow!("the result names no columns (nor config.d0s): {e}"))?,
+    };
+    let series = to_series(&r.cells, &r.labels, &columns);
+    let (title, x) = match r.key.as_deref() {
+        Some("h") => (
+            "success vs execution horizon",
+            "execution horizon h (ticks)",
+        ),
+        _ => ("success vs unit delay", "unit delay d0 (ticks)"),
+    };
+    plot_series(out, title, x, "success rate", &series)
 }
 
 /// A Markdown table: one row per label, one column per `d0`, `mean ± std`.

@@ -2,6 +2,10 @@
 //! best-checkpoint-per-cell protocol, and the cell log that lets a long evaluation continue
 //! after an interruption (`pir2 eval … --resume`).
 //!
+//! One file on purpose: the cell log's key and the evaluation that fills it must agree bit for
+//! bit (a cell is reused only when it would measure the same numbers), so they are read
+//! together; a third of the file is their tests.
+//!
 //! A cell's result depends on the checkpoint that ran, the row, the column, the seed, the
 //! episode count, the task's config and the evaluation path, nothing else (the lock-step
 //! evaluation is deterministic and independent of the thread count; a batched cell, see
@@ -24,7 +28,8 @@ use serde::{Deserialize, Serialize};
 use pir2_backends::candle::CandleModel;
 use pir2_runtime::{LockstepTiming, Mode};
 
-use super::pipeline::{closed_loop, log_line, write_atomically, EvalPath, Models, Trained};
+use super::closed_loop::{closed_loop, EvalPath, Models, Trained};
+use super::output::{log_line, write_atomically};
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.

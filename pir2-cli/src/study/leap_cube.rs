@@ -2,6 +2,9 @@
 //! LeRobotDataset v3.0, Conditional U-Net 1D policies, the deployment study (modes × unit
 //! delay) and the zero-delay horizon study (sync flow `h ∈ {1, 2, 4, 8}` vs πR²).
 //!
+//! One file on purpose: a task is one file (see [`super`]): its config, demonstrations,
+//! model, rows and studies, each field of the config documented against the paper.
+//!
 //! Defaults of [`LeapStudyConfig`]: the paper's simulation protocol (its appendix, which
 //! wins where the paper's main text differs: exponential training delays `p(d) ∝ e^{−d}`
 //! over `{0..d_max}` with πR² `d_max` 5 and train-time RTC `d_max` 10, `K = 15` Euler steps
@@ -11,7 +14,7 @@
 //! deviations are separate, labelled rows (temporal ensembling: `te_row`), never the
 //! default.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -25,8 +28,6 @@ use pir2_sim::dataset::{
 };
 use pir2_sim::leap::ppo::PpoExpert;
 use pir2_sim::leap::{CollectConfig, LeapConfig, LeapCubeEnv, LeapModel, MpcConfig, NU};
-
-use crate::leap_cmd::ExpertChoice;
 
 use super::pipeline::{self, bar, log_line};
 use super::{Policy, Row, Scores, Settings, Study, StudyResult, StudyRow, Sweep, Task};
@@ -47,6 +48,19 @@ pub const ALL_POLICIES: [Policy; 7] = [
     Policy::PiR2ZeroDelayFull,
 ];
 
+/// Who demonstrates in `pir2 collect leap-cube` ([`collect_leap`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExpertChoice {
+    /// The sampling MPC on the privileged state (`fast`: the cheaper recipe).
+    Mpc {
+        /// The faster, weaker recipe.
+        fast: bool,
+    },
+    /// Trained policy weights (`pir2-ppo-expert-v1`), used deterministically: one file for
+    /// every seed, or one per seed.
+    Weights(Vec<PathBuf>),
+}
+
 /// The study's scale. Defaults: the reduced scale run on this machine (paper values in the
 /// field docs).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -54,8 +68,11 @@ pub const ALL_POLICIES: [Policy; 7] = [
 pub struct LeapStudyConfig {
     /// Dataset directory (collected with [`collect_leap`]).
     pub dataset: String,
-    /// Optimiser steps per policy (paper: far more; not stated per policy).
-    pub train_steps: usize,
+    /// Optimiser steps per policy (paper: far more; not stated per policy). TOML `steps` or
+    /// `train_steps`; written as `train_steps`, the earlier name, so that the fingerprints of
+    /// logged cells and the committed configs stay as they are.
+    #[serde(rename = "train_steps", alias = "steps")]
+    pub steps: usize,
     /// Batch size (paper 256).
     pub batch_size: usize,
     /// Peak learning rate (paper 1e-4, cosine).
@@ -155,7 +172,7 @@ impl Default for LeapStudyConfig {
     fn default() -> Self {
         Self {
             dataset: "runs/leap-dataset".into(),
-            train_steps: 400,
+            steps: 400,
             batch_size: 64,
             lr: 1e-3,
             warmup: 40,
@@ -470,11 +487,11 @@ impl Task for LeapCubeTask {
     fn optimiser(&self) -> TrainConfig {
         let c = &self.cfg;
         TrainConfig {
-            steps: c.train_steps,
+            steps: c.steps,
             batch_size: c.batch_size,
             lr: c.lr,
             min_lr: 0.0,
-            warmup: c.warmup.min(c.train_steps.saturating_sub(1)),
+            warmup: c.warmup.min(c.steps.saturating_sub(1)),
             betas: (0.95, 0.999),
             weight_decay: 1e-6,
             grad_clip: Some(1.0),
@@ -736,4 +753,24 @@ pub fn study_horizon(cfg: &LeapStudyConfig, out: &Path, resume: bool) -> Result<
     let task = LeapCubeTask::new(cfg.clone())?;
     let study = task.horizon_study();
     pipeline::run(&task, &study, out, resume)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::LeapStudyConfig;
+    use crate::study::evaluate::config_fingerprint;
+
+    #[test]
+    fn the_step_count_is_read_as_steps_or_train_steps_under_one_fingerprint() {
+        let new: LeapStudyConfig = toml::from_str("steps = 20000").unwrap();
+        let old: LeapStudyConfig = toml::from_str("train_steps = 20000").unwrap();
+        assert_eq!(new, old);
+        assert_eq!(new.steps, 20000);
+        assert_eq!(
+            config_fingerprint(&new).unwrap(),
+            config_fingerprint(&old).unwrap()
+        );
+        let text = toml::to_string(&new).unwrap();
+        assert!(text.contains("train_steps = 20000"), "{text}");
+    }
 }

@@ -20,15 +20,14 @@
 
 pub mod ballplate;
 pub mod cells;
+pub mod closed_loop;
 pub mod dataset;
 pub mod evaluate;
-#[cfg(feature = "gr00t")]
 pub mod gr00t;
-#[cfg(feature = "gr00t")]
-pub mod gr00t_features;
 #[cfg(feature = "mujoco")]
 pub mod leap_cube;
 pub mod open_loop;
+pub mod output;
 pub mod pipeline;
 pub mod report;
 

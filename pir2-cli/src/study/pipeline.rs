@@ -2,78 +2,35 @@
 //! closed-loop checkpoint validation → evaluate rows × seeds × columns through the lock-step
 //! runtime → `result.json`, `table.md`, `success.png`.
 //!
+//! One file on purpose: the stages in the order a study runs them (training jobs, the resumable
+//! training directory and its data check, the run, the outputs), with their tests; the closed
+//! loop and the evaluation they call are [`super::closed_loop`] and [`super::evaluate`].
+//!
 //! There is one closed loop ([`closed_loop`]); what runs the action head comes from a
 //! [`Models`] factory: a local candle model, or a remote one (`pir2 eval --remote`).
 
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use indicatif::{ProgressBar, ProgressStyle};
 
 use pir2_backends::candle::{with_kernel_pool, CandleModel};
 use pir2_backends::config::Config;
 use pir2_backends::train::{compute_stats, Dataset, Progress, TrainConfig, Trainer};
-use pir2_runtime::batched::eval_cell_batched;
-use pir2_runtime::lockstep::{eval_cell, StudyCell};
-use pir2_runtime::{HeadSpec, LockstepTiming, Mode, OutputMap, VelocityModel};
 use pir2_sim::dataset::Episode;
 
+pub use super::closed_loop::{
+    closed_loop, head_spec, output_map, policy_dir, EvalPath, Models, Trained,
+};
 pub use super::evaluate::{
     chosen_checkpoint, config_fingerprint, earlier_config_fingerprints, evaluate,
     evaluate_best_per_cell, last_step_checkpoints, total_episodes, trained_dir, CellLog, Logged,
 };
 use super::evaluate::{fnv1a, FNV_OFFSET};
+pub use super::output::{bar, log_line, prepare_out, write_atomically};
 use super::{Policy, Scores, Settings, Study, StudyResult, Task};
 use crate::plot::plot_series;
-
-/// A progress bar with the studies' style.
-pub fn bar(len: u64, msg: &str) -> ProgressBar {
-    let pb = ProgressBar::new(len);
-    pb.set_style(
-        ProgressStyle::with_template("{msg:<34} [{bar:30}] {pos}/{len} {elapsed_precise}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    pb.set_message(msg.to_string());
-    pb
-}
-
-/// A progress line for logs (progress bars are invisible when stderr is not a terminal).
-pub fn log_line(msg: &str) {
-    use std::io::IsTerminal;
-    if !std::io::stderr().is_terminal() {
-        eprintln!("{msg}");
-    }
-}
-
-/// Create `out`, refusing a directory that exists and is not empty.
-pub fn prepare_out(out: &Path) -> Result<()> {
-    if out.exists()
-        && std::fs::read_dir(out)
-            .map(|mut d| d.next().is_some())
-            .unwrap_or(true)
-    {
-        bail!(
-            "output directory {} exists and is not empty; choose another with --out",
-            out.display()
-        );
-    }
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
-}
-
-/// Write `bytes` to `path` through a temporary file, synced to disk, and a rename, so an
-/// interrupted write or a crash leaves either the old file or the new one, never a truncated
-/// one.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::File::create(&tmp)
-        .and_then(|mut f| f.write_all(bytes).and_then(|()| f.sync_all()))
-        .with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
-}
 
 /// Sim episodes as a training dataset.
 #[derive(Debug)]
@@ -95,143 +52,6 @@ impl Dataset for Episodes<'_> {
     fn action(&self, e: usize, t: usize) -> &[f32] {
         self.0[e].action(t)
     }
-}
-
-type MakeModel<'a> = Box<dyn Fn() -> Box<dyn VelocityModel> + Sync + 'a>;
-
-/// What runs the action head in a closed loop: a factory of velocity models (one per
-/// evaluation thread) and the map that denormalises their actions.
-pub struct Models<'a> {
-    output: OutputMap,
-    make: MakeModel<'a>,
-}
-
-impl std::fmt::Debug for Models<'_> {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Models")
-            .field("output", &self.output)
-            .finish_non_exhaustive()
-    }
-}
-
-impl<'a> Models<'a> {
-    /// Models made by `make`, their actions denormalised by `output`.
-    pub fn new(output: OutputMap, make: impl Fn() -> Box<dyn VelocityModel> + Sync + 'a) -> Self {
-        Models {
-            output,
-            make: Box::new(make),
-        }
-    }
-
-    /// Copies of a candle model (same weights, own scratch per thread).
-    pub fn local(m: &CandleModel) -> Result<Models<'static>> {
-        let weights = m.snapshot()?;
-        let (config, stats) = (m.config().clone(), m.stats().clone());
-        Ok(Models::new(output_map(m), move || {
-            let mut c =
-                CandleModel::new(config.clone(), stats.clone(), 0).expect("config was valid");
-            c.restore(&weights).expect("same architecture");
-            Box::new(c)
-        }))
-    }
-}
-
-/// The output map that denormalises a candle model's actions.
-pub fn output_map(m: &CandleModel) -> OutputMap {
-    let n = &m.stats().action;
-    OutputMap {
-        scale: n.std.clone(),
-        offset: n.mean.clone(),
-        clip: Vec::new(),
-        reference: Vec::new(),
-        poses: Vec::new(),
-    }
-}
-
-/// The action head's spec for `policy` on `task`.
-pub fn head_spec<T: Task>(task: &T, policy: Policy) -> HeadSpec {
-    let s = task.spec();
-    HeadSpec {
-        horizon: s.horizon,
-        action_dim: s.action_dim,
-        n_obs: s.n_obs,
-        fast_dim: s.fast_dim,
-        slow_dim: s.slow.len(),
-        period: task.period_ns(),
-        d_max: policy.d_max(&task.settings().recipe),
-        d_vis_max: s.d_vis_max,
-    }
-}
-
-/// How the episodes of a closed-loop cell run.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum EvalPath {
-    /// Every episode on its own with batch-1 model calls, this many episodes at a time
-    /// ([`eval_cell`]).
-    Threads(usize),
-    /// Groups of this many episodes side by side, their calls answered by one batched call
-    /// per round ([`eval_cell_batched`]).
-    Batched(usize),
-}
-
-impl EvalPath {
-    /// The path a study's settings ask for: batched when `batch_episodes > 1`.
-    pub fn of(s: &Settings) -> Self {
-        if s.batch_episodes > 1 {
-            EvalPath::Batched(s.batch_episodes)
-        } else {
-            EvalPath::Threads(s.threads)
-        }
-    }
-
-    /// What a cell measured this way is keyed by besides its checkpoint, row and column:
-    /// `None` for batch-1 cells (whose bits do not depend on the thread count), the group
-    /// size and the kernel thread count for batched ones (whose bits do).
-    pub fn cell_tag(&self) -> Option<String> {
-        match self {
-            EvalPath::Threads(_) => None,
-            EvalPath::Batched(g) => Some(format!(
-                "batched g{g} k{}",
-                pir2_backends::candle::kernel_threads()
-            )),
-        }
-    }
-}
-
-/// Closed-loop successes (and overrun ticks) of `policy`'s models under `mode` with `timing`
-/// over `episodes` episodes seeded from `seed`, run as `path` says.
-#[allow(clippy::too_many_arguments)]
-pub fn closed_loop<T: Task>(
-    task: &T,
-    models: &Models<'_>,
-    policy: Policy,
-    mode: &Mode,
-    timing: LockstepTiming,
-    episodes: usize,
-    seed: u64,
-    path: EvalPath,
-    progress: &(dyn Fn() + Sync),
-) -> Result<(usize, u64)> {
-    let make_env = || {
-        task.make_env()
-            .expect("the task's environment config is valid")
-    };
-    let cell = StudyCell {
-        head: head_spec(task, policy),
-        mode: *mode,
-        timing,
-        output: &models.output,
-        episodes,
-        seed,
-    };
-    Ok(match path {
-        EvalPath::Threads(threads) => {
-            eval_cell(&make_env, &|| (models.make)(), &cell, threads, progress)?
-        }
-        EvalPath::Batched(group) => {
-            eval_cell_batched(&make_env, (models.make)().as_mut(), &cell, group, progress)?
-        }
-    })
 }
 
 /// Train `policy` on `demos` (seeded); the checkpoint is chosen by closed-loop validation
@@ -329,27 +149,6 @@ pub fn train_policy_resumable<T: Task>(
 /// `checkpoints` of them (the trainer also writes one at the last step).
 pub fn checkpoint_every(steps: usize, checkpoints: usize) -> usize {
     (steps / checkpoints.max(1)).max(1)
-}
-
-/// One trained `(policy, seed)`.
-#[derive(Debug)]
-pub struct Trained {
-    /// Policy.
-    pub policy: Policy,
-    /// Seed.
-    pub seed: u64,
-    /// The chosen checkpoint.
-    pub model: CandleModel,
-    /// Its closed-loop validation scores (empty when loaded).
-    pub scores: Scores,
-    /// The training run's directory (`<root>/<policy>-seed<s>/`: `step-*` checkpoints and
-    /// `best/`).
-    pub dir: PathBuf,
-}
-
-/// Directory name of a trained policy under a checkpoints directory.
-pub fn policy_dir(p: Policy, seed: u64) -> String {
-    format!("{p:?}-seed{seed}").to_lowercase()
 }
 
 /// Run `train(job index, policy, seed)` for every job on `threads` worker threads (jobs are

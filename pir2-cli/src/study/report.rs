@@ -1,5 +1,9 @@
 //! A study's tables from its cell log alone (`pir2 report`).
 //!
+//! One file on purpose: which cells a report takes must be exactly those `pir2 eval` takes
+//! (the trainer's steps, the chosen checkpoint, the log's key); the tests of that are almost
+//! half the file.
+//!
 //! `pir2 eval` keeps every cell it measures in `cells.jsonl`, keyed by what the cell depends
 //! on: the checkpoint that ran (training run, step and the weights' hash), the row, the
 //! column, the seed, the episode count and the evaluation path, under the fingerprint of the
@@ -499,7 +503,7 @@ mod tests {
                 seeds: vec![0, 1],
                 d0s: vec![1, 2],
                 episodes: 10,
-                train_steps: 100,
+                steps: 100,
                 checkpoints: 5,
                 ..DemoConfig::default()
             }),

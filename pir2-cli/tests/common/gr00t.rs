@@ -199,7 +199,7 @@ pub fn write_alt_features(path: &Path, emb: Tensor) {
     candle_core::safetensors::save(&map, path).unwrap();
 }
 
-/// The dataset's state as the fast row and its action (what `pir2 train gr00t` reads).
+/// The dataset's state as the fast row and its action (what `pir2 gr00t train` reads).
 pub fn state_and_action() -> FeatureSelection {
     FeatureSelection {
         fast: vec!["observation.state".into()],
@@ -233,9 +233,9 @@ pub fn pir2_text<S: AsRef<OsStr>>(args: &[S]) -> (Output, String) {
     (out, t)
 }
 
-/// `train gr00t --checkpoint ck --data data --embodiment emb --features feats --out out`.
+/// `gr00t train --checkpoint ck --data data --embodiment emb --features feats --out out`.
 pub fn train_args(ck: &Path, data: &Path, emb: &Path, feats: &Path, out: &Path) -> Vec<OsString> {
-    let mut v: Vec<OsString> = ["train", "gr00t"].map(OsString::from).to_vec();
+    let mut v: Vec<OsString> = ["gr00t", "train"].map(OsString::from).to_vec();
     for (flag, p) in [
         ("--checkpoint", ck),
         ("--data", data),

@@ -4,7 +4,7 @@
 //! One file on purpose: each exported graph is the ONNX twin of one piece of the candle head,
 //! emitted by one small emitter over the same weights.
 //!
-//! The head is read with [`Gr00tN17Head::load`] (a `pir2 train gr00t` step directory or any
+//! The head is read with [`Gr00tN17Head::load`] (a `pir2 gr00t train` step directory or any
 //! N1.7 checkpoint with a delay table) and written, without Python, as:
 //!
 //! | file | graph |
@@ -612,7 +612,7 @@ fn vl_self_attention(c: &Gr00tN17Config, w: &Weights) -> Result<Option<ModelProt
 }
 
 /// Build the graphs and side weights of `head` for chunk length `horizon`. The head must
-/// carry πR²'s delay table (a `pir2 train gr00t` step checkpoint does); `horizon` must fit
+/// carry πR²'s delay table (a `pir2 gr00t train` step checkpoint does); `horizon` must fit
 /// the position embedding.
 pub fn export_gr00t_n17(head: &Gr00tN17Head, horizon: usize) -> Result<Gr00tExport, ExportError> {
     let c = head.config();
@@ -634,7 +634,7 @@ pub fn export_gr00t_n17(head: &Gr00tN17Head, horizon: usize) -> Result<Gr00tExpo
     let delay = head.delay_embedding().ok_or_else(|| {
         unsupported(format!(
             "the checkpoint has no delay table `{PREFIX}{DELAY_EMBEDDING}`: export a πR² \
-             fine-tuned head (a `pir2 train gr00t` step directory), not a base GR00T checkpoint"
+             fine-tuned head (a `pir2 gr00t train` step directory), not a base GR00T checkpoint"
         ))
     })?;
     let rows = delay.dim(0).map_err(|e| unsupported(e.to_string()))?;

@@ -1,4 +1,4 @@
-//! `pir2 train gr00t`: πR² fine-tuning of a GR00T N1.7 checkpoint's action head on a
+//! `pir2 gr00t train`: πR² fine-tuning of a GR00T N1.7 checkpoint's action head on a
 //! LeRobotDataset v3.0 with candle (feature `gr00t`), on the CPU by default or on the GPU
 //! `--device` names (`cuda[:N]` with the `cuda` feature, `metal[:N]` with `metal`).
 //!
@@ -34,11 +34,8 @@
 //! unless `dropout` is off (`--no-dropout`); inference and export never drop.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
-use candle_core::Device;
 use pir2_backends::gr00t::n17::train::{
     head_fingerprint, tree_fingerprint, vl_cache_key, ActionTargets, Gr00tTrainSpec, Gr00tTrainer,
     PrecomputedFeatures, VlCache,
@@ -49,78 +46,7 @@ use pir2_backends::train::{Episode, Progress, TrainConfig, TrainReport};
 use pir2_runtime::{DelayLaw, Recipe};
 use pir2_sim::dataset::{check_selection, read_selected, FeatureSelection, FeatureStats};
 
-/// Options of `pir2 train gr00t`.
-#[derive(Debug, Clone)]
-pub struct Gr00tTrainOptions {
-    /// GR00T N1.7 checkpoint directory.
-    pub checkpoint: PathBuf,
-    /// LeRobotDataset v3.0 directory.
-    pub data: PathBuf,
-    /// Embodiment file.
-    pub embodiment: PathBuf,
-    /// Precomputed backbone outputs.
-    pub features: PathBuf,
-    /// Output directory.
-    pub out: PathBuf,
-    /// Dataset feature holding the state.
-    pub state_key: String,
-    /// Dataset feature holding the action.
-    pub action_key: String,
-    /// Optimiser steps.
-    pub steps: usize,
-    /// Samples per step.
-    pub batch_size: usize,
-    /// Peak learning rate.
-    pub lr: f64,
-    /// Step checkpoint every this many steps (and at the end).
-    pub checkpoint_every: Option<usize>,
-    /// Seed of every draw.
-    pub seed: u64,
-    /// Continue the run in `out`.
-    pub resume: bool,
-    /// Stop flag (Ctrl-C): the state is saved as `interrupted-*`.
-    pub stop: Option<Arc<AtomicBool>>,
-    /// Return after this many steps as if interrupted (tests, time slicing).
-    pub stop_after: Option<usize>,
-    /// GR00T's DiT dropout in the training forward, at the checkpoint's rate
-    /// (`diffusion_model_cfg.dropout`).
-    pub dropout: bool,
-    /// The candle device the head trains on: `cpu`, `cuda[:N]`, `metal[:N]`
-    /// ([`pir2_backends::candle::device`]; a GPU needs the build feature of its name).
-    pub device: String,
-}
-
-impl Gr00tTrainOptions {
-    /// The paper's robot recipe with the given inputs (batch 512 as in the paper: set a
-    /// smaller one on a CPU).
-    pub fn new(
-        checkpoint: &Path,
-        data: &Path,
-        embodiment: &Path,
-        features: &Path,
-        out: &Path,
-    ) -> Self {
-        Self {
-            checkpoint: checkpoint.to_path_buf(),
-            data: data.to_path_buf(),
-            embodiment: embodiment.to_path_buf(),
-            features: features.to_path_buf(),
-            out: out.to_path_buf(),
-            state_key: "observation.state".into(),
-            action_key: "action".into(),
-            steps: 1000,
-            batch_size: 512,
-            lr: 1e-4,
-            checkpoint_every: None,
-            seed: 0,
-            resume: false,
-            stop: None,
-            stop_after: None,
-            dropout: true,
-            device: "cpu".into(),
-        }
-    }
-}
+use super::Gr00tTrainOptions;
 
 /// What a run did.
 #[derive(Debug, Clone)]
@@ -254,7 +180,7 @@ fn relative_statistics(
     serde_json::Value::Object(out)
 }
 
-/// The training targets of `pir2 train gr00t`: every slot `p` of a sample's chunk encoded
+/// The training targets of `pir2 gr00t train`: every slot `p` of a sample's chunk encoded
 /// with GR00T's processor ([`Normalizer::encode_action`] at slot `p`) against the raw state
 /// of the sample's frame `t`, the newest row of its observation window. A relative group's
 /// target is `a_{t+p} − s_t` normalised with the slot's `relative_action` statistics; an
@@ -334,7 +260,7 @@ fn write_or_check(path: &Path, text: &str, resume: bool) -> Result<()> {
 
 /// The checks that the N1.7 head of configuration `c` (from `checkpoint`) can serve the
 /// embodiment `emb` (from `embodiment`): history, widths, slot, timestep buckets, horizon.
-fn check_head_fits(
+pub(super) fn check_head_fits(
     emb: &EmbodimentConfig,
     c: &pir2_backends::gr00t::n17::Gr00tN17Config,
     checkpoint: &Path,
@@ -389,7 +315,7 @@ fn check_head_fits(
     Ok(())
 }
 
-/// `pir2 train gr00t` (see the module docs).
+/// `pir2 gr00t train` (see the module docs).
 pub fn train(
     o: &Gr00tTrainOptions,
     mut progress: impl FnMut(&Progress),
@@ -558,159 +484,6 @@ pub fn train(
     Ok(Gr00tTrainSummary {
         report,
         cache: (cache.path().to_path_buf(), built),
-    })
-}
-
-/// What `pir2 export --gr00t` wrote.
-#[derive(Debug, Clone)]
-pub struct Gr00tExportSummary {
-    /// The output directory.
-    pub out: PathBuf,
-    /// The files written, relative to `out`.
-    pub files: Vec<String>,
-    /// The chunk length the graphs take.
-    pub horizon: usize,
-    /// Rows of the delay table minus one.
-    pub d_vis_max: usize,
-    /// What the head was trained as (`[policy] trained`).
-    pub trained: String,
-}
-
-/// The first of `dirs` holding `name`, or one error naming every place looked at.
-fn find_in(dirs: &[&Path], name: &str, what: &str) -> Result<PathBuf> {
-    for d in dirs {
-        let p = d.join(name);
-        if p.is_file() {
-            return Ok(p);
-        }
-    }
-    let places: Vec<String> = dirs
-        .iter()
-        .map(|d| d.join(name).display().to_string())
-        .collect();
-    bail!("no {what}: looked for {}", places.join(" and "))
-}
-
-/// `pir2 export STEP_DIR --gr00t OUT`: a fine-tuned N1.7 step directory of `pir2 train gr00t`
-/// (`model.safetensors` + `config.json`; `statistics.json` and `embodiment.toml` in it or in
-/// the run root above it) → the checkpoint layout of `docs/gr00t-contract.md` in `out`:
-/// `onnx/{state_encoder,action_encoder,dit,action_decoder}.onnx` (+ `vl_self_attention.onnx`
-/// when the head has one), `pir2_gr00t.safetensors`, `statistics.json`, `embodiment.toml`
-/// (with its `[policy]` table written out). `out` must not exist or be empty; the files
-/// are written to a sibling directory first and moved into place at the end, so a failed
-/// export leaves nothing behind. The backbone (`onnx/backbone.onnx`) and the tokenizer are
-/// not part of the head and are not written.
-pub fn export(step: &Path, out: &Path) -> Result<Gr00tExportSummary> {
-    use pir2_backends::gr00t::n17::export::{export_gr00t_n17, WeightStorage};
-
-    if out.exists() {
-        let empty = out.is_dir()
-            && std::fs::read_dir(out)
-                .with_context(|| format!("reading {}", out.display()))?
-                .next()
-                .is_none();
-        if !empty {
-            bail!(
-                "{} already exists and is not empty; choose a new --gr00t directory (nothing \
-                 was written)",
-                out.display()
-            );
-        }
-    }
-    if !step.is_dir() {
-        bail!(
-            "{} is not a directory (a `pir2 train gr00t` step directory)",
-            step.display()
-        );
-    }
-    let root = step.parent().unwrap_or(step);
-    let emb_path = find_in(&[step, root], "embodiment.toml", "embodiment")?;
-    let stats_path = find_in(&[step, root], "statistics.json", "statistics")?;
-    let emb = EmbodimentConfig::load(&emb_path)
-        .with_context(|| format!("embodiment {}", emb_path.display()))?;
-    // The statistics must serve the embodiment (every group, every statistic its norm needs).
-    Normalizer::load(&stats_path, &emb)
-        .with_context(|| format!("statistics {}", stats_path.display()))?;
-    let head = Gr00tN17Head::load(step, &Device::Cpu)
-        .with_context(|| format!("GR00T N1.7 step checkpoint {}", step.display()))?;
-    let c = head.config().clone();
-    check_head_fits(&emb, &c, step, &emb_path)?;
-    let delay = format!(
-        "{}{}",
-        pir2_backends::gr00t::n17::PREFIX,
-        pir2_backends::gr00t::n17::DELAY_EMBEDDING
-    );
-    let Some(table) = head.delay_embedding() else {
-        bail!(
-            "{}: no delay table `{delay}` in {}; export a πR²-fine-tuned head (a `pir2 train \
-             gr00t` step directory), not a base GR00T checkpoint",
-            step.display(),
-            pir2_backends::gr00t::n17::SINGLE_FILE
-        );
-    };
-    if table.dims() != [emb.d_vis_max + 1, c.input_embedding_dim] {
-        bail!(
-            "{}: the delay table `{delay}` has shape {:?}, the embodiment {} needs \
-             [d_vis_max + 1, D_in] = [{}, {}]",
-            step.display(),
-            table.dims(),
-            emb_path.display(),
-            emb.d_vis_max + 1,
-            c.input_embedding_dim
-        );
-    }
-    let exported = export_gr00t_n17(&head, emb.horizon)
-        .with_context(|| format!("exporting {}", step.display()))?;
-    // The export holds its own copy of the weights; at full size the head is gigabytes.
-    drop(head);
-
-    // Write next to `out`, then move into place.
-    let name = out
-        .file_name()
-        .with_context(|| format!("{} has no directory name", out.display()))?;
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
-    let tmp = parent.join(format!(
-        ".{}.partial-{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
-    }
-    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    let d_vis_max = exported.d_vis_max;
-    let written = (|| -> Result<Vec<String>> {
-        let mut files = exported.write(&tmp, WeightStorage::Auto)?;
-        std::fs::copy(&stats_path, tmp.join("statistics.json"))
-            .with_context(|| format!("copying {}", stats_path.display()))?;
-        std::fs::write(tmp.join("embodiment.toml"), emb.to_toml()?)
-            .with_context(|| format!("writing {}", tmp.join("embodiment.toml").display()))?;
-        files.extend(["statistics.json".into(), "embodiment.toml".into()]);
-        Ok(files)
-    })();
-    let files = match written {
-        Ok(f) => f,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            return Err(e);
-        }
-    };
-    if out.exists() {
-        // Checked empty above.
-        std::fs::remove_dir(out).with_context(|| format!("replacing {}", out.display()))?;
-    }
-    std::fs::rename(&tmp, out)
-        .with_context(|| format!("moving {} to {}", tmp.display(), out.display()))?;
-    Ok(Gr00tExportSummary {
-        out: out.to_path_buf(),
-        files,
-        horizon: emb.horizon,
-        d_vis_max,
-        trained: pir2_backends::gr00t::policy_name(emb.policy.trained).to_string(),
     })
 }
 

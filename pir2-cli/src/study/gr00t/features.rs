@@ -1,5 +1,5 @@
-//! `pir2 features gr00t`: the frozen GR00T N1.7 backbone run once over a LeRobotDataset
-//! v3.0's camera videos, written as the features file `pir2 train gr00t --features` reads
+//! `pir2 gr00t features`: the frozen GR00T N1.7 backbone run once over a LeRobotDataset
+//! v3.0's camera videos, written as the features file `pir2 gr00t train --features` reads
 //! (feature `gr00t`).
 //!
 //! For every frame of the dataset, episodes in `episode_index` order and frames in
@@ -27,64 +27,17 @@
 use std::fs::{File, OpenOptions};
 use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant, UNIX_EPOCH};
 
 use anyhow::{bail, Context, Result};
 use pir2_backends::gr00t::n17::train::tree_fingerprint;
 use pir2_backends::gr00t::{load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone};
 use pir2_backends::ort::OrtOptions;
-use pir2_sim::dataset::{
-    check_ffmpeg, ffmpeg_program, FrameReader, VideoDataset, DEFAULT_TOLERANCE_S,
-};
+use pir2_sim::dataset::{check_ffmpeg, ffmpeg_program, FrameReader, VideoDataset};
 use serde_json::{json, Value};
 
-/// Options of `pir2 features gr00t`.
-#[derive(Debug, Clone)]
-pub struct Gr00tFeaturesOptions {
-    /// The GR00T checkpoint directory (the export layout of `docs/gr00t-contract.md`): its
-    /// backbone (`onnx/backbone.onnx`, or `onnx/vit_*.onnx` + `onnx/llm_*.onnx` +
-    /// `model.safetensors`) and its tokenizer are used.
-    pub checkpoint: PathBuf,
-    /// LeRobotDataset v3.0 directory with the camera videos.
-    pub data: PathBuf,
-    /// Embodiment file (default: the checkpoint's `embodiment.toml`): `cameras`, `[image]`,
-    /// `[prompt]`, `[vision]`, `[tasks]`.
-    pub embodiment: Option<PathBuf>,
-    /// Output safetensors file.
-    pub out: PathBuf,
-    /// Continue an interrupted run (`OUT.partial` + `OUT.partial.json`).
-    pub resume: bool,
-    /// Replace an existing `OUT`.
-    pub overwrite: bool,
-    /// Timestamp tolerance, s (LeRobot's default 1e-4).
-    pub tolerance_s: f64,
-    /// ONNX Runtime options of the backbone.
-    pub ort: OrtOptions,
-    /// Stop flag (Ctrl-C): the rows written so far are kept for `--resume`.
-    pub stop: Option<Arc<AtomicBool>>,
-    /// Return after this many new frames as if interrupted (tests).
-    pub stop_after: Option<usize>,
-}
-
-impl Gr00tFeaturesOptions {
-    /// Defaults for the given inputs (LeRobot's tolerance, ONNX Runtime on the CPU).
-    pub fn new(checkpoint: &Path, data: &Path, out: &Path) -> Self {
-        Self {
-            checkpoint: checkpoint.to_path_buf(),
-            data: data.to_path_buf(),
-            embodiment: None,
-            out: out.to_path_buf(),
-            resume: false,
-            overwrite: false,
-            tolerance_s: DEFAULT_TOLERANCE_S,
-            ort: OrtOptions::default(),
-            stop: None,
-            stop_after: None,
-        }
-    }
-}
+pub use super::Gr00tFeaturesOptions;
 
 /// Progress of a run, reported after every frame.
 #[derive(Debug, Clone)]
@@ -197,6 +150,8 @@ impl Layout {
             .and_then(|n| n.checked_mul(4))
             .context("the features file would be larger than this machine can address")?;
         let mask = frames * tokens;
+        // The producer names the command by its spelling of before `pir2 gr00t features`,
+        // so files written now are byte for byte those of before (and so are their digests).
         let head = json!({
             "__metadata__": {"producer": "pir2 features gr00t", "format": "pt"},
             "embeddings": {"dtype": "F32", "shape": [frames, tokens, dim], "data_offsets": [0, emb]},
@@ -339,7 +294,10 @@ pub fn extract(
         tok.as_ref(),
         &first_prompt,
         None,
-        &o.ort,
+        &OrtOptions {
+            intra_threads: o.threads.max(1),
+            ..OrtOptions::default()
+        },
     )
     .with_context(|| format!("loading the backbone of {}", o.checkpoint.display()))?;
     let (tokens, dim) = bb.output_shape();

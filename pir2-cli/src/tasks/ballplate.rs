@@ -1,0 +1,99 @@
+//! `pir2 collect|train|eval ballplate`: the embedded ball-on-plate task (candle MLPs, one
+//! policy per `pir2 train`, a checkpoint evaluated locally or through a policy server).
+
+use std::sync::atomic::AtomicBool;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+
+use pir2_backends::candle::CandleModel;
+
+use super::{CollectOptions, EvalOptions, ReportOptions, TaskCommands, TrainOptions};
+use crate::study::ballplate::{self, DemoConfig};
+use crate::study::pipeline::Models;
+
+/// The ball-on-plate task's commands.
+#[derive(Debug, Clone, Copy)]
+pub struct BallPlate;
+
+impl TaskCommands for BallPlate {
+    fn collect(&self, o: &CollectOptions, stop: &AtomicBool) -> Result<()> {
+        let (stats, summary) =
+            ballplate::collect_into(&o.out, o.episodes, o.seed, o.write_mode(), stop)?;
+        if stats.stopped {
+            println!(
+                "interrupted: {} holds {} of {} episodes ({} written now); \
+                 `pir2 collect --resume` adds the rest",
+                o.out.display(),
+                summary.total_episodes,
+                o.episodes,
+                summary.written_episodes
+            );
+        } else {
+            println!(
+                "wrote {} episodes to {}",
+                summary.written_episodes,
+                o.out.display()
+            );
+        }
+        Ok(())
+    }
+
+    fn train(&self, o: &TrainOptions) -> Result<()> {
+        if o.resume {
+            bail!("--resume is for leap-cube training; ballplate trains in minutes");
+        }
+        let policy = o.policy.context("--policy is required for ballplate")?;
+        let cfg = DemoConfig::load(o.config.as_deref(), false)?;
+        let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out)?;
+        println!("closed-loop validation (step, success): {scores:?}");
+        println!("best checkpoint: {}", o.out.join("best").display());
+        Ok(())
+    }
+
+    /// A checkpoint in every mode that fits it at each unit delay, locally or through a
+    /// policy server (`--remote`).
+    fn eval(&self, o: &EvalOptions) -> Result<()> {
+        let checkpoint = o
+            .checkpoint
+            .as_deref()
+            .context("--checkpoint is required for ballplate")?;
+        let policy = o.policy.context("--policy is required for ballplate")?;
+        if let Some(p) = o.json.as_ref().filter(|p| p.exists()) {
+            bail!("{} already exists; choose another --json path", p.display());
+        }
+        let model = CandleModel::load(checkpoint)
+            .with_context(|| format!("loading {}", checkpoint.display()))?;
+        let episodes = o.episodes.unwrap_or(100);
+        let (cells, labels) = match &o.remote {
+            None => {
+                let models = Models::local(&model)?;
+                ballplate::eval_checkpoint(&models, policy, &o.d0, episodes, o.seed)?
+            }
+            Some(endpoint) => {
+                let remote = crate::serve::RemotePolicy::connect(
+                    endpoint,
+                    &o.tls,
+                    Duration::from_millis(o.remote_timeout_ms.max(1)),
+                    Duration::from_secs_f64(o.connect_timeout.max(0.0)),
+                    o.remote_max_failed.max(1),
+                )?;
+                eprintln!("connected to the policy server at {endpoint}");
+                let models = remote.models(&model);
+                let res = ballplate::eval_checkpoint(&models, policy, &o.d0, episodes, o.seed)
+                    .with_context(|| remote.context());
+                eprintln!("{}", remote.report());
+                res?
+            }
+        };
+        println!("{}", crate::study::table(&cells, &labels, &o.d0));
+        if let Some(p) = &o.json {
+            std::fs::write(p, serde_json::to_string_pretty(&cells)?)?;
+        }
+        Ok(())
+    }
+
+    fn report(&self, _: &ReportOptions) -> Result<()> {
+        bail!("ballplate keeps no cell log: `pir2 report` is for leap-cube studies")
+    }
+}

@@ -1,0 +1,318 @@
+//! `pir2 collect|train|eval|report TASK`: the stock tasks by name, from one registry
+//! ([`TASKS`]), and the options of those commands.
+//!
+//! A stock task is a type implementing [`TaskCommands`] in a file of this module and one
+//! [`Entry`] in [`TASKS`]. A task a build lacks (the Leap cube without feature `mujoco`)
+//! keeps its entry with the error that says how to build it, so the commands accept the
+//! same names in every build. A user's own dataset (`pir2 train --task task.toml`) is the
+//! [`dataset`] task, chosen by its task file instead of a name.
+
+pub mod ballplate;
+pub mod dataset;
+#[cfg(feature = "mujoco")]
+pub mod leap_cube;
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{anyhow, Result};
+use clap::builder::{PossibleValuesParser, TypedValueParser};
+
+use pir2_runtime::Policy;
+use pir2_sim::dataset::WriteMode;
+
+use crate::serve::TlsOptions;
+
+/// What `pir2 collect|train|eval|report` do for one stock task.
+pub trait TaskCommands: Sync {
+    /// `pir2 collect TASK`: expert demonstrations into a LeRobotDataset v3.0 directory;
+    /// `stop` (Ctrl-C) ends it after the episode in progress, keeping what was written.
+    fn collect(&self, o: &CollectOptions, stop: &AtomicBool) -> Result<()>;
+    /// `pir2 train TASK`: train the task's policy (or policies) on a dataset.
+    fn train(&self, o: &TrainOptions) -> Result<()>;
+    /// `pir2 eval TASK`: evaluate a checkpoint, or run the task's study.
+    fn eval(&self, o: &EvalOptions) -> Result<()>;
+    /// `pir2 report TASK`: a study's tables from its cell log (only tasks whose
+    /// [`Entry::reports`] is set are offered).
+    fn report(&self, o: &ReportOptions) -> Result<()>;
+}
+
+/// One stock task of the registry.
+#[derive(Clone, Copy)]
+pub struct Entry {
+    /// Its name on the command line.
+    pub name: &'static str,
+    /// Whether `pir2 report` rebuilds its tables (its evaluation keeps a cell log).
+    pub reports: bool,
+    /// Its commands, or in a build without them the error that says how to build them.
+    pub commands: Result<&'static dyn TaskCommands, &'static str>,
+}
+
+impl std::fmt::Debug for Entry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Entry")
+            .field("name", &self.name)
+            .field("reports", &self.reports)
+            .field("built", &self.commands.is_ok())
+            .finish()
+    }
+}
+
+/// The error every `leap-cube` command gives in a build without the `mujoco` feature.
+pub const NEEDS_MUJOCO: &str = "the leap-cube task needs MuJoCo: build with `--features mujoco` \
+     (cargo run --release -p pir2-cli --features mujoco -- ...; run `bash scripts/setup-native.sh` \
+     and `source .native/env.sh` first)";
+
+#[cfg(feature = "mujoco")]
+const LEAP_CUBE: Result<&'static dyn TaskCommands, &'static str> = Ok(&leap_cube::LeapCube);
+#[cfg(not(feature = "mujoco"))]
+const LEAP_CUBE: Result<&'static dyn TaskCommands, &'static str> = Err(NEEDS_MUJOCO);
+
+/// The stock tasks, in the order the commands list them.
+pub static TASKS: [Entry; 2] = [
+    Entry {
+        name: "ballplate",
+        reports: false,
+        commands: Ok(&ballplate::BallPlate),
+    },
+    Entry {
+        name: "leap-cube",
+        reports: true,
+        commands: LEAP_CUBE,
+    },
+];
+
+/// The commands of the task called `name` (an error for a task this build lacks).
+pub fn task(name: &str) -> Result<&'static dyn TaskCommands> {
+    let e = TASKS
+        .iter()
+        .find(|e| e.name == name)
+        .ok_or_else(|| anyhow!("unknown task {name}"))?;
+    e.commands.map_err(|msg| anyhow!(msg))
+}
+
+/// The names of the stock tasks, for the commands' argument parser.
+fn task_names() -> PossibleValuesParser {
+    PossibleValuesParser::new(TASKS.iter().map(|e| e.name))
+}
+
+/// The names of the tasks `pir2 report` knows.
+fn reporting_task_names() -> PossibleValuesParser {
+    PossibleValuesParser::new(TASKS.iter().filter(|e| e.reports).map(|e| e.name))
+}
+
+/// `--policy`: the policies by their command-line names.
+fn policy_parser() -> impl TypedValueParser<Value = Policy> {
+    PossibleValuesParser::new(["pir2", "pir2-hidden", "pir2-full", "rtc", "flow"]).map(|s| match s
+        .as_str()
+    {
+        "pir2" => Policy::PiR2,
+        "pir2-hidden" => Policy::PiR2Hidden,
+        "pir2-full" => Policy::PiR2Full,
+        "rtc" => Policy::Rtc,
+        _ => Policy::Flow,
+    })
+}
+
+/// `pir2 collect`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CollectOptions {
+    /// The task (leap-cube needs a build with `--features mujoco`).
+    #[arg(value_parser = task_names(), default_value = "ballplate")]
+    pub task: String,
+    /// Dataset directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// leap-cube: expert seeds (episodes are stored seed-major).
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2,3")]
+    pub seeds: Vec<u64>,
+    /// leap-cube: episodes per expert seed.
+    #[arg(long, default_value_t = 50)]
+    pub per_seed: usize,
+    /// leap-cube: the faster, weaker MPC expert.
+    #[arg(long, conflicts_with = "expert")]
+    pub fast: bool,
+    /// leap-cube: demonstrate with trained policy weights (`pir2-ppo-expert-v1`
+    /// safetensors, e.g. from `leap_ppo` or `scripts/playground-expert.py`) instead of
+    /// the MPC: one file for all seeds, or one per seed (in the order of `--seeds`).
+    #[arg(long, value_delimiter = ',')]
+    pub expert: Vec<PathBuf>,
+    /// Episodes to keep.
+    #[arg(long, default_value_t = 200)]
+    pub episodes: usize,
+    /// Seed.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// Append the missing episodes to an existing dataset.
+    #[arg(long, conflicts_with = "overwrite")]
+    pub resume: bool,
+    /// Replace an existing dataset.
+    #[arg(long)]
+    pub overwrite: bool,
+}
+
+impl CollectOptions {
+    /// New, resume or overwrite, as `--resume` / `--overwrite` say.
+    pub fn write_mode(&self) -> WriteMode {
+        if self.resume {
+            WriteMode::Resume
+        } else if self.overwrite {
+            WriteMode::Overwrite
+        } else {
+            WriteMode::New
+        }
+    }
+}
+
+/// `pir2 train`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TrainOptions {
+    /// The stock task (default ballplate; leap-cube needs a build with `--features mujoco`).
+    #[arg(value_parser = task_names(), conflicts_with = "task_file")]
+    pub task: Option<String>,
+    /// A task file (task.toml: fast/slow/action keys, horizon, n_obs, policy, model,
+    /// optimiser, held-out episodes) for a user's own dataset.
+    #[arg(long = "task", value_name = "TASK_TOML")]
+    pub task_file: Option<PathBuf>,
+    /// Dataset directory (LeRobotDataset v3.0).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Which policy (required for ballplate; leap-cube: the config's `policies` when absent).
+    #[arg(long, value_parser = policy_parser())]
+    pub policy: Option<Policy>,
+    /// Checkpoint directory (must not exist, unless --resume).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// TOML config (ballplate: fields of `DemoConfig`: steps, lr, nfe, ...; leap-cube:
+    /// `LeapStudyConfig`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Seed (ballplate; leap-cube trains the config's seeds).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// leap-cube and --task: continue an interrupted `pir2 train … --out DIR` with the same
+    /// config (task file) and data (both checked against `DIR/config.toml` and
+    /// `DIR/data.json`): finished policies are kept, unfinished ones continue from their
+    /// last step checkpoint (bit-identically to an uninterrupted run on the same kind of CPU).
+    #[arg(long)]
+    pub resume: bool,
+}
+
+/// `pir2 eval`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EvalOptions {
+    /// The task (leap-cube needs a build with `--features mujoco`).
+    #[arg(value_parser = task_names(), default_value = "ballplate")]
+    pub task: String,
+    /// Checkpoint directory (leap-cube: the output of `pir2 train leap-cube`; a listed
+    /// policy × seed without a `best/` there is an error, unless --train-missing).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// leap-cube: train the listed policies missing from --checkpoint (into --out) instead
+    /// of refusing them.
+    #[arg(long)]
+    pub train_missing: bool,
+    /// Which policy the checkpoint is (ballplate).
+    #[arg(long, value_parser = policy_parser())]
+    pub policy: Option<Policy>,
+    /// leap-cube: which study.
+    #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
+    pub study: String,
+    /// leap-cube: TOML config (fields of `LeapStudyConfig`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// leap-cube: dataset directory (overrides the config's).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// leap-cube: output directory (must not exist or be empty, unless --resume).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// leap-cube: continue an interrupted evaluation in --out with the same config: the
+    /// cells in its `cells.jsonl` are reused, the rest are measured (the config's seed
+    /// list may grow, e.g. from a one-seed table to three seeds). SIGINT or SIGTERM ends an
+    /// evaluation after the cell being measured (a second signal at once); every finished
+    /// cell is in the log.
+    #[arg(long)]
+    pub resume: bool,
+    /// Unit delays.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
+    pub d0: Vec<usize>,
+    /// Episodes per cell (default 100; leap-cube: the config's).
+    #[arg(long)]
+    pub episodes: Option<usize>,
+    /// Seed of the evaluation episodes.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Write the cells as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Send the action-head calls to `pir2 serve policy` at this Zenoh endpoint
+    /// (e.g. `tcp/10.0.0.2:7447`; feature `remote`). The server must run the same
+    /// checkpoint; locally only its normalisation is used.
+    #[arg(long)]
+    pub remote: Option<String>,
+    /// With --remote: ms a request may take before it is sent again.
+    #[arg(long, default_value_t = 200)]
+    pub remote_timeout_ms: u64,
+    /// With --remote: consecutive timeouts before the evaluation stops.
+    #[arg(long, default_value_t = 25)]
+    pub remote_max_failed: u32,
+    /// With --remote: seconds to wait for the server at start.
+    #[arg(long, default_value_t = 5.0)]
+    pub connect_timeout: f64,
+    /// With --remote: mutual TLS for a `tls/…` endpoint.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+}
+
+/// `pir2 report`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReportOptions {
+    /// The task (leap-cube needs a build with `--features mujoco`).
+    #[arg(value_parser = reporting_task_names())]
+    pub task: String,
+    /// Which study.
+    #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
+    pub study: String,
+    /// TOML config (fields of `LeapStudyConfig`): the rows, seeds and columns to report,
+    /// and the settings the cells were measured with.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Dataset directory (overrides the config's): the one the evaluation was given, since
+    /// the config's fingerprint, under which the cells are logged, includes it.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// The cell log.
+    #[arg(long)]
+    pub cells: PathBuf,
+    /// Also write `report.json`, `table.md` and the plots here (must not exist or be
+    /// empty).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Report what the log holds when cells are missing (listed), instead of refusing.
+    #[arg(long)]
+    pub partial: bool,
+}
+
+/// `pir2 collect`: the task's expert demonstrations.
+pub fn collect(o: &CollectOptions, stop: &AtomicBool) -> Result<()> {
+    task(&o.task)?.collect(o, stop)
+}
+
+/// `pir2 train`: a stock task's policies, or with `--task FILE` the [`dataset`] task.
+pub fn train(o: &TrainOptions) -> Result<()> {
+    match &o.task_file {
+        Some(file) => dataset::train(o, file),
+        None => task(o.task.as_deref().unwrap_or("ballplate"))?.train(o),
+    }
+}
+
+/// `pir2 eval`: a checkpoint or a study of the task.
+pub fn eval(o: &EvalOptions) -> Result<()> {
+    task(&o.task)?.eval(o)
+}
+
+/// `pir2 report`: a study's tables from its cell log.
+pub fn report(o: &ReportOptions) -> Result<()> {
+    task(&o.task)?.report(o)
+}
