@@ -155,19 +155,9 @@ impl Gr00tCandleHead {
     pub fn forward(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> Result<()> {
         input.validate()?;
         let (h, a, n_obs) = (self.horizon, self.action_dim, self.n_obs);
-        let chk = |what: &str, want: usize, got: usize| {
-            if want == got {
-                Ok(())
-            } else {
-                Err(Gr00tError::input(what, want, got))
-            }
-        };
-        chk("horizon H", h, input.horizon)?;
-        chk("action width A", a, input.action_dim)?;
-        chk("history n_obs", n_obs, input.n_obs)?;
-        chk("proprioception width", self.state_dim, input.fast_dim)?;
+        super::head::check_call(input, (h, a, n_obs, self.state_dim), out.len())?;
+        let chk = super::head::expect_size;
         let b = input.batch;
-        chk("out [B,H,A]", b * h * a, out.len())?;
         let c = self.head.config().clone();
         let (msd, a_max, d_vl) = (c.max_state_dim, c.max_action_dim, c.backbone_embedding_dim);
         let (vl, t) = match input.slow {

@@ -32,6 +32,30 @@ pub use super::prompt::VlLayout;
 use super::weights::SideWeights;
 use crate::ort::OrtOptions;
 
+/// `want == got`, else an input error naming `what`.
+pub(super) fn expect_size(what: &str, want: usize, got: usize) -> Result<()> {
+    if want == got {
+        Ok(())
+    } else {
+        Err(Gr00tError::input(what, want, got))
+    }
+}
+
+/// The sizes every GR00T head checks on a call (`dims`: `H`, `A`, `n_obs`, proprioception
+/// width; `out`: the output's length), each error naming what differs.
+pub(super) fn check_call(
+    input: &ModelInput<'_>,
+    (h, a, n_obs, state_dim): (usize, usize, usize, usize),
+    out: usize,
+) -> Result<()> {
+    let chk = expect_size;
+    chk("horizon H", h, input.horizon)?;
+    chk("action width A", a, input.action_dim)?;
+    chk("history n_obs", n_obs, input.n_obs)?;
+    chk("proprioception width", state_dim, input.fast_dim)?;
+    chk("out [B,H,A]", input.batch * h * a, out)
+}
+
 /// Sizes read from the ONNX files and the side weights.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct HeadDims {
@@ -303,18 +327,8 @@ impl Gr00tActionHead {
             vl_tokens: _,
         } = self.dims;
         let b = input.batch;
-        let chk = |what: &str, want: usize, got: usize| {
-            if want == got {
-                Ok(())
-            } else {
-                Err(Gr00tError::input(what, want, got))
-            }
-        };
-        chk("horizon H", h, input.horizon)?;
-        chk("action width A", a, input.action_dim)?;
-        chk("history n_obs", n_obs, input.n_obs)?;
-        chk("proprioception width", sd, input.fast_dim)?;
-        chk("out [B,H,A]", b * h * a, out.len())?;
+        check_call(input, (h, a, n_obs, sd), out.len())?;
+        let chk = expect_size;
         for g in [
             &self.state_encoder,
             &self.action_encoder,

@@ -29,7 +29,7 @@
 //! state machine, read against the protocol module line by line.
 
 use std::collections::VecDeque;
-use std::io::{ErrorKind, Read, Write};
+use std::io::{ErrorKind, Write};
 use std::net::{IpAddr, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -636,18 +636,10 @@ fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
     let mut fb = FrameBuf::new();
     let mut buf = [0u8; 1024];
     while !h.stop.load(Ordering::SeqCst) {
-        match s.read(&mut buf) {
-            Ok(0) => return,
-            Ok(n) => fb.push(&buf[..n]),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
-                ) =>
-            {
-                continue
-            }
-            Err(_) => return,
+        match super::read_some(&mut s, &mut buf) {
+            super::Got::Bytes(n) => fb.push(&buf[..n]),
+            super::Got::Idle => continue,
+            super::Got::Empty | super::Got::Failed => return,
         }
         loop {
             let frame = match fb.next_frame() {

@@ -7,7 +7,6 @@
 //! torque limit; each fingertip's normal force grows with its finger's flexion.
 
 use std::collections::VecDeque;
-use std::io::ErrorKind;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -255,18 +254,10 @@ fn serve<T: Transport>(mut port: T, hand_id: u8, h: XHandEmuHandle, clock: Arc<d
     let mut parser = FrameParser::new();
     let mut buf = vec![0u8; 4096];
     while !h.stop.load(Ordering::SeqCst) {
-        match port.read(&mut buf) {
-            Ok(0) => continue,
-            Ok(n) => parser.push(&buf[..n]),
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
-                ) =>
-            {
-                continue
-            }
-            Err(_) => return,
+        match super::read_some(&mut port, &mut buf) {
+            super::Got::Bytes(n) => parser.push(&buf[..n]),
+            super::Got::Empty | super::Got::Idle => continue,
+            super::Got::Failed => return,
         }
         while let Some(res) = parser.next_frame() {
             let Ok(req) = res else { continue }; // a real device ignores corrupted requests
