@@ -19,7 +19,7 @@
 //! | `onnx/dit.onnx`            | `sa_embs [B,1+H,D_in]`, `vl_embs [B,T*,D_vl]`, **`timestep i64 [B,1+H]`**, opt. `image_mask`/`backbone_attention_mask bool [B,T*]` | `output [B,1+H,D_hid]` |
 //! | `onnx/action_decoder.onnx` | `model_output [B,1+H,D_hid]`, `embodiment_id` | `output [B,1+H,A_max]` |
 //! | `onnx/backbone.onnx`       | `pixel_values f32 [B,3,crop,crop]`, `input_ids i64 [B,T*]`, opt. `attention_mask` | `embeddings [B,T*,D_vl]` |
-//! | or `onnx/vit_{fp32,bf16}.onnx` + `onnx/llm_{fp32,bf16}.onnx` + `model.safetensors` | GR00T's own split export, glued in Rust ([`split`]); float tensors f32, bf16 or f16 | |
+//! | or `onnx/vit_{fp32,bf16}.onnx` + `onnx/llm_{fp32,bf16}.onnx` + `model.safetensors` | GR00T's own split export, glued in Rust (`split`); float tensors f32, bf16 or f16 | |
 //! | `onnx/vl_self_attention.onnx` (optional) | `hidden_states [B,T*,D_vl]` | `output [B,T*,D_vl]` |
 //!
 //! (`*`: may be dynamic.) Bold = the πR² change: timesteps per position instead of per sample
@@ -27,24 +27,24 @@
 //! `pir2_gr00t.safetensors` and is added to the action tokens in Rust before the DiT, with
 //! GR00T's position embedding (also outside ONNX in GR00T's pipeline).
 //!
-//! Every file is checked on load ([`contract`]): names, element types, ranks, static
+//! Every file is checked on load (`contract`): names, element types, ranks, static
 //! dimensions, and named sizes across files (`D_in` of the state encoder = `D_in` of the DiT…);
 //! errors name the file and the tensor.
 //!
 //! Pieces:
-//! - [`config`]: the embodiment ([`EmbodimentConfig::xarm6_xhand`]), GR00T statistics,
+//! - `config`: the embodiment (`EmbodimentConfig::xarm6_xhand`), GR00T statistics,
 //!   checkpoint layout;
-//! - [`head`]: [`Gr00tActionHead`], a [`pir2_runtime::VelocityModel`];
+//! - `head`: `Gr00tActionHead`, a `pir2_runtime::VelocityModel`;
 //! - `candle_head` (feature `candle`): `Gr00tCandleHead`, the same interface over the candle
 //!   N1.7 head of a `pir2 gr00t train` step directory (no ONNX head graphs);
-//! - [`backbone`]: [`Gr00tBackbone`] (a [`pir2_runtime::SlowEncoder`]), image preprocessing,
-//!   the [`PromptTokenizer`] seam and [`VocabTokenizer`];
-//! - [`tokenizer`]: the VLM's `tokenizer.json` ([`HfTokenizer`]) and GR00T N1.7's chat
-//!   template ([`ChatTemplate`]);
-//! - [`split`]: GR00T's own ViT + LLM export glued in Rust ([`split::SplitBackbone`]:
+//! - `backbone`: `Gr00tBackbone` (a `pir2_runtime::SlowEncoder`), image preprocessing,
+//!   the `PromptTokenizer` seam and `VocabTokenizer`;
+//! - `tokenizer`: the VLM's `tokenizer.json` (`HfTokenizer`) and GR00T N1.7's chat
+//!   template (`ChatTemplate`);
+//! - `split`: GR00T's own ViT + LLM export glued in Rust (`split::SplitBackbone`:
 //!   patches, token embedding, image-token scatter, multimodal positions, deepstack);
-//! - [`run`]: [`run_gr00t`], the library side of `pir2 run gr00t-xarm-xhand`;
-//! - [`testing`]: a tiny synthetic checkpoint and camera for tests and emulated runs.
+//! - `run`: `run_gr00t`, the library side of `pir2 run gr00t-xarm-xhand`;
+//! - `testing`: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 #[cfg(feature = "candle")]
 pub mod n17;
