@@ -172,25 +172,27 @@ impl<M: VelocityModel> RealtimeBuilder<M> {
     /// A slow channel of `dim` features, captured and encoded by a worker of its own and
     /// cached with their age (the paper's asynchronous vision-language channel).
     pub fn slow_async(
-        mut self,
+        self,
         dim: usize,
         source: Box<dyn SlowSource>,
         encoder: Box<dyn SlowEncoder>,
     ) -> Self {
-        self.slow_dim = dim;
-        self.slow = SlowChannel::Async { source, encoder };
-        self
+        self.slow(dim, SlowChannel::Async { source, encoder })
     }
 
     /// A slow channel captured and encoded inside each call (its time counts in `d`).
     pub fn slow_inline(
-        mut self,
+        self,
         dim: usize,
         source: Box<dyn SlowSource>,
         encoder: Box<dyn SlowEncoder>,
     ) -> Self {
+        self.slow(dim, SlowChannel::Inline { source, encoder })
+    }
+
+    fn slow(mut self, dim: usize, channel: SlowChannel) -> Self {
         self.slow_dim = dim;
-        self.slow = SlowChannel::Inline { source, encoder };
+        self.slow = channel;
         self
     }
 
