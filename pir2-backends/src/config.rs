@@ -182,15 +182,6 @@ impl FilmMode {
     pub fn legacy() -> Self {
         Self::PerPositionTau
     }
-
-    /// Short label for tables and logs.
-    pub fn label(self) -> &'static str {
-        match self {
-            Self::Shared => "shared FiLM",
-            Self::PerPositionHeads => "per-position FiLM heads",
-            Self::PerPositionTau => "shared FiLM on per-position τ (ablation)",
-        }
-    }
 }
 
 /// Conditional U-Net 1D (diffusion-policy design) with per-position FiLM.
