@@ -186,6 +186,71 @@ pub struct RunSummary {
     pub remote_policy: Option<pir2_runtime::remote::RemoteCounters>,
     /// The run's trace (ticks, swaps, overruns, latencies, per-call `d` and `d_vis`).
     pub trace: pir2_runtime::RunTrace,
+    /// The safety limits the run enforced.
+    #[serde(default)]
+    pub limits: Option<LimitsInForce>,
+}
+
+/// The safety envelope a run enforces, printed at its start and written by `--json`: the
+/// robot's limits as tightened by the checkpoint's `[safety]` table, the control rate and the
+/// stale-slow grace (as tightened by `--slow-grace-ms`). Vectors have one entry per action
+/// dimension, in the action vector's order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LimitsInForce {
+    /// Control rate, Hz.
+    pub control_hz: f64,
+    /// Stale-slow grace, ms.
+    pub slow_grace_ms: f64,
+    /// The action groups, `name` and width, in order.
+    pub groups: Vec<(String, usize)>,
+    /// Lower joint limits, rad.
+    pub lower: Vec<f32>,
+    /// Upper joint limits, rad.
+    pub upper: Vec<f32>,
+    /// Joint speed limits, rad/s.
+    pub max_velocity: Vec<f32>,
+    /// Joint acceleration limits, rad/s².
+    pub max_accel: Vec<f32>,
+    /// Tracking-error bounds, rad.
+    pub tracking_error: Vec<f32>,
+}
+
+impl std::fmt::Display for LimitsInForce {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let range = |v: &[f32]| {
+            let lo = v.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = v.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            if lo == hi {
+                format!("{lo}")
+            } else {
+                format!("{lo}..{hi}")
+            }
+        };
+        write!(
+            f,
+            "control {} Hz, stale-slow grace {} ms",
+            self.control_hz, self.slow_grace_ms
+        )?;
+        let mut at = 0;
+        for (name, width) in &self.groups {
+            let r = at..(at + width).min(self.lower.len());
+            at += width;
+            write!(
+                f,
+                "; {name}: joints {} rad, speed ≤ {} rad/s, accel ≤ {} rad/s², tracking ≤ {} rad",
+                self.lower[r.clone()]
+                    .iter()
+                    .zip(&self.upper[r.clone()])
+                    .map(|(l, u)| format!("[{l}, {u}]"))
+                    .collect::<Vec<_>>()
+                    .join(" "),
+                range(&self.max_velocity[r.clone()]),
+                range(&self.max_accel[r.clone()]),
+                range(&self.tracking_error[r]),
+            )?;
+        }
+        Ok(())
+    }
 }
 
 impl std::fmt::Display for RunSummary {
@@ -257,6 +322,9 @@ impl std::fmt::Display for RunSummary {
                 c.last_rtt_ns / 1000
             )?;
         }
+        if let Some(l) = &self.limits {
+            writeln!(f, "limits in force: {l}")?;
+        }
         for e in &t.events {
             writeln!(f, "event: {e}")?;
         }
@@ -281,6 +349,9 @@ pub struct RunFailure {
     pub checkpoint: PathBuf,
     /// The task.
     pub task: String,
+    /// The safety limits the run would have enforced, when the checkpoint got that far.
+    #[serde(default)]
+    pub limits: Option<LimitsInForce>,
 }
 
 /// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set: the
@@ -288,11 +359,8 @@ pub struct RunFailure {
 /// one that failed. An existing `--json` file is never replaced: the run refuses to start.
 pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
     use anyhow::Context;
-    if let Some(p) = args.json.as_ref().filter(|p| p.exists()) {
-        anyhow::bail!(
-            "--json {} already exists; choose another path (a run report is never replaced)",
-            p.display()
-        );
+    if let Some(p) = &args.json {
+        check_report_path(p)?;
     }
     let result = run(args, stop);
     if let Ok(summary) = &result {
@@ -306,6 +374,7 @@ pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
                 stack: args.stack.clone(),
                 checkpoint: args.checkpoint.clone(),
                 task: args.task.clone(),
+                limits: limits_in_force(args).ok(),
             })?,
         };
         let written = write_new(p, &text).with_context(|| format!("writing {}", p.display()));
@@ -317,6 +386,56 @@ pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
         }
     }
     result.map(|_| ())
+}
+
+/// Before any robot moves: `--json`'s file must not exist and its folder must exist and take
+/// a new file, so the report of a run is never lost after the run (before: `--json
+/// nodir/x.json` ran the robot and then failed to write the trace).
+fn check_report_path(p: &std::path::Path) -> Result<()> {
+    use anyhow::Context;
+    if p.exists() {
+        anyhow::bail!(
+            "--json {} already exists; choose another path (a run report is never replaced)",
+            p.display()
+        );
+    }
+    let dir = match p.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !dir.is_dir() {
+        anyhow::bail!(
+            "--json {}: the folder {} does not exist; create it first (checked before the \
+             robot moves, so the run's report cannot be lost)",
+            p.display(),
+            dir.display()
+        );
+    }
+    let probe = dir.join(format!(".pir2-json-probe-{}", std::process::id()));
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+        .and_then(|_| std::fs::remove_file(&probe))
+        .with_context(|| {
+            format!(
+                "--json {}: cannot create a file in {}",
+                p.display(),
+                dir.display()
+            )
+        })
+}
+
+/// The limits a run of `args` enforces (see [`LimitsInForce`]).
+#[cfg(feature = "gr00t")]
+pub fn limits_in_force(args: &RunOptions) -> Result<LimitsInForce> {
+    imp::limits_in_force(args)
+}
+
+/// Without feature `gr00t` there is no stack and no limits.
+#[cfg(not(feature = "gr00t"))]
+pub fn limits_in_force(_args: &RunOptions) -> Result<LimitsInForce> {
+    anyhow::bail!("this pir2 was built without the GR00T stack")
 }
 
 /// Write `text` to a file that must not exist yet (created exclusively) and fsync it.
@@ -399,10 +518,12 @@ mod imp {
     }
 
     /// The safety limits of the run: the xArm6 + XHand defaults at the embodiment's control
-    /// rate, overridden by its `[safety.limits]`; its action groups must be the robot's, by
+    /// rate, overridden by its `[safety.limits]`, which may only tighten the robot's ceiling
+    /// ([`SafetyConfig::xarm6_xhand_ceiling_at`]); its action groups must be the robot's, by
     /// name, width and order.
     fn safety_config(cfg: &EmbodimentConfig) -> Result<SafetyConfig> {
         cfg.check_action_groups(&[("arm_joints", ARM_DOF), ("hand_joints", HAND_DOF)])?;
+        let ceiling = SafetyConfig::xarm6_xhand_ceiling_at(cfg.control_hz);
         let mut c = SafetyConfig::xarm6_xhand_at(cfg.control_hz);
         let l = cfg.action_limits();
         let set = |dst: &mut Vec<f32>, src: &[Option<f32>]| {
@@ -419,7 +540,55 @@ mod imp {
         set(&mut c.tracking_error, &l.tracking_error);
         c.validate(c.lower.len())
             .context("the embodiment's [safety.limits]")?;
+        if let Some(w) = c.widening(&ceiling) {
+            let (mut group, mut k) = (String::from("?"), w.joint);
+            for g in &cfg.action {
+                if k < g.dim {
+                    group.clone_from(&g.name);
+                    break;
+                }
+                k -= g.dim;
+            }
+            bail!(
+                "the embodiment's safety.limits.{group}.{}[{k}] = {} is beyond the xArm6 + \
+                 XHand ceiling {}: a checkpoint may only tighten the robot's limits",
+                w.field,
+                w.value,
+                w.limit
+            );
+        }
         Ok(c)
+    }
+
+    /// The stale-slow grace of the run, ms: the embodiment's, or `--slow-grace-ms`, which
+    /// may only shorten it.
+    fn slow_grace_ms(args: &RunOptions, cfg: &EmbodimentConfig) -> Result<f64> {
+        let own = cfg.safety.slow_grace_ms;
+        match args.slow_grace_ms {
+            None => Ok(own),
+            Some(g) if !(g.is_finite() && g > 0.0) => bail!("--slow-grace-ms must be > 0, got {g}"),
+            Some(g) if g > own => bail!(
+                "--slow-grace-ms {g} is longer than the checkpoint's safety.slow_grace_ms = \
+                 {own}: a flag may only shorten the grace"
+            ),
+            Some(g) => Ok(g),
+        }
+    }
+
+    /// See [`super::limits_in_force`].
+    pub(super) fn limits_in_force(args: &RunOptions) -> Result<super::LimitsInForce> {
+        let cfg = embodiment(args)?;
+        let c = safety_config(&cfg)?;
+        Ok(super::LimitsInForce {
+            control_hz: cfg.control_hz,
+            slow_grace_ms: slow_grace_ms(args, &cfg)?,
+            groups: cfg.action.iter().map(|g| (g.name.clone(), g.dim)).collect(),
+            lower: c.lower,
+            upper: c.upper,
+            max_velocity: c.max_velocity,
+            max_accel: c.max_accel,
+            tracking_error: c.tracking_error,
+        })
     }
 
     fn xarm_config(addr: &str, clock_hz: f64) -> Result<XArm6Config> {
@@ -434,6 +603,13 @@ mod imp {
                     .with_context(|| format!("bad --xarm address {addr:?}"))?,
             ),
         };
+        if clock_hz > c.stream_hz {
+            bail!(
+                "control_hz = {clock_hz} is above the xArm driver's servo rate stream_hz = {}: \
+                 the arm cannot take actions faster than it streams them",
+                c.stream_hz
+            );
+        }
         c.action_period = Duration::from_secs_f64(1.0 / clock_hz);
         Ok(c)
     }
@@ -595,11 +771,8 @@ mod imp {
         let camera = local_camera(args, cfg.prompt.chat.images, clock.clone())?;
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
         let safety = safety_config(&cfg)?;
-        if let Some(g) = args.slow_grace_ms {
-            if !(g.is_finite() && g > 0.0) {
-                bail!("--slow-grace-ms must be > 0, got {g}");
-            }
-        }
+        let limits = limits_in_force(args)?;
+        eprintln!("limits in force: {limits}");
 
         if args.emulate {
             let (rig, layer) = EmulatedArmHand::start(
@@ -633,6 +806,7 @@ mod imp {
             let mut s = r?;
             s.hand_commands = Some(commands);
             s.arm_state = Some(arm_state);
+            s.limits = Some(limits);
             return Ok(s);
         }
 
@@ -673,7 +847,9 @@ mod imp {
             &robot,
         );
         crate::signals::clear_second_signal();
-        r
+        let mut s = r?;
+        s.limits = Some(limits);
+        Ok(s)
     }
 
     /// What a second SIGINT/SIGTERM runs before the process exits: the robot's `stop`, if
@@ -888,7 +1064,9 @@ mod imp {
             clock: clock.clone(),
             stop,
             slow_timeout,
-            slow_grace: args.slow_grace_ms.map(|g| Duration::from_secs_f64(g / 1e3)),
+            slow_grace: Some(Duration::from_secs_f64(
+                slow_grace_ms(args, &embodiment(args)?)? / 1e3,
+            )),
             ort: args.ep.ort()?,
             ..Default::default()
         };
@@ -942,6 +1120,7 @@ mod imp {
                 #[cfg(feature = "remote")]
                 remote_policy: None,
                 trace: report.metrics.trace(period),
+                limits: None,
             }
         };
         summary.head = what;
@@ -950,6 +1129,32 @@ mod imp {
             summary.remote_policy = head_stats.map(|s| s.counters());
         }
         Ok(summary)
+    }
+
+    /// A remote slow source that says "connected" only once the slow server's first
+    /// features arrived (before: it said so when the session opened, whether or not anything
+    /// answered).
+    #[cfg(feature = "remote")]
+    struct FirstFrameAnnounced<S> {
+        inner: S,
+        endpoint: String,
+        announced: bool,
+    }
+
+    #[cfg(feature = "remote")]
+    #[async_trait::async_trait]
+    impl<S: pir2_runtime::SlowSource> pir2_runtime::SlowSource for FirstFrameAnnounced<S> {
+        async fn capture(&mut self) -> pir2_runtime::Result<pir2_runtime::SlowFrame> {
+            let frame = self.inner.capture().await?;
+            if !self.announced {
+                self.announced = true;
+                eprintln!(
+                    "connected to the slow server at {}: first features received",
+                    self.endpoint
+                );
+            }
+            Ok(frame)
+        }
     }
 
     #[cfg(not(feature = "remote"))]
@@ -991,12 +1196,17 @@ mod imp {
             ..Default::default()
         };
         let src = RemoteSlowSource::connect(rcfg, clock)
-            .with_context(|| format!("connecting to the slow server at {endpoint}"))?;
-        eprintln!("connected to the slow server at {endpoint}; waiting for the first features");
+            .with_context(|| format!("opening a session to the slow server at {endpoint}"))?;
+        eprintln!("waiting for the first features from the slow server at {endpoint}");
         let stats = src.stats();
         opts.backbone = BackboneChoice::Custom {
             encoder: Box::new(src.encoder()),
             layout: seq.layout.clone(),
+        };
+        let src = FirstFrameAnnounced {
+            inner: src,
+            endpoint: endpoint.to_string(),
+            announced: false,
         };
         let r = run_gr00t_report(&args.checkpoint, &args.task, source, actuator, src, opts);
         let counters = stats.counters();
@@ -1021,6 +1231,7 @@ mod imp {
             remote_slow: Some(counters),
             remote_policy: None,
             trace: report.metrics.trace(period),
+            limits: None,
         })
     }
 }

@@ -40,8 +40,9 @@ pub struct TlsOptions {
     /// This side's private key (PEM).
     #[arg(long = "tls-key", id = "tls_key", value_name = "TLS_KEY", requires_all = ["tls_ca", "tls_cert"])]
     pub key: Option<PathBuf>,
-    /// Servers: listen on a non-loopback address without TLS. Anyone on that network can
-    /// then read the features, query the policy or impersonate the server.
+    /// Listen on (servers) or connect to (robots, `eval --remote`) a non-loopback address
+    /// without TLS, for a trusted lab network only. Anyone on that network can then read the
+    /// features, query the policy, impersonate the server or answer the robot's requests.
     #[arg(long)]
     pub insecure: bool,
 }
@@ -49,8 +50,8 @@ pub struct TlsOptions {
 #[cfg(feature = "remote")]
 impl TlsOptions {
     /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files, and a
-    /// server refuses a non-loopback address without TLS unless `insecure` (then it says so
-    /// loudly on stderr).
+    /// non-loopback address without TLS is refused, to listen on or to connect to, unless
+    /// `insecure` (then it says so loudly on stderr).
     pub fn apply(&self, link: pir2_runtime::remote::Link) -> Result<pir2_runtime::remote::Link> {
         let link = match (&self.ca, &self.cert, &self.key) {
             (Some(ca), Some(cert), Some(key)) => link.with_tls(pir2_runtime::remote::TlsFiles {
@@ -64,9 +65,10 @@ impl TlsOptions {
         link.check_exposure(self.insecure)?;
         if self.insecure && link.check_exposure(false).is_err() {
             eprintln!(
-                "WARNING: --insecure: listening on {:?} WITHOUT TLS. Anyone who can reach this \
-                 address can read the features, query the policy or impersonate the server.",
-                link.listen
+                "WARNING: --insecure: talking WITHOUT TLS beyond this machine (listen {:?}, \
+                 connect {:?}). Anyone who can reach these addresses can read the features, \
+                 query the policy, impersonate the server or answer the robot's requests.",
+                link.listen, link.connect
             );
         }
         Ok(link)

@@ -209,6 +209,43 @@ fn eval_remote_without_a_server_fails_cleanly() {
     assert!(t0.elapsed() < Duration::from_secs(20));
 }
 
+/// A client refuses to connect in plain TCP beyond this machine: one error naming the
+/// endpoint and the fix, nothing dialled (before: `eval --remote tcp/OTHER-HOST:PORT` connected
+/// and used whatever answered); `--insecure` lets it try, loudly.
+#[test]
+fn a_client_refuses_plain_tcp_beyond_loopback_without_insecure() {
+    let s = Scratch::new("eval-insecure");
+    let ck = checkpoint(s.path());
+    // TEST-NET-1 (RFC 5737): routable syntax, never a real host.
+    let endpoint = "tcp/192.0.2.1:7447";
+    let eval = |extra: &[&str]| {
+        let out = pir2()
+            .args(EVAL)
+            .args([
+                "5",
+                "--checkpoint",
+                ck.to_str().unwrap(),
+                "--remote",
+                endpoint,
+            ])
+            .args(["--connect-timeout", "1"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let err = eval(&[]);
+    assert!(
+        err.contains("refusing to connect to `tcp/192.0.2.1:7447` without TLS"),
+        "{err}"
+    );
+    assert!(!err.contains("no answer"), "it dialled: {err}");
+    let err = eval(&["--insecure"]);
+    assert!(err.contains("WARNING: --insecure"), "{err}");
+    assert!(err.contains("no answer"), "{err}");
+}
+
 #[cfg(feature = "gr00t")]
 #[test]
 fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {

@@ -45,7 +45,7 @@ pub use robot::{
     split, ArmHand, Robot, RobotActuator, RobotSource, StateLayout, ARM_DOF, ARM_HAND_ACTION_DIM,
     HAND_DOF,
 };
-pub use safety::{SafetyConfig, SafetyLayer, SafetyStats};
+pub use safety::{SafetyConfig, SafetyLayer, SafetyStats, Widening};
 pub use threaded::{Threaded, ThreadedConfig, ThreadedStats};
 #[cfg(target_os = "linux")]
 pub use v4l2::{V4l2Camera, V4l2Config};

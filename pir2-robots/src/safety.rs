@@ -87,6 +87,12 @@ pub const XHAND_UPPER: f32 = 2.0;
 pub const ARM_MAX_VELOCITY: f32 = 1.25;
 /// Default arm joint acceleration limit, rad/s².
 pub const ARM_MAX_ACCEL: f32 = 20.0;
+/// Hardware ceiling of an xArm joint's speed, rad/s: the largest joint speed UFACTORY's
+/// controller accepts (xarm-python-sdk 1.18.4, `xarm/x3/base.py`: joint speed limit
+/// `[0.0001, 4.0]` rad/s).
+pub const ARM_HW_MAX_VELOCITY: f32 = 4.0;
+/// Hardware ceiling of an xArm joint's acceleration, rad/s² (the same file: `[0.01, 20.0]`).
+pub const ARM_HW_MAX_ACCEL: f32 = 20.0;
 /// Default hand joint speed limit, rad/s.
 pub const HAND_MAX_VELOCITY: f32 = 5.0;
 /// Default hand joint acceleration limit, rad/s².
@@ -146,6 +152,73 @@ impl SafetyConfig {
         c.torque_limit = 300.0;
         c.torque_stop_reads = reads(1.0);
         c
+    }
+
+    /// The ceiling no configuration may widen for the xArm6 + XHand composite at
+    /// `control_hz` ([`within`](Self::within)): the xArm6 joint ranges and the controller's
+    /// largest accepted joint speed and acceleration ([`ARM_HW_MAX_VELOCITY`],
+    /// [`ARM_HW_MAX_ACCEL`]); for the hand, whose vendor publishes no speed or acceleration
+    /// bound this project could cite, the conservative envelope of
+    /// [`xarm6_xhand_at`](Self::xarm6_xhand_at); the tracking-error bounds of the defaults.
+    pub fn xarm6_xhand_ceiling_at(control_hz: f64) -> Self {
+        let mut c = Self::xarm6_xhand_at(control_hz);
+        c.max_velocity[..ARM_DOF].fill(ARM_HW_MAX_VELOCITY);
+        c.max_accel[..ARM_DOF].fill(ARM_HW_MAX_ACCEL);
+        c
+    }
+
+    /// The first limit of `self` that is looser than `ceiling`'s (a joint range reaching
+    /// outside, a larger speed, acceleration or tracking-error bound), or `None` when `self`
+    /// only tightens: a checkpoint or a flag may narrow the robot's envelope, never widen it.
+    /// Both must have the same length (checked by [`validate`](Self::validate)).
+    pub fn widening(&self, ceiling: &SafetyConfig) -> Option<Widening> {
+        let n = self.lower.len().min(ceiling.lower.len());
+        for joint in 0..n {
+            let checks = [
+                (
+                    "lower",
+                    self.lower[joint],
+                    ceiling.lower[joint],
+                    self.lower[joint] < ceiling.lower[joint],
+                ),
+                (
+                    "upper",
+                    self.upper[joint],
+                    ceiling.upper[joint],
+                    self.upper[joint] > ceiling.upper[joint],
+                ),
+                (
+                    "max_velocity",
+                    self.max_velocity[joint],
+                    ceiling.max_velocity[joint],
+                    self.max_velocity[joint] > ceiling.max_velocity[joint],
+                ),
+                (
+                    "max_accel",
+                    self.max_accel[joint],
+                    ceiling.max_accel[joint],
+                    self.max_accel[joint] > ceiling.max_accel[joint],
+                ),
+                (
+                    "tracking_error",
+                    self.tracking_error[joint],
+                    ceiling.tracking_error[joint],
+                    self.tracking_error[joint] > ceiling.tracking_error[joint],
+                ),
+            ];
+            for (field, value, limit, wider) in checks {
+                // NaN compares false everywhere: refuse it here too.
+                if wider || value.is_nan() {
+                    return Some(Widening {
+                        joint,
+                        field,
+                        value,
+                        limit,
+                    });
+                }
+            }
+        }
+        None
     }
 
     /// [`xarm6_xhand_at`](Self::xarm6_xhand_at) 25 Hz, the paper's rate.
@@ -209,6 +282,19 @@ impl SafetyConfig {
         }
         Ok(())
     }
+}
+
+/// A limit looser than the robot's ceiling ([`SafetyConfig::widening`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Widening {
+    /// The action dimension.
+    pub joint: usize,
+    /// `lower`, `upper`, `max_velocity`, `max_accel` or `tracking_error`.
+    pub field: &'static str,
+    /// The configured value.
+    pub value: f32,
+    /// The ceiling's value.
+    pub limit: f32,
 }
 
 /// Every intervention of the safety layer, counted.

@@ -475,3 +475,34 @@ fn consecutive_driver_errors_stop_the_robot() {
     assert_eq!(log.lock().unwrap().stops, 1);
     assert_eq!(l.stats().robot_errors, 4);
 }
+
+/// The robot's ceiling bounds every configuration: tightening passes, any looser limit (or a
+/// NaN) is reported with its joint and field (before: ±100 rad, 1000 rad/s and 1e9 rad/s² in
+/// a checkpoint's `[safety]` ran).
+#[test]
+fn a_configuration_may_only_tighten_the_robots_ceiling() {
+    let ceiling = SafetyConfig::xarm6_xhand_ceiling_at(25.0);
+    // The defaults in force sit inside the ceiling, and the ceiling inside itself.
+    assert_eq!(SafetyConfig::xarm6_xhand().widening(&ceiling), None);
+    assert_eq!(ceiling.widening(&ceiling), None);
+    let mut tight = SafetyConfig::xarm6_xhand();
+    tight.upper[7] = 1.0;
+    tight.max_velocity[0] = 0.5;
+    tight.tracking_error[10] = 0.1;
+    assert_eq!(tight.widening(&ceiling), None);
+    type Edit = fn(&mut SafetyConfig);
+    let cases: [(Edit, usize, &str); 6] = [
+        (|c| c.lower[1] = -100.0, 1, "lower"),
+        (|c| c.upper[17] = 100.0, 17, "upper"),
+        (|c| c.max_velocity[3] = 1000.0, 3, "max_velocity"),
+        (|c| c.max_accel[8] = 1e9, 8, "max_accel"),
+        (|c| c.tracking_error[0] = 2.0, 0, "tracking_error"),
+        (|c| c.max_velocity[12] = f32::NAN, 12, "max_velocity"),
+    ];
+    for (edit, joint, field) in cases {
+        let mut c = SafetyConfig::xarm6_xhand();
+        edit(&mut c);
+        let w = c.widening(&ceiling).expect(field);
+        assert_eq!((w.joint, w.field), (joint, field), "{w:?}");
+    }
+}

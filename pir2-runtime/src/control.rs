@@ -353,6 +353,12 @@ pub struct ControlState {
     per_slot: bool,
     /// A command was produced from a chunk (per-slot maps: a hold repeats it).
     sent: bool,
+    /// Consecutive ticks, since the first action from a chunk, whose command was not a clean
+    /// action (a hold, an overrun's `x̂`, or nothing left in the chunk): see
+    /// [`ControlState::stalled_ticks`].
+    stalled: u64,
+    /// An action from a chunk was produced at least once.
+    started: bool,
     scratch: Vec<f32>,
     /// Metrics of the run.
     pub metrics: RunMetrics,
@@ -390,6 +396,8 @@ impl ControlState {
             executed_since_swap: 0,
             per_slot: cfg.output.per_slot(a),
             sent: false,
+            stalled: 0,
+            started: false,
             scratch: vec![0.0; a],
             metrics: RunMetrics {
                 calls: Vec::with_capacity(TRACE_CAPACITY),
@@ -479,9 +487,11 @@ impl ControlState {
         self.metrics.ticks += 1;
         let held = self.in_flight && matches!(self.cfg.policy, CallPolicy::Sync { .. });
         let mut produced = false;
+        let mut clean_out = false;
         if !held {
             if let Some(m) = self.cfg.ensemble {
                 produced = self.ensemble_at(t, m);
+                clean_out = produced;
             } else if self.has_current {
                 if let Some((v, clean)) = self.current.action_at(t) {
                     self.last.copy_from_slice(v);
@@ -489,12 +499,14 @@ impl ControlState {
                         self.metrics.overruns += 1;
                     }
                     produced = true;
+                    clean_out = clean;
                 } else {
                     // Past the end of the chunk: nothing left to execute.
                     self.metrics.overruns += 1;
                 }
             }
         }
+        self.count_stall(produced, clean_out);
         if !produced {
             self.metrics.holds += 1;
         } else {
@@ -510,9 +522,11 @@ impl ControlState {
         self.metrics.ticks += 1;
         let held = self.in_flight && matches!(self.cfg.policy, CallPolicy::Sync { .. });
         let mut produced = false;
+        let mut clean_out = false;
         if !held {
             if let Some(m) = self.cfg.ensemble {
                 produced = self.ensemble_decoded_at(t, m);
+                clean_out = produced;
             } else if self.has_current {
                 let c = &self.current;
                 if let (Some(i), Some((v, clean))) = (c.index_of(t), c.action_at(t)) {
@@ -522,11 +536,13 @@ impl ControlState {
                         self.metrics.overruns += 1;
                     }
                     produced = true;
+                    clean_out = clean;
                 } else {
                     self.metrics.overruns += 1;
                 }
             }
         }
+        self.count_stall(produced, clean_out);
         if !produced {
             self.metrics.holds += 1;
             if !self.sent {
@@ -539,6 +555,32 @@ impl ControlState {
         }
         self.tick += 1;
         &self.out
+    }
+
+    /// The command of the last tick, as [`action`](Self::action) returned it.
+    pub fn command(&self) -> &[f32] {
+        &self.out
+    }
+
+    /// Consecutive ticks, counted from the first action taken from a chunk, whose command
+    /// was not a clean action: a hold (sync flow waiting on its call, or nothing to execute),
+    /// an overrun's clean estimate `x̂` of a slot with `τ < 1`, or a tick past the end of the
+    /// chunk. A clean action resets it; the warm-up before the first chunk does not count.
+    /// The real-time driver stops the robot when it exceeds its bound
+    /// ([`crate::realtime::RealtimeConfig::stall_limit`]), so a stuck policy never holds the robot on
+    /// old data for long.
+    pub fn stalled_ticks(&self) -> u64 {
+        self.stalled
+    }
+
+    fn count_stall(&mut self, produced: bool, clean: bool) {
+        if produced && clean {
+            self.started = true;
+            self.stalled = 0;
+        } else if self.started || produced {
+            self.started = true;
+            self.stalled += 1;
+        }
     }
 
     /// The last action in model space (with an absolute per-dimension map, what a hold

@@ -107,7 +107,15 @@ pub struct RealtimeConfig {
     /// `CAP_SYS_NICE`). If the request is refused the run continues at normal priority and
     /// records the refusal in the metrics' events.
     pub rt_priority: Option<i32>,
+    /// Control watchdog: once the robot has taken a first action from a chunk, this long
+    /// without a clean action (consecutive holds, overruns or ticks past the end of the
+    /// chunk, [`ControlState::stalled_ticks`]) stops the robot and ends the run with
+    /// [`Error::SafetyStop`]. `None` disables it (tests of overrun behaviour only).
+    pub stall_limit: Option<Duration>,
 }
+
+/// Default of [`RealtimeConfig::stall_limit`]: one second without a clean action.
+pub const DEFAULT_STALL_LIMIT: Duration = Duration::from_secs(1);
 
 impl Default for RealtimeConfig {
     fn default() -> Self {
@@ -117,6 +125,7 @@ impl Default for RealtimeConfig {
             initial_delay: 1,
             slow_timeout: Duration::from_secs(10),
             rt_priority: None,
+            stall_limit: Some(DEFAULT_STALL_LIMIT),
         }
     }
 }
@@ -220,6 +229,8 @@ pub struct ControlLoop {
     n_obs: usize,
     /// The number of the last call whose chunk was delivered.
     delivered_seq: u64,
+    /// Stop the robot past this many stalled ticks ([`RealtimeConfig::stall_limit`]).
+    max_stalled: Option<u64>,
 }
 
 impl ControlLoop {
@@ -231,7 +242,15 @@ impl ControlLoop {
             obs: vec![0.0; fast_dim],
             n_obs,
             delivered_seq: 0,
+            max_stalled: None,
         }
+    }
+
+    /// Stop the robot after `ticks` consecutive ticks without a clean action
+    /// ([`ControlState::stalled_ticks`]); `None`: never.
+    pub fn with_stall_limit(mut self, ticks: Option<u64>) -> Self {
+        self.max_stalled = ticks;
+        self
     }
 
     /// Fill the whole history with one observation (before the first tick).
@@ -282,8 +301,20 @@ impl ControlLoop {
         if shared.call_started.load(Ordering::Acquire) > self.delivered_seq {
             self.control.call_started();
         }
-        let action = self.control.action();
-        act.send(action)?;
+        self.control.action();
+        if let Some(limit) = self.max_stalled {
+            let stalled = self.control.stalled_ticks();
+            if stalled > limit {
+                let m = &self.control.metrics;
+                return Err(Error::SafetyStop(format!(
+                    "control watchdog: no clean action for {stalled} consecutive ticks (bound \
+                     {limit}; {} holds and {} overruns in the run): the policy's chunks ran \
+                     out or its calls stalled",
+                    m.holds, m.overruns
+                )));
+            }
+        }
+        act.send(self.control.command())?;
         shared
             .wants_call
             .store(self.control.wants_call(), Ordering::Release);
@@ -471,7 +502,11 @@ where
     }
     head.set_output(&control.output)?;
     let shared = Shared::new(spec.n_obs, spec.fast_dim, spec.horizon, spec.action_dim);
-    let mut lp = ControlLoop::new(ControlState::new(control)?, spec.n_obs, spec.fast_dim);
+    let stall_ticks = cfg
+        .stall_limit
+        .map(|d| (d.as_nanos() / u128::from(cfg.period.max(1))).max(1) as u64);
+    let mut lp = ControlLoop::new(ControlState::new(control)?, spec.n_obs, spec.fast_dim)
+        .with_stall_limit(stall_ticks);
     let (slow_async, mut slow_inline) = match slow {
         SlowChannel::None => (None, None),
         SlowChannel::Async { source, encoder } => (Some((source, encoder)), None),

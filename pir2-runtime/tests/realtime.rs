@@ -554,3 +554,113 @@ fn an_overrun_is_not_caught_up_in_a_burst() {
     assert!(min_gap >= PERIOD, "sends {} ns apart", min_gap);
     assert_eq!(m.late_ticks, 1);
 }
+
+/// A model that answers in 2 ms for `healthy` calls, then hangs for `hang` on every call.
+struct HangsAfter {
+    healthy: usize,
+    calls: usize,
+    hang: Duration,
+}
+
+impl VelocityModel for HangsAfter {
+    fn backend(&self) -> &'static str {
+        "hangs-after"
+    }
+    fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> pir2_runtime::Result<()> {
+        self.calls += 1;
+        std::thread::sleep(if self.calls > self.healthy {
+            self.hang
+        } else {
+            Duration::from_millis(2)
+        });
+        for (o, x) in out.iter_mut().zip(input.x) {
+            *o = -x;
+        }
+        Ok(())
+    }
+}
+
+/// The control watchdog: a policy whose calls stop returning runs its chunk out and then
+/// holds; past `stall_limit` without a clean action the run stops the robot with a safety
+/// stop naming the watchdog (before: the last action was held until the run's end, forever
+/// without `--ticks`). Without the bound the same run holds to its end.
+#[test]
+fn a_stalled_policy_is_stopped_by_the_control_watchdog() {
+    let go = |stall_limit: Option<Duration>| {
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let spec = HeadSpec {
+            horizon: 16,
+            action_dim: 3,
+            n_obs: 2,
+            fast_dim: 6,
+            slow_dim: 0,
+            period: PERIOD,
+            d_max: 5,
+            d_vis_max: 5,
+        };
+        let mode = HeadMode::PiR2 {
+            nfe: Some(2),
+            alignment: Alignment::Fresh,
+            front: FrontMode::Visible,
+            warm_start_steps: 2,
+        };
+        let model = HangsAfter {
+            healthy: 30,
+            calls: 0,
+            hang: Duration::from_secs(3),
+        };
+        let head = ActionHead::new(
+            model,
+            spec,
+            mode,
+            LatencyWindow::new(20, 2, PERIOD, spec.d_max),
+            0,
+        )
+        .unwrap();
+        let robot = FakeRobot::new(3, clock.clone());
+        let control = ControlConfig {
+            horizon: 16,
+            action_dim: 3,
+            policy: CallPolicy::Async,
+            ensemble: None,
+            output: Default::default(),
+        };
+        let cfg = RealtimeConfig {
+            period: PERIOD,
+            max_ticks: Some(100),
+            stall_limit,
+            ..Default::default()
+        };
+        let r = run(
+            head,
+            control,
+            robot.clone(),
+            robot.clone(),
+            SlowChannel::None,
+            clock,
+            cfg,
+            Arc::new(AtomicBool::new(false)),
+        );
+        (r.map(|(m, _)| m), robot)
+    };
+    use std::sync::atomic::Ordering;
+    let (r, robot) = go(Some(Duration::from_millis(200)));
+    let e = r.unwrap_err();
+    assert!(
+        matches!(&e, Error::SafetyStop(m) if m.contains("control watchdog")),
+        "{e}"
+    );
+    assert!(
+        robot.stops.load(Ordering::Relaxed) >= 1,
+        "the robot was not stopped"
+    );
+    // ~30 ticks of 2-ms calls, the rest of the last chunk, then 200 ms (10 ticks) without a
+    // clean action: well before the run's 100 ticks.
+    let sent = robot.sent.load(Ordering::Relaxed);
+    assert!(sent < 80, "sent {sent} commands");
+    // Without the watchdog the run holds to its last tick.
+    let (r, _) = go(None);
+    let m = r.unwrap();
+    assert_eq!(m.ticks, 100);
+    assert!(m.holds > 10, "holds {}", m.holds);
+}

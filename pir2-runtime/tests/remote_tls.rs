@@ -169,6 +169,42 @@ fn listening_beyond_loopback_needs_tls_or_an_explicit_insecure() {
         .check_exposure(false)
         .is_err());
     assert!(Link::listen("tls/0.0.0.0:7447")
+        .with_tls(tls.clone())
+        .check_exposure(false)
+        .is_ok());
+}
+
+/// The client side too: a robot connecting in plain TCP to another host is refused unless
+/// `insecure` (before: `run --remote-policy tcp/10.0.0.2:7447` connected and used whatever
+/// answered there).
+#[test]
+fn connecting_beyond_loopback_needs_tls_or_an_explicit_insecure() {
+    let tls = TlsFiles {
+        ca: "ca.pem".into(),
+        cert: "c.pem".into(),
+        key: "k.pem".into(),
+    };
+    let e = Link::connect("tcp/10.0.0.2:7447")
+        .check_exposure(false)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("refusing to connect to `tcp/10.0.0.2:7447`"),
+        "{e}"
+    );
+    assert!(Link::connect("tcp/10.0.0.2:7447")
+        .check_exposure(true)
+        .is_ok());
+    assert!(Link::connect("tcp/127.0.0.1:7447")
+        .check_exposure(false)
+        .is_ok());
+    assert!(Link::connect("tcp/localhost:7447")
+        .check_exposure(false)
+        .is_ok());
+    assert!(Link::connect("tls/10.0.0.2:7447")
+        .check_exposure(false)
+        .is_err());
+    assert!(Link::connect("tls/10.0.0.2:7447")
         .with_tls(tls)
         .check_exposure(false)
         .is_ok());

@@ -39,7 +39,7 @@ mod policy;
 #[cfg(test)]
 mod tests;
 
-pub use normalizer::Normalizer;
+pub use normalizer::{Normalizer, MAX_STAT_ABS};
 pub use policy::{policy_name, DeployKind, ModeOverrides, PolicySection};
 
 /// The four task prompts of the paper (Table "Real-world task prompts"): `(task, prompt)`.
@@ -346,6 +346,16 @@ pub struct EmbodimentConfig {
 /// Default stale-slow grace, ms (see [`SafetySection::slow_grace_ms`]).
 pub const DEFAULT_SLOW_GRACE_MS: f64 = 200.0;
 
+/// Ceiling of the stale-slow grace, ms: a checkpoint (or `pir2 run --slow-grace-ms`) may set a
+/// shorter grace, never a longer one. One second of acting on features older than `d_vis_max`
+/// ticks is already far past what any slow channel this project deploys produces.
+pub const MAX_SLOW_GRACE_MS: f64 = 1000.0;
+
+/// Ceiling of an embodiment's `control_hz`: no robot this project drives takes actions faster
+/// (the xArm driver streams servo-j at 100-250 Hz and interpolates between actions; the
+/// robot's own driver refuses a rate above its streaming rate).
+pub const MAX_CONTROL_HZ: f64 = 250.0;
+
 /// Bound on every size an embodiment file declares (groups, values per group, horizon,
 /// `n_obs`, image side, prompt tokens): a larger one is refused by name instead of being
 /// allocated.
@@ -371,7 +381,7 @@ fn default_slow_grace_ms() -> f64 {
 #[serde(deny_unknown_fields)]
 pub struct SafetySection {
     /// Stale-slow stop: a call whose slow features are older than `d_vis_max` ticks (plus
-    /// half a tick) for longer than this stops the robot, ms.
+    /// half a tick) for longer than this stops the robot, ms, at most [`MAX_SLOW_GRACE_MS`].
     #[serde(default = "default_slow_grace_ms")]
     pub slow_grace_ms: f64,
     /// Per action group (keyed by the group's name), limits overriding the robot's defaults.
@@ -634,8 +644,14 @@ impl EmbodimentConfig {
     /// Check sizes and limits; the message names the field.
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(Gr00tError::Config(m));
-        if !(self.control_hz.is_finite() && self.control_hz > 0.0) {
-            return bad(format!("control_hz must be > 0, got {}", self.control_hz));
+        if !(self.control_hz.is_finite()
+            && self.control_hz > 0.0
+            && self.control_hz <= MAX_CONTROL_HZ)
+        {
+            return bad(format!(
+                "control_hz must be in (0, {MAX_CONTROL_HZ}] Hz, got {}",
+                self.control_hz
+            ));
         }
         if self.horizon == 0 || self.n_obs == 0 {
             return bad(format!(
@@ -788,8 +804,10 @@ impl EmbodimentConfig {
             .chat
             .tokens_per_image(self.prompt.image_tokens)?;
         let sg = self.safety.slow_grace_ms;
-        if !(sg.is_finite() && sg > 0.0) {
-            return bad(format!("safety.slow_grace_ms must be > 0, got {sg}"));
+        if !(sg.is_finite() && sg > 0.0 && sg <= MAX_SLOW_GRACE_MS) {
+            return bad(format!(
+                "safety.slow_grace_ms must be in (0, {MAX_SLOW_GRACE_MS}] ms, got {sg}"
+            ));
         }
         for (name, l) in &self.safety.limits {
             let Some(g) = self.action.iter().find(|g| &g.name == name) else {

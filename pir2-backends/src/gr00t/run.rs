@@ -474,6 +474,7 @@ where
         initial_delay: 1,
         slow_timeout: opts.slow_timeout,
         rt_priority: None,
+        ..Default::default()
     };
     // Only πR² async runs the backbone on its own worker; every other row of the paper's
     // table runs it inside each call, so its time counts in the call's `d`.

@@ -461,6 +461,17 @@ pub fn train(
                         s.flow_loss, s.open_loop.rmse, s.open_loop.nrmse
                     ));
                     let score = -s.open_loop.nrmse;
+                    if !(s.flow_loss.is_finite() && s.open_loop.nrmse.is_finite()) {
+                        // A non-finite metric is a diverged model or non-finite held-out
+                        // data, never a score (before: it was logged and the command exited 0).
+                        failure.get_or_insert(anyhow::anyhow!(
+                            "validating step {step}: the held-out flow loss ({}) or open-loop \
+                             RMSE ({}) is not finite: the model diverged or the held-out \
+                             episodes hold non-finite values",
+                            s.flow_loss,
+                            s.open_loop.nrmse
+                        ));
+                    }
                     report.checkpoints.retain(|c| c.step < step);
                     report.checkpoints.push(s);
                     if let Err(e) = write_report(&report_path, &report) {

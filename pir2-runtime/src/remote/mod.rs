@@ -228,9 +228,11 @@ impl Link {
         self
     }
 
-    /// Refuse to listen beyond this machine without TLS: every listen endpoint must be a
-    /// loopback or Unix-socket one, or a `tls/…` one with [`Link::tls`] set, unless
-    /// `insecure`. Also refuses `tls/…` endpoints without TLS files.
+    /// Refuse to talk beyond this machine without TLS: every listen *and* connect endpoint
+    /// must be a loopback or Unix-socket one, or a `tls/…` one with [`Link::tls`] set, unless
+    /// `insecure`. A robot connecting in plain TCP to another host would take actions or
+    /// features from whoever answers on that address. Also refuses `tls/…` endpoints without
+    /// TLS files.
     pub fn check_exposure(&self, insecure: bool) -> Result<()> {
         for e in self.listen.iter().chain(&self.connect) {
             if e.starts_with("tls/") && self.tls.is_none() {
@@ -247,6 +249,17 @@ impl Link {
                      the features, query the policy or impersonate the server. Listen on \
                      `tls/…` with a CA, certificate and key, or accept the risk explicitly \
                      (insecure)"
+                )));
+            }
+        }
+        for e in &self.connect {
+            let protected = e.starts_with("tls/") && self.tls.is_some();
+            if !protected && !is_loopback_endpoint(e) && !insecure {
+                return Err(Error::Config(format!(
+                    "refusing to connect to `{e}` without TLS: whoever answers on that address \
+                     (or sits between) would feed the robot its actions or features. Connect to \
+                     `tls/…` with a CA, certificate and key (mutual TLS), or accept the risk \
+                     explicitly on a lab network (insecure)"
                 )));
             }
         }

@@ -74,6 +74,11 @@ struct GroupAffine {
     zero: Vec<bool>,
 }
 
+/// Largest magnitude a statistic may have: joint angles, positions in metres and gripper
+/// widths are all far below it, so a larger value is a broken file (a unit error or a
+/// sentinel such as 1e30), not a robot's range, and is refused by name.
+pub const MAX_STAT_ABS: f64 = 1e6;
+
 type StatsFile = BTreeMap<String, BTreeMap<String, BTreeMap<String, BTreeMap<String, Stat>>>>;
 
 impl Normalizer {
@@ -172,6 +177,22 @@ impl Normalizer {
                 if flat.iter().any(|x| !x.is_finite()) {
                     return Err(err(modality, &g.name, stat, "is not finite".to_string()));
                 }
+                if let Some((i, x)) = flat
+                    .iter()
+                    .enumerate()
+                    .find(|(_, x)| x.abs() > MAX_STAT_ABS)
+                {
+                    return Err(err(
+                        modality,
+                        &g.name,
+                        stat,
+                        format!(
+                            "[{}] = {x:e} is beyond ±{MAX_STAT_ABS:e}: not a robot's range \
+                             (a unit error or a sentinel value?)",
+                            i % g.dim
+                        ),
+                    ));
+                }
                 Ok((rows, flat))
             };
         let affine = |modality: &str, g: &Group| -> Result<GroupAffine> {
@@ -185,19 +206,38 @@ impl Normalizer {
             };
             match g.norm {
                 Norm::MinMax | Norm::Q01Q99 => {
-                    let (lo, hi) = if g.norm == Norm::MinMax {
+                    let (lo_name, hi_name) = if g.norm == Norm::MinMax {
                         ("min", "max")
                     } else {
                         ("q01", "q99")
                     };
                     let ((rl, lo), (rh, hi)) = (
-                        get(modality, g, lo, per_slot)?,
-                        get(modality, g, hi, per_slot)?,
+                        get(modality, g, lo_name, per_slot)?,
+                        get(modality, g, hi_name, per_slot)?,
                     );
                     out.rows = rl.max(rh);
                     out.clip = true;
                     for i in 0..out.rows * g.dim {
                         let (l, h) = (lo[i % (rl * g.dim)], hi[i % (rh * g.dim)]);
+                        if l > h {
+                            // An inverted range would flip every action of the dimension.
+                            let slot = if out.rows > 1 {
+                                format!(" (chunk slot {})", i / g.dim)
+                            } else {
+                                String::new()
+                            };
+                            return Err(err(
+                                modality,
+                                &g.name,
+                                hi_name,
+                                format!(
+                                    "[{}] = {h} is below {lo_name}[{}] = {l}{slot}: the range \
+                                     is inverted",
+                                    i % g.dim,
+                                    i % g.dim
+                                ),
+                            ));
+                        }
                         // numpy's isclose(max, min): such a dimension normalises to 0.
                         out.zero.push((h - l).abs() <= 1e-8 + 1e-5 * l.abs());
                         out.offset.push(((l + h) / 2.0) as f32);
@@ -212,6 +252,14 @@ impl Normalizer {
                     out.rows = rm.max(rs);
                     for i in 0..out.rows * g.dim {
                         let (m, sd) = (mean[i % (rm * g.dim)], std[i % (rs * g.dim)]);
+                        if sd < 0.0 {
+                            return Err(err(
+                                modality,
+                                &g.name,
+                                "std",
+                                format!("[{}] = {sd} is negative", i % g.dim),
+                            ));
+                        }
                         // GR00T passes a zero-std dimension through unchanged.
                         let (o, sc) = if sd == 0.0 { (0.0, 1.0) } else { (m, sd) };
                         out.offset.push(o as f32);

@@ -54,6 +54,15 @@ fn safety_section_is_parsed_flattened_and_checked() {
         assert!(e.contains(want), "{e}");
     };
     bad(&|c| c.safety.slow_grace_ms = 0.0, "slow_grace_ms");
+    // A checkpoint cannot widen the envelope past the ceilings (before: 1e9 ms and 1e9 Hz ran).
+    bad(
+        &|c| c.safety.slow_grace_ms = 1e9,
+        "safety.slow_grace_ms must be in (0, 1000]",
+    );
+    bad(&|c| c.control_hz = 1e9, "control_hz must be in (0, 250]");
+    let mut edge = EmbodimentConfig::xarm6_xhand();
+    (edge.safety.slow_grace_ms, edge.control_hz) = (MAX_SLOW_GRACE_MS, MAX_CONTROL_HZ);
+    edge.validate().unwrap();
     bad(
         &|c| {
             c.safety
@@ -150,6 +159,32 @@ fn min_max_maps_to_unit_interval_and_back() {
         e.contains("new_embodiment.state.hand_torques.max") && e.contains("missing"),
         "{e}"
     );
+
+    // Statistics that would invert or blow up the actions are refused by key (before: min >
+    // max flipped every action of the group and 1e30 ran).
+    let edited = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut v: serde_json::Value = serde_json::from_str(&stats_json(None)).unwrap();
+        edit(&mut v["new_embodiment"]);
+        std::fs::write(&p, v.to_string()).unwrap();
+        Normalizer::load(&p, &c).unwrap_err().to_string()
+    };
+    let e = edited(&|v| v["action"]["hand_joints"]["min"][3] = serde_json::json!(5.0));
+    assert!(
+        e.contains("new_embodiment.action.hand_joints.max") && e.contains("inverted"),
+        "{e}"
+    );
+    let e = edited(&|v| v["action"]["arm_joints"]["max"][0] = serde_json::json!(1e30));
+    assert!(
+        e.contains("new_embodiment.action.arm_joints.max") && e.contains("[0] = 1e30"),
+        "{e}"
+    );
+    let mut ms = c.clone();
+    ms.state[0].norm = Norm::MeanStd;
+    let mut v: serde_json::Value = serde_json::from_str(&stats_json(None)).unwrap();
+    v["new_embodiment"]["state"][&ms.state[0].name]["std"][0] = serde_json::json!(-1.0);
+    std::fs::write(&p, v.to_string()).unwrap();
+    let e = Normalizer::load(&p, &ms).unwrap_err().to_string();
+    assert!(e.contains(".std") && e.contains("negative"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
