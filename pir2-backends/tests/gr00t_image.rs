@@ -70,7 +70,11 @@ fn reference(png: &str, edge: usize, fraction: f64, letterbox: bool) -> (Rgb, Rg
 fn compare(png: &str, edge: usize, fraction: f64, letterbox: bool) -> (Rgb, Rgb) {
     let (input, want) = reference(png, edge, fraction, letterbox);
     let got = gr00t_n17_transform(&input, letterbox, edge, fraction).unwrap();
-    assert_eq!((got.h, got.w), (want.h, want.w), "{png} letterbox {letterbox}");
+    assert_eq!(
+        (got.h, got.w),
+        (want.h, want.w),
+        "{png} letterbox {letterbox}"
+    );
     let diffs: Vec<u8> = got
         .data
         .iter()
@@ -130,7 +134,10 @@ fn the_transform_matches_albumentations_and_opencv_within_one_step() {
 
 #[test]
 fn without_the_letterbox_the_transform_matches_the_same_calls_minus_the_pad() {
-    assert!(ImageConfig::default().letterbox, "GR00T N1.7 always letterboxes");
+    assert!(
+        ImageConfig::default().letterbox,
+        "GR00T N1.7 always letterboxes"
+    );
     for (png, edge, fraction, hw) in [
         // 640×480 → 341×256 → crop 323×243 → 340×256 (what GR00T's VLM would receive if
         // the pad were left out).

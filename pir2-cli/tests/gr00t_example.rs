@@ -106,7 +106,10 @@ fn example_checkpoint_runs_on_the_emulators_and_is_never_overwritten() {
         text.contains(&ck.display().to_string()) && text.contains("not empty"),
         "{text}"
     );
-    assert!(snapshot(&ck) == written, "the refused example changed files");
+    assert!(
+        snapshot(&ck) == written,
+        "the refused example changed files"
+    );
     // No partial directory is left next to it.
     let leftovers: Vec<_> = std::fs::read_dir(scratch.path())
         .unwrap()

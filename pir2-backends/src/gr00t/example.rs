@@ -133,7 +133,12 @@ pub fn backbone_graph(
     let pixels = g.input(
         "pixel_values",
         DataType::Float,
-        vec![sym("images"), Dim::Fixed(3), Dim::Fixed(side), Dim::Fixed(side)],
+        vec![
+            sym("images"),
+            Dim::Fixed(3),
+            Dim::Fixed(side),
+            Dim::Fixed(side),
+        ],
     );
     let ids = g.input("input_ids", DataType::Int64, vec![sym("batch"), sym("T")]);
     let mask = g.input(
@@ -260,7 +265,10 @@ pub fn write_example(dir: &Path, seed: u64) -> Result<ExampleSummary> {
     }
     std::fs::rename(&tmp, dir).map_err(|e| {
         let _ = std::fs::remove_dir_all(&tmp);
-        fail(dir, format!("cannot move `{}` into place: {e}", tmp.display()))
+        fail(
+            dir,
+            format!("cannot move `{}` into place: {e}", tmp.display()),
+        )
     })?;
     Ok(ExampleSummary {
         dir: dir.to_path_buf(),
@@ -286,21 +294,28 @@ fn write_into(dir: &Path, seed: u64) -> Result<(Vec<String>, EmbodimentConfig)> 
 
     // The head as a GR00T N1.7 checkpoint, with πR²'s delay table.
     let head_dir = dir.join("head");
-    let cfg_text = serde_json::to_string_pretty(&example_head_config())
-        .map_err(|e| fail(&head_dir, e))?;
+    let cfg_text =
+        serde_json::to_string_pretty(&example_head_config()).map_err(|e| fail(&head_dir, e))?;
     write(&mut files, "head/config.json", cfg_text.as_bytes())?;
     let cfg_path = head_dir.join("config.json");
-    let cfg = Gr00tN17Config::from_json_str(&cfg_text, &cfg_path).map_err(|e| candle(&cfg_path, e))?;
+    let cfg =
+        Gr00tN17Config::from_json_str(&cfg_text, &cfg_path).map_err(|e| candle(&cfg_path, e))?;
     if cfg.action_horizon != emb.horizon
         || cfg.max_state_dim < emb.state_dim()
         || cfg.max_action_dim < emb.action_dim()
         || cfg.max_num_embodiments as i64 <= emb.embodiment_id
     {
-        return Err(fail(&cfg_path, "the example head does not fit the embodiment"));
+        return Err(fail(
+            &cfg_path,
+            "the example head does not fit the embodiment",
+        ));
     }
     let mut rng = pir2_schedule::Rng::derive(seed, 0);
     let mut shapes = head_tensor_shapes(&cfg);
-    shapes.push((DELAY_EMBEDDING.to_string(), vec![emb.d_vis_max + 1, cfg.input_embedding_dim]));
+    shapes.push((
+        DELAY_EMBEDDING.to_string(),
+        vec![emb.d_vis_max + 1, cfg.input_embedding_dim],
+    ));
     let tensors: Vec<(String, Vec<usize>, Vec<f32>)> = shapes
         .into_iter()
         .map(|(name, shape)| {
@@ -311,7 +326,9 @@ fn write_into(dir: &Path, seed: u64) -> Result<(Vec<String>, EmbodimentConfig)> 
     let weights = head_dir.join("model.safetensors");
     crate::checkpoint::write_tensors(
         &weights,
-        tensors.iter().map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
+        tensors
+            .iter()
+            .map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
     )
     .map_err(|e| fail(&weights, e))?;
     files.push("head/model.safetensors".into());
@@ -332,9 +349,17 @@ fn write_into(dir: &Path, seed: u64) -> Result<(Vec<String>, EmbodimentConfig)> 
     let bb = backbone_graph(&mut rng, emb.image.pixel_side(), cfg.backbone_embedding_dim);
     write(&mut files, "onnx/backbone.onnx", &bb.encode())?;
     write(&mut files, "tokenizer.json", BPE_TOKENIZER_JSON.as_bytes())?;
-    write(&mut files, "tokenizer_config.json", BPE_TOKENIZER_CONFIG.as_bytes())?;
+    write(
+        &mut files,
+        "tokenizer_config.json",
+        BPE_TOKENIZER_CONFIG.as_bytes(),
+    )?;
     write(&mut files, "embodiment.toml", emb.to_toml()?.as_bytes())?;
-    write(&mut files, "statistics.json", statistics_json(&emb, None).as_bytes())?;
+    write(
+        &mut files,
+        "statistics.json",
+        statistics_json(&emb, None).as_bytes(),
+    )?;
     let ids = serde_json::json!({ &emb.embodiment_tag: emb.embodiment_id }).to_string();
     write(&mut files, "embodiment_id.json", ids.as_bytes())?;
     write(&mut files, "README.md", README.as_bytes())?;

@@ -84,8 +84,6 @@ pub mod weights;
 pub use backbone::{preprocess_image, Gr00tBackbone};
 #[cfg(all(feature = "gr00t", feature = "candle"))]
 pub use candle_head::Gr00tCandleHead;
-#[cfg(all(feature = "gr00t", feature = "candle"))]
-pub use example::{write_example, ExampleSummary};
 #[cfg(feature = "gr00t")]
 pub use config::{
     policy_name, ActionLimits, BackboneForm, CheckpointFiles, DeployKind, EmbodimentConfig, Group,
@@ -95,6 +93,8 @@ pub use config::{
 };
 #[cfg(feature = "gr00t")]
 pub use error::{Gr00tError, Result};
+#[cfg(all(feature = "gr00t", feature = "candle"))]
+pub use example::{write_example, ExampleSummary};
 #[cfg(feature = "gr00t")]
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
 #[cfg(feature = "gr00t")]
