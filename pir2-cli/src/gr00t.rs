@@ -27,6 +27,20 @@ pub enum Gr00tCmd {
     /// One-NFE latency of a GR00T export's action head and backbone, and the delay `d` it
     /// implies.
     Bench(Gr00tBenchOptions),
+    /// Write a small example checkpoint with random weights (the xArm6 + XHand embodiment,
+    /// N1.7's shapes at tiny widths: action head, stand-in backbone, tokenizer) that
+    /// `pir2 run gr00t-xarm-xhand --emulate` runs; no download, no Python.
+    Example(Gr00tExampleOptions),
+}
+
+/// Options of `pir2 gr00t example`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Gr00tExampleOptions {
+    /// Output checkpoint directory; must not exist or be empty (nothing is overwritten).
+    pub dir: PathBuf,
+    /// Seed of the random weights (the same seed writes the same files).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
 }
 
 /// Options of `pir2 gr00t export`.
@@ -68,6 +82,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
         Gr00tCmd::Train(o) => imp::train(*o, crate::signals::stop_flag()),
         Gr00tCmd::Export(o) => imp::export(&o),
         Gr00tCmd::Bench(o) => imp::bench(&o),
+        Gr00tCmd::Example(o) => imp::example(&o),
     }
     #[cfg(not(feature = "gr00t"))]
     {
@@ -76,6 +91,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
             Gr00tCmd::Train(_) => "train",
             Gr00tCmd::Export(_) => "export",
             Gr00tCmd::Bench(_) => "bench",
+            Gr00tCmd::Example(_) => "example",
         };
         anyhow::bail!(
             "`pir2 gr00t {verb}` needs a pir2 built with feature `gr00t` (--features gr00t)"
@@ -90,7 +106,7 @@ mod imp {
 
     use anyhow::{Context, Result};
 
-    use super::{Gr00tBenchOptions, Gr00tExportOptions};
+    use super::{Gr00tBenchOptions, Gr00tExampleOptions, Gr00tExportOptions};
     use crate::study::gr00t::{self, features, Gr00tFeaturesOptions, Gr00tTrainOptions};
 
     pub(super) fn train(mut o: Gr00tTrainOptions, stop: Arc<AtomicBool>) -> Result<()> {
@@ -183,6 +199,22 @@ mod imp {
             "{}",
             crate::bench::gr00t(&o.checkpoint, &o.task, &o.ep, o.seconds)
                 .with_context(|| format!("benchmarking {}", o.checkpoint.display()))?
+        );
+        Ok(())
+    }
+
+    pub(super) fn example(o: &Gr00tExampleOptions) -> Result<()> {
+        let s = pir2_backends::gr00t::write_example(&o.dir, o.seed)?;
+        println!(
+            "wrote {} (random weights, seed {}; not GR00T): {}",
+            s.dir.display(),
+            o.seed,
+            s.files.join(", ")
+        );
+        println!(
+            "run it on the emulators: pir2 run gr00t-xarm-xhand --checkpoint {} --task \"catch \
+             the book\" --emulate --seconds 2",
+            s.dir.display()
         );
         Ok(())
     }

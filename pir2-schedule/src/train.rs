@@ -156,6 +156,44 @@ impl Default for PiR2Draws {
     }
 }
 
+/// `α` of GR00T N1.7's flow-time law ([`gr00t_n17_tau`]; Isaac-GR00T's `noise_beta_alpha`).
+pub const GR00T_N17_TAU_ALPHA: f32 = 1.5;
+/// `β` of GR00T N1.7's flow-time law (`noise_beta_beta`).
+pub const GR00T_N17_TAU_BETA: f32 = 1.0;
+/// Scale `s` of GR00T N1.7's flow-time law (`noise_s`): `τ < s`, never fully clean.
+pub const GR00T_N17_TAU_SCALE: f32 = 0.999;
+
+/// One flow time `τ` (0 = noise, 1 = clean, this crate's convention: `x = (1−τ)ε + τa`) from
+/// GR00T N1.7's training law: `τ = s·(1 − B)` with `B ~ Beta(α, β)`, `(α, β, s)` =
+/// ([`GR00T_N17_TAU_ALPHA`], [`GR00T_N17_TAU_BETA`], [`GR00T_N17_TAU_SCALE`]) =
+/// (1.5, 1, 0.999).
+///
+/// GR00T's convention is the same as this crate's (its noisy input is `(1 − t)·noise +
+/// t·actions`, target `actions − noise`), and it draws `t = (1 − B)·s`; so `τ/s ~ Beta(1,
+/// 1.5)`: density `1.5·(1 − τ/s)^½ / s` on `[0, s)`, mean `0.4·s`, CDF `1 − (1 − τ/s)^1.5`,
+/// most of its mass near the noise end. (NVIDIA/Isaac-GR00T at commit
+/// c5437fa66982969177d20d432eca5b4d966dfbbe: `gr00t/model/gr00t_n1d7/gr00t_n1d7.py` lines
+/// 101 (`Beta(noise_beta_alpha, noise_beta_beta)`), 156–159 (`sample_time`), 220–224 (the
+/// noisy input, the target and the discretised timestep); `gr00t/configs/model/gr00t_n1d7.py`
+/// lines 106–108 (`noise_beta_alpha = 1.5`, `noise_beta_beta = 1.0`, `noise_s = 0.999`).)
+///
+/// Drawn exactly by inversion with one uniform `U` from `rng`: `Beta(α, 1)` has CDF `x^α`, so
+/// `B = U^(1/α)` and `τ = s·(1 − U^(1/α))`. A binding in another language reproduces a
+/// stream by drawing `U` = [`Rng::uniform`] and applying the same map.
+pub fn gr00t_n17_tau(rng: &mut Rng) -> f32 {
+    let u = rng.uniform();
+    // β = 1: inversion of Beta(α, 1).
+    let b = u.powf(1.0 / GR00T_N17_TAU_ALPHA);
+    GR00T_N17_TAU_SCALE * (1.0 - b)
+}
+
+/// The CDF of [`gr00t_n17_tau`]'s law at `t`: `1 − (1 − t/s)^α` on `[0, s]`.
+pub fn gr00t_n17_tau_cdf(t: f64) -> f64 {
+    let s = f64::from(GR00T_N17_TAU_SCALE);
+    let x = (t / s).clamp(0.0, 1.0);
+    1.0 - (1.0 - x).powf(f64::from(GR00T_N17_TAU_ALPHA))
+}
+
 /// A training schedule: one per deployment family.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -169,6 +207,10 @@ pub enum TrainSchedule {
     },
     /// Standard flow matching: one shared `τ ~ U[0,1]`, no mask.
     StandardFlow,
+    /// Standard flow matching with GR00T N1.7's law of the shared `τ` ([`gr00t_n17_tau`]:
+    /// `τ = 0.999·(1 − B)`, `B ~ Beta(1.5, 1)`, weighted towards noise), no mask: the flow
+    /// baseline of `pir2 gr00t train`, trained as GR00T N1.7 trains its head.
+    Gr00tFlow,
     /// Streaming diffusion: ramp `τ_p = 1 − (p + u)/H`, `u ~ U[0,1)`, no mask.
     StreamingDiffusion,
 }
@@ -293,7 +335,9 @@ impl TrainSchedule {
                 }
                 Ok(())
             }
-            TrainSchedule::StandardFlow | TrainSchedule::StreamingDiffusion => Ok(()),
+            TrainSchedule::StandardFlow
+            | TrainSchedule::Gr00tFlow
+            | TrainSchedule::StreamingDiffusion => Ok(()),
         }
     }
 
@@ -348,6 +392,11 @@ impl TrainSchedule {
                 out.tau.fill(t);
                 out.mask.fill(1.0);
             }
+            TrainSchedule::Gr00tFlow => {
+                let t = gr00t_n17_tau(rng);
+                out.tau.fill(t);
+                out.mask.fill(1.0);
+            }
             TrainSchedule::StreamingDiffusion => {
                 let u = rng.uniform();
                 for (p, t) in out.tau.iter_mut().enumerate() {
@@ -363,6 +412,54 @@ impl TrainSchedule {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// GR00T N1.7's `τ` law against its Beta moments and CDF, with a fixed seed: mean
+    /// `0.4·s` and variance `(α/((α+1)²(α+2)))·s²` of `s·Beta(1, α)`, and a
+    /// Kolmogorov–Smirnov distance under its 0.1 % critical value. `U[0, 1]` (mean 0.5,
+    /// variance 1/12, KS distance ≈ 0.15 from this law) fails every one of these.
+    #[test]
+    fn gr00t_n17_tau_has_its_beta_law() {
+        let n = 200_000;
+        let mut rng = Rng::new(20_260_526);
+        let mut v: Vec<f64> = (0..n).map(|_| f64::from(gr00t_n17_tau(&mut rng))).collect();
+        let s = f64::from(GR00T_N17_TAU_SCALE);
+        let a = f64::from(GR00T_N17_TAU_ALPHA);
+        assert!(v.iter().all(|&t| (0.0..s + 1e-7).contains(&t)));
+        let mean = v.iter().sum::<f64>() / n as f64;
+        let var = v.iter().map(|t| (t - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+        let (m0, v0) = (s / (1.0 + a), s * s * a / ((1.0 + a).powi(2) * (2.0 + a)));
+        // Standard errors: sd/√n ≈ 5.8e-4 for the mean, ≈ 2.2e-4 for the variance.
+        assert!((mean - m0).abs() < 3e-3, "mean {mean} vs {m0}");
+        assert!((var - v0).abs() < 1.5e-3, "variance {var} vs {v0}");
+        assert!((mean - 0.5).abs() > 0.05 && (var - 1.0 / 12.0).abs() > 0.01);
+        v.sort_by(f64::total_cmp);
+        let ks = v
+            .iter()
+            .enumerate()
+            .map(|(i, &t)| {
+                let f = gr00t_n17_tau_cdf(t);
+                (f - i as f64 / n as f64).max((i + 1) as f64 / n as f64 - f)
+            })
+            .fold(0.0, f64::max);
+        // 0.1 % critical value of the KS distance: 1.95/√n ≈ 4.4e-3.
+        assert!(ks < 1.95 / (n as f64).sqrt(), "KS distance {ks}");
+        // The same test rejects U[0, 1] (its KS distance from this law).
+        let ks_uniform = (0..=1000)
+            .map(|i| {
+                let t = i as f64 / 1000.0;
+                (gr00t_n17_tau_cdf(t) - t).abs()
+            })
+            .fold(0.0, f64::max);
+        assert!(ks_uniform > 0.1, "{ks_uniform}");
+        // The schedule draws it: one shared τ, no mask.
+        let mut d = Draw::new(8);
+        let mut rng = Rng::new(3);
+        TrainSchedule::Gr00tFlow.draw(&mut rng, &mut d).unwrap();
+        let mut rng = Rng::new(3);
+        let t = gr00t_n17_tau(&mut rng);
+        assert!(d.tau.iter().all(|&x| x == t) && d.mask.iter().all(|&m| m == 1.0));
+        assert_eq!(d.delay, 0);
+    }
 
     #[test]
     fn exponential_pmf_sums_to_one() {

@@ -63,8 +63,18 @@ pub fn preprocess_image(
         ImagePipeline::Gr00tN17 => {
             let img = Rgb::new(h, w, rgb.to_vec())?;
             let t = gr00t_n17_transform(&img, cfg.letterbox, cfg.shortest_edge, cfg.crop_fraction)?;
+            if (t.h, t.w) != (cfg.shortest_edge, cfg.shortest_edge) {
+                return Err(Gr00tError::Config(format!(
+                    "image.letterbox = false with a non-square {w}×{h} camera frame gives a \
+                     {}×{} image; GR00T N1.7 letterboxes every frame (its \
+                     `letter_box_transform` setting is not read), so set image.letterbox = \
+                     true (the default) whatever the checkpoint's processor_config.json says; \
+                     a non-square image would need the VLM processor's own resize and another \
+                     image-token count, which pir2 does not implement",
+                    t.w, t.h
+                )));
+            }
             let (s, n) = (t.h, t.h * t.w);
-            debug_assert_eq!((t.h, t.w), (cfg.shortest_edge, cfg.shortest_edge));
             out.clear();
             out.resize(3 * n, 0.0);
             for (i, px) in t.data.chunks_exact(3).enumerate() {

@@ -170,7 +170,7 @@ pub enum ImagePipeline {
 /// ```toml
 /// [image]
 /// pipeline = "gr00t_n17"  # or "resize_crop"
-/// letterbox = true        # GR00T: processor_config.json `letter_box_transform`
+/// letterbox = true        # GR00T N1.7 always letterboxes (its `letter_box_transform` is not read)
 /// shortest_edge = 256     # GR00T: `shortest_image_edge`
 /// crop_fraction = 0.95    # GR00T: `crop_fraction`
 /// mean = [0.5, 0.5, 0.5]  # the VLM image processor's (Qwen3-VL: 0.5)
@@ -181,8 +181,9 @@ pub enum ImagePipeline {
 pub struct ImageConfig {
     /// Which preprocessing (default GR00T N1.7's).
     pub pipeline: ImagePipeline,
-    /// `gr00t_n17`: pad to a square with black first (a non-square frame without it is an
-    /// error).
+    /// `gr00t_n17`: pad to a square with black first (default, as GR00T N1.7 does whatever
+    /// its `letter_box_transform` says; without it a non-square frame is an error naming this
+    /// setting).
     pub letterbox: bool,
     /// `gr00t_n17`: the shorter side after each resize (GR00T N1.7: 256).
     pub shortest_edge: usize,

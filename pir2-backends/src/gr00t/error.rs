@@ -123,6 +123,15 @@ pub enum Gr00tError {
         got: String,
     },
 
+    /// Writing the example checkpoint (`pir2 gr00t example`) failed.
+    #[error("example checkpoint `{path}`: {message}")]
+    Example {
+        /// The file or directory concerned.
+        path: std::path::PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+
     // ---- test support ----
     /// Writing a synthetic test checkpoint failed ([`super::testing`]).
     #[error("synthetic GR00T checkpoint: {0}")]

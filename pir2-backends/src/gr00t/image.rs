@@ -11,6 +11,18 @@
 //!    `⌊(side − crop)/2⌋`;
 //! 4. **resize** the shorter side back to `shortest_edge` with `INTER_AREA`.
 //!
+//! (NVIDIA/Isaac-GR00T at commit c5437fa66982969177d20d432eca5b4d966dfbbe,
+//! `gr00t/model/gr00t_n1d7/image_augmentations.py`: the eval `A.Compose` of
+//! `build_image_transformations_albumentations`, lines 480–487, with `LetterBoxPad`, lines
+//! 324–371, and `FractionalCenterCrop`, lines 257–321.)
+//!
+//! GR00T letterboxes **unconditionally**: both of its pipelines start with the pad (the
+//! torchvision one too, line 585), and the processor's `letter_box_transform` argument, which
+//! a checkpoint's `processor_config.json` carries (`false` by default), is stored and never
+//! read (`gr00t/model/gr00t_n1d7/processing_gr00t_n1d7.py`, lines 266–267 and 293, "stored but
+//! not actively used"). So pir2's `image.letterbox` is on by default whatever that file says,
+//! and a 640×480 camera gives GR00T's 256 × 256 image.
+//!
 //! The VLM's image processor (Qwen3-VL, via Cosmos-Reason2) then rescales by 1/255 and
 //! normalises with mean = std = 0.5 per channel; a 256 × 256 image is already a multiple of
 //! its 32-pixel merged patch and at its minimum pixel count, so it is not resized again.
@@ -19,11 +31,16 @@
 //! [`resize_area`] reproduces OpenCV's `INTER_AREA` for `u8` images: its box average for an
 //! integer shrink, exact cell weights for another shrink (both scales ≥ 1), OpenCV's area-mode bilinear weights in 11-bit fixed point
 //! when enlarging, with the rounding of its vectorised vertical pass. The golden test (`tests/gr00t_image.rs`) compares the whole pipeline with
-//! albumentations + OpenCV from PyPI on committed images, to within 1/255 per pixel.
+//! albumentations + OpenCV from PyPI on committed images, to within 1/255 per pixel, with and
+//! without the letterbox.
 //!
-//! Without the letterbox, a non-square frame would need the VLM processor's own resize to a
-//! multiple of its patch size (bicubic), which pir2 does not implement: such a frame is an
-//! error naming the setting.
+//! With `letterbox = false` (an opt-out GR00T does not have: what honouring
+//! `letter_box_transform = false` would mean, as LeRobot's port of the processor does), steps
+//! 2–4 run on the frame as it is, and a non-square frame stays non-square (640×480 → 340×256).
+//! [`gr00t_n17_transform`] computes that image; the backbone input
+//! ([`super::preprocess_image`]) refuses it, because the VLM processor would then resize it to
+//! multiples of its 32-pixel merged patch (bicubic) and the image would take another number of
+//! tokens than `prompt.image_tokens`, neither of which pir2 implements.
 
 use super::error::{Gr00tError, Result};
 
@@ -225,20 +242,18 @@ pub fn resize_area(img: &Rgb, h: usize, w: usize) -> Rgb {
 }
 
 /// GR00T N1.7's eval-time image transform (steps 1–4 of the module docs): the `u8` image its
-/// VLM processor receives.
+/// VLM processor receives. Without `letterbox_first`, steps 2–4 only: a non-square frame gives
+/// a non-square image (its shorter side `shortest_edge`).
 pub fn gr00t_n17_transform(
     img: &Rgb,
     letterbox_first: bool,
     shortest_edge: usize,
     crop_fraction: f64,
 ) -> Result<Rgb> {
-    if !letterbox_first && img.h != img.w {
+    if shortest_edge == 0 || !(crop_fraction > 0.0 && crop_fraction <= 1.0) {
         return Err(Gr00tError::Config(format!(
-            "image.letterbox = false with a non-square {}×{} camera frame: GR00T's VLM \
-             processor would then resize it to a multiple of its patch size, which pir2 does \
-             not implement; set image.letterbox = true (what the checkpoint's \
-             processor_config.json `letter_box_transform` should say) or use square frames",
-            img.w, img.h
+            "image.shortest_edge = {shortest_edge} must be > 0 and image.crop_fraction = \
+             {crop_fraction} in (0, 1]"
         )));
     }
     let square = if letterbox_first {
@@ -295,8 +310,15 @@ mod tests {
         assert!(big.data.iter().all(|&v| v == 77));
         let out = gr00t_n17_transform(&ramp(48, 64), true, 32, 0.95).unwrap();
         assert_eq!((out.h, out.w), (32, 32));
-        assert!(gr00t_n17_transform(&ramp(48, 64), false, 32, 0.95).is_err());
-        assert!(gr00t_n17_transform(&ramp(40, 40), false, 32, 0.95).is_ok());
+        // Without the letterbox a 4:3 frame stays 4:3 (shorter side 32).
+        let out = gr00t_n17_transform(&ramp(48, 64), false, 32, 0.95).unwrap();
+        assert_eq!((out.h, out.w), (32, 43));
+        // A square frame: the letterbox is the identity.
+        let sq = ramp(40, 40);
+        assert_eq!(
+            gr00t_n17_transform(&sq, false, 32, 0.95).unwrap(),
+            gr00t_n17_transform(&sq, true, 32, 0.95).unwrap()
+        );
     }
 
     #[test]

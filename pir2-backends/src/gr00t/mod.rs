@@ -44,6 +44,8 @@
 //! - `split`: GR00T's own ViT + LLM export glued in Rust (`split::SplitBackbone`:
 //!   patches, token embedding, image-token scatter, multimodal positions, deepstack);
 //! - `run`: `run_gr00t`, the library side of `pir2 run gr00t-xarm-xhand`;
+//! - `example` (feature `candle`): `write_example`, the seeded N1.7-shaped example checkpoint
+//!   of `pir2 gr00t example`, written in pure Rust;
 //! - `testing`: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 #[cfg(feature = "candle")]
@@ -59,6 +61,8 @@ pub mod config;
 pub mod contract;
 #[cfg(feature = "gr00t")]
 pub mod error;
+#[cfg(all(feature = "gr00t", feature = "candle"))]
+pub mod example;
 #[cfg(feature = "gr00t")]
 pub mod head;
 #[cfg(feature = "gr00t")]
@@ -89,6 +93,8 @@ pub use config::{
 };
 #[cfg(feature = "gr00t")]
 pub use error::{Gr00tError, Result};
+#[cfg(all(feature = "gr00t", feature = "candle"))]
+pub use example::{write_example, ExampleSummary};
 #[cfg(feature = "gr00t")]
 pub use head::{Gr00tActionHead, HeadDims, VlLayout};
 #[cfg(feature = "gr00t")]

@@ -44,6 +44,7 @@ use pir2_backends::gr00t::n17::Gr00tN17Head;
 use pir2_backends::gr00t::{EmbodimentConfig, Normalizer};
 use pir2_backends::train::{Episode, Progress, TrainConfig, TrainReport};
 use pir2_runtime::{DelayLaw, Recipe};
+use pir2_schedule::train::TrainSchedule;
 use pir2_sim::dataset::{check_selection, read_selected, FeatureSelection, FeatureStats};
 
 use super::Gr00tTrainOptions;
@@ -445,7 +446,7 @@ pub fn train(
         grad_clip: Some(1.0),
         ema: None,
         seed: o.seed,
-        schedule: emb.policy.trained.schedule(&recipe),
+        schedule: gr00t_schedule(emb.policy.trained.schedule(&recipe)),
         checkpoint_every: o.checkpoint_every,
         self_rollout: None,
         log_every: 10,
@@ -503,9 +504,34 @@ fn quantile(s: &FeatureStats, name: &str) -> Vec<f64> {
     s.quantiles[i].clone()
 }
 
+/// The draws of a GR00T head: the recipe's, with the flow baseline's shared `τ` drawn from
+/// GR00T N1.7's own law (`pir2_schedule::train::gr00t_n17_tau`, `τ = 0.999·(1 − B)`,
+/// `B ~ Beta(1.5, 1)`) instead of `U[0, 1]`, so a `trained = "flow"` head is trained as GR00T
+/// trains its head. The πR² and train-time-RTC draws are πR²'s.
+fn gr00t_schedule(s: TrainSchedule) -> TrainSchedule {
+    match s {
+        TrainSchedule::StandardFlow => TrainSchedule::Gr00tFlow,
+        other => other,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_flow_baseline_draws_gr00ts_tau_law() {
+        use pir2_runtime::Policy;
+        let r = Recipe::default();
+        assert_eq!(
+            gr00t_schedule(Policy::Flow.schedule(&r)),
+            TrainSchedule::Gr00tFlow
+        );
+        assert!(matches!(
+            gr00t_schedule(Policy::PiR2.schedule(&r)),
+            TrainSchedule::PiR2(_)
+        ));
+    }
 
     #[test]
     fn quantile_rows_are_found_by_name() {
