@@ -27,6 +27,36 @@ pub enum Gr00tCmd {
     /// One-NFE latency of a GR00T export's action head and backbone, and the delay `d` it
     /// implies.
     Bench(Gr00tBenchOptions),
+    /// A GR00T N1.7 checkpoint as Isaac-GR00T writes it (config.json, safetensors,
+    /// processor_config.json, statistics.json, embodiment_id.json) to the checkpoint layout
+    /// `pir2 run` and `pir2 gr00t train` read (docs/gr00t-import.md).
+    Import(Gr00tImportOptions),
+}
+
+/// Options of `pir2 gr00t import`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Gr00tImportOptions {
+    /// The GR00T N1.7 checkpoint directory (e.g. a download of nvidia/GR00T-N1.7-LIBERO's
+    /// `libero_10/`).
+    pub checkpoint: PathBuf,
+    /// Output directory; must not exist or be empty.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The embodiment (a key of processor_config.json's modality_configs); needed when the
+    /// checkpoint has several.
+    #[arg(long)]
+    pub embodiment_tag: Option<String>,
+    /// NVIDIA's ONNX export of this checkpoint (`export_onnx_n1d7.py --export-mode
+    /// full_pipeline --output-dir DIR`): its ViT and LLM graphs are imported, bfloat16 ones
+    /// rewritten to float32 for ONNX Runtime's CPU provider.
+    #[arg(long)]
+    pub backbone_onnx: Option<PathBuf>,
+    /// With --backbone-onnx: keep bfloat16 graphs as they are (for --ep cuda|tensorrt).
+    #[arg(long, requires = "backbone_onnx")]
+    pub keep_bf16: bool,
+    /// Control rate of the robot, Hz (GR00T's files do not record it).
+    #[arg(long, default_value_t = 25.0)]
+    pub control_hz: f64,
 }
 
 /// Options of `pir2 gr00t export`.
@@ -68,6 +98,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
         Gr00tCmd::Train(o) => imp::train(*o, crate::signals::stop_flag()),
         Gr00tCmd::Export(o) => imp::export(&o),
         Gr00tCmd::Bench(o) => imp::bench(&o),
+        Gr00tCmd::Import(o) => imp::import(&o),
     }
     #[cfg(not(feature = "gr00t"))]
     {
@@ -76,6 +107,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
             Gr00tCmd::Train(_) => "train",
             Gr00tCmd::Export(_) => "export",
             Gr00tCmd::Bench(_) => "bench",
+            Gr00tCmd::Import(_) => "import",
         };
         anyhow::bail!(
             "`pir2 gr00t {verb}` needs a pir2 built with feature `gr00t` (--features gr00t)"
@@ -90,7 +122,7 @@ mod imp {
 
     use anyhow::{Context, Result};
 
-    use super::{Gr00tBenchOptions, Gr00tExportOptions};
+    use super::{Gr00tBenchOptions, Gr00tExportOptions, Gr00tImportOptions};
     use crate::study::gr00t::{self, features, Gr00tFeaturesOptions, Gr00tTrainOptions};
 
     pub(super) fn train(mut o: Gr00tTrainOptions, stop: Arc<AtomicBool>) -> Result<()> {
@@ -184,6 +216,56 @@ mod imp {
             crate::bench::gr00t(&o.checkpoint, &o.task, &o.ep, o.seconds)
                 .with_context(|| format!("benchmarking {}", o.checkpoint.display()))?
         );
+        Ok(())
+    }
+
+    pub(super) fn import(o: &Gr00tImportOptions) -> Result<()> {
+        use pir2_backends::gr00t::import::{import_checkpoint, ImportOptions};
+        let s = import_checkpoint(
+            &o.checkpoint,
+            &o.out,
+            &ImportOptions {
+                embodiment_tag: o.embodiment_tag.clone(),
+                backbone_onnx: o.backbone_onnx.clone(),
+                keep_bf16: o.keep_bf16,
+                control_hz: o.control_hz,
+            },
+        )
+        .with_context(|| format!("importing {}", o.checkpoint.display()))?;
+        println!(
+            "wrote {} (embodiment `{}`, slot {}, H = {}, state {} / action {} values, \
+             [policy] trained = \"flow\"): {}",
+            s.out.display(),
+            s.embodiment_tag,
+            s.embodiment_id,
+            s.horizon,
+            s.state_dim,
+            s.action_dim,
+            s.files.join(", ")
+        );
+        for (file, r) in &s.converted {
+            println!(
+                "{file}: bfloat16 → float32 ({} tensors, {} type declarations, {} Cast/dtype \
+                 attributes; {} tensors in {})",
+                r.tensors,
+                r.types,
+                r.attributes,
+                r.external,
+                r.data_file
+                    .as_ref()
+                    .and_then(|p| p.file_name())
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| "the protobuf".into())
+            );
+        }
+        if s.missing.is_empty() {
+            println!("complete: `pir2 run gr00t-xarm-xhand --checkpoint {}` reads it", s.out.display());
+        } else {
+            println!("before `pir2 run`, add:");
+            for m in &s.missing {
+                println!("  {}: {}", m.file, m.how);
+            }
+        }
         Ok(())
     }
 }

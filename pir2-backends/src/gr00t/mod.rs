@@ -44,6 +44,11 @@
 //! - `split`: GR00T's own ViT + LLM export glued in Rust (`split::SplitBackbone`:
 //!   patches, token embedding, image-token scatter, multimodal positions, deepstack);
 //! - `run`: `run_gr00t`, the library side of `pir2 run gr00t-xarm-xhand`;
+//! - `import` (with `candle`): a GR00T N1.7 checkpoint as Isaac-GR00T writes it
+//!   (`config.json`, safetensors, `processor_config.json`, `statistics.json`,
+//!   `embodiment_id.json`) to this layout (`pir2 gr00t import`, `docs/gr00t-import.md`);
+//! - `onnx_f32`: NVIDIA's bfloat16 ONNX exports rewritten to float32 on the protobuf, for
+//!   ONNX Runtime's CPU provider;
 //! - `testing`: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 #[cfg(feature = "candle")]
@@ -63,6 +68,10 @@ pub mod error;
 pub mod head;
 #[cfg(feature = "gr00t")]
 pub mod image;
+#[cfg(all(feature = "gr00t", feature = "candle"))]
+pub mod import;
+#[cfg(feature = "gr00t")]
+pub mod onnx_f32;
 #[cfg(feature = "gr00t")]
 pub mod prompt;
 #[cfg(feature = "gr00t")]
