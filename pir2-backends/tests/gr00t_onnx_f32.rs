@@ -56,11 +56,7 @@ fn write_graph(py: &Path, dir: &Path, w: &[f32], b: &[f32], mode: &str) -> PathB
         .arg(mode)
         .output()
         .unwrap();
-    assert!(
-        o.status.success(),
-        "{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     out
 }
 

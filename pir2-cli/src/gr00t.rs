@@ -259,7 +259,10 @@ mod imp {
             );
         }
         if s.missing.is_empty() {
-            println!("complete: `pir2 run gr00t-xarm-xhand --checkpoint {}` reads it", s.out.display());
+            println!(
+                "complete: `pir2 run gr00t-xarm-xhand --checkpoint {}` reads it",
+                s.out.display()
+            );
         } else {
             println!("before `pir2 run`, add:");
             for m in &s.missing {

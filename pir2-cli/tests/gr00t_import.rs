@@ -169,10 +169,17 @@ fn tensors(cfg: &Gr00tN17Config, dtype: DType) -> Vec<(String, Tensor)> {
         .map(|(n, s)| (format!("{PREFIX}{n}"), s))
         .collect();
     shapes.push((EMBED_TOKENS_KEY.to_string(), vec![20, D_VL]));
-    shapes.push(("backbone.model.visual.patch_embed.proj.weight".into(), vec![4, 6]));
+    shapes.push((
+        "backbone.model.visual.patch_embed.proj.weight".into(),
+        vec![4, 6],
+    ));
     for (name, shape) in shapes {
         let n: usize = shape.iter().product();
-        let fan_in = if shape.len() >= 2 { shape[shape.len() - 2] } else { 1 };
+        let fan_in = if shape.len() >= 2 {
+            shape[shape.len() - 2]
+        } else {
+            1
+        };
         let s = 1.0 / (fan_in as f32).sqrt();
         let v: Vec<f32> = (0..n).map(|_| rng.uniform_range(-s, s)).collect();
         let t = Tensor::from_vec(v, shape, &Device::Cpu)
@@ -296,7 +303,10 @@ fn a_gr00t_checkpoint_imports_and_its_head_runs_as_the_original() {
             assert!(out.join(f).is_file(), "{f} missing: {text}");
         }
         // What it could not write is named, with how to add it.
-        assert!(text.contains("tokenizer.json") && text.contains("export_onnx_n1d7.py"), "{text}");
+        assert!(
+            text.contains("tokenizer.json") && text.contains("export_onnx_n1d7.py"),
+            "{text}"
+        );
 
         // The embodiment, mapped from GR00T's files.
         let emb = EmbodimentConfig::load(&out.join("embodiment.toml")).unwrap();
@@ -304,11 +314,18 @@ fn a_gr00t_checkpoint_imports_and_its_head_runs_as_the_original() {
         assert_eq!(emb.embodiment_id, 10);
         assert_eq!(emb.horizon, H);
         assert_eq!(emb.n_obs, 1);
-        let st: Vec<(&str, usize, Norm)> =
-            emb.state.iter().map(|g| (g.name.as_str(), g.dim, g.norm)).collect();
+        let st: Vec<(&str, usize, Norm)> = emb
+            .state
+            .iter()
+            .map(|g| (g.name.as_str(), g.dim, g.norm))
+            .collect();
         assert_eq!(
             st,
-            [("arm", 3, Norm::Q01Q99), ("wrist", 2, Norm::SinCos), ("force", 2, Norm::MeanStd)]
+            [
+                ("arm", 3, Norm::Q01Q99),
+                ("wrist", 2, Norm::SinCos),
+                ("force", 2, Norm::MeanStd)
+            ]
         );
         let arm = &emb.action[0];
         assert!(arm.relative && arm.format == GroupFormat::Default && arm.dim == 3);
@@ -339,7 +356,10 @@ fn a_gr00t_checkpoint_imports_and_its_head_runs_as_the_original() {
         // A non-empty --out is refused.
         let (o, text) = import(&ck, &out, &[]);
         assert!(!o.status.success());
-        assert!(text.contains("--out") && text.contains("not empty"), "{text}");
+        assert!(
+            text.contains("--out") && text.contains("not empty"),
+            "{text}"
+        );
     }
 }
 
@@ -391,7 +411,7 @@ fn bad_or_partial_checkpoints_are_one_error_naming_file_and_field() {
         "shard-missing",
         &[],
         |ck| std::fs::remove_file(ck.join("model-00002-of-00002.safetensors")).unwrap(),
-        "model-00002-of-00002.safetensors",
+        "model.safetensors.index.json",
         "model-00002-of-00002.safetensors",
     );
     // A missing field.
@@ -416,7 +436,10 @@ fn bad_or_partial_checkpoints_are_one_error_naming_file_and_field() {
         &[],
         |ck| {
             edit(&ck.join("statistics.json"), |v| {
-                v[TAG]["state"]["arm"].as_object_mut().unwrap().remove("q99");
+                v[TAG]["state"]["arm"]
+                    .as_object_mut()
+                    .unwrap()
+                    .remove("q99");
             })
         },
         "statistics.json",
@@ -431,7 +454,10 @@ fn bad_or_partial_checkpoints_are_one_error_naming_file_and_field() {
             let cfg = Gr00tN17Config::from_json_file(&ck.join("config.json")).unwrap();
             let mut map: HashMap<String, Tensor> = tensors(&cfg, DType::F32).into_iter().collect();
             let name = format!("{PREFIX}action_decoder.layer2.W");
-            map.insert(name, Tensor::zeros((12, 12, 7), DType::F32, &Device::Cpu).unwrap());
+            map.insert(
+                name,
+                Tensor::zeros((12, 12, 7), DType::F32, &Device::Cpu).unwrap(),
+            );
             candle_core::safetensors::save(&map, ck.join("model.safetensors")).unwrap();
         },
         "model.safetensors",
@@ -488,7 +514,11 @@ fn bad_or_partial_checkpoints_are_one_error_naming_file_and_field() {
         d,
         "n16",
         &[],
-        |ck| edit(&ck.join("config.json"), |v| v["model_type"] = json!("Gr00tN1d6")),
+        |ck| {
+            edit(&ck.join("config.json"), |v| {
+                v["model_type"] = json!("Gr00tN1d6")
+            })
+        },
         "config.json",
         "model_type",
     );

@@ -281,7 +281,10 @@ impl<'a> At<'a> {
 fn short(v: &Value) -> String {
     let s = v.to_string();
     if s.len() > 60 {
-        format!("{}…", &s[..s.char_indices().nth(57).map_or(s.len(), |(i, _)| i)])
+        format!(
+            "{}…",
+            &s[..s.char_indices().nth(57).map_or(s.len(), |(i, _)| i)]
+        )
     } else {
         s
     }
@@ -358,6 +361,12 @@ fn from_head(e: crate::error::Error, fallback: &Path) -> Gr00tError {
     }
 }
 
+/// `(rep, type, format, state_key)` of an `ActionConfig`, enum names as GR00T writes them.
+type ActionCfg = (String, String, String, Option<String>);
+
+/// What the write step produced: converted graphs and the files still missing.
+type Written = (Vec<(String, Bf16Report)>, Vec<MissingFile>);
+
 /// One modality of one embodiment (`ModalityConfig`).
 struct Modality {
     delta_indices: Vec<i64>,
@@ -365,7 +374,7 @@ struct Modality {
     sin_cos: Vec<String>,
     mean_std: Vec<String>,
     /// `(rep, type, format, state_key)` per key, enum names as GR00T writes them.
-    actions: Option<Vec<(String, String, String, Option<String>)>>,
+    actions: Option<Vec<ActionCfg>>,
 }
 
 fn modality(at: &At<'_>) -> Result<Modality> {
@@ -410,7 +419,10 @@ fn modality(at: &At<'_>) -> Result<Modality> {
             }
             let mut v = Vec::new();
             for it in items {
-                it.only(&["rep", "type", "format", "state_key"], "GR00T's ActionConfig")?;
+                it.only(
+                    &["rep", "type", "format", "state_key"],
+                    "GR00T's ActionConfig",
+                )?;
                 let state_key = match it.opt("state_key")? {
                     None => None,
                     Some(s) => Some(s.str()?.to_string()),
@@ -680,7 +692,10 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
             video.delta_indices
         )));
     }
-    if let Some(x) = mc.opt("video")?.and_then(|v| v.opt("sin_cos_embedding_keys").ok()?) {
+    if let Some(x) = mc
+        .opt("video")?
+        .and_then(|v| v.opt("sin_cos_embedding_keys").ok()?)
+    {
         return Err(x.err("is set for video; it is a state encoding"));
     }
     if !action.sin_cos.is_empty() {
@@ -791,7 +806,9 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
                     return Err(err(
                         &processor_path,
                         field("rep"),
-                        format!("is `{other}`; GR00T's ActionRepresentation is ABSOLUTE, RELATIVE or DELTA"),
+                        format!(
+                        "is `{other}`; GR00T's ActionRepresentation is ABSOLUTE, RELATIVE or DELTA"
+                    ),
                     ))
                 }
             }
@@ -927,6 +944,21 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
             format!("is missing, and so is {INDEX_FILE} (the sharded form)"),
         ));
     };
+    if weights_src.ends_with(INDEX_FILE) {
+        // Every shard the index names must be there (one error naming the first missing).
+        let v = read_json(&weights_src)?;
+        let map = At::root(&v, &weights_src, "");
+        for (name, file) in map.key("weight_map")?.obj()? {
+            let f = file.as_str().unwrap_or_default();
+            if !ckpt.join(f).is_file() {
+                return Err(err(
+                    &weights_src,
+                    format!("weight_map.{name}"),
+                    format!("names the shard `{f}`, which is not in the directory"),
+                ));
+            }
+        }
+    }
     let index = TensorIndex::open(&weights_src, PREFIX).map_err(|e| from_head(e, ckpt))?;
     if index.names().next().is_none() {
         return Err(err(
@@ -1006,7 +1038,11 @@ fn write_safetensors(out: &Path, tensors: &[(&TensorIndex, String)]) -> Result<(
             })?;
         let copied = std::io::copy(&mut src.take(end - start), &mut f).map_err(io)?;
         if copied != end - start {
-            return Err(err(&file, "(tensor data)", "is shorter than its header says"));
+            return Err(err(
+                &file,
+                "(tensor data)",
+                "is shorter than its header says",
+            ));
         }
     }
     f.flush().map_err(io)?;
@@ -1068,11 +1104,12 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
             match (vit, llm) {
                 (Some(v), Some(l)) => Some((v, l)),
                 (v, l) => {
-                    let missing: Vec<&str> = [("vit_{fp32,bf16}.onnx", v), ("llm_{bf16,fp32}.onnx", l)]
-                        .into_iter()
-                        .filter(|(_, f)| f.is_none())
-                        .map(|(n, _)| n)
-                        .collect();
+                    let missing: Vec<&str> =
+                        [("vit_{fp32,bf16}.onnx", v), ("llm_{bf16,fp32}.onnx", l)]
+                            .into_iter()
+                            .filter(|(_, f)| f.is_none())
+                            .map(|(n, _)| n)
+                            .collect();
                     return Err(err(
                         d,
                         missing.join(" and "),
@@ -1122,7 +1159,7 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
         std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
     }
     std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
-    let written = (|| -> Result<(Vec<(String, Bf16Report)>, Vec<MissingFile>)> {
+    let written = (|| -> Result<Written> {
         export
             .write(&tmp, super::n17::export::WeightStorage::Auto)
             .map_err(|e| Gr00tError::Candle {

@@ -260,7 +260,7 @@ impl Rewriter {
             let rewritten = match (f.num, f.wire) {
                 (1, Wire::Len(b)) => Some(self.node(b)?),
                 (5, Wire::Len(b)) => Some(self.tensor(b, "initializer")?),
-                (11 | 12 | 13, Wire::Len(b)) => Some(self.value_info(b)?),
+                (11..=13, Wire::Len(b)) => Some(self.value_info(b)?),
                 (15, Wire::Len(b)) => Some(self.sparse(b)?),
                 _ => None,
             };
@@ -315,7 +315,9 @@ impl Rewriter {
         let mut out = Vec::with_capacity(buf.len());
         for f in fs {
             let rewritten = match (f.num, f.wire) {
-                (3, Wire::Varint(BFLOAT16)) if self.convert && (name == "to" || name == "dtype") => {
+                (3, Wire::Varint(BFLOAT16))
+                    if self.convert && (name == "to" || name == "dtype") =>
+                {
                     self.report.attributes += 1;
                     put_field(&mut out, 3, Wire::Varint(FLOAT));
                     continue;
@@ -410,8 +412,8 @@ impl Rewriter {
     /// input file's directory).
     fn read_external(&self, what: &str, entries: &[(String, String)]) -> Result<Vec<u8>> {
         let get = |k: &str| entries.iter().find(|(key, _)| key == k).map(|(_, v)| v);
-        let location = get("location")
-            .ok_or_else(|| self.err(what, "external data without a `location`"))?;
+        let location =
+            get("location").ok_or_else(|| self.err(what, "external data without a `location`"))?;
         let num = |k: &str| -> Result<Option<u64>> {
             get(k)
                 .map(|v| {
@@ -541,7 +543,11 @@ impl Rewriter {
             }
         };
         let count: u64 = dims.iter().product();
-        let width = if bf16 { Some(4) } else { element_width(data_type) };
+        let width = if bf16 {
+            Some(4)
+        } else {
+            element_width(data_type)
+        };
         if let Some(w) = width {
             if count * w != bytes.len() as u64 {
                 return Err(self.err(
