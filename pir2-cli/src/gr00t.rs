@@ -31,6 +31,10 @@ pub enum Gr00tCmd {
     /// N1.7's shapes at tiny widths: action head, stand-in backbone, tokenizer) that
     /// `pir2 run gr00t-xarm-xhand --emulate` runs; no download, no Python.
     Example(Gr00tExampleOptions),
+    /// A GR00T N1.7 checkpoint as Isaac-GR00T writes it (config.json, safetensors,
+    /// processor_config.json, statistics.json, embodiment_id.json) to the checkpoint layout
+    /// `pir2 run` and `pir2 gr00t train` read (docs/gr00t-import.md).
+    Import(Gr00tImportOptions),
 }
 
 /// Options of `pir2 gr00t example`.
@@ -41,6 +45,32 @@ pub struct Gr00tExampleOptions {
     /// Seed of the random weights (the same seed writes the same files).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+}
+
+/// Options of `pir2 gr00t import`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Gr00tImportOptions {
+    /// The GR00T N1.7 checkpoint directory (e.g. a download of nvidia/GR00T-N1.7-LIBERO's
+    /// `libero_10/`).
+    pub checkpoint: PathBuf,
+    /// Output directory; must not exist or be empty.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The embodiment (a key of processor_config.json's modality_configs); needed when the
+    /// checkpoint has several.
+    #[arg(long)]
+    pub embodiment_tag: Option<String>,
+    /// NVIDIA's ONNX export of this checkpoint (`export_onnx_n1d7.py --export-mode
+    /// full_pipeline --output-dir DIR`): its ViT and LLM graphs are imported, bfloat16 ones
+    /// rewritten to float32 for ONNX Runtime's CPU provider.
+    #[arg(long)]
+    pub backbone_onnx: Option<PathBuf>,
+    /// With --backbone-onnx: keep bfloat16 graphs as they are (for --ep cuda|tensorrt).
+    #[arg(long, requires = "backbone_onnx")]
+    pub keep_bf16: bool,
+    /// Control rate of the robot, Hz (GR00T's files do not record it).
+    #[arg(long, default_value_t = 25.0)]
+    pub control_hz: f64,
 }
 
 /// Options of `pir2 gr00t export`.
@@ -83,6 +113,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
         Gr00tCmd::Export(o) => imp::export(&o),
         Gr00tCmd::Bench(o) => imp::bench(&o),
         Gr00tCmd::Example(o) => imp::example(&o),
+        Gr00tCmd::Import(o) => imp::import(&o),
     }
     #[cfg(not(feature = "gr00t"))]
     {
@@ -92,6 +123,7 @@ pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
             Gr00tCmd::Export(_) => "export",
             Gr00tCmd::Bench(_) => "bench",
             Gr00tCmd::Example(_) => "example",
+            Gr00tCmd::Import(_) => "import",
         };
         anyhow::bail!(
             "`pir2 gr00t {verb}` needs a pir2 built with feature `gr00t` (--features gr00t)"
@@ -106,7 +138,7 @@ mod imp {
 
     use anyhow::{Context, Result};
 
-    use super::{Gr00tBenchOptions, Gr00tExampleOptions, Gr00tExportOptions};
+    use super::{Gr00tBenchOptions, Gr00tExampleOptions, Gr00tExportOptions, Gr00tImportOptions};
     use crate::study::gr00t::{self, features, Gr00tFeaturesOptions, Gr00tTrainOptions};
 
     pub(super) fn train(mut o: Gr00tTrainOptions, stop: Arc<AtomicBool>) -> Result<()> {
@@ -216,6 +248,59 @@ mod imp {
              the book\" --emulate --seconds 2",
             s.dir.display()
         );
+        Ok(())
+    }
+
+    pub(super) fn import(o: &Gr00tImportOptions) -> Result<()> {
+        use pir2_backends::gr00t::import::{import_checkpoint, ImportOptions};
+        let s = import_checkpoint(
+            &o.checkpoint,
+            &o.out,
+            &ImportOptions {
+                embodiment_tag: o.embodiment_tag.clone(),
+                backbone_onnx: o.backbone_onnx.clone(),
+                keep_bf16: o.keep_bf16,
+                control_hz: o.control_hz,
+            },
+        )
+        .with_context(|| format!("importing {}", o.checkpoint.display()))?;
+        println!(
+            "wrote {} (embodiment `{}`, slot {}, H = {}, state {} / action {} values, \
+             [policy] trained = \"flow\"): {}",
+            s.out.display(),
+            s.embodiment_tag,
+            s.embodiment_id,
+            s.horizon,
+            s.state_dim,
+            s.action_dim,
+            s.files.join(", ")
+        );
+        for (file, r) in &s.converted {
+            println!(
+                "{file}: bfloat16 → float32 ({} tensors, {} type declarations, {} Cast/dtype \
+                 attributes; {} tensors in {})",
+                r.tensors,
+                r.types,
+                r.attributes,
+                r.external,
+                r.data_file
+                    .as_ref()
+                    .and_then(|p| p.file_name())
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| "the protobuf".into())
+            );
+        }
+        if s.missing.is_empty() {
+            println!(
+                "complete: `pir2 run gr00t-xarm-xhand --checkpoint {}` reads it",
+                s.out.display()
+            );
+        } else {
+            println!("before `pir2 run`, add:");
+            for m in &s.missing {
+                println!("  {}: {}", m.file, m.how);
+            }
+        }
         Ok(())
     }
 }

@@ -66,6 +66,29 @@ pub enum Gr00tError {
         problem: String,
     },
 
+    /// A GR00T checkpoint being imported (`gr00t::import`) has a file or a field pir2
+    /// cannot map: the file, the field (a JSON path, or a tensor name) and why.
+    #[error("import: `{path}`: `{field}` {problem}")]
+    Import {
+        /// The file of the GR00T checkpoint (or the output directory).
+        path: PathBuf,
+        /// The field (`processor_kwargs.modality_configs.TAG.action.delta_indices`), the
+        /// tensor name, or the file's own name when the file is missing.
+        field: String,
+        /// What is wrong and, where there is one, the way out.
+        problem: String,
+    },
+    /// An ONNX file could not be rewritten from bfloat16 to float32 (`gr00t::onnx_f32`).
+    #[error("ONNX model `{path}`: {what}: {problem}")]
+    OnnxRewrite {
+        /// The ONNX file (or its external-data file).
+        path: PathBuf,
+        /// The message or tensor concerned, e.g. "initializer `w`".
+        what: String,
+        /// What is wrong.
+        problem: String,
+    },
+
     // ---- ONNX contract ----
     /// An ONNX file does not meet the GR00T export contract (see `docs/gr00t-contract.md`).
     #[error("ONNX model `{path}` breaks the GR00T contract at `{tensor}`: {problem}")]

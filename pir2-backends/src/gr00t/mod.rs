@@ -46,6 +46,11 @@
 //! - `run`: `run_gr00t`, the library side of `pir2 run gr00t-xarm-xhand`;
 //! - `example` (feature `candle`): `write_example`, the seeded N1.7-shaped example checkpoint
 //!   of `pir2 gr00t example`, written in pure Rust;
+//! - `import` (with `candle`): a GR00T N1.7 checkpoint as Isaac-GR00T writes it
+//!   (`config.json`, safetensors, `processor_config.json`, `statistics.json`,
+//!   `embodiment_id.json`) to this layout (`pir2 gr00t import`, `docs/gr00t-import.md`);
+//! - `onnx_f32`: NVIDIA's bfloat16 ONNX exports rewritten to float32 on the protobuf, for
+//!   ONNX Runtime's CPU provider;
 //! - `testing`: a tiny synthetic checkpoint and camera for tests and emulated runs.
 
 #[cfg(feature = "candle")]
@@ -67,6 +72,10 @@ pub mod example;
 pub mod head;
 #[cfg(feature = "gr00t")]
 pub mod image;
+#[cfg(all(feature = "gr00t", feature = "candle"))]
+pub mod import;
+#[cfg(feature = "gr00t")]
+pub mod onnx_f32;
 #[cfg(feature = "gr00t")]
 pub mod prompt;
 #[cfg(feature = "gr00t")]

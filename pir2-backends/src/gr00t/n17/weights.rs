@@ -196,6 +196,20 @@ impl TensorIndex {
         self.entries.get(name).map(|e| e.shape.as_slice())
     }
 
+    /// Where the bytes of `name` live: `(file, safetensors dtype, shape, start, end)`, the
+    /// byte range absolute in `file` (for copying a tensor without decoding it).
+    pub fn location(&self, name: &str) -> Option<(&Path, &str, &[usize], u64, u64)> {
+        self.entries.get(name).map(|e| {
+            (
+                e.file.as_path(),
+                e.dtype.as_str(),
+                e.shape.as_slice(),
+                e.start,
+                e.end,
+            )
+        })
+    }
+
     /// Whether `name` is present.
     pub fn contains(&self, name: &str) -> bool {
         self.entries.contains_key(name)

@@ -296,7 +296,7 @@ pub fn extract(
         None,
         &OrtOptions {
             intra_threads: o.threads.max(1),
-            ..OrtOptions::default()
+            ..o.ep.ort()?
         },
     )
     .with_context(|| format!("loading the backbone of {}", o.checkpoint.display()))?;

@@ -146,6 +146,10 @@ pub struct Gr00tFeaturesOptions {
     /// ONNX Runtime intra-op threads of the backbone.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// Where ONNX Runtime runs the backbone graphs (a bfloat16 LLM graph needs `cuda` or
+    /// `tensorrt`, or a float32 copy: `pir2 gr00t import --backbone-onnx`).
+    #[command(flatten)]
+    pub ep: crate::ep::EpOptions,
     /// Stop flag (Ctrl-C): the rows written so far are kept for `--resume`.
     #[arg(skip)]
     pub stop: Option<Arc<AtomicBool>>,
@@ -166,6 +170,7 @@ impl Gr00tFeaturesOptions {
             overwrite: false,
             tolerance_s: DEFAULT_TOLERANCE_S,
             threads: 1,
+            ep: crate::ep::EpOptions::default(),
             stop: None,
             stop_after: None,
         }
