@@ -1,6 +1,10 @@
-//! The backends' error type: one sectioned enum and a [`Result`] alias.
+//! The backends' error type: one sectioned enum (configuration, shapes and tensors, training,
+//! files, ONNX export, the native backends) and a [`Result`] alias.
 
+use std::fmt::Debug;
 use std::path::PathBuf;
+
+use pir2_runtime::ShapeMismatch;
 
 /// Errors of model construction, checkpoints, inference and training.
 #[derive(Debug, thiserror::Error)]
@@ -29,16 +33,9 @@ pub enum Error {
     Schedule(#[from] pir2_schedule::Error),
 
     // ---- shapes and tensors ----
-    /// An input slice had the wrong length.
-    #[error("shape mismatch for `{what}`: expected {expected}, got {got}")]
-    Shape {
-        /// The tensor or slice.
-        what: String,
-        /// Expected length/shape.
-        expected: String,
-        /// Received length/shape.
-        got: String,
-    },
+    /// An input slice had the wrong length (the runtime's payload, handed on unchanged).
+    #[error(transparent)]
+    Shape(#[from] ShapeMismatch),
     /// A checkpoint lacks a tensor the model needs.
     #[error("checkpoint {path}: missing tensor `{name}`")]
     MissingTensor {
@@ -113,18 +110,121 @@ pub enum Error {
         message: String,
     },
 
-    // ---- export and native backends ----
-    /// ONNX export failed (names the model and the weight or option).
-    #[error(transparent)]
-    Export(#[from] crate::export::ExportError),
-    /// The ONNX Runtime backend could not load its library or a model.
+    // ---- ONNX export ([`crate::export`]) ----
+    /// A weight the exporter needs is missing from the checkpoint.
+    #[error("ONNX export of {model}: weight `{name}` is missing")]
+    MissingWeight {
+        /// The model kind.
+        model: &'static str,
+        /// The weight's name.
+        name: String,
+    },
+    /// A weight has the wrong shape.
+    #[error("ONNX export of {model}: weight `{name}` has shape {got:?}, expected {expected:?}")]
+    WeightShape {
+        /// The model kind.
+        model: &'static str,
+        /// The weight's name.
+        name: String,
+        /// Expected shape.
+        expected: Vec<usize>,
+        /// Shape found.
+        got: Vec<usize>,
+    },
+    /// The model's configuration cannot be expressed in ONNX (e.g. an unsupported option).
+    #[error("ONNX export of {model}: {message}")]
+    Unsupported {
+        /// The model kind.
+        model: &'static str,
+        /// What is not supported.
+        message: String,
+    },
+    /// Writing an ONNX file failed.
+    #[error("cannot write ONNX file {path}: {source}")]
+    OnnxWrite {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+
+    // ---- ONNX Runtime backend ([`crate::ort`], feature `ort`) ----
+    /// The ONNX Runtime shared library could not be loaded.
     #[cfg(feature = "ort")]
-    #[error(transparent)]
-    Ort(#[from] crate::ort::OrtError),
-    /// The libtorch backend could not load, trace or save a module.
+    #[error(
+        "cannot load ONNX Runtime from `{path}` (expected version {expected}; set ORT_DYLIB_PATH, \
+         e.g. `source .native/env.sh` after scripts/setup-native.sh): {reason}"
+    )]
+    OrtLoad {
+        /// The path tried.
+        path: PathBuf,
+        /// The expected version.
+        expected: &'static str,
+        /// Why it failed.
+        reason: String,
+    },
+    /// The ONNX Runtime shared library has the wrong version.
+    #[cfg(feature = "ort")]
+    #[error("ONNX Runtime at `{path}` is version {found}, expected {expected}")]
+    OrtVersion {
+        /// The library loaded.
+        path: PathBuf,
+        /// Its version string.
+        found: String,
+        /// The expected version.
+        expected: &'static str,
+    },
+    /// ONNX Runtime refused to create a session (bad file, unsupported operator, …).
+    #[cfg(feature = "ort")]
+    #[error("ONNX Runtime could not load the model `{path}`: {message}")]
+    OrtSession {
+        /// The model file (or `<memory>`).
+        path: PathBuf,
+        /// ONNX Runtime's message.
+        message: String,
+    },
+    /// The execution provider asked for is not in the loaded library or cannot start.
+    #[cfg(feature = "ort")]
+    #[error("ONNX Runtime {version} at `{path}` cannot run on {provider}: {reason}")]
+    OrtProvider {
+        /// ONNX Runtime's name of the provider.
+        provider: &'static str,
+        /// The library loaded.
+        path: PathBuf,
+        /// Its version.
+        version: String,
+        /// Why (what the library offers instead, or ONNX Runtime's message).
+        reason: String,
+    },
+    /// The model does not follow the graph contract ([`crate::export::contract`]).
+    #[cfg(feature = "ort")]
+    #[error("ONNX model `{path}` does not follow the pir2 contract: {message}")]
+    OrtContract {
+        /// The model file (or `<memory>`).
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+
+    // ---- libtorch backend ([`crate::tch`], feature `tch`) ----
+    /// The TorchScript file could not be loaded.
     #[cfg(feature = "tch")]
-    #[error(transparent)]
-    Tch(#[from] crate::tch::TchError),
+    #[error("libtorch could not load the TorchScript module `{path}`: {message}")]
+    TchLoad {
+        /// The file.
+        path: PathBuf,
+        /// libtorch's message.
+        message: String,
+    },
+    /// Tracing a closure into a module, or saving it, failed.
+    #[cfg(feature = "tch")]
+    #[error("libtorch could not trace/save the module `{path}`: {message}")]
+    TchTrace {
+        /// The destination file.
+        path: PathBuf,
+        /// libtorch's message.
+        message: String,
+    },
 
     // ---- backend / training ----
     /// The candle backend failed.
@@ -148,17 +248,9 @@ pub enum Error {
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 impl Error {
-    /// Convenience constructor for [`Error::Shape`].
-    pub fn shape(
-        what: impl Into<String>,
-        expected: impl std::fmt::Debug,
-        got: impl std::fmt::Debug,
-    ) -> Self {
-        Error::Shape {
-            what: what.into(),
-            expected: format!("{expected:?}"),
-            got: format!("{got:?}"),
-        }
+    /// [`Error::Shape`] of [`ShapeMismatch::new`].
+    pub fn shape(what: impl Into<String>, expected: impl Debug, got: impl Debug) -> Self {
+        ShapeMismatch::new(what, expected, got).into()
     }
     /// Convenience constructor for [`Error::Io`].
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
@@ -179,15 +271,7 @@ impl Error {
 impl From<Error> for pir2_runtime::Error {
     fn from(e: Error) -> Self {
         match e {
-            Error::Shape {
-                what,
-                expected,
-                got,
-            } => pir2_runtime::Error::Shape {
-                what,
-                expected,
-                got,
-            },
+            Error::Shape(s) => pir2_runtime::Error::Shape(s),
             Error::Schedule(s) => pir2_runtime::Error::Schedule(s),
             other => pir2_runtime::Error::Model(other.to_string()),
         }

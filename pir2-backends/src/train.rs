@@ -28,7 +28,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use pir2_runtime::model::{ModelInput, SlowInput};
 use pir2_schedule::train::{Draw, PiR2Draws, TrainSchedule};
 use pir2_schedule::Rng;
@@ -41,12 +41,16 @@ use crate::error::{Error, Result};
 mod batcher;
 mod data;
 mod optim;
+mod run;
 mod state;
 
 pub(crate) use batcher::Batcher;
 pub(crate) use data::check_dataset;
 pub use data::{compute_stats, Dataset, Episode};
 pub(crate) use optim::{clip_grad_store, clip_grads, AdamW};
+pub(crate) use run::{
+    backward_to_host, finish, masked_mse, run_controls, step_dir, LossLog, RunControl,
+};
 pub(crate) use state::{latest_step_checkpoint, remove_interrupted, State, INTERRUPTED_PREFIX};
 
 // ---------------------------------------------------------------- config
@@ -219,14 +223,11 @@ pub const TRAIN_TENSORS_FILE: &str = "train_state.safetensors";
 /// Builder and runner of one training run.
 pub struct Trainer<'a> {
     cfg: TrainConfig,
-    progress: Option<ProgressFn<'a>>,
+    ctl: RunControl<'a>,
     validate: Option<ValidateFn<'a>>,
     out_dir: Option<PathBuf>,
     log: Option<Box<dyn Write + 'a>>,
-    resume: bool,
     fused: bool,
-    stop_after: Option<usize>,
-    stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     later_ties: bool,
 }
 
@@ -235,7 +236,7 @@ impl std::fmt::Debug for Trainer<'_> {
         f.debug_struct("Trainer")
             .field("cfg", &self.cfg)
             .field("out_dir", &self.out_dir)
-            .field("resume", &self.resume)
+            .field("resume", &self.ctl.resume)
             .field("fused", &self.fused)
             .finish_non_exhaustive()
     }
@@ -246,22 +247,15 @@ impl<'a> Trainer<'a> {
     pub fn new(cfg: TrainConfig) -> Self {
         Self {
             cfg,
-            progress: None,
+            ctl: RunControl::default(),
             validate: None,
             out_dir: None,
             log: None,
-            resume: false,
             fused: true,
-            stop_after: None,
-            stop: None,
             later_ties: false,
         }
     }
-    /// Called after every step.
-    pub fn on_progress(mut self, f: impl FnMut(&Progress) + 'a) -> Self {
-        self.progress = Some(Box::new(f));
-        self
-    }
+    run_controls!();
     /// Closed-loop validation: returns a score, higher is better (e.g. success rate).
     pub fn validate(mut self, f: impl FnMut(&mut CandleModel, usize) -> f64 + 'a) -> Self {
         self.validate = Some(Box::new(f));
@@ -288,42 +282,6 @@ impl<'a> Trainer<'a> {
         self.log = Some(Box::new(w));
         self
     }
-    /// Continue from the last step checkpoint in [`Trainer::out_dir`] (default off).
-    ///
-    /// Every step checkpoint carries the full training state ([`TRAIN_STATE_FILE`],
-    /// [`TRAIN_TENSORS_FILE`]: raw weights, AdamW moments and step count, EMA, the best pick
-    /// so far, the batch generator's random state, the loss history), so a resumed run
-    /// continues **bit-identically** to an uninterrupted one with the same configuration,
-    /// data and thread count on the same kind of CPU. The matrix kernels are chosen at run
-    /// time by instruction set (AVX2 or AVX-512, say), so on another kind of CPU a resumed run
-    /// continues correctly but is not promised to continue bit for bit (measured: an AVX2
-    /// AMD EPYC and an AVX-512 Intel Xeon gave the same bits for the study's U-Net). The
-    /// model's own weights are replaced by the checkpoint's. With
-    /// no step checkpoint in the directory the run starts from scratch; a checkpoint written
-    /// with a different [`TrainConfig`] or model is an error naming the difference. Steps
-    /// after the checkpoint that an interrupted run had logged appear twice in `loss.jsonl`.
-    pub fn resume(mut self, on: bool) -> Self {
-        self.resume = on;
-        self
-    }
-    /// Return once `steps` steps are done (counted from step 0, not from a resume point), as
-    /// if the run had been interrupted there: no extra validation or checkpoint is made, the
-    /// model holds the raw weights of that step, and a later run with [`Trainer::resume`]
-    /// continues from the last step checkpoint written. For time-sliced training and tests.
-    pub fn stop_after(mut self, steps: usize) -> Self {
-        self.stop_after = Some(steps);
-        self
-    }
-    /// Stop at the next step once `flag` is set (e.g. by Ctrl-C): with an output directory
-    /// the full training state is written first as `interrupted-NNNNNN/` (unless a step
-    /// checkpoint of that step exists), then the run returns [`Error::Interrupted`]. A run
-    /// with [`Trainer::resume`] continues from the latest of the step checkpoints and that
-    /// state, bit-identically; `interrupted-*` directories are removed when the run finishes.
-    /// They are not step checkpoints: nothing picks or evaluates them.
-    pub fn stop_on(mut self, flag: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Self {
-        self.stop = Some(flag);
-        self
-    }
     /// Train a U-Net with the hand-written host kernels (default `true`; see
     /// [`CandleModel::set_fused`]); `false` uses candle's autograd graph. Other architectures
     /// always use candle's autograd.
@@ -343,59 +301,19 @@ impl<'a> Trainer<'a> {
         let cfg = self.cfg.clone();
         cfg.validate(spec.horizon)?;
         check_dataset(data, &spec)?;
-        if self.resume && self.out_dir.is_none() {
+        if self.ctl.resume && self.out_dir.is_none() {
             return Err(Error::config(
                 "train.resume",
                 "needs an output directory (Trainer::out_dir)",
             ));
         }
-        let resume_from = match (&self.out_dir, self.resume) {
-            (Some(d), true) => latest_step_checkpoint(d)?,
-            _ => None,
-        };
-        let mut file_log = match &self.out_dir {
-            Some(d) => {
-                // Fail now, not after hours of training, if earlier checkpoints are in the way.
-                if !self.resume {
-                    if let Ok(rd) = std::fs::read_dir(d) {
-                        for e in rd.flatten() {
-                            let name = e.file_name().to_string_lossy().into_owned();
-                            if name.starts_with("step-") || name.starts_with(INTERRUPTED_PREFIX) {
-                                return Err(Error::CheckpointExists(e.path()));
-                            }
-                        }
-                    }
-                }
-                std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
-                let p = d.join("loss.jsonl");
-                Some(std::io::BufWriter::new(
-                    std::fs::OpenOptions::new()
-                        .create(true)
-                        .append(true)
-                        .open(&p)
-                        .map_err(|e| Error::io(&p, e))?,
-                ))
-            }
+        let out_dir = self.out_dir.clone();
+        let resume_from = match &out_dir {
+            Some(d) => self.ctl.prepare(d)?,
             None => None,
         };
-        // `None` flushes the file log.
-        let mut log_line = |line: Option<String>, this: &mut Self| -> Result<()> {
-            let Some(line) = line else {
-                if let Some(w) = file_log.as_mut() {
-                    w.flush().map_err(|e| Error::io("loss.jsonl", e))?;
-                }
-                return Ok(());
-            };
-            if let Some(w) = file_log.as_mut() {
-                writeln!(w, "{line}").map_err(|e| Error::io("loss.jsonl", e))?;
-            }
-            if let Some(w) = this.log.as_mut() {
-                writeln!(w, "{line}").map_err(|e| Error::io("loss log", e))?;
-            }
-            Ok(())
-        };
+        let mut log = LossLog::open(out_dir.as_deref(), self.log.take())?;
 
-        let out_dir = self.out_dir.clone();
         let names: Vec<String> = model.vars().iter().map(|(n, _)| n.clone()).collect();
         let params = model.host_params()?;
         let mut st = State {
@@ -427,38 +345,22 @@ impl<'a> Trainer<'a> {
         let vars: Vec<_> = model.vars().iter().map(|(_, v)| v.clone()).collect();
 
         for step in st.step..cfg.steps {
-            if self.stop_after.is_some_and(|s| step >= s) {
-                break;
-            }
-            if self
-                .stop
-                .as_ref()
-                .is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
-            {
-                let mut resume_point = None;
-                if let (Some(d), true) = (out_dir.as_deref(), step > 0) {
-                    log_line(None, &mut self)?;
-                    let regular = d.join(format!("step-{step:06}"));
-                    if regular.join(TRAIN_STATE_FILE).is_file() {
-                        resume_point = Some(regular);
-                    } else {
-                        let p = d.join(format!("{INTERRUPTED_PREFIX}{step:06}"));
-                        if !p.exists() {
-                            if stale {
-                                model.set_host_params(&st.params)?;
-                            }
-                            st.save_step(
-                                |dir| model.write_files(dir),
-                                &p,
-                                batcher.rng.state(),
-                                &names,
-                                &cfg,
-                            )?;
-                        }
-                        resume_point = Some(p);
+            let stop = self
+                .ctl
+                .stop_before(step, out_dir.as_deref(), &mut log, |p| {
+                    if stale {
+                        model.set_host_params(&st.params)?;
                     }
-                }
-                return Err(Error::Interrupted { step, resume_point });
+                    st.save_step(
+                        |dir| model.write_files(dir),
+                        p,
+                        batcher.rng.state(),
+                        &names,
+                        &cfg,
+                    )
+                })?;
+            if stop {
+                break;
             }
             let lr = cfg.lr_at(step);
             batcher.fill(data)?;
@@ -494,28 +396,12 @@ impl<'a> Trainer<'a> {
                     (loss / denom as f64) as f32
                 }
                 None => {
-                    let (v, target, mask) = {
-                        let bt = &batcher;
-                        let input = bt.input();
-                        let v = model.forward_input(&input)?;
-                        let dev = Device::Cpu;
-                        let b = cfg.batch_size;
-                        let target = Tensor::from_slice(&bt.target, (b, spec.horizon, a), &dev)?;
-                        let mask = Tensor::from_slice(&bt.mask, (b, spec.horizon, 1), &dev)?;
-                        (v, target, mask)
-                    };
-                    let err = (v - target)?.sqr()?.broadcast_mul(&mask)?;
-                    let loss = (err.sum_all()? / (msum.max(1.0) as f64 * a as f64))?;
+                    let v = model.forward_input(&batcher.input())?;
+                    let loss = masked_mse(v, &batcher.target, &batcher.mask)?;
                     let lv = loss.to_scalar::<f32>()?;
                     if lv.is_finite() {
-                        let mut gs = loss.backward()?;
                         // Clip in candle as before the host optimiser existed: same bits.
-                        gn = Some(clip_grad_store(&mut gs, &vars, cfg.grad_clip)?);
-                        for (g, v) in grads.iter_mut().zip(&vars) {
-                            if let Some(t) = gs.get(v.as_tensor()) {
-                                g.copy_from_slice(&t.flatten_all()?.to_vec1::<f32>()?);
-                            }
-                        }
+                        gn = Some(backward_to_host(&loss, &vars, cfg.grad_clip, &mut grads)?);
                     }
                     lv
                 }
@@ -547,27 +433,18 @@ impl<'a> Trainer<'a> {
                 }
             }
             let done = step + 1;
-            st.step = done;
-            st.report.losses.push((done, loss_v));
-            if done % cfg.log_every.max(1) == 0 || done == cfg.steps {
-                log_line(
-                    Some(format!(
-                        r#"{{"step":{done},"loss":{loss_v},"lr":{lr},"grad_norm":{gn}}}"#
-                    )),
-                    &mut self,
-                )?;
-            }
-            if let Some(p) = self.progress.as_mut() {
-                p(&Progress {
+            let at_ckpt = self.ctl.after_step(
+                &cfg,
+                &mut st,
+                &mut log,
+                Progress {
                     step: done,
                     steps: cfg.steps,
                     loss: loss_v,
                     lr,
                     grad_norm: gn,
-                });
-            }
-            let at_ckpt =
-                cfg.checkpoint_every.is_some_and(|k| k > 0 && done % k == 0) || done == cfg.steps;
+                },
+            )?;
             if !at_ckpt || (self.validate.is_none() && self.out_dir.is_none() && done != cfg.steps)
             {
                 continue;
@@ -580,12 +457,9 @@ impl<'a> Trainer<'a> {
             }
             stale = false;
             let score = self.validate.as_mut().map(|f| f(model, done));
-            let step_dir = self
-                .out_dir
-                .as_ref()
-                .map(|d| d.join(format!("step-{done:06}")));
+            let step_dir = out_dir.as_deref().map(|d| step_dir(d, done));
             if let Some(s) = score {
-                log_line(Some(format!(r#"{{"step":{done},"val":{s}}}"#)), &mut self)?;
+                log.line(&format!(r#"{{"step":{done},"val":{s}}}"#))?;
                 let later_ties = self.later_ties;
                 if st
                     .best
@@ -607,7 +481,7 @@ impl<'a> Trainer<'a> {
             });
             if let (Some(d), Some(p)) = (out_dir.as_deref(), &step_dir) {
                 // Flush the log first: a resumed run appends after what is on disk.
-                log_line(None, &mut self)?;
+                log.flush()?;
                 st.save_step(
                     |dir| model.write_files(dir),
                     p,
@@ -638,11 +512,7 @@ impl<'a> Trainer<'a> {
         if stale {
             model.set_host_params(&st.params)?;
         }
-        log_line(None, &mut self)?;
-        if let (Some(d), true) = (out_dir.as_deref(), st.step >= cfg.steps) {
-            remove_interrupted(d)?;
-        }
-        Ok(st.report)
+        finish(out_dir.as_deref(), &mut log, st, &cfg)
     }
 }
 

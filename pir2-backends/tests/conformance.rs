@@ -554,7 +554,7 @@ mod ort_backend {
     /// runs on the CPU instead. On a GPU build with a device, the same request loads.
     #[test]
     fn an_unavailable_gpu_provider_is_one_clear_error() {
-        use pir2_backends::ort::{OrtError, Provider};
+        use pir2_backends::{ort::Provider, Error};
         let rt = pir2_backends::ort::runtime(None).unwrap();
         let probe = Probe::new(probe_dims(SlowSpec::None), 8, 3);
         for provider in [
@@ -576,7 +576,7 @@ mod ort_backend {
                 ..OrtOptions::default()
             };
             let e = OrtModel::from_bytes(&probe.onnx_bytes(), &opts).unwrap_err();
-            assert!(matches!(e, OrtError::Provider { .. }), "{e:?}");
+            assert!(matches!(e, Error::OrtProvider { .. }), "{e:?}");
             let msg = e.to_string();
             for part in [
                 provider.ort_name(),

@@ -1,5 +1,7 @@
 //! The runtime's error type.
 
+use std::fmt::Debug;
+
 /// Errors returned by the runtime and by implementors of its traits.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -13,15 +15,8 @@ pub enum Error {
 
     // ---- shapes ----
     /// A tensor or slice had the wrong length/shape.
-    #[error("shape mismatch for `{what}`: expected {expected}, got {got}")]
-    Shape {
-        /// What was being checked.
-        what: String,
-        /// The expected shape, printed.
-        expected: String,
-        /// The shape received, printed.
-        got: String,
-    },
+    #[error(transparent)]
+    Shape(#[from] ShapeMismatch),
 
     // ---- model ----
     /// The velocity model failed.
@@ -71,18 +66,34 @@ pub enum Error {
 /// Result alias for the runtime.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
-impl Error {
-    /// Convenience constructor for [`Error::Shape`].
-    pub fn shape(
-        what: impl Into<String>,
-        expected: impl std::fmt::Debug,
-        got: impl std::fmt::Debug,
-    ) -> Self {
-        Error::Shape {
+/// A tensor or slice had the wrong length/shape: the payload of [`Error::Shape`], and of the
+/// `Shape` error of the crates above (the backends), which hand it on unchanged.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("shape mismatch for `{what}`: expected {expected}, got {got}")]
+pub struct ShapeMismatch {
+    /// What was being checked.
+    pub what: String,
+    /// The expected shape, printed.
+    pub expected: String,
+    /// The shape received, printed.
+    pub got: String,
+}
+
+impl ShapeMismatch {
+    /// `what` with the expected and received shapes printed with `{:?}`.
+    pub fn new(what: impl Into<String>, expected: impl Debug, got: impl Debug) -> Self {
+        ShapeMismatch {
             what: what.into(),
             expected: format!("{expected:?}"),
             got: format!("{got:?}"),
         }
+    }
+}
+
+impl Error {
+    /// [`Error::Shape`] of [`ShapeMismatch::new`].
+    pub fn shape(what: impl Into<String>, expected: impl Debug, got: impl Debug) -> Self {
+        ShapeMismatch::new(what, expected, got).into()
     }
     /// [`Error::Panicked`] from a caught panic payload.
     pub fn panicked(thread: &'static str, payload: &(dyn std::any::Any + Send)) -> Self {

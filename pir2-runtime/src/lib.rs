@@ -67,7 +67,7 @@ pub use builder::{Realtime, RealtimeBuilder};
 pub use chunk::Chunk;
 pub use clock::{Clock, MockClock, Nanos, SystemClock};
 pub use control::{CallPolicy, ControlConfig, ControlState, OutputMap, PoseGroup};
-pub use error::{panic_message, Error, Result};
+pub use error::{panic_message, Error, Result, ShapeMismatch};
 pub use head::{ActionHead, HeadMode, HeadSpec, Snapshot};
 pub use io::{
     Actuator, EnvSpec, EnvStep, Environment, FastSource, SlowEncoder, SlowFeatures, SlowFrame,

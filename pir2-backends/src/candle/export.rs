@@ -5,10 +5,11 @@
 use super::CandleModel;
 use crate::checkpoint::Checkpoint;
 use crate::config::{self, Config, FilmMode, ModelConfig, Stats};
+use crate::error::{Error, Result};
 use crate::export::contract::ContractDims;
 use crate::export::models::{Film, MlpSpec, ObsNorm, UnetSpec};
 use crate::export::ops::WeightSource;
-use crate::export::{export_to_file, ExportError, ModelSpec};
+use crate::export::{export_to_file, ModelSpec};
 
 fn dims(spec: &config::Spec) -> ContractDims {
     ContractDims {
@@ -31,7 +32,7 @@ fn norm(stats: &Stats) -> ObsNorm {
 
 /// The exportable definition of a candle model configuration (MLP and U-Net; the DiT is
 /// not exportable yet).
-pub fn spec_from_config(cfg: &Config, stats: &Stats) -> Result<ModelSpec, ExportError> {
+pub fn spec_from_config(cfg: &Config, stats: &Stats) -> Result<ModelSpec> {
     let d = dims(&cfg.spec);
     let norm = norm(stats);
     let d_vis_max = cfg.spec.d_vis_max;
@@ -60,7 +61,7 @@ pub fn spec_from_config(cfg: &Config, stats: &Stats) -> Result<ModelSpec, Export
             },
             norm,
         })),
-        ModelConfig::Dit(_) => Err(ExportError::Unsupported {
+        ModelConfig::Dit(_) => Err(Error::Unsupported {
             model: "DiT",
             message: "ONNX export of the DiT head is not implemented".to_string(),
         }),
@@ -68,20 +69,17 @@ pub fn spec_from_config(cfg: &Config, stats: &Stats) -> Result<ModelSpec, Export
 }
 
 impl WeightSource for CandleModel {
-    fn weight(
-        &self,
-        model: &'static str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<Vec<f32>, ExportError> {
-        let (_, var) = self.vars().iter().find(|(n, _)| n == name).ok_or_else(|| {
-            ExportError::MissingWeight {
-                model,
-                name: name.to_string(),
-            }
-        })?;
+    fn weight(&self, model: &'static str, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let (_, var) =
+            self.vars()
+                .iter()
+                .find(|(n, _)| n == name)
+                .ok_or_else(|| Error::MissingWeight {
+                    model,
+                    name: name.to_string(),
+                })?;
         if var.dims() != shape {
-            return Err(ExportError::WeightShape {
+            return Err(Error::WeightShape {
                 model,
                 name: name.to_string(),
                 expected: shape.to_vec(),
@@ -91,7 +89,7 @@ impl WeightSource for CandleModel {
         var.as_tensor()
             .flatten_all()
             .and_then(|t| t.to_vec1::<f32>())
-            .map_err(|e| ExportError::Unsupported {
+            .map_err(|e| Error::Unsupported {
                 model,
                 message: format!("cannot read weight `{name}`: {e}"),
             })
@@ -99,21 +97,13 @@ impl WeightSource for CandleModel {
 }
 
 impl WeightSource for Checkpoint {
-    fn weight(
-        &self,
-        model: &'static str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<Vec<f32>, ExportError> {
-        let t = self
-            .tensors
-            .get(name)
-            .ok_or_else(|| ExportError::MissingWeight {
-                model,
-                name: name.to_string(),
-            })?;
+    fn weight(&self, model: &'static str, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let t = self.tensors.get(name).ok_or_else(|| Error::MissingWeight {
+            model,
+            name: name.to_string(),
+        })?;
         if t.shape != shape {
-            return Err(ExportError::WeightShape {
+            return Err(Error::WeightShape {
                 model,
                 name: name.to_string(),
                 expected: shape.to_vec(),
@@ -126,13 +116,13 @@ impl WeightSource for Checkpoint {
 
 /// Export a candle model to an ONNX file (the graph takes and returns normalised actions,
 /// exactly like the candle model; observations are normalised inside the graph).
-pub fn export_candle_model(model: &CandleModel, path: &std::path::Path) -> Result<(), ExportError> {
+pub fn export_candle_model(model: &CandleModel, path: &std::path::Path) -> Result<()> {
     let spec = spec_from_config(model.config(), model.stats())?;
     export_to_file(&spec, model, path)
 }
 
 /// Export a checkpoint directory (`config.json`, `stats.json`, `model.safetensors`) to ONNX.
-pub fn export_checkpoint(ck: &Checkpoint, path: &std::path::Path) -> Result<(), ExportError> {
+pub fn export_checkpoint(ck: &Checkpoint, path: &std::path::Path) -> Result<()> {
     let spec = spec_from_config(&ck.config, &ck.stats)?;
     export_to_file(&spec, ck, path)
 }

@@ -12,52 +12,13 @@ pub mod models;
 pub mod ops;
 pub mod proto;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub use contract::{ContractDims, SlowSpec};
 pub use graph::GraphBuilder;
 use proto::{DataType, Dim, ModelProto};
 
-/// Errors of the ONNX exporter.
-#[derive(Debug, thiserror::Error)]
-pub enum ExportError {
-    /// A weight the exporter needs is missing from the checkpoint.
-    #[error("ONNX export of {model}: weight `{name}` is missing")]
-    MissingWeight {
-        /// The model kind.
-        model: &'static str,
-        /// The weight's name.
-        name: String,
-    },
-    /// A weight has the wrong shape.
-    #[error("ONNX export of {model}: weight `{name}` has shape {got:?}, expected {expected:?}")]
-    WeightShape {
-        /// The model kind.
-        model: &'static str,
-        /// The weight's name.
-        name: String,
-        /// Expected shape.
-        expected: Vec<usize>,
-        /// Shape found.
-        got: Vec<usize>,
-    },
-    /// The model's configuration cannot be expressed (e.g. an unsupported option).
-    #[error("ONNX export of {model}: {message}")]
-    Unsupported {
-        /// The model kind.
-        model: &'static str,
-        /// What is not supported.
-        message: String,
-    },
-    /// Writing the file failed.
-    #[error("cannot write ONNX file {path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
-    },
-}
+use crate::error::{Error, Result};
 
 /// The named graph inputs created by [`contract_graph`].
 #[derive(Debug, Clone)]
@@ -155,8 +116,8 @@ pub fn finish_contract(
 }
 
 /// Write an encoded model to `path`.
-pub fn write_model(model: &ModelProto, path: &Path) -> Result<(), ExportError> {
-    std::fs::write(path, model.encode()).map_err(|source| ExportError::Io {
+pub fn write_model(model: &ModelProto, path: &Path) -> Result<()> {
+    std::fs::write(path, model.encode()).map_err(|source| Error::OnnxWrite {
         path: path.to_path_buf(),
         source,
     })
@@ -199,7 +160,7 @@ impl ModelSpec {
         o: &mut O,
         w: &W,
         inp: &models::Inputs<O::T>,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         match self {
             ModelSpec::Mlp(s) => s.forward(o, w, inp),
             ModelSpec::Unet(s) => s.forward(o, w, inp),
@@ -208,10 +169,7 @@ impl ModelSpec {
 }
 
 /// Build the ONNX model of `spec` with `weights` (weights become initializers).
-pub fn export<W: ops::WeightSource>(
-    spec: &ModelSpec,
-    weights: &W,
-) -> Result<ModelProto, ExportError> {
+pub fn export<W: ops::WeightSource>(spec: &ModelSpec, weights: &W) -> Result<ModelProto> {
     let dims = spec.dims();
     let (mut g, v) = contract_graph(spec.kind(), dims);
     let inp = models::Inputs {
@@ -230,6 +188,6 @@ pub fn export_to_file<W: ops::WeightSource>(
     spec: &ModelSpec,
     weights: &W,
     path: &Path,
-) -> Result<(), ExportError> {
+) -> Result<()> {
     write_model(&export(spec, weights)?, path)
 }

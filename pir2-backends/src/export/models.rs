@@ -6,7 +6,7 @@
 
 use super::contract::{ContractDims, SlowSpec};
 use super::ops::{Ops, Unary, WeightSource};
-use super::ExportError;
+use crate::error::{Error, Result};
 
 /// The contract inputs as values of an [`Ops`] sink.
 #[derive(Debug, Clone)]
@@ -41,7 +41,7 @@ pub fn linear<O: Ops, W: WeightSource>(
     x: &O::T,
     i: usize,
     out: usize,
-) -> Result<O::T, ExportError> {
+) -> Result<O::T> {
     let wt = w.weight(model, &format!("{name}.weight"), &[out, i])?;
     let b = w.weight(model, &format!("{name}.bias"), &[out])?;
     Ok(o.linear(x, name, &wt, Some(&b), i, out))
@@ -198,10 +198,10 @@ impl MlpSpec {
         o: &mut O,
         w: &W,
         inp: &Inputs<O::T>,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         const M: &str = "MLP";
         if self.depth == 0 {
-            return Err(ExportError::Unsupported {
+            return Err(Error::Unsupported {
                 model: M,
                 message: "depth must be >= 1".to_string(),
             });
@@ -233,7 +233,7 @@ impl MlpSpec {
             parts.push(encode_slow(o, d, &self.norm, s));
         }
         if self.dvis_dim > 0 {
-            let ids = inp.d_vis.as_ref().ok_or_else(|| ExportError::Unsupported {
+            let ids = inp.d_vis.as_ref().ok_or_else(|| Error::Unsupported {
                 model: M,
                 message: "the graph needs a `d_vis` input".to_string(),
             })?;
@@ -430,7 +430,7 @@ impl UnetSpec {
         out: usize,
         k: usize,
         stride: usize,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let cw = w.weight(UNET, &format!("{n}.weight"), &[out, i, k])?;
         let cb = w.weight(UNET, &format!("{n}.bias"), &[out])?;
         Ok(o.conv1d(x, n, &cw, Some(&cb), i, out, k, stride, k / 2))
@@ -444,7 +444,7 @@ impl UnetSpec {
         x: &O::T,
         i: usize,
         out: usize,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let y = self.conv(o, w, &format!("{n}.conv"), x, i, out, self.kernel, 1)?;
         let g = w.weight(UNET, &format!("{n}.gn.weight"), &[out])?;
         let b = w.weight(UNET, &format!("{n}.gn.bias"), &[out])?;
@@ -465,7 +465,7 @@ impl UnetSpec {
         i: usize,
         out: usize,
         len: usize,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let h = self.conv_block(o, w, &format!("{n}.block0"), x, i, out)?;
         let c = out as i64;
         if let (Film::PerPositionHeads, Some(p)) = (self.film, pos) {
@@ -515,7 +515,7 @@ impl UnetSpec {
         pos: &O::T,
         out: usize,
         len: usize,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let (e, cs, c2) = (self.tau_dim, self.shared_dim(), 2 * out);
         let wt = w.weight(UNET, &format!("{n}.film_heads.weight"), &[len, c2, cs])?;
         let bt = w.weight(UNET, &format!("{n}.film_heads.bias"), &[len, c2])?;
@@ -567,7 +567,7 @@ impl UnetSpec {
         i: usize,
         out: usize,
         l: i64,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let c = out as i64;
         let scale = o.slice(f, 1, 0, 1);
         let scale = o.reshape(&scale, &[-1, c, l]);
@@ -591,7 +591,7 @@ impl UnetSpec {
         o: &mut O,
         w: &W,
         inp: &Inputs<O::T>,
-    ) -> Result<O::T, ExportError> {
+    ) -> Result<O::T> {
         let d = &self.dims;
         let n = self.widths.len();
         if n == 0
@@ -600,7 +600,7 @@ impl UnetSpec {
             || self.tau_dim % 2 != 0
             || d.horizon % (1 << (n - 1)) != 0
         {
-            return Err(ExportError::Unsupported {
+            return Err(Error::Unsupported {
                 model: UNET,
                 message: format!(
                     "need ≥ 1 level, an odd kernel (got {}), an even tau_dim ≥ 2 (got {}) and H = {} divisible by 2^{}",
@@ -612,7 +612,7 @@ impl UnetSpec {
             });
         }
         if self.groups == 0 || self.widths.iter().any(|c| c % self.groups != 0) {
-            return Err(ExportError::Unsupported {
+            return Err(Error::Unsupported {
                 model: UNET,
                 message: format!(
                     "{} groups must divide every width {:?}",
@@ -654,7 +654,7 @@ impl UnetSpec {
             parts.push(o.mean(&nrm, 1));
         }
         if self.dvis_dim > 0 {
-            let ids = inp.d_vis.as_ref().ok_or_else(|| ExportError::Unsupported {
+            let ids = inp.d_vis.as_ref().ok_or_else(|| Error::Unsupported {
                 model: UNET,
                 message: "the graph needs a `d_vis` input".to_string(),
             })?;

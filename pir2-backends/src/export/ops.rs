@@ -7,7 +7,7 @@
 //! conv weights `[C_in, C_out, K]` (PyTorch/candle layouts).
 
 use super::graph::GraphBuilder;
-use super::ExportError;
+use crate::error::{Error, Result};
 
 /// Element-wise unary functions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -306,12 +306,7 @@ impl Ops for GraphBuilder {
 /// Named weights with shapes, the exporter's view of a checkpoint.
 pub trait WeightSource {
     /// The weight `name`, checked to have exactly `shape`.
-    fn weight(
-        &self,
-        model: &'static str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<Vec<f32>, ExportError>;
+    fn weight(&self, model: &'static str, name: &str, shape: &[usize]) -> Result<Vec<f32>>;
 }
 
 /// A simple in-memory [`WeightSource`]: name → (shape, row-major data).
@@ -367,21 +362,13 @@ impl NamedWeights {
 }
 
 impl WeightSource for NamedWeights {
-    fn weight(
-        &self,
-        model: &'static str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<Vec<f32>, ExportError> {
-        let (s, d) = self
-            .map
-            .get(name)
-            .ok_or_else(|| ExportError::MissingWeight {
-                model,
-                name: name.to_string(),
-            })?;
+    fn weight(&self, model: &'static str, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let (s, d) = self.map.get(name).ok_or_else(|| Error::MissingWeight {
+            model,
+            name: name.to_string(),
+        })?;
         if s.as_slice() != shape {
-            return Err(ExportError::WeightShape {
+            return Err(Error::WeightShape {
                 model,
                 name: name.to_string(),
                 expected: shape.to_vec(),

@@ -22,7 +22,7 @@ use ::ort::session::{Session, SessionInputValue};
 use ::ort::value::{TensorElementType, ValueType};
 
 use super::error::{Gr00tError, Result};
-use crate::ort::{runtime, session_builder, OrtError, OrtOptions};
+use crate::ort::{runtime, session_builder, OrtOptions};
 
 /// Element type of a tensor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -562,7 +562,7 @@ impl Graph {
     ) -> Result<Self> {
         let rt = runtime(opts.dylib_path.as_deref())?;
         let session_err = |e: String| {
-            Gr00tError::Ort(OrtError::Session {
+            Gr00tError::Ort(crate::Error::OrtSession {
                 path: path.to_path_buf(),
                 message: e,
             })

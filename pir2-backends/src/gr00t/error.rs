@@ -2,8 +2,6 @@
 
 use std::path::PathBuf;
 
-use crate::ort::OrtError;
-
 /// Errors of the GR00T stack (feature `gr00t`).
 #[derive(Debug, thiserror::Error)]
 pub enum Gr00tError {
@@ -121,7 +119,7 @@ pub enum Gr00tError {
     },
     /// ONNX Runtime failed (loading the library, creating a session, running a graph).
     #[error(transparent)]
-    Ort(#[from] OrtError),
+    Ort(#[from] crate::error::Error),
     /// Running an ONNX graph failed.
     #[error("running `{path}`: {message}")]
     Run {
@@ -198,11 +196,11 @@ impl From<Gr00tError> for pir2_runtime::Error {
                 what,
                 expected,
                 got,
-            } => pir2_runtime::Error::Shape {
+            } => pir2_runtime::Error::Shape(pir2_runtime::ShapeMismatch {
                 what,
                 expected,
                 got,
-            },
+            }),
             other => pir2_runtime::Error::Model(format!("gr00t: {other}")),
         }
     }

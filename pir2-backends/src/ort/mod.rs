@@ -18,7 +18,7 @@
 //!
 //! `B` may be dynamic; `H, A, n_obs, F, S, T, D` must be fixed in the file. A loaded model is
 //! checked against this table (names, element types, ranks, dimensions) and rejected with an
-//! [`OrtError::Contract`] naming the file, the tensor and what was wrong. Files written by
+//! [`Error::OrtContract`](crate::Error::OrtContract) naming the file, the tensor and what was wrong. Files written by
 //! [`crate::export`] follow the contract by construction.
 //!
 //! # Loading ONNX Runtime
@@ -51,6 +51,7 @@ use ::ort::value::{TensorElementType, TensorRef, ValueType};
 use ndarray::{ArrayView1, ArrayView2, ArrayView3};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
+use crate::error::{Error, Result};
 use crate::export::contract::{self, describe_slow, ContractDims, SlowSpec};
 
 mod provider;
@@ -59,62 +60,6 @@ pub use provider::Provider;
 /// The ONNX Runtime version this backend is built and tested against.
 pub const EXPECTED_VERSION: &str = "1.31.x";
 const MIN_MINOR: u32 = 31;
-
-/// Errors of the ONNX Runtime backend.
-#[derive(Debug, thiserror::Error)]
-pub enum OrtError {
-    /// The shared library could not be loaded.
-    #[error(
-        "cannot load ONNX Runtime from `{path}` (expected version {expected}; set ORT_DYLIB_PATH, \
-         e.g. `source .native/env.sh` after scripts/setup-native.sh): {reason}"
-    )]
-    Load {
-        /// The path tried.
-        path: PathBuf,
-        /// The expected version.
-        expected: &'static str,
-        /// Why it failed.
-        reason: String,
-    },
-    /// The shared library has the wrong version.
-    #[error("ONNX Runtime at `{path}` is version {found}, expected {expected}")]
-    Version {
-        /// The library loaded.
-        path: PathBuf,
-        /// Its version string.
-        found: String,
-        /// The expected version.
-        expected: &'static str,
-    },
-    /// ONNX Runtime refused to create a session (bad file, unsupported operator, …).
-    #[error("ONNX Runtime could not load the model `{path}`: {message}")]
-    Session {
-        /// The model file (or `<memory>`).
-        path: PathBuf,
-        /// ONNX Runtime's message.
-        message: String,
-    },
-    /// The execution provider asked for is not in the loaded library or cannot start.
-    #[error("ONNX Runtime {version} at `{path}` cannot run on {provider}: {reason}")]
-    Provider {
-        /// ONNX Runtime's name of the provider.
-        provider: &'static str,
-        /// The library loaded.
-        path: PathBuf,
-        /// Its version.
-        version: String,
-        /// Why (what the library offers instead, or ONNX Runtime's message).
-        reason: String,
-    },
-    /// The model does not follow the graph contract.
-    #[error("ONNX model `{path}` does not follow the pir2 contract: {message}")]
-    Contract {
-        /// The model file (or `<memory>`).
-        path: PathBuf,
-        /// What is wrong.
-        message: String,
-    },
-}
 
 /// Options for [`OrtModel`].
 #[derive(Debug, Clone)]
@@ -201,8 +146,8 @@ struct OrtApiBase {
 
 /// Read the version string of the ONNX Runtime library at `path` without initialising it
 /// (diagnostics; [`runtime`] does the same check before loading).
-pub fn probe_library(path: &Path) -> Result<String, OrtError> {
-    let load_err = |reason: String| OrtError::Load {
+pub fn probe_library(path: &Path) -> Result<String> {
+    let load_err = |reason: String| Error::OrtLoad {
         path: path.to_path_buf(),
         expected: EXPECTED_VERSION,
         reason,
@@ -238,7 +183,7 @@ fn version_ok(version: &str) -> bool {
 
 /// Load ONNX Runtime once per process (see the module docs for the search order) and
 /// return it; later calls return the same runtime.
-pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime, OrtError> {
+pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime> {
     let mut guard = RUNTIME.lock().unwrap_or_else(|p| p.into_inner());
     if let Some(rt) = *guard {
         return Ok(rt);
@@ -246,13 +191,13 @@ pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime, OrtError>
     let path = resolve_dylib_path(explicit);
     let version = probe_library(&path)?;
     if !version_ok(&version) {
-        return Err(OrtError::Version {
+        return Err(Error::OrtVersion {
             path,
             found: version,
             expected: EXPECTED_VERSION,
         });
     }
-    let builder = ::ort::init_from(&path).map_err(|e| OrtError::Load {
+    let builder = ::ort::init_from(&path).map_err(|e| Error::OrtLoad {
         path: path.clone(),
         expected: EXPECTED_VERSION,
         reason: e.to_string(),
@@ -261,7 +206,7 @@ pub fn runtime(explicit: Option<&Path>) -> Result<&'static OrtRuntime, OrtError>
         .with_name("pir2")
         .with_telemetry(false)
         .build()
-        .map_err(|e| OrtError::Load {
+        .map_err(|e| Error::OrtLoad {
             path: path.clone(),
             expected: EXPECTED_VERSION,
             reason: format!("cannot create the environment: {e}"),
@@ -278,8 +223,8 @@ pub fn session_builder(
     rt: &OrtRuntime,
     opts: &OrtOptions,
     path: &Path,
-) -> Result<::ort::session::builder::SessionBuilder, OrtError> {
-    let err = |e: String| OrtError::Session {
+) -> Result<::ort::session::builder::SessionBuilder> {
+    let err = |e: String| Error::OrtSession {
         path: path.to_path_buf(),
         message: e,
     };
@@ -318,17 +263,17 @@ impl std::fmt::Debug for OrtModel {
 
 impl OrtModel {
     /// Load an ONNX file with default options (single thread).
-    pub fn load(path: impl AsRef<Path>) -> Result<Self, OrtError> {
+    pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         Self::load_with(path, &OrtOptions::default())
     }
 
     /// Load an ONNX file.
-    pub fn load_with(path: impl AsRef<Path>, opts: &OrtOptions) -> Result<Self, OrtError> {
+    pub fn load_with(path: impl AsRef<Path>, opts: &OrtOptions) -> Result<Self> {
         let path = path.as_ref();
         let rt = runtime(opts.dylib_path.as_deref())?;
         let session = Self::builder(rt, opts, path)?
             .commit_from_file(path)
-            .map_err(|e| OrtError::Session {
+            .map_err(|e| Error::OrtSession {
                 path: path.to_path_buf(),
                 message: e.to_string(),
             })?;
@@ -336,12 +281,12 @@ impl OrtModel {
     }
 
     /// Load an ONNX model from bytes (e.g. straight from the exporter).
-    pub fn from_bytes(bytes: &[u8], opts: &OrtOptions) -> Result<Self, OrtError> {
+    pub fn from_bytes(bytes: &[u8], opts: &OrtOptions) -> Result<Self> {
         let path = PathBuf::from("<memory>");
         let rt = runtime(opts.dylib_path.as_deref())?;
         let session = Self::builder(rt, opts, &path)?
             .commit_from_memory(bytes)
-            .map_err(|e| OrtError::Session {
+            .map_err(|e| Error::OrtSession {
                 path: path.clone(),
                 message: e.to_string(),
             })?;
@@ -352,15 +297,11 @@ impl OrtModel {
         rt: &OrtRuntime,
         opts: &OrtOptions,
         path: &Path,
-    ) -> Result<::ort::session::builder::SessionBuilder, OrtError> {
+    ) -> Result<::ort::session::builder::SessionBuilder> {
         session_builder(rt, opts, path)
     }
 
-    fn from_session(
-        session: Session,
-        source: PathBuf,
-        opts: &OrtOptions,
-    ) -> Result<Self, OrtError> {
+    fn from_session(session: Session, source: PathBuf, opts: &OrtOptions) -> Result<Self> {
         let (dims, fixed_batch) = validate_contract(&session, &source)?;
         Ok(OrtModel {
             session,
@@ -404,11 +345,12 @@ impl OrtModel {
             chk("batch B (fixed in the file)", b, input.batch)?;
         }
         if !d.slow.matches(&input.slow) {
-            return Err(pir2_runtime::Error::Shape {
+            return Err(pir2_runtime::ShapeMismatch {
                 what: format!("obs_slow (model `{}`)", self.source.display()),
                 expected: d.slow.describe(),
                 got: describe_slow(&input.slow),
-            });
+            }
+            .into());
         }
         if input.batch == 0 {
             return Err(pir2_runtime::Error::shape("batch B", ">= 1", 0));
@@ -516,21 +458,17 @@ impl VelocityModel for OrtModel {
 
 /// Check a session's inputs/outputs against the contract; return the fixed sizes and the
 /// batch size if it is fixed in the file.
-fn validate_contract(
-    session: &Session,
-    path: &Path,
-) -> Result<(ContractDims, Option<usize>), OrtError> {
-    let bad = |message: String| OrtError::Contract {
+fn validate_contract(session: &Session, path: &Path) -> Result<(ContractDims, Option<usize>)> {
+    let bad = |message: String| Error::OrtContract {
         path: path.to_path_buf(),
         message,
     };
-    let describe =
-        |name: &str, ty: &ValueType| -> Result<(TensorElementType, Vec<i64>), OrtError> {
-            match (ty.tensor_type(), ty.tensor_shape()) {
-                (Some(t), Some(s)) => Ok((t, s.iter().copied().collect())),
-                _ => Err(bad(format!("`{name}` must be a tensor, found {ty:?}"))),
-            }
-        };
+    let describe = |name: &str, ty: &ValueType| -> Result<(TensorElementType, Vec<i64>)> {
+        match (ty.tensor_type(), ty.tensor_shape()) {
+            (Some(t), Some(s)) => Ok((t, s.iter().copied().collect())),
+            _ => Err(bad(format!("`{name}` must be a tensor, found {ty:?}"))),
+        }
+    };
     let mut found: Vec<(String, TensorElementType, Vec<i64>)> = Vec::new();
     for i in session.inputs() {
         let (t, s) = describe(i.name(), i.dtype())?;
@@ -558,7 +496,7 @@ fn validate_contract(
                      ranks: &[usize],
                      shape: &[i64],
                      ty: TensorElementType|
-     -> Result<Vec<usize>, OrtError> {
+     -> Result<Vec<usize>> {
         if ty != want_ty {
             return Err(bad(format!(
                 "`{name}` has element type {ty:?}, expected {want_ty:?}"

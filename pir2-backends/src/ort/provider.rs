@@ -9,7 +9,7 @@
 //!
 //! A provider that was asked for is never silently replaced by the CPU: if the loaded library
 //! lacks it, or it fails to register (no device, missing CUDA libraries), session creation
-//! fails with [`OrtError::Provider`] naming the library, the provider and what the library
+//! fails with [`Error::OrtProvider`](crate::Error::OrtProvider) naming the library, the provider and what the library
 //! offers. With TensorRT, nodes TensorRT cannot take run on CUDA (ONNX Runtime partitions
 //! the graph), not on the CPU.
 
@@ -18,7 +18,8 @@ use std::path::{Path, PathBuf};
 use ::ort::ep;
 use ::ort::session::builder::SessionBuilder;
 
-use super::{OrtError, OrtRuntime};
+use super::OrtRuntime;
+use crate::error::{Error, Result};
 
 /// The execution provider of a session (see the module docs).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -104,16 +105,16 @@ impl Provider {
     }
 
     /// Register the provider on `builder` (nothing for the CPU). Fails with
-    /// [`OrtError::Provider`] when the library lacks it or it cannot start.
+    /// [`Error::OrtProvider`](crate::Error::OrtProvider) when the library lacks it or it cannot start.
     pub(crate) fn register(
         &self,
         rt: &OrtRuntime,
         builder: SessionBuilder,
-    ) -> Result<SessionBuilder, OrtError> {
+    ) -> Result<SessionBuilder> {
         if *self == Provider::Cpu {
             return Ok(builder);
         }
-        let err = |reason: String| OrtError::Provider {
+        let err = |reason: String| Error::OrtProvider {
             provider: self.ort_name(),
             path: rt.path().to_path_buf(),
             version: rt.version().to_string(),

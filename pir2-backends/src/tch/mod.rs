@@ -23,29 +23,7 @@ pub use ops::{TchOps, TchValue};
 use ::tch::{CModule, Device, Kind, Tensor};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
-/// Errors of the libtorch backend.
-#[derive(Debug, thiserror::Error)]
-pub enum TchError {
-    /// The TorchScript file could not be loaded.
-    #[error("libtorch could not load the TorchScript module `{path}`: {message}")]
-    Load {
-        /// The file.
-        path: PathBuf,
-        /// libtorch's message.
-        message: String,
-    },
-    /// Tracing a closure into a module, or saving it, failed.
-    #[error("libtorch could not trace/save the module `{path}`: {message}")]
-    Trace {
-        /// The destination file.
-        path: PathBuf,
-        /// libtorch's message.
-        message: String,
-    },
-    /// The model definition being traced refused its weights or shapes.
-    #[error(transparent)]
-    Export(#[from] crate::export::ExportError),
-}
+use crate::error::{Error, Result};
 
 /// Options for [`TchModel`].
 #[derive(Debug, Clone)]
@@ -89,20 +67,20 @@ fn set_threads(threads: usize) {
 
 impl TchModel {
     /// Load a TorchScript file with default options (single thread).
-    pub fn load(path: impl AsRef<Path>) -> Result<Self, TchError> {
+    pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         Self::load_with(path, &TchOptions::default())
     }
 
     /// Load a TorchScript file.
-    pub fn load_with(path: impl AsRef<Path>, opts: &TchOptions) -> Result<Self, TchError> {
+    pub fn load_with(path: impl AsRef<Path>, opts: &TchOptions) -> Result<Self> {
         let path = path.as_ref();
         set_threads(opts.threads);
         let mut module =
-            CModule::load_on_device(path, Device::Cpu).map_err(|e| TchError::Load {
+            CModule::load_on_device(path, Device::Cpu).map_err(|e| Error::TchLoad {
                 path: path.to_path_buf(),
                 message: e.to_string(),
             })?;
-        module.f_set_eval().map_err(|e| TchError::Load {
+        module.f_set_eval().map_err(|e| Error::TchLoad {
             path: path.to_path_buf(),
             message: e.to_string(),
         })?;
@@ -197,11 +175,11 @@ impl VelocityModel for TchModel {
 /// Trace `forward` (a closure over the five contract tensors) into a TorchScript module and
 /// save it to `path`. `example` gives the example inputs `[x, tau, obs_fast, obs_slow, d_vis]`
 /// used for tracing (the batch size stays dynamic only if `forward` uses no batch-size constants).
-pub fn trace_to_file<F>(path: &Path, example: &[Tensor; 5], mut forward: F) -> Result<(), TchError>
+pub fn trace_to_file<F>(path: &Path, example: &[Tensor; 5], mut forward: F) -> Result<()>
 where
     F: FnMut(&Tensor, &Tensor, &Tensor, &Tensor, &Tensor) -> Tensor,
 {
-    let err = |e: ::tch::TchError| TchError::Trace {
+    let err = |e: ::tch::TchError| Error::TchTrace {
         path: path.to_path_buf(),
         message: e.to_string(),
     };
@@ -237,7 +215,7 @@ pub fn export_torchscript<W: crate::export::ops::WeightSource>(
     spec: &crate::export::ModelSpec,
     weights: &W,
     path: &Path,
-) -> Result<(), TchError> {
+) -> Result<()> {
     use crate::export::models::Inputs;
     use crate::export::SlowSpec;
     let has_slow = spec.dims().slow != SlowSpec::None;
@@ -256,7 +234,7 @@ pub fn export_torchscript<W: crate::export::ops::WeightSource>(
         spec.forward(&mut rec, weights, &inputs(&example))?;
     }
     let mut ops = TchOps::replay(rec);
-    let mut failure: Option<crate::export::ExportError> = None;
+    let mut failure: Option<Error> = None;
     trace_to_file(path, &example, |x, tau, obs, slow, d_vis| {
         let xs = [
             x.shallow_clone(),
@@ -274,7 +252,7 @@ pub fn export_torchscript<W: crate::export::ops::WeightSource>(
         }
     })?;
     match failure {
-        Some(e) => Err(e.into()),
+        Some(e) => Err(e),
         None => Ok(()),
     }
 }

@@ -31,9 +31,9 @@
 use std::collections::HashMap;
 use std::path::Path;
 
+use crate::error::Error as ExportError;
 use crate::export::graph::{attr, GraphBuilder};
 use crate::export::proto::{AttrValue, DataType, Dim, ExternalData, ModelProto};
-use crate::export::ExportError;
 use crate::gr00t::n17::{
     action_time_frequencies, dit_time_frequencies, sinusoidal_table_values, Gr00tN17Config,
     Gr00tN17Head, DELAY_EMBEDDING, PREFIX,
@@ -738,7 +738,7 @@ pub const EXTERNAL_MIN_BYTES: usize = 1024;
 const EXTERNAL_ALIGN: u64 = 4096;
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ExportError + '_ {
-    move |source| ExportError::Io {
+    move |source| ExportError::OnnxWrite {
         path: path.to_path_buf(),
         source,
     }
@@ -817,7 +817,7 @@ impl Gr00tExport {
                 .iter()
                 .map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
         )
-        .map_err(|e| ExportError::Io {
+        .map_err(|e| ExportError::OnnxWrite {
             path: side.clone(),
             source: std::io::Error::other(e.to_string()),
         })?;

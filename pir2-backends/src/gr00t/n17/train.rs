@@ -510,10 +510,7 @@ pub struct Gr00tTrainer<'a> {
     cfg: TrainConfig,
     spec: Gr00tTrainSpec,
     out_dir: PathBuf,
-    resume: bool,
-    stop_after: Option<usize>,
-    stop: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
-    progress: Option<ProgressFn<'a>>,
+    ctl: RunControl<'a>,
     identity: serde_json::Value,
     extra_files: Vec<(String, Vec<u8>)>,
     targets: Option<&'a dyn ActionTargets>,
@@ -526,7 +523,7 @@ impl std::fmt::Debug for Gr00tTrainer<'_> {
             .field("cfg", &self.cfg)
             .field("spec", &self.spec)
             .field("out_dir", &self.out_dir)
-            .field("resume", &self.resume)
+            .field("resume", &self.ctl.resume)
             .field("dropout", &self.dropout)
             .finish_non_exhaustive()
     }
@@ -540,10 +537,7 @@ impl<'a> Gr00tTrainer<'a> {
             cfg,
             spec,
             out_dir: out_dir.as_ref().to_path_buf(),
-            resume: false,
-            stop_after: None,
-            stop: None,
-            progress: None,
+            ctl: RunControl::default(),
             identity: serde_json::Value::Null,
             extra_files: Vec::new(),
             targets: None,
@@ -562,27 +556,7 @@ impl<'a> Gr00tTrainer<'a> {
         self.targets = Some(targets);
         self
     }
-    /// Continue from the latest step checkpoint or `interrupted-*` state (see
-    /// [`Trainer::resume`]; bit-identical to an uninterrupted run).
-    pub fn resume(mut self, on: bool) -> Self {
-        self.resume = on;
-        self
-    }
-    /// Return after `steps` steps as if interrupted (see [`Trainer::stop_after`]).
-    pub fn stop_after(mut self, steps: usize) -> Self {
-        self.stop_after = Some(steps);
-        self
-    }
-    /// Stop at the next step once `flag` is set (see [`Trainer::stop_on`]).
-    pub fn stop_on(mut self, flag: std::sync::Arc<std::sync::atomic::AtomicBool>) -> Self {
-        self.stop = Some(flag);
-        self
-    }
-    /// Called after every step.
-    pub fn on_progress(mut self, f: impl FnMut(&Progress) + 'a) -> Self {
-        self.progress = Some(Box::new(f));
-        self
-    }
+    run_controls!();
     /// What the run is made of (inputs' digests, embodiment…), written to [`RUN_FILE`] with
     /// the spec; a resumed run whose identity differs is refused, naming the file.
     pub fn identity(mut self, id: serde_json::Value) -> Self {
@@ -717,20 +691,7 @@ impl<'a> Gr00tTrainer<'a> {
             "dropout": dropout,
         });
         let id_path = out.join(RUN_FILE);
-        let resume_from = if self.resume {
-            latest_step_checkpoint(&out)?
-        } else {
-            if let Ok(rd) = std::fs::read_dir(&out) {
-                for e in rd.flatten() {
-                    let name = e.file_name().to_string_lossy().into_owned();
-                    if name.starts_with("step-") || name.starts_with(INTERRUPTED_PREFIX) {
-                        return Err(Error::CheckpointExists(e.path()));
-                    }
-                }
-            }
-            None
-        };
-        std::fs::create_dir_all(&out).map_err(|e| Error::io(&out, e))?;
+        let resume_from = self.ctl.prepare(&out)?;
         if resume_from.is_some() {
             let text = std::fs::read_to_string(&id_path).map_err(|e| Error::io(&id_path, e))?;
             let old: serde_json::Value =
@@ -756,14 +717,7 @@ impl<'a> Gr00tTrainer<'a> {
             crate::checkpoint::write_durable(&tmp, text.as_bytes())?;
             std::fs::rename(&tmp, &id_path).map_err(|e| Error::io(&id_path, e))?;
         }
-        let log_path = out.join("loss.jsonl");
-        let mut log = BufWriter::new(
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&log_path)
-                .map_err(|e| Error::io(&log_path, e))?,
-        );
+        let mut log = LossLog::open(Some(&out), None)?;
 
         // The head's device: every per-step tensor lives there; the AdamW update runs on
         // the host copies, as in the U-Net trainer.
@@ -838,30 +792,10 @@ impl<'a> Gr00tTrainer<'a> {
         let ids = Tensor::from_vec(vec![self.spec.embodiment_id; b], b, &dev)?;
 
         for step in st.step..cfg.steps {
-            if self.stop_after.is_some_and(|s| step >= s) {
+            if self.ctl.stop_before(step, Some(&out), &mut log, |p| {
+                st.save_step(write_model, p, batcher.rng.state(), &names, &cfg)
+            })? {
                 break;
-            }
-            if self
-                .stop
-                .as_ref()
-                .is_some_and(|f| f.load(std::sync::atomic::Ordering::SeqCst))
-            {
-                let mut resume_point = None;
-                if step > 0 {
-                    use std::io::Write;
-                    log.flush().map_err(|e| Error::io(&log_path, e))?;
-                    let regular = out.join(format!("step-{step:06}"));
-                    if regular.join(TRAIN_STATE_FILE).is_file() {
-                        resume_point = Some(regular);
-                    } else {
-                        let p = out.join(format!("{INTERRUPTED_PREFIX}{step:06}"));
-                        if !p.exists() {
-                            st.save_step(write_model, &p, batcher.rng.state(), &names, &cfg)?;
-                        }
-                        resume_point = Some(p);
-                    }
-                }
-                return Err(Error::Interrupted { step, resume_point });
             }
             let lr = cfg.lr_at(step);
             match self.targets {
@@ -913,12 +847,7 @@ impl<'a> Gr00tTrainer<'a> {
             } else {
                 head.velocity(&s, &x, ts, &tokens, &ids)?
             };
-            let v = v.narrow(2, 0, a)?;
-            let target = Tensor::from_slice(&batcher.target, (b, h, a), &dev)?;
-            let mask = Tensor::from_slice(&batcher.mask, (b, h, 1), &dev)?;
-            let msum: f32 = batcher.mask.iter().sum();
-            let err = (v - target)?.sqr()?.broadcast_mul(&mask)?;
-            let loss = (err.sum_all()? / (msum.max(1.0) as f64 * a as f64))?;
+            let loss = masked_mse(v.narrow(2, 0, a)?, &batcher.target, &batcher.mask)?;
             let loss_v = loss.to_dtype(DType::F32)?.to_scalar::<f32>()?;
             if !loss_v.is_finite() {
                 return Err(Error::Diverged {
@@ -926,57 +855,28 @@ impl<'a> Gr00tTrainer<'a> {
                     loss: loss_v,
                 });
             }
-            let mut gs = loss.backward()?;
-            let gn = clip_grad_store(&mut gs, &vars, cfg.grad_clip)?;
-            for (g, v) in grads.iter_mut().zip(&vars) {
-                match gs.get(v.as_tensor()) {
-                    Some(t) => g.copy_from_slice(&t.flatten_all()?.to_vec1::<f32>()?),
-                    None => g.fill(0.0),
-                }
-            }
+            let gn = backward_to_host(&loss, &vars, cfg.grad_clip, &mut grads)?;
             st.opt.step(&mut st.params, &grads, lr);
             set_vars(&st.params)?;
             let done = step + 1;
-            st.step = done;
-            st.report.losses.push((done, loss_v));
-            if done % cfg.log_every.max(1) == 0 || done == cfg.steps {
-                use std::io::Write;
-                writeln!(
-                    log,
-                    r#"{{"step":{done},"loss":{loss_v},"lr":{lr},"grad_norm":{gn}}}"#
-                )
-                .map_err(|e| Error::io(&log_path, e))?;
-            }
-            if let Some(p) = self.progress.as_mut() {
-                p(&Progress {
-                    step: done,
-                    steps: cfg.steps,
-                    loss: loss_v,
-                    lr,
-                    grad_norm: gn,
-                });
-            }
-            let at_ckpt =
-                cfg.checkpoint_every.is_some_and(|k| k > 0 && done % k == 0) || done == cfg.steps;
-            if at_ckpt {
-                use std::io::Write;
-                let dir = out.join(format!("step-{done:06}"));
+            let progress = Progress {
+                step: done,
+                steps: cfg.steps,
+                loss: loss_v,
+                lr,
+                grad_norm: gn,
+            };
+            if self.ctl.after_step(&cfg, &mut st, &mut log, progress)? {
+                let dir = step_dir(&out, done);
                 st.report.checkpoints.push(CheckpointRecord {
                     step: done,
                     score: None,
                     dir: Some(dir.clone()),
                 });
-                log.flush().map_err(|e| Error::io(&log_path, e))?;
+                log.flush()?;
                 st.save_step(write_model, &dir, batcher.rng.state(), &names, &cfg)?;
             }
         }
-        {
-            use std::io::Write;
-            log.flush().map_err(|e| Error::io(&log_path, e))?;
-        }
-        if st.step >= cfg.steps {
-            remove_interrupted(&out)?;
-        }
-        Ok(st.report)
+        finish(Some(&out), &mut log, st, &cfg)
     }
 }
