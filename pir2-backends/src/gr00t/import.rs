@@ -634,7 +634,12 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
             }
         },
     };
-    let letterbox = flag("letter_box_transform", false)?;
+    // Read (and type-checked) but not mapped: N1.7's processor stores
+    // `letter_box_transform` and never reads it; its albumentations eval pipeline pads every
+    // frame to a square (`image_augmentations.py`, `build_image_transformations_albumentations`),
+    // so the imported embodiment letterboxes whatever the flag says.
+    let _stored_not_read = flag("letter_box_transform", false)?;
+    let letterbox = true;
     let formalize = flag("formalize_language", true)?;
 
     // ---- the embodiment ----
