@@ -133,12 +133,22 @@ fn golden() -> Value {
         ),
         schedule_case("standard_flow", TrainSchedule::StandardFlow, h, 5),
         schedule_case("gr00t_flow", TrainSchedule::Gr00tFlow, h, 6),
-        schedule_case("streaming_diffusion", TrainSchedule::StreamingDiffusion, h, 7),
+        schedule_case(
+            "streaming_diffusion",
+            TrainSchedule::StreamingDiffusion,
+            h,
+            7,
+        ),
     ];
     for (i, p) in Policy::ALL.iter().enumerate() {
         let name = serde_json::to_value(p).unwrap();
         let name = format!("policy_{}", name.as_str().unwrap());
-        cases.push(schedule_case(&name, p.schedule(&recipe), 32, 100 + i as u64));
+        cases.push(schedule_case(
+            &name,
+            p.schedule(&recipe),
+            32,
+            100 + i as u64,
+        ));
     }
     let mut rng = Rng::new(20_260_526);
     let g: Vec<f32> = (0..100_000).map(|_| gr00t_n17_tau(&mut rng)).collect();

@@ -14,9 +14,7 @@ use pyo3::types::PyDict;
 
 use pir2_runtime::policy::{Policy, Recipe};
 use pir2_runtime::LatencyWindow;
-use pir2_schedule::train::{
-    self, DelayDist, Draw, FrontVisibility, PiR2Draws, TrainSchedule,
-};
+use pir2_schedule::train::{self, DelayDist, Draw, FrontVisibility, PiR2Draws, TrainSchedule};
 use pir2_schedule::{Alignment, Error, FrontMode, Staircase, StreamBuffer, StreamConfig};
 
 // ---------------------------------------------------------------------------------------
@@ -177,7 +175,10 @@ impl PyRng {
     /// A generator continuing from a saved `state` (four integers in `[0, 2^64)`, not all
     /// zero), as Rust `Rng::from_state`.
     #[staticmethod]
-    fn from_state(state: [u64; 4]) -> PyResult<Self> {
+    fn from_state(state: &Bound<'_, PyAny>) -> PyResult<Self> {
+        let state: [u64; 4] = state
+            .extract()
+            .map_err(|_| invalid("state", "must be four integers in [0, 2^64)"))?;
         pir2_schedule::Rng::from_state(state)
             .map(|inner| Self { inner })
             .ok_or_else(|| invalid("state", "the all-zero state is not a valid xoshiro state"))
@@ -220,7 +221,12 @@ impl PyRng {
     #[pyo3(signature = (size=None))]
     fn uniform_f64(&mut self, py: Python<'_>, size: Option<i64>) -> PyResult<Py<PyAny>> {
         match opt_count("size", size)? {
-            None => Ok(self.inner.uniform_f64().into_pyobject(py)?.into_any().unbind()),
+            None => Ok(self
+                .inner
+                .uniform_f64()
+                .into_pyobject(py)?
+                .into_any()
+                .unbind()),
             Some(n) => {
                 let v: Vec<f64> = (0..n).map(|_| self.inner.uniform_f64()).collect();
                 Ok(arr1(py, v).into_any().unbind())
@@ -230,9 +236,11 @@ impl PyRng {
 
     /// Uniform integer in `[0, n)` (`n >= 1`), unbiased (Rust `Rng::below`).
     fn below(&mut self, n: &Bound<'_, PyAny>) -> PyResult<u64> {
-        let n = n.extract::<u64>().ok().filter(|&n| n > 0).ok_or_else(|| {
-            invalid("n", "must be an integer in [1, 2^64)")
-        })?;
+        let n = n
+            .extract::<u64>()
+            .ok()
+            .filter(|&n| n > 0)
+            .ok_or_else(|| invalid("n", "must be an integer in [1, 2^64)"))?;
         Ok(self.inner.below(n))
     }
 
@@ -283,7 +291,10 @@ fn with_rng<R>(
 fn gr00t_n17_tau(py: Python<'_>, rng: &Bound<'_, PyAny>, size: Option<i64>) -> PyResult<Py<PyAny>> {
     let size = opt_count("size", size)?;
     with_rng(rng, |r| match size {
-        None => Ok(train::gr00t_n17_tau(r).into_pyobject(py)?.into_any().unbind()),
+        None => Ok(train::gr00t_n17_tau(r)
+            .into_pyobject(py)?
+            .into_any()
+            .unbind()),
         Some(n) => {
             let v: Vec<f32> = (0..n).map(|_| train::gr00t_n17_tau(r)).collect();
             Ok(arr1(py, v).into_any().unbind())
@@ -296,13 +307,20 @@ fn gr00t_n17_tau(py: Python<'_>, rng: &Bound<'_, PyAny>, size: Option<i64>) -> P
 #[pyfunction]
 fn gr00t_n17_tau_cdf(py: Python<'_>, t: &Bound<'_, PyAny>) -> PyResult<Py<PyAny>> {
     if let Ok(x) = t.extract::<f64>() {
-        return Ok(train::gr00t_n17_tau_cdf(x).into_pyobject(py)?.into_any().unbind());
+        return Ok(train::gr00t_n17_tau_cdf(x)
+            .into_pyobject(py)?
+            .into_any()
+            .unbind());
     }
     let np = py.import("numpy")?;
     let a = np.call_method1("ascontiguousarray", (t, "float64"))?;
     let a: PyReadonlyArrayDyn<'_, f64> = a.extract()?;
     let shape = a.shape().to_vec();
-    let v: Vec<f64> = a.as_slice()?.iter().map(|&x| train::gr00t_n17_tau_cdf(x)).collect();
+    let v: Vec<f64> = a
+        .as_slice()?
+        .iter()
+        .map(|&x| train::gr00t_n17_tau_cdf(x))
+        .collect();
     let out = arr1(py, v);
     Ok(out.call_method1("reshape", (shape,))?.unbind())
 }
@@ -394,7 +412,12 @@ impl PyStaircase {
     #[pyo3(signature = (p=None))]
     fn tau(&self, py: Python<'_>, p: Option<i64>) -> PyResult<Py<PyAny>> {
         match p {
-            Some(p) => Ok(self.inner.tau(count("p", p)?).into_pyobject(py)?.into_any().unbind()),
+            Some(p) => Ok(self
+                .inner
+                .tau(count("p", p)?)
+                .into_pyobject(py)?
+                .into_any()
+                .unbind()),
             None => Ok(arr1(py, self.inner.to_vec()).into_any().unbind()),
         }
     }
@@ -411,7 +434,9 @@ impl PyStaircase {
                 .into_any()
                 .unbind()),
             None => {
-                let v: Vec<f32> = (0..self.inner.horizon()).map(|p| self.inner.tau_after(p)).collect();
+                let v: Vec<f32> = (0..self.inner.horizon())
+                    .map(|p| self.inner.tau_after(p))
+                    .collect();
                 Ok(arr1(py, v).into_any().unbind())
             }
         }
@@ -543,7 +568,12 @@ impl PyDelayDist {
     /// Sample delays with `rng` (a `pir2.Rng`, advanced in place, or an integer seed): one
     /// `int`, or an `int64` array of `size` draws.
     #[pyo3(signature = (rng, size=None))]
-    fn sample(&self, py: Python<'_>, rng: &Bound<'_, PyAny>, size: Option<i64>) -> PyResult<Py<PyAny>> {
+    fn sample(
+        &self,
+        py: Python<'_>,
+        rng: &Bound<'_, PyAny>,
+        size: Option<i64>,
+    ) -> PyResult<Py<PyAny>> {
         let size = opt_count("size", size)?;
         with_rng(rng, |r| match size {
             None => Ok(self.inner.sample(r).into_pyobject(py)?.into_any().unbind()),
@@ -557,7 +587,9 @@ impl PyDelayDist {
     fn __repr__(&self) -> String {
         match self.inner {
             DelayDist::Uniform { max } => format!("DelayDist.uniform({max})"),
-            DelayDist::Exponential { max, rate } => format!("DelayDist.exponential({max}, {rate:?})"),
+            DelayDist::Exponential { max, rate } => {
+                format!("DelayDist.exponential({max}, {rate:?})")
+            }
         }
     }
 }
@@ -671,7 +703,11 @@ impl PyDraws {
     }
 
     fn __repr__(&self) -> String {
-        format!("Draws(batch={}, horizon={})", self.draws.len(), self.horizon)
+        format!(
+            "Draws(batch={}, horizon={})",
+            self.draws.len(),
+            self.horizon
+        )
     }
 }
 
@@ -718,10 +754,16 @@ impl PyTrainSchedule {
             ("hidden", None) => FrontVisibility::Hidden,
             ("dropped", Some(p)) => FrontVisibility::Dropped { p },
             ("dropped", None) => {
-                return Err(invalid("front.p", "front=\"dropped\" needs front_p in [0,1]"))
+                return Err(invalid(
+                    "front.p",
+                    "front=\"dropped\" needs front_p in [0,1]",
+                ))
             }
             ("visible" | "hidden", Some(_)) => {
-                return Err(invalid("front.p", "front_p is only used with front=\"dropped\""))
+                return Err(invalid(
+                    "front.p",
+                    "front_p is only used with front=\"dropped\"",
+                ))
             }
             (other, _) => {
                 return Err(invalid(
@@ -742,7 +784,10 @@ impl PyTrainSchedule {
         // Horizon-free checks now (the staircase checks need H: `validate(H)` / `draw`).
         let s = TrainSchedule::PiR2(c);
         if let Err(e) = s.validate(usize::MAX / 4) {
-            if !matches!(e, Error::HorizonTooShort { .. } | Error::NfeOutOfRange { .. }) {
+            if !matches!(
+                e,
+                Error::HorizonTooShort { .. } | Error::NfeOutOfRange { .. }
+            ) {
                 return Err(err(e));
             }
         }
@@ -795,7 +840,11 @@ impl PyTrainSchedule {
     /// `{"nfe": 2, "pir2_d_max": 5, "delays": {"law": "exponential", "rate": 1.0}}`).
     #[staticmethod]
     #[pyo3(signature = (policy, recipe=None))]
-    fn for_policy(py: Python<'_>, policy: &str, recipe: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
+    fn for_policy(
+        py: Python<'_>,
+        policy: &str,
+        recipe: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
         let p: Policy = serde_json::from_value(serde_json::Value::String(policy.into()))
             .map_err(|_| {
                 invalid(
@@ -805,33 +854,36 @@ impl PyTrainSchedule {
                     ),
                 )
             })?;
-        let r = match recipe {
-            None => Recipe::default(),
-            Some(obj) if obj.is_none() => Recipe::default(),
-            Some(obj) => {
-                if let Ok(name) = obj.extract::<String>() {
-                    match name.as_str() {
-                        "default" => Recipe::default(),
-                        "paper_sim" => Recipe::paper_sim(),
-                        _ => {
-                            return Err(invalid(
+        let r =
+            match recipe {
+                None => Recipe::default(),
+                Some(obj) if obj.is_none() => Recipe::default(),
+                Some(obj) => {
+                    if let Ok(name) = obj.extract::<String>() {
+                        match name.as_str() {
+                            "default" => Recipe::default(),
+                            "paper_sim" => Recipe::paper_sim(),
+                            _ => return Err(invalid(
                                 "recipe",
-                                format!("must be \"default\", \"paper_sim\" or a dict, got {name:?}"),
-                            ))
+                                format!(
+                                    "must be \"default\", \"paper_sim\" or a dict, got {name:?}"
+                                ),
+                            )),
                         }
+                    } else if obj.is_instance_of::<PyDict>() {
+                        let text: String = py
+                            .import("json")?
+                            .call_method1("dumps", (obj,))?
+                            .extract()?;
+                        serde_json::from_str(&text).map_err(|e| invalid("recipe", e.to_string()))?
+                    } else {
+                        return Err(invalid(
+                            "recipe",
+                            "must be \"default\", \"paper_sim\" or a dict",
+                        ));
                     }
-                } else if obj.is_instance_of::<PyDict>() {
-                    let text: String = py
-                        .import("json")?
-                        .call_method1("dumps", (obj,))?
-                        .extract()?;
-                    serde_json::from_str(&text)
-                        .map_err(|e| invalid("recipe", e.to_string()))?
-                } else {
-                    return Err(invalid("recipe", "must be \"default\", \"paper_sim\" or a dict"));
                 }
-            }
-        };
+            };
         Ok(Self {
             inner: p.schedule(&r),
         })
@@ -874,7 +926,13 @@ impl PyTrainSchedule {
     /// `TrainSchedule::draw` calls on one generator. `rng` is a `pir2.Rng` (advanced in
     /// place: the next call continues the stream) or an integer seed (a fresh
     /// `Rng(seed)`). The schedule is validated for `horizon` first. Returns `Draws`.
-    fn draw(&self, py: Python<'_>, batch: i64, horizon: i64, rng: &Bound<'_, PyAny>) -> PyResult<PyDraws> {
+    fn draw(
+        &self,
+        py: Python<'_>,
+        batch: i64,
+        horizon: i64,
+        rng: &Bound<'_, PyAny>,
+    ) -> PyResult<PyDraws> {
         let b = count("batch", batch)?;
         let h = count("H", horizon)?;
         b.checked_mul(h)
@@ -971,7 +1029,10 @@ impl PyStreamBuffer {
         let h = self.ha().0;
         let p = count("p", p)?;
         if p >= h {
-            return Err(invalid("p", format!("slot {p} is out of range for H = {h}")));
+            return Err(invalid(
+                "p",
+                format!("slot {p} is out of range for H = {h}"),
+            ));
         }
         Ok(p)
     }
@@ -1111,18 +1172,26 @@ impl PyStreamBuffer {
     /// Warm start with `k`-step standard flow from pure noise, then re-noise to the
     /// staircase at `d0`. `model(x, tau)` takes `x` `float32 [H, A]` and `tau` `float32 [H]`
     /// and returns the velocity `[H, A]`; an exception it raises is re-raised.
-    fn warm_start_with(&mut self, py: Python<'_>, d0: i64, k: i64, model: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn warm_start_with(
+        &mut self,
+        py: Python<'_>,
+        d0: i64,
+        k: i64,
+        model: &Bound<'_, PyAny>,
+    ) -> PyResult<()> {
         let (h, a) = self.ha();
         let d0 = count("d", d0)?;
         let k = count("k", k)?;
-        let r = self.inner.warm_start_with(d0, k, |x: &[f32], tau: &[f32], v: &mut [f32]| {
-            let xa = arr2(py, x.to_vec(), h, a).map_err(WarmError::Python)?;
-            let ta = arr1(py, tau.to_vec());
-            let out = model.call1((xa, ta)).map_err(WarmError::Python)?;
-            let got = f32_input(py, &out, "velocity", &[h, a]).map_err(WarmError::Python)?;
-            v.copy_from_slice(&got);
-            Ok::<(), WarmError>(())
-        });
+        let r = self
+            .inner
+            .warm_start_with(d0, k, |x: &[f32], tau: &[f32], v: &mut [f32]| {
+                let xa = arr2(py, x.to_vec(), h, a).map_err(WarmError::Python)?;
+                let ta = arr1(py, tau.to_vec());
+                let out = model.call1((xa, ta)).map_err(WarmError::Python)?;
+                let got = f32_input(py, &out, "velocity", &[h, a]).map_err(WarmError::Python)?;
+                v.copy_from_slice(&got);
+                Ok::<(), WarmError>(())
+            });
         match r {
             Ok(()) => Ok(()),
             Err(WarmError::Schedule(e)) => Err(err(e)),
@@ -1155,7 +1224,8 @@ impl PyStreamBuffer {
     fn remap(&mut self, py: Python<'_>, xhat_new: &Bound<'_, PyAny>) -> PyResult<()> {
         let (h, a) = self.ha();
         let z = f32_input(py, xhat_new, "xhat_new", &[h, a])?;
-        self.inner.remap(|p, _, out| out.copy_from_slice(&z[p * a..(p + 1) * a]));
+        self.inner
+            .remap(|p, _, out| out.copy_from_slice(&z[p * a..(p + 1) * a]));
         Ok(())
     }
 
@@ -1201,7 +1271,13 @@ impl PyLatencyWindow {
     /// anything is recorded (default 1, clamped to `[1, d_max]`).
     #[new]
     #[pyo3(signature = (w, warmup, period_ns, d_max, initial_delay=None))]
-    fn new(w: i64, warmup: i64, period_ns: i64, d_max: i64, initial_delay: Option<i64>) -> PyResult<Self> {
+    fn new(
+        w: i64,
+        warmup: i64,
+        period_ns: i64,
+        d_max: i64,
+        initial_delay: Option<i64>,
+    ) -> PyResult<Self> {
         let mut inner = LatencyWindow::new(
             count("w", w)?,
             count("warmup", warmup)?,
@@ -1225,7 +1301,10 @@ impl PyLatencyWindow {
         let a = np.call_method1("asarray", (latency_ns,))?;
         let kind: String = a.getattr("dtype")?.getattr("kind")?.extract()?;
         if kind != "i" && kind != "u" {
-            return Err(invalid("latency_ns", format!("must be integer nanoseconds, got dtype kind {kind:?}")));
+            return Err(invalid(
+                "latency_ns",
+                format!("must be integer nanoseconds, got dtype kind {kind:?}"),
+            ));
         }
         let a = np.call_method1("ascontiguousarray", (a, "int64"))?;
         let a: PyReadonlyArrayDyn<'_, i64> = a.extract()?;
@@ -1265,7 +1344,9 @@ impl PyLatencyWindow {
         format!(
             "LatencyWindow(len={}, mean={}, delay={})",
             self.inner.len(),
-            self.inner.mean().map_or("None".to_string(), |m| format!("{m:?}")),
+            self.inner
+                .mean()
+                .map_or("None".to_string(), |m| format!("{m:?}")),
             self.inner.delay()
         )
     }

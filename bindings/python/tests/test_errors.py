@@ -96,6 +96,8 @@ def test_rng_and_window_errors():
         pir2.Rng(0).below(0)
     with pytest.raises(ValueError, match=r"invalid `state`: the all-zero state"):
         pir2.Rng.from_state([0, 0, 0, 0])
+    with pytest.raises(ValueError, match=r"invalid `state`: must be four integers"):
+        pir2.Rng.from_state([1, 2, 3, -4])
     with pytest.raises(ValueError, match=r"invalid `size`: must be >= 0, got -2"):
         pir2.gr00t_n17_tau(0, size=-2)
     w = pir2.LatencyWindow(4, 0, 20_000_000, 5)
