@@ -155,7 +155,7 @@ impl SafetyConfig {
     }
 
     /// The ceiling no configuration may widen for the xArm6 + XHand composite at
-    /// `control_hz` ([`within`](Self::within)): the xArm6 joint ranges and the controller's
+    /// `control_hz` ([`widening`](Self::widening)): the xArm6 joint ranges and the controller's
     /// largest accepted joint speed and acceleration ([`ARM_HW_MAX_VELOCITY`],
     /// [`ARM_HW_MAX_ACCEL`]); for the hand, whose vendor publishes no speed or acceleration
     /// bound this project could cite, the conservative envelope of

@@ -1138,7 +1138,7 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
     let export = super::n17::export::export_gr00t_n17(&head, plan.emb.horizon).map_err(|e| {
         Gr00tError::Candle {
             path: ckpt.to_path_buf(),
-            source: Box::new(e.into()),
+            source: Box::new(e),
         }
     })?;
     drop(head);
@@ -1169,7 +1169,7 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
             .write(&tmp, super::n17::export::WeightStorage::Auto)
             .map_err(|e| Gr00tError::Candle {
                 path: tmp.clone(),
-                source: Box::new(e.into()),
+                source: Box::new(e),
             })?;
         copy(&plan.config_path, &tmp.join(CONFIG_FILE))?;
         copy(&plan.processor_path, &tmp.join(PROCESSOR_FILE))?;
