@@ -251,7 +251,8 @@ pub struct EvalOptions {
     pub json: Option<PathBuf>,
     /// Send the action-head calls to `pir2 serve policy` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7447`; feature `remote`). The server must run the same
-    /// checkpoint; locally only its normalisation is used.
+    /// checkpoint (a server announcing another policy or other weights is refused); locally
+    /// only its normalisation is used.
     #[arg(long)]
     pub remote: Option<String>,
     /// With --remote: ms a request may take before it is sent again.
