@@ -1,4 +1,7 @@
-//! Checkpoint directories: `config.json` + `stats.json` + `model.safetensors` (f32).
+//! Checkpoint directories: `config.json` + `stats.json` + `model.safetensors` (f32), and
+//! `identity.json` ([`Identity`]: the policy the weights were trained as and the SHA-256 of
+//! `model.safetensors`). A checkpoint written before `identity.json` existed still loads; its
+//! policy is then unrecorded ([`Checkpoint::identity`] is `None`).
 //!
 //! This layer is backend-independent (the ONNX Runtime / libtorch backends can read the
 //! stats from it). [`save`] refuses to write into an existing directory; [`Checkpoint::take`]
@@ -8,6 +11,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use safetensors::{tensor::TensorView, Dtype, SafeTensors};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use pir2_runtime::Policy;
 
 use crate::config::{Config, Stats};
 use crate::error::{Error, Result};
@@ -18,6 +25,27 @@ pub const CONFIG_FILE: &str = "config.json";
 pub const STATS_FILE: &str = "stats.json";
 /// File name of the weights.
 pub const WEIGHTS_FILE: &str = "model.safetensors";
+/// File name of the identity ([`Identity`]).
+pub const IDENTITY_FILE: &str = "identity.json";
+
+/// What a checkpoint is, recorded next to its weights in `identity.json`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Identity {
+    /// The policy (training schedule) the weights were trained as; `None` when the writer
+    /// did not know it (e.g. [`save`] of tensors from elsewhere).
+    pub policy: Option<Policy>,
+    /// SHA-256 of the bytes of `model.safetensors`, lowercase hex ([`weights_sha256`]).
+    pub weights_sha256: String,
+}
+
+/// SHA-256 of `bytes` (the contents of `model.safetensors`), lowercase hex.
+pub fn weights_sha256(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
 
 /// One named f32 tensor.
 #[derive(Debug, Clone, PartialEq)]
@@ -39,6 +67,11 @@ pub struct Checkpoint {
     pub stats: Stats,
     /// Weights by name.
     pub tensors: BTreeMap<String, NamedTensor>,
+    /// The recorded identity (`identity.json`); `None` for a checkpoint written without one
+    /// (policy and hash unrecorded).
+    pub identity: Option<Identity>,
+    /// SHA-256 of `model.safetensors` as read (computed, recorded or not).
+    pub weights_sha256: String,
 }
 
 fn write_json<T: serde::Serialize>(path: &Path, v: &T) -> Result<()> {
@@ -101,7 +134,7 @@ pub fn save<'a>(
     stats: &Stats,
     tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
 ) -> Result<()> {
-    create_dir_durably(dir, |tmp| write_files(tmp, config, stats, tensors))
+    create_dir_durably(dir, |tmp| write_files(tmp, config, stats, None, tensors))
 }
 
 /// Create the new directory `dir` holding the files `fill` writes (its parent is created if
@@ -135,16 +168,27 @@ pub(crate) fn create_dir_durably(dir: &Path, fill: impl FnOnce(&Path) -> Result<
     sync_dir(&parent)
 }
 
-/// The files of a checkpoint (config, stats, weights) in the existing directory `dir`.
+/// The files of a checkpoint (config, stats, weights, identity with `policy`) in the
+/// existing directory `dir`.
 pub(crate) fn write_files<'a>(
     dir: &Path,
     config: &Config,
     stats: &Stats,
+    policy: Option<Policy>,
     tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
 ) -> Result<()> {
     write_json(&dir.join(CONFIG_FILE), config)?;
     write_json(&dir.join(STATS_FILE), stats)?;
-    write_tensors(&dir.join(WEIGHTS_FILE), tensors)
+    let wpath = dir.join(WEIGHTS_FILE);
+    let bytes = serialize_tensors(&wpath, tensors)?;
+    write_durable(&wpath, &bytes)?;
+    write_json(
+        &dir.join(IDENTITY_FILE),
+        &Identity {
+            policy,
+            weights_sha256: weights_sha256(&bytes),
+        },
+    )
 }
 
 /// Write f32 tensors (name, shape, data) as one fsynced safetensors file.
@@ -152,6 +196,16 @@ pub(crate) fn write_tensors<'a>(
     path: &Path,
     tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
 ) -> Result<()> {
+    let bytes = serialize_tensors(path, tensors)?;
+    write_durable(path, &bytes)
+}
+
+/// f32 tensors (name, shape, data) as the bytes of a safetensors file (`path` names it in
+/// errors).
+fn serialize_tensors<'a>(
+    path: &Path,
+    tensors: impl IntoIterator<Item = (String, Vec<usize>, &'a [f32])>,
+) -> Result<Vec<u8>> {
     let st_err = |e: safetensors::SafeTensorError| Error::Safetensors {
         path: path.to_owned(),
         message: e.to_string(),
@@ -167,8 +221,7 @@ pub(crate) fn write_tensors<'a>(
             TensorView::new(Dtype::F32, s.clone(), b).map_err(st_err)?,
         ));
     }
-    let bytes = safetensors::serialize(views, None).map_err(st_err)?;
-    write_durable(path, &bytes)
+    safetensors::serialize(views, None).map_err(st_err)
 }
 
 impl Checkpoint {
@@ -205,11 +258,32 @@ impl Checkpoint {
                 },
             );
         }
+        // After the weights parsed: a malformed file is named as such, not as a changed one.
+        let sha = weights_sha256(&bytes);
+        let ipath = dir.join(IDENTITY_FILE);
+        let identity: Option<Identity> = if ipath.exists() {
+            let id: Identity = read_json(&ipath)?;
+            if id.weights_sha256 != sha {
+                return Err(Error::Format {
+                    path: ipath,
+                    message: format!(
+                        "records the weights' SHA-256 {} but {WEIGHTS_FILE} hashes to {sha}: \
+                         the weights were replaced after the checkpoint was written",
+                        id.weights_sha256
+                    ),
+                });
+            }
+            Some(id)
+        } else {
+            None
+        };
         Ok(Self {
             dir: dir.to_owned(),
             config,
             stats,
             tensors,
+            identity,
+            weights_sha256: sha,
         })
     }
 

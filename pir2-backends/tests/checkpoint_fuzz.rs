@@ -66,6 +66,10 @@ fn checkpoints(name: &str) -> Dir {
         let dir = root.join(format!("m{i}"));
         m.save(&dir).unwrap();
         CandleModel::load(&dir).unwrap();
+        // Without identity.json (a checkpoint written before it existed), so that edited
+        // weights reach the loader's checks instead of failing the hash comparison.
+        fs::remove_file(dir.join("identity.json")).unwrap();
+        CandleModel::load(&dir).unwrap();
     }
     Dir(root)
 }
@@ -285,4 +289,41 @@ fn saves_use_their_own_temporary_directory() {
     CandleModel::load(&out.join("ckpt.v2")).unwrap();
     // An existing checkpoint is never replaced.
     assert!(m.save(&out.join("ckpt.v1")).is_err());
+}
+
+/// `identity.json`: the policy set on the model is recorded and read back with the hash of
+/// the weights; a checkpoint without it loads with both unrecorded (the hash is still
+/// computed); weights replaced after the save, or an unreadable identity, are errors naming
+/// `identity.json`.
+#[test]
+fn the_identity_records_the_policy_and_catches_replaced_weights() {
+    use pir2_backends::checkpoint::{weights_sha256, Checkpoint};
+    let root = checkpoints("identity");
+    let mut m = CandleModel::load(&root.0.join("m0")).unwrap();
+    assert_eq!(m.policy(), None);
+    let sha = m.weights_sha256().unwrap().to_owned();
+    let bytes = fs::read(root.0.join("m0/model.safetensors")).unwrap();
+    assert_eq!(sha, weights_sha256(&bytes));
+    m.set_policy(Some(pir2_runtime::Policy::Rtc));
+    let dir = root.0.join("rtc");
+    m.save(&dir).unwrap();
+    let back = CandleModel::load(&dir).unwrap();
+    assert_eq!(back.policy(), Some(pir2_runtime::Policy::Rtc));
+    assert_eq!(back.weights_sha256(), Some(sha.as_str()));
+    let ck = Checkpoint::load(&dir).unwrap();
+    assert_eq!(ck.identity.unwrap().weights_sha256, sha);
+
+    fs::copy(
+        root.0.join("m1/model.safetensors"),
+        dir.join("model.safetensors"),
+    )
+    .unwrap();
+    let err = Checkpoint::load(&dir).unwrap_err().to_string();
+    assert!(
+        err.contains("identity.json") && err.contains("weights were replaced"),
+        "{err}"
+    );
+    fs::write(dir.join("identity.json"), "{\"policy\": \"nope\"}").unwrap();
+    let err = Checkpoint::load(&dir).unwrap_err().to_string();
+    assert!(err.contains("identity.json"), "{err}");
 }

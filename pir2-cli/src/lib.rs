@@ -13,6 +13,7 @@ pub mod bench;
 pub mod commands;
 pub mod ep;
 pub mod gr00t;
+pub mod identity;
 pub mod plot;
 pub mod run;
 pub mod serve;

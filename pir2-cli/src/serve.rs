@@ -90,6 +90,12 @@ pub enum ServeOptions {
             conflicts_with = "gr00t_checkpoint"
         )]
         checkpoint: Option<PathBuf>,
+        /// With --checkpoint: the policy the checkpoint must have been trained as (refused
+        /// by name if its `identity.json` records another). The server announces the
+        /// checkpoint's identity (policy, weights SHA-256) to `pir2 eval --remote`, which
+        /// refuses a server running another policy or other weights.
+        #[arg(long, requires = "checkpoint", value_parser = crate::tasks::policy_parser())]
+        policy: Option<pir2_runtime::Policy>,
         /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
         /// weights + statistics) is served; feature `gr00t`.
         #[arg(long, requires = "task")]
@@ -205,6 +211,21 @@ impl RemotePolicy {
         unreachable!("a RemotePolicy exists only in a build with feature `remote`")
     }
 
+    /// Refuse the server unless it runs the checkpoint `dir` (loaded as `local`) as
+    /// `policy`, by the identity it announced ([`crate::identity::expect_server`]).
+    #[allow(unused_variables)]
+    pub fn expect_checkpoint(
+        &self,
+        local: &CandleModel,
+        dir: &std::path::Path,
+        policy: pir2_runtime::Policy,
+    ) -> Result<()> {
+        #[cfg(feature = "remote")]
+        return self.inner.expect_checkpoint(local, dir, policy);
+        #[cfg(not(feature = "remote"))]
+        unreachable!("a RemotePolicy exists only in a build with feature `remote`")
+    }
+
     /// A line naming the server and its counters, for errors of an evaluation through it.
     pub fn context(&self) -> String {
         #[cfg(feature = "remote")]
@@ -247,6 +268,7 @@ mod imp {
         match cmd {
             ServeOptions::Policy {
                 checkpoint,
+                policy,
                 gr00t_checkpoint,
                 task,
                 inject_delay_ms,
@@ -255,7 +277,7 @@ mod imp {
                 tls,
                 ep,
             } => {
-                let cfg = PolicyServerConfig {
+                let mut cfg = PolicyServerConfig {
                     link: tls.apply(Link::listen(listen.clone()))?,
                     key: key.clone(),
                     reply_delay: Duration::from_millis(*inject_delay_ms),
@@ -271,6 +293,10 @@ mod imp {
                     (Some(ck), _) => {
                         let model = CandleModel::load(ck)
                             .with_context(|| format!("loading checkpoint {}", ck.display()))?;
+                        if let Some(p) = policy {
+                            crate::identity::expect_policy(&model, ck, *p, "--policy")?;
+                        }
+                        cfg.identity = crate::identity::announce(&model);
                         eprintln!(
                             "serving {} ({}) on {listen}, key {key}{delay} (Ctrl-C to stop)",
                             ck.display(),
@@ -487,6 +513,7 @@ mod imp {
         model: Shared,
         stats: Arc<RemoteStats>,
         endpoint: String,
+        identity: Option<String>,
     }
 
     impl RemotePolicy {
@@ -509,9 +536,25 @@ mod imp {
             })?;
             Ok(Self {
                 stats: m.stats(),
+                identity: m.server_identity().map(str::to_owned),
                 model: Shared(Arc::new(Mutex::new(m))),
                 endpoint: endpoint.to_string(),
             })
+        }
+
+        pub(super) fn expect_checkpoint(
+            &self,
+            local: &CandleModel,
+            dir: &std::path::Path,
+            policy: pir2_runtime::Policy,
+        ) -> Result<()> {
+            crate::identity::expect_server(
+                self.identity.as_deref(),
+                &self.endpoint,
+                local,
+                dir,
+                policy,
+            )
         }
 
         pub(super) fn models(&self, output: OutputMap) -> Models<'_> {

@@ -209,6 +209,114 @@ fn eval_remote_without_a_server_fails_cleanly() {
     assert!(t0.elapsed() < Duration::from_secs(20));
 }
 
+/// An untrained ball-plate MLP checkpoint `dir/name` seeded `seed`, recording `policy`.
+fn checkpoint_as(
+    dir: &Path,
+    name: &str,
+    seed: u64,
+    policy: Option<pir2_runtime::Policy>,
+) -> PathBuf {
+    let eps = demo::collect(3, 0, false).unwrap();
+    let spec = demo::spec();
+    let stats = compute_stats(&Episodes(&eps), &spec).unwrap();
+    let cfg = Config {
+        spec,
+        model: ModelConfig::Mlp(MlpConfig {
+            width: 32,
+            depth: 2,
+            ..MlpConfig::default()
+        }),
+    };
+    let ck = dir.join(name);
+    let mut m = CandleModel::new(cfg, stats, seed).unwrap();
+    m.set_policy(policy);
+    m.save(&ck).unwrap();
+    ck
+}
+
+/// `pir2 eval --remote` refuses a server whose checkpoint differs from `--checkpoint` (other
+/// weights, by their SHA-256) or was trained as another policy than `--policy`, by name, and
+/// `pir2 serve policy --policy` refuses a checkpoint trained as another policy. Before: the
+/// evaluation ran against whatever the server held.
+#[test]
+fn eval_remote_refuses_a_server_running_another_checkpoint() {
+    use pir2_runtime::Policy;
+    let s = Scratch::new("eval-remote-identity");
+    let served = checkpoint_as(s.path(), "served", 3, Some(Policy::Rtc));
+    let other = checkpoint_as(s.path(), "other", 4, Some(Policy::Rtc));
+    // The served weights without identity.json (a checkpoint written before it existed).
+    let old = s.path().join("old");
+    std::fs::create_dir_all(&old).unwrap();
+    for f in ["config.json", "stats.json", "model.safetensors"] {
+        std::fs::copy(served.join(f), old.join(f)).unwrap();
+    }
+
+    let refused = pir2()
+        .args([
+            "serve",
+            "policy",
+            "--checkpoint",
+            served.to_str().unwrap(),
+            "--policy",
+            "pir2",
+        ])
+        .args(["--listen", &format!("tcp/127.0.0.1:{}", free_port())])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{err}");
+    assert!(
+        err.contains("was trained as rtc; --policy pir2 would run it"),
+        "{err}"
+    );
+
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _server = serve(&[
+        "policy",
+        "--checkpoint",
+        served.to_str().unwrap(),
+        "--listen",
+        &endpoint,
+    ]);
+    let eval = |ck: &Path, policy: &str| {
+        pir2()
+            .args([
+                "eval",
+                "--policy",
+                policy,
+                "--d0",
+                "1",
+                "--episodes",
+                "2",
+                "--checkpoint",
+            ])
+            .arg(ck)
+            .args(["--remote", &endpoint, "--connect-timeout", "20"])
+            .output()
+            .unwrap()
+    };
+    let out = eval(&other, "rtc");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains(&endpoint) && err.contains("runs other weights than checkpoint"),
+        "{err}"
+    );
+    let out = eval(&old, "pir2");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("runs a checkpoint trained as rtc; --policy pir2 would run it"),
+        "{err}"
+    );
+    let out = eval(&served, "rtc");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 /// A client refuses to connect in plain TCP beyond this machine: one error naming the
 /// endpoint and the fix, nothing dialled (before: `eval --remote tcp/OTHER-HOST:PORT` connected
 /// and used whatever answered); `--insecure` lets it try, loudly.

@@ -147,6 +147,20 @@ impl Policy {
         Policy::PiR2ZeroDelayFull,
     ];
 
+    /// The policy's name on the command line (`pir2 train|eval --policy`): `pir2`,
+    /// `pir2-hidden`, `pir2-full`, `rtc`, `flow`, `pir2-zero-delay`, `pir2-zero-delay-full`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Policy::PiR2 => "pir2",
+            Policy::PiR2Hidden => "pir2-hidden",
+            Policy::PiR2Full => "pir2-full",
+            Policy::Rtc => "rtc",
+            Policy::Flow => "flow",
+            Policy::PiR2ZeroDelay => "pir2-zero-delay",
+            Policy::PiR2ZeroDelayFull => "pir2-zero-delay-full",
+        }
+    }
+
     /// Whether the policy's network gives every chunk position its own modulation head (the
     /// paper's architecture for πR²; the baselines keep the shared head).
     pub fn per_position_heads(self) -> bool {

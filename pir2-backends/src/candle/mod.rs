@@ -126,6 +126,10 @@ pub struct CandleModel {
     net: Arch,
     scratch: Scratch,
     fused: bool,
+    /// The policy the weights are trained as (recorded in the checkpoint's `identity.json`).
+    policy: Option<pir2_runtime::Policy>,
+    /// SHA-256 of the `model.safetensors` the weights were loaded from, until they change.
+    loaded_sha256: Option<String>,
 }
 
 impl CandleModel {
@@ -150,7 +154,28 @@ impl CandleModel {
             net,
             scratch: Scratch::default(),
             fused: true,
+            policy: None,
+            loaded_sha256: None,
         })
+    }
+
+    /// The policy (training schedule) the weights are trained as: what a loaded checkpoint's
+    /// `identity.json` records (`None`: unrecorded, e.g. a checkpoint written before
+    /// checkpoints recorded it), or what [`CandleModel::set_policy`] set.
+    pub fn policy(&self) -> Option<pir2_runtime::Policy> {
+        self.policy
+    }
+
+    /// Record the policy the model is trained as; [`CandleModel::save`] (and every step
+    /// checkpoint of the trainer) writes it to `identity.json`.
+    pub fn set_policy(&mut self, policy: Option<pir2_runtime::Policy>) {
+        self.policy = policy;
+    }
+
+    /// SHA-256 (lowercase hex) of the `model.safetensors` this model was loaded from
+    /// ([`crate::checkpoint::weights_sha256`]), while its weights are unchanged since.
+    pub fn weights_sha256(&self) -> Option<&str> {
+        self.loaded_sha256.as_deref()
     }
 
     /// The configuration.
@@ -173,6 +198,7 @@ impl CandleModel {
     /// Tell the model its weights were changed through [`CandleModel::vars`] (drops the
     /// host copy the batch-1 MLP path keeps). The trainer and [`CandleModel::restore`] call it.
     pub fn weights_changed(&mut self) {
+        self.loaded_sha256 = None;
         self.scratch.mlp_fast = None;
         if let Some(u) = self.scratch.unet.as_mut() {
             u.stale = true;
@@ -292,6 +318,7 @@ impl CandleModel {
             dir,
             &self.config,
             &self.stats,
+            self.policy,
             owned
                 .iter()
                 .map(|(n, s, d)| (n.clone(), s.clone(), d.as_slice())),
@@ -323,6 +350,8 @@ impl CandleModel {
         ck.expect_consumed()?;
         let mut model = model;
         model.weights_changed();
+        model.policy = ck.identity.as_ref().and_then(|i| i.policy);
+        model.loaded_sha256 = Some(ck.weights_sha256);
         Ok(model)
     }
 

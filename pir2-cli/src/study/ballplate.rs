@@ -14,7 +14,7 @@ use pir2_sim::ballplate::{BallPlate, BallPlateConfig};
 use pir2_sim::dataset::{CollectConfig, DatasetSpec, DatasetWriter, Episode, WriteMode};
 use pir2_sim::expert::{LqrConfig, LqrExpert};
 
-use super::pipeline::{self, bar};
+use super::pipeline::{self, bar, log_line, write_atomically};
 use super::{Policy, Row, Settings, Study, StudyResult, Task};
 
 /// Everything `pir2 demo` does, as a TOML-able config.
@@ -319,32 +319,90 @@ pub fn run(cfg: &DemoConfig, out: &Path) -> Result<DemoResult> {
     pipeline::run(&task, &study, out, false)
 }
 
+/// What a `pir2 train ballplate` run in a directory was started with (`train.toml`), so
+/// `--resume` continues only the same run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TrainRun {
+    policy: Policy,
+    seed: u64,
+    config: DemoConfig,
+}
+
+/// File of a `pir2 train ballplate` directory recording the run ([`TrainRun`]).
+const TRAIN_RUN_FILE: &str = "train.toml";
+
 /// `pir2 train ballplate`: train one policy on a dataset into `out` (a new directory:
 /// step checkpoints under `out/steps`, the chosen one in `out/best`). Returns the
-/// closed-loop validation scores.
+/// closed-loop validation scores of this run's checkpoints.
+///
+/// With `resume`, `out` is an interrupted run of the same policy, seed and config (checked
+/// against `out/train.toml`) on the same demonstrations (`out/data.json`): training continues
+/// from its last step checkpoint or `interrupted-*` state; a run whose `best/` exists is left
+/// as it is (no scores).
 pub fn train_checkpoint(
     data: &Path,
     policy: Policy,
     cfg: &DemoConfig,
     seed: u64,
     out: &Path,
+    resume: bool,
 ) -> Result<super::Scores> {
-    if out.exists() {
+    let run = TrainRun {
+        policy,
+        seed,
+        config: cfg.clone(),
+    };
+    let run_file = out.join(TRAIN_RUN_FILE);
+    if resume {
+        let before = std::fs::read_to_string(&run_file).with_context(|| {
+            format!(
+                "--resume: {} is not a ballplate training run to continue (no readable {})",
+                out.display(),
+                TRAIN_RUN_FILE
+            )
+        })?;
+        let before: TrainRun = toml::from_str(&before)
+            .with_context(|| format!("--resume: reading {}", run_file.display()))?;
+        if before != run {
+            anyhow::bail!(
+                "--resume: {} was trained as --policy {} --seed {} with another config than \
+                 this one ({}); resume with the same policy, seed and --config, or train into \
+                 a new directory",
+                out.display(),
+                before.policy.name(),
+                before.seed,
+                run_file.display()
+            );
+        }
+        if out.join("best").exists() {
+            log_line(&format!("{} finished in an earlier run", out.display()));
+            return Ok(Vec::new());
+        }
+    } else if out.exists() {
         anyhow::bail!(
-            "checkpoint directory {} already exists; choose another --out",
+            "checkpoint directory {} already exists; choose another --out (or --resume an \
+             interrupted run there)",
             out.display()
         );
     }
     let ds = pir2_sim::dataset::read_dataset(data)
         .with_context(|| format!("reading dataset {}", data.display()))?;
+    if !resume {
+        std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+        let text = toml::to_string(&run).context("serialising the run")?;
+        write_atomically(&run_file, text.as_bytes())?;
+    }
+    pipeline::check_data(&out.join(pipeline::DATA_FILE), &ds.episodes, resume)?;
     let task = BallPlateTask::new(cfg.clone());
     let pb = indicatif::ProgressBar::new(cfg.steps as u64);
-    let (model, scores) = pipeline::train_policy(
+    let (model, scores) = pipeline::train_policy_resumable(
         &task,
         &ds.episodes,
         policy,
         seed,
         Some(&out.join("steps")),
+        resume,
         &|s| pb.set_position(s as u64),
     )?;
     pb.finish();

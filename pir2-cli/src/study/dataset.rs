@@ -374,6 +374,8 @@ pub fn train(
         stats,
         cfg.seed,
     )?;
+    // Recorded in every checkpoint's identity.json: evaluating it as another policy is refused.
+    model.set_policy(Some(cfg.policy));
     let schedule = cfg.policy.schedule(&cfg.recipe);
     let o = &cfg.train;
     let v = &cfg.validation;
@@ -489,7 +491,11 @@ pub fn train(
                 }
             }
         };
+        // Ctrl-C / SIGTERM: the training state of the step reached is saved
+        // (`interrupted-NNNNNN/`, unless a step checkpoint of that step exists) and the run
+        // ends with an error naming it; `--resume` continues from there.
         Trainer::new(tc)
+            .stop_on(crate::signals::stop_flag())
             .on_progress(on_progress)
             .validate(validate)
             .out_dir(out)

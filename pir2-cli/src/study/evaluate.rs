@@ -580,6 +580,7 @@ pub fn evaluate_best_per_cell<T: Task>(
                 Some(dir) => {
                     let m = CandleModel::load_expect(dir, &task.spec())
                         .with_context(|| format!("loading {}", dir.display()))?;
+                    crate::identity::expect_policy(&m, dir, t.policy, "evaluating it as")?;
                     Ok((
                         t.policy,
                         t.seed,

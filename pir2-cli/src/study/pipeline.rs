@@ -86,6 +86,8 @@ pub fn train_policy_resumable<T: Task>(
         model: task.model(policy),
     };
     let mut model = CandleModel::new(config, stats, seed)?;
+    // Recorded in every checkpoint's identity.json: evaluating it as another policy is refused.
+    model.set_policy(Some(policy));
     let s = task.settings();
     let base = task.optimiser();
     let tc = TrainConfig {
@@ -273,6 +275,7 @@ pub fn train_all<T: Task>(
             if best.exists() {
                 let model = CandleModel::load_expect(&best, &task.spec())
                     .with_context(|| format!("loading {}", best.display()))?;
+                crate::identity::expect_policy(&model, &best, policy, "loading it as")?;
                 log_line(&format!(
                     "loaded {policy:?} seed {seed} from {}",
                     best.display()
@@ -286,6 +289,7 @@ pub fn train_all<T: Task>(
         if resume && best.exists() {
             let model = CandleModel::load_expect(&best, &task.spec())
                 .with_context(|| format!("loading {}", best.display()))?;
+            crate::identity::expect_policy(&model, &best, policy, "loading it as")?;
             log_line(&format!(
                 "{policy:?} seed {seed} finished in an earlier run: kept {}",
                 best.display()
@@ -520,7 +524,7 @@ impl DataFingerprint {
 /// the ones the run started on: demonstrations regenerated differently (another expert, or
 /// a change that alters their numbers) must not continue a run silently. A run begun before
 /// the file existed gets it now.
-fn check_data(file: &Path, demos: &[Episode], resume: bool) -> Result<()> {
+pub(crate) fn check_data(file: &Path, demos: &[Episode], resume: bool) -> Result<()> {
     let now = DataFingerprint::of(demos);
     let read = match std::fs::read_to_string(file) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,

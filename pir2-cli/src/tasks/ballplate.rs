@@ -40,12 +40,27 @@ impl TaskCommands for BallPlate {
     }
 
     fn train(&self, o: &TrainOptions) -> Result<()> {
-        if o.resume {
-            bail!("--resume is for leap-cube training; ballplate trains in minutes");
-        }
         let policy = o.policy.context("--policy is required for ballplate")?;
         let cfg = DemoConfig::load(o.config.as_deref(), false)?;
-        let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out)?;
+        let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out, o.resume)
+            .map_err(|e| {
+            let config = o
+                .config
+                .as_ref()
+                .map(|c| format!(" --config {}", c.display()))
+                .unwrap_or_default();
+            super::with_resume_hint(
+                e,
+                &format!(
+                    "pir2 train ballplate --data {} --policy {} --seed {}{config} \
+                             --out {} --resume",
+                    o.data.display(),
+                    policy.name(),
+                    o.seed,
+                    o.out.display()
+                ),
+            )
+        })?;
         println!("closed-loop validation (step, success): {scores:?}");
         println!("best checkpoint: {}", o.out.join("best").display());
         Ok(())
@@ -64,6 +79,7 @@ impl TaskCommands for BallPlate {
         }
         let model = CandleModel::load(checkpoint)
             .with_context(|| format!("loading {}", checkpoint.display()))?;
+        crate::identity::expect_policy(&model, checkpoint, policy, "--policy")?;
         let episodes = o.episodes.unwrap_or(100);
         let (cells, labels) = match &o.remote {
             None => {
@@ -79,6 +95,7 @@ impl TaskCommands for BallPlate {
                     o.remote_max_failed.max(1),
                 )?;
                 eprintln!("connected to the policy server at {endpoint}");
+                remote.expect_checkpoint(&model, checkpoint, policy)?;
                 let models = remote.models(&model);
                 let res = ballplate::eval_checkpoint(&models, policy, &o.d0, episodes, o.seed)
                     .with_context(|| remote.context());

@@ -17,7 +17,17 @@ pub fn train(o: &TrainOptions, file: &Path) -> Result<()> {
         );
     }
     let cfg = DatasetTaskConfig::load(file)?;
-    let r = dataset::train(&o.data, &cfg, &o.out, o.resume)?;
+    let r = dataset::train(&o.data, &cfg, &o.out, o.resume).map_err(|e| {
+        super::with_resume_hint(
+            e,
+            &format!(
+                "pir2 train --task {} --data {} --out {} --resume",
+                file.display(),
+                o.data.display(),
+                o.out.display()
+            ),
+        )
+    })?;
     println!("held-out episodes: {:?}", r.held_out);
     println!("step      flow loss  open-loop RMSE  (normalised)");
     for c in &r.checkpoints {

@@ -102,7 +102,7 @@ fn reporting_task_names() -> PossibleValuesParser {
 }
 
 /// `--policy`: the policies by their command-line names.
-fn policy_parser() -> impl TypedValueParser<Value = Policy> {
+pub(crate) fn policy_parser() -> impl TypedValueParser<Value = Policy> {
     PossibleValuesParser::new(["pir2", "pir2-hidden", "pir2-full", "rtc", "flow"]).map(|s| match s
         .as_str()
     {
@@ -190,10 +190,13 @@ pub struct TrainOptions {
     /// Seed (ballplate; leap-cube trains the config's seeds).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// leap-cube and --task: continue an interrupted `pir2 train … --out DIR` with the same
-    /// config (task file) and data (both checked against `DIR/config.toml` and
-    /// `DIR/data.json`): finished policies are kept, unfinished ones continue from their
-    /// last step checkpoint (bit-identically to an uninterrupted run on the same kind of CPU).
+    /// Continue an interrupted `pir2 train … --out DIR` (SIGINT / SIGTERM save the training
+    /// state and name it) with the same config and data (leap-cube: checked against
+    /// `DIR/config.toml` and `DIR/data.json`; ballplate: the policy, seed and config against
+    /// `DIR/train.toml` and the data against `DIR/data.json`; --task: the task file against
+    /// `DIR/task.toml`): finished policies are kept, unfinished ones continue from their last
+    /// step checkpoint or interrupted state (bit-identically to an uninterrupted run on the
+    /// same kind of CPU).
     #[arg(long)]
     pub resume: bool,
 }
@@ -248,7 +251,8 @@ pub struct EvalOptions {
     pub json: Option<PathBuf>,
     /// Send the action-head calls to `pir2 serve policy` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7447`; feature `remote`). The server must run the same
-    /// checkpoint; locally only its normalisation is used.
+    /// checkpoint (a server announcing another policy or other weights is refused); locally
+    /// only its normalisation is used.
     #[arg(long)]
     pub remote: Option<String>,
     /// With --remote: ms a request may take before it is sent again.
@@ -292,6 +296,22 @@ pub struct ReportOptions {
     /// Report what the log holds when cells are missing (listed), instead of refusing.
     #[arg(long)]
     pub partial: bool,
+}
+
+/// `e` with, when it is an interrupted training (SIGINT / SIGTERM, the training state saved),
+/// the command that continues it (`resume`) in front; any other error as it is.
+pub(crate) fn with_resume_hint(e: anyhow::Error, resume: &str) -> anyhow::Error {
+    let interrupted = e.chain().any(|c| {
+        matches!(
+            c.downcast_ref::<pir2_backends::Error>(),
+            Some(pir2_backends::Error::Interrupted { .. })
+        )
+    });
+    if interrupted {
+        e.context(format!("interrupted: `{resume}` continues the run"))
+    } else {
+        e
+    }
 }
 
 /// `pir2 collect`: the task's expert demonstrations.

@@ -30,6 +30,10 @@ pub struct PolicyServerConfig {
     /// Requests with a larger batch are refused before the model runs.
     #[serde(default = "default_max_batch")]
     pub max_batch: usize,
+    /// What the server runs (e.g. the checkpoint's identity), sent with every pong so a
+    /// client can refuse a server running another model ([`RemoteModel::server_identity`]).
+    #[serde(default)]
+    pub identity: Option<String>,
 }
 
 /// 64 MiB: a GR00T-sized request (a few hundred VL tokens × 2048 floats per sample) fits
@@ -50,6 +54,7 @@ impl Default for PolicyServerConfig {
             reply_delay: Duration::ZERO,
             max_request_bytes: default_max_request_bytes(),
             max_batch: default_max_batch(),
+            identity: None,
         }
     }
 }
@@ -173,7 +178,9 @@ pub fn serve_policy_counted<M: VelocityModel>(
                     bump(&stats.malformed);
                     wire::encode_error(me, 0, &e.to_string())
                 }
-                Ok((h, _)) if h.kind == wire::Kind::Ping => wire::encode_pong(me, &h, t_recv),
+                Ok((h, _)) if h.kind == wire::Kind::Ping => {
+                    wire::encode_pong_with_identity(me, &h, t_recv, cfg.identity.as_deref())
+                }
                 Ok((h, _)) => match answer(&mut model, &bytes, &mut v, cfg.max_batch) {
                     Ok((req, shape)) => {
                         bump(&stats.answered);
@@ -295,6 +302,7 @@ pub struct RemoteModel {
     seq: u64,
     failing: bool,
     stats: Arc<RemoteStats>,
+    server_identity: Option<String>,
 }
 
 impl std::fmt::Debug for RemoteModel {
@@ -319,12 +327,11 @@ impl RemoteModel {
         let me = instance_id();
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         let until = Instant::now() + cfg.connect_timeout;
-        loop {
+        let server_identity = loop {
             let t0 = Instant::now();
             let ping = wire::encode_ping(me, 0, clock.now());
             if let Some(bytes) = query(&session, &key, ping.into(), cfg.timeout)? {
-                wire::decode_pong(&bytes)?;
-                break;
+                break wire::decode_pong_identity(&bytes)?.1;
             }
             if Instant::now() >= until {
                 return Err(Error::Timeout {
@@ -334,7 +341,7 @@ impl RemoteModel {
             }
             // No queryable yet: the query may return at once; pace the retries.
             std::thread::sleep(Duration::from_millis(20).saturating_sub(t0.elapsed()));
-        }
+        };
         Ok(Self {
             session,
             key,
@@ -344,7 +351,14 @@ impl RemoteModel {
             seq: 0,
             failing: false,
             stats: Arc::new(RemoteStats::default()),
+            server_identity,
         })
+    }
+
+    /// The identity the server announced when it answered the connecting ping
+    /// ([`PolicyServerConfig::identity`]; `None` for a server that announces none).
+    pub fn server_identity(&self) -> Option<&str> {
+        self.server_identity.as_deref()
     }
 
     /// Measure round trips on `clock` (default: a [`SystemClock`]).

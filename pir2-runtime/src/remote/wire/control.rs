@@ -20,25 +20,53 @@ pub fn encode_ping(sender: u64, seq: u64, t_send: u64) -> Vec<u8> {
 
 /// Encode the answer to `ping`, stamped `t_recv` on the server clock.
 pub fn encode_pong(sender: u64, ping: &Header, t_recv: u64) -> Vec<u8> {
-    Writer::new(
-        Header {
-            kind: Kind::Pong,
-            sender,
-            seq: ping.seq,
-            t_a: ping.t_a,
-            t_b: t_recv,
-        },
-        0,
-        0,
-    )
-    .finish()
+    encode_pong_with_identity(sender, ping, t_recv, None)
+}
+
+/// [`encode_pong`] carrying the server's identity (a policy server's checkpoint: UTF-8
+/// text, one u8 tensor) when it has one. A peer that reads only the header (an older
+/// build) ignores it.
+pub fn encode_pong_with_identity(
+    sender: u64,
+    ping: &Header,
+    t_recv: u64,
+    identity: Option<&str>,
+) -> Vec<u8> {
+    let header = Header {
+        kind: Kind::Pong,
+        sender,
+        seq: ping.seq,
+        t_a: ping.t_a,
+        t_b: t_recv,
+    };
+    match identity {
+        None => Writer::new(header, 0, 0).finish(),
+        Some(text) => {
+            let b = text.as_bytes();
+            Writer::new(header, 1, 8 + b.len())
+                .u8(&[b.len()], b)
+                .finish()
+        }
+    }
 }
 
 /// Decode a pong (anything else, e.g. a server error, is `Err(UnexpectedKind)`).
 pub fn decode_pong(bytes: &[u8]) -> Result<Header, WireError> {
+    decode_pong_identity(bytes).map(|(h, _)| h)
+}
+
+/// Decode a pong and the identity it carries (`None`: a pong without one).
+pub fn decode_pong_identity(bytes: &[u8]) -> Result<(Header, Option<String>), WireError> {
     let msg = decode(bytes)?;
     expect(&msg, Kind::Pong)?;
-    Ok(msg.header)
+    let header = msg.header;
+    match msg.tensors.len() {
+        0 => Ok((header, None)),
+        1 => Ok((header, Some(error_text(msg)?))),
+        n => Err(WireError::Malformed(format!(
+            "a pong carries at most one tensor (the identity), got {n}"
+        ))),
+    }
 }
 
 /// Encode an error message.

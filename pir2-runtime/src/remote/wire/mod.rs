@@ -26,8 +26,13 @@
 //! | 2    | PolicyRequest | send time (robot clock) | 0                        | f32 x `[B,H,A]`, f32 τ `[B,H]`, f32 obs `[B,n_obs,F]`, u32 d_vis `[B]`, optional f32 slow `[B,S]` or `[B,T,D]` |
 //! | 3    | PolicyReply   | echo of request t_a     | model time, ns           | f32 v `[B,H,A]` |
 //! | 4    | Ping          | send time (robot clock) | 0                        | none |
-//! | 5    | Pong          | echo of ping t_a        | receive time (server clock) | none |
+//! | 5    | Pong          | echo of ping t_a        | receive time (server clock) | none, or u8 `[n]` UTF-8 identity of a policy server's checkpoint |
 //! | 6    | Error         | 0                       | 0                        | u8 `[n]` UTF-8 message |
+//!
+//! A policy server's pong may carry its identity (for a candle checkpoint, the JSON of
+//! `pir2_backends::checkpoint::Identity`: the policy it was trained as and the SHA-256 of
+//! its weights), so a client can refuse a server running another checkpoint; a version-1
+//! peer that ignores the tensor still reads the pong.
 //!
 //! Decoding checks every length before allocating, so garbage of any length returns a
 //! [`WireError`] and never panics or allocates more than the input's size.

@@ -224,3 +224,17 @@ proptest! {
         let _ = decode_reply(&bytes[..n]);
     }
 }
+
+/// A pong carries a policy server's identity when it has one; a pong without one (an older
+/// server) still decodes, and both decode as a plain pong.
+#[test]
+fn a_pong_carries_the_server_identity_or_none() {
+    let ping = decode(&encode_ping(1, 7, 42)).unwrap().header;
+    let with = encode_pong_with_identity(2, &ping, 99, Some(r#"{"policy":"rtc"}"#));
+    let (h, id) = decode_pong_identity(&with).unwrap();
+    assert_eq!((h.seq, h.t_a, h.t_b), (7, 42, 99));
+    assert_eq!(id.as_deref(), Some(r#"{"policy":"rtc"}"#));
+    assert_eq!(decode_pong(&with).unwrap(), h);
+    let without = encode_pong(2, &ping, 99);
+    assert_eq!(decode_pong_identity(&without).unwrap(), (h, None));
+}
