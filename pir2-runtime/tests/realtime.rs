@@ -12,6 +12,21 @@ use pir2_schedule::{Alignment, FrontMode};
 const PERIOD: Nanos = 20_000_000;
 
 fn go(model_ms: u64, ticks: u64, slow: bool) -> RunMetrics {
+    let model = SleepyModel {
+        latency: Duration::from_millis(model_ms),
+    };
+    let (m, _) = drive(model, ticks, slow, RealtimeConfig::default().stall_limit);
+    m.unwrap()
+}
+
+/// `model` in πR² async (H = 16, 3 actions, d_max 5) on a [`FakeRobot`] for `ticks` 20 ms
+/// ticks, with a slow channel if `slow`: the run's metrics (or error) and the robot.
+fn drive<M: VelocityModel>(
+    model: M,
+    ticks: u64,
+    slow: bool,
+    stall_limit: Option<Duration>,
+) -> (pir2_runtime::Result<RunMetrics>, FakeRobot) {
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
     let spec = HeadSpec {
         horizon: 16,
@@ -28,9 +43,6 @@ fn go(model_ms: u64, ticks: u64, slow: bool) -> RunMetrics {
         alignment: Alignment::Fresh,
         front: FrontMode::Visible,
         warm_start_steps: 2,
-    };
-    let model = SleepyModel {
-        latency: Duration::from_millis(model_ms),
     };
     let head = ActionHead::new(
         model,
@@ -61,20 +73,20 @@ fn go(model_ms: u64, ticks: u64, slow: bool) -> RunMetrics {
     let cfg = RealtimeConfig {
         period: PERIOD,
         max_ticks: Some(ticks),
+        stall_limit,
         ..Default::default()
     };
-    let (m, _) = run(
+    let r = run(
         head,
         control,
         robot.clone(),
-        robot,
+        robot.clone(),
         slow_ch,
         clock,
         cfg,
         Arc::new(AtomicBool::new(false)),
-    )
-    .unwrap();
-    m
+    );
+    (r.map(|(m, _)| m), robot)
 }
 
 fn median_d(m: &RunMetrics) -> usize {
@@ -587,61 +599,12 @@ impl VelocityModel for HangsAfter {
 #[test]
 fn a_stalled_policy_is_stopped_by_the_control_watchdog() {
     let go = |stall_limit: Option<Duration>| {
-        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-        let spec = HeadSpec {
-            horizon: 16,
-            action_dim: 3,
-            n_obs: 2,
-            fast_dim: 6,
-            slow_dim: 0,
-            period: PERIOD,
-            d_max: 5,
-            d_vis_max: 5,
-        };
-        let mode = HeadMode::PiR2 {
-            nfe: Some(2),
-            alignment: Alignment::Fresh,
-            front: FrontMode::Visible,
-            warm_start_steps: 2,
-        };
         let model = HangsAfter {
             healthy: 30,
             calls: 0,
             hang: Duration::from_secs(3),
         };
-        let head = ActionHead::new(
-            model,
-            spec,
-            mode,
-            LatencyWindow::new(20, 2, PERIOD, spec.d_max),
-            0,
-        )
-        .unwrap();
-        let robot = FakeRobot::new(3, clock.clone());
-        let control = ControlConfig {
-            horizon: 16,
-            action_dim: 3,
-            policy: CallPolicy::Async,
-            ensemble: None,
-            output: Default::default(),
-        };
-        let cfg = RealtimeConfig {
-            period: PERIOD,
-            max_ticks: Some(100),
-            stall_limit,
-            ..Default::default()
-        };
-        let r = run(
-            head,
-            control,
-            robot.clone(),
-            robot.clone(),
-            SlowChannel::None,
-            clock,
-            cfg,
-            Arc::new(AtomicBool::new(false)),
-        );
-        (r.map(|(m, _)| m), robot)
+        drive(model, 100, false, stall_limit)
     };
     use std::sync::atomic::Ordering;
     let (r, robot) = go(Some(Duration::from_millis(200)));

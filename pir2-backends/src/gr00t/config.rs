@@ -133,7 +133,8 @@ pub struct Group {
 }
 
 impl Group {
-    fn new(name: &str, dim: usize) -> Self {
+    /// A min/max-normalised absolute group of `dim` values.
+    pub(crate) fn new(name: &str, dim: usize) -> Self {
         Group {
             name: name.to_string(),
             dim,

@@ -728,44 +728,24 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     let minmax_stat = if use_percentiles { "q01" } else { "min" };
     let mut state_groups = Vec::new();
     for k in &state.keys {
-        let enc = sincos && state.sin_cos.contains(k);
-        let norm = if enc {
-            Norm::SinCos
-        } else if state.mean_std.contains(k) {
-            Norm::MeanStd
-        } else if use_percentiles {
-            Norm::Q01Q99
+        let (norm, stat) = if sincos && state.sin_cos.contains(k) {
+            (Norm::SinCos, minmax_stat)
         } else {
-            Norm::MinMax
-        };
-        let stat = if norm == Norm::MeanStd {
-            "mean"
-        } else {
-            minmax_stat
+            norm_and_width_stat(state.mean_std.contains(k), use_percentiles, minmax_stat)
         };
         let dim = stat_width(&stats, "state", k, stat)?;
-        let mut g = group(k, dim);
+        let mut g = Group::new(k, dim);
         g.norm = norm;
         state_groups.push(g);
     }
     let mut action_groups = Vec::new();
     let af = mc.key("action")?;
     for (i, k) in action.keys.iter().enumerate() {
-        let norm = if action.mean_std.contains(k) {
-            Norm::MeanStd
-        } else if use_percentiles {
-            Norm::Q01Q99
-        } else {
-            Norm::MinMax
-        };
-        let stat = if norm == Norm::MeanStd {
-            "mean"
-        } else {
-            minmax_stat
-        };
+        let (norm, stat) =
+            norm_and_width_stat(action.mean_std.contains(k), use_percentiles, minmax_stat);
         // GR00T takes a group's width from its absolute statistics, also for relative groups.
         let dim = stat_width(&stats, "action", k, stat)?;
-        let mut g = group(k, dim);
+        let mut g = Group::new(k, dim);
         g.norm = norm;
         if let Some(cfgs) = &action.actions {
             let (rep, ty, format, state_key) = &cfgs[i];
@@ -989,14 +969,19 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     })
 }
 
-fn group(name: &str, dim: usize) -> Group {
-    Group {
-        name: name.to_string(),
-        dim,
-        norm: Norm::MinMax,
-        relative: false,
-        state_key: None,
-        format: GroupFormat::Default,
+/// GR00T's normalisation of a non-sin/cos group (mean/std where the modality config lists
+/// it, else q01/q99 with percentiles, else min/max) and the statistic its width is read from.
+fn norm_and_width_stat(
+    mean_std: bool,
+    use_percentiles: bool,
+    minmax_stat: &'static str,
+) -> (Norm, &'static str) {
+    if mean_std {
+        (Norm::MeanStd, "mean")
+    } else if use_percentiles {
+        (Norm::Q01Q99, minmax_stat)
+    } else {
+        (Norm::MinMax, minmax_stat)
     }
 }
 
