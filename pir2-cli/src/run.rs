@@ -579,9 +579,18 @@ mod imp {
     pub(super) fn limits_in_force(args: &RunOptions) -> Result<super::LimitsInForce> {
         let cfg = embodiment(args)?;
         let c = safety_config(&cfg)?;
+        limits_of(args, &cfg, c)
+    }
+
+    /// The limits of a run of `args` on `cfg` with the safety limits `c` in force.
+    fn limits_of(
+        args: &RunOptions,
+        cfg: &EmbodimentConfig,
+        c: SafetyConfig,
+    ) -> Result<super::LimitsInForce> {
         Ok(super::LimitsInForce {
             control_hz: cfg.control_hz,
-            slow_grace_ms: slow_grace_ms(args, &cfg)?,
+            slow_grace_ms: slow_grace_ms(args, cfg)?,
             groups: cfg.action.iter().map(|g| (g.name.clone(), g.dim)).collect(),
             lower: c.lower,
             upper: c.upper,
@@ -771,7 +780,8 @@ mod imp {
         let camera = local_camera(args, cfg.prompt.chat.images, clock.clone())?;
         let slow_timeout = Duration::from_secs_f64(args.slow_timeout.max(0.1));
         let safety = safety_config(&cfg)?;
-        let limits = limits_in_force(args)?;
+        let limits = limits_of(args, &cfg, safety.clone())?;
+        let slow_grace = Duration::from_secs_f64(limits.slow_grace_ms / 1e3);
         eprintln!("limits in force: {limits}");
 
         if args.emulate {
@@ -793,6 +803,7 @@ mod imp {
                 camera,
                 max_ticks,
                 slow_timeout,
+                slow_grace,
                 source,
                 actuator,
                 clock,
@@ -840,6 +851,7 @@ mod imp {
             camera,
             max_ticks,
             slow_timeout,
+            slow_grace,
             source,
             actuator,
             clock,
@@ -1047,6 +1059,7 @@ mod imp {
         camera: Option<Camera>,
         max_ticks: Option<u64>,
         slow_timeout: Duration,
+        slow_grace: Duration,
         source: F,
         actuator: A,
         clock: Arc<dyn Clock>,
@@ -1064,9 +1077,7 @@ mod imp {
             clock: clock.clone(),
             stop,
             slow_timeout,
-            slow_grace: Some(Duration::from_secs_f64(
-                slow_grace_ms(args, &embodiment(args)?)? / 1e3,
-            )),
+            slow_grace: Some(slow_grace),
             ort: args.ep.ort()?,
             ..Default::default()
         };
