@@ -120,6 +120,11 @@ pub struct RunOptions {
     /// `safety.slow_grace_ms`, 200 if unset).
     #[arg(long)]
     pub slow_grace_ms: Option<f64>,
+    /// Control watchdog: this long without a clean action (the policy's calls stalled or its
+    /// chunks ran out: overruns, holds) stops the robot with a safety stop, ms. At most 5000,
+    /// e.g. to ride through a restart of `pir2 serve policy`.
+    #[arg(long, default_value_t = 1000.0)]
+    pub stall_limit_ms: f64,
     /// Write the run summary (and the per-call trace) as JSON here; a failed run writes its
     /// error instead. The file must not exist (a report is never replaced).
     #[arg(long)]
@@ -201,6 +206,9 @@ pub struct LimitsInForce {
     pub control_hz: f64,
     /// Stale-slow grace, ms.
     pub slow_grace_ms: f64,
+    /// Control watchdog: the longest run of ticks without a clean action, ms.
+    #[serde(default = "default_stall_limit_ms")]
+    pub stall_limit_ms: f64,
     /// The action groups, `name` and width, in order.
     pub groups: Vec<(String, usize)>,
     /// Lower joint limits, rad.
@@ -213,6 +221,10 @@ pub struct LimitsInForce {
     pub max_accel: Vec<f32>,
     /// Tracking-error bounds, rad.
     pub tracking_error: Vec<f32>,
+}
+
+fn default_stall_limit_ms() -> f64 {
+    1000.0
 }
 
 impl std::fmt::Display for LimitsInForce {
@@ -228,8 +240,8 @@ impl std::fmt::Display for LimitsInForce {
         };
         write!(
             f,
-            "control {} Hz, stale-slow grace {} ms",
-            self.control_hz, self.slow_grace_ms
+            "control {} Hz, stale-slow grace {} ms, stall limit {} ms",
+            self.control_hz, self.slow_grace_ms, self.stall_limit_ms
         )?;
         let mut at = 0;
         for (name, width) in &self.groups {
@@ -575,6 +587,17 @@ mod imp {
         }
     }
 
+    /// The control watchdog's bound, ms: `--stall-limit-ms`, within
+    /// `(0, MAX_STALL_LIMIT]`.
+    fn stall_limit_ms(args: &RunOptions) -> Result<f64> {
+        let max = pir2_runtime::realtime::MAX_STALL_LIMIT.as_secs_f64() * 1e3;
+        let l = args.stall_limit_ms;
+        if !(l.is_finite() && l > 0.0 && l <= max) {
+            bail!("--stall-limit-ms must be in (0, {max}] ms, got {l}");
+        }
+        Ok(l)
+    }
+
     /// See [`super::limits_in_force`].
     pub(super) fn limits_in_force(args: &RunOptions) -> Result<super::LimitsInForce> {
         let cfg = embodiment(args)?;
@@ -591,6 +614,7 @@ mod imp {
         Ok(super::LimitsInForce {
             control_hz: cfg.control_hz,
             slow_grace_ms: slow_grace_ms(args, cfg)?,
+            stall_limit_ms: stall_limit_ms(args)?,
             groups: cfg.action.iter().map(|g| (g.name.clone(), g.dim)).collect(),
             lower: c.lower,
             upper: c.upper,
@@ -1078,6 +1102,7 @@ mod imp {
             stop,
             slow_timeout,
             slow_grace: Some(slow_grace),
+            stall_limit: Duration::from_secs_f64(args.stall_limit_ms / 1e3),
             ort: args.ep.ort()?,
             ..Default::default()
         };

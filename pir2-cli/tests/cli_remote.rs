@@ -531,12 +531,21 @@ mod remote_head {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let mut server = head_server_piped(ck_s, &endpoint);
         let json = s.path().join("run.json");
-        // 10 s at 25 Hz; up to 50 × 200 ms without a reply before a safety stop.
+        // 10 s at 25 Hz; up to 50 × 200 ms without a reply, and the control watchdog at its
+        // 5 s ceiling, before a safety stop (the outage plus a restart on a loaded machine
+        // takes more than the watchdog's default second).
         let (mut run, mut err) = start_run(
             ck_s,
             &endpoint,
             &json,
-            &["--ticks", "250", "--max-failed-calls", "50"],
+            &[
+                "--ticks",
+                "250",
+                "--max-failed-calls",
+                "50",
+                "--stall-limit-ms",
+                "5000",
+            ],
         );
         wait_first_request(&mut server);
         // The outage must fall in the control phase (the warm-up is not in the trace).
@@ -713,14 +722,15 @@ mod remote_head {
         );
     }
 }
-/// `pir2 run --emulate --remote-slow` with its stderr piped; returns once the run has opened
-/// its slow-channel session.
+/// `pir2 run --emulate --remote-slow` with its stderr piped; returns once a stderr line
+/// contains `marker` (e.g. the run has received its first slow features).
 #[cfg(feature = "gr00t")]
 #[allow(clippy::zombie_processes)]
 fn start_slow_run(
     ck: &str,
     endpoint: &str,
     extra: &[&str],
+    marker: &str,
 ) -> (Child, BufReader<std::process::ChildStderr>) {
     let mut run = pir2()
         .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck])
@@ -739,9 +749,9 @@ fn start_slow_run(
             let _ = run.wait();
             panic!("run exited: {lines:?}");
         }
-        let connected = l.contains("connected to the slow server");
+        let seen = l.contains(marker);
         lines.push(l);
-        if connected {
+        if seen {
             return (run, err);
         }
     }
@@ -781,6 +791,7 @@ fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
             "--slow-grace-ms",
             "200",
         ],
+        "connected to the slow server",
     );
     // Into the control phase, then long enough for it to run, short enough that a loaded
     // machine does not trip another safety stop (state watchdog, slow grace) before the kill.
@@ -821,7 +832,12 @@ fn sigterm_during_warm_up_stops_the_emulated_arm() {
     let ck_s = ck.to_str().unwrap();
     // Nobody serves this endpoint: the run waits for its first features (60 s).
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let (mut run, mut err) = start_slow_run(ck_s, &endpoint, &["--slow-timeout", "60"]);
+    let (mut run, mut err) = start_slow_run(
+        ck_s,
+        &endpoint,
+        &["--slow-timeout", "60"],
+        "waiting for the first features",
+    );
     std::thread::sleep(Duration::from_millis(500));
     // SAFETY: plain kill(2) on our own child.
     assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGTERM) }, 0);

@@ -100,6 +100,12 @@ fn a_checkpoint_or_a_flag_may_only_tighten_the_envelope() {
     let (ok, text) = run(&ck, &["--slow-grace-ms", "150"]);
     assert!(ok, "{text}");
     assert!(text.contains("stale-slow grace 150 ms"), "{text}");
+    // The control watchdog has a ceiling an operator cannot pass.
+    let (ok, text) = run(&ck, &["--stall-limit-ms", "60000"]);
+    assert!(
+        !ok && text.contains("--stall-limit-ms must be in (0, 5000]"),
+        "{text}"
+    );
     // Tighter limits run, and are what is printed and written.
     let path = ck.join("embodiment.toml");
     let original = std::fs::read_to_string(&path).unwrap();
@@ -118,6 +124,7 @@ fn a_checkpoint_or_a_flag_may_only_tighten_the_envelope() {
     assert_eq!(l["max_velocity"][0], 0.5, "{l}");
     assert_eq!(l["max_velocity"].as_array().unwrap().len(), 18, "{l}");
     assert_eq!(l["slow_grace_ms"], 200.0, "{l}");
+    assert_eq!(l["stall_limit_ms"], 1000.0, "{l}");
     std::fs::remove_dir_all(&ck).ok();
 }
 

@@ -117,6 +117,11 @@ pub struct RealtimeConfig {
 /// Default of [`RealtimeConfig::stall_limit`]: one second without a clean action.
 pub const DEFAULT_STALL_LIMIT: Duration = Duration::from_secs(1);
 
+/// Ceiling of the control watchdog an operator may set (e.g. to ride through a policy-server
+/// restart): past five seconds of overruns and holds the robot has been acting on estimates
+/// or standing still long enough that the run should end and be restarted on purpose.
+pub const MAX_STALL_LIMIT: Duration = Duration::from_secs(5);
+
 impl Default for RealtimeConfig {
     fn default() -> Self {
         Self {

@@ -172,6 +172,10 @@ pub struct Gr00tRunOptions {
     /// (`ActionHead::set_slow_grace`). `None`: the embodiment's `safety.slow_grace_ms`
     /// (200 ms when its `[safety]` table does not set it).
     pub slow_grace: Option<Duration>,
+    /// Control watchdog: this long without a clean action (overruns, holds, ticks past the
+    /// chunk) stops the robot with a safety stop; in `(0, MAX_STALL_LIMIT]`
+    /// ([`pir2_runtime::realtime::MAX_STALL_LIMIT`]), default one second.
+    pub stall_limit: Duration,
 }
 
 impl Default for Gr00tRunOptions {
@@ -190,6 +194,7 @@ impl Default for Gr00tRunOptions {
             seed: 0,
             slow_timeout: Duration::from_secs(60),
             slow_grace: None,
+            stall_limit: pir2_runtime::realtime::DEFAULT_STALL_LIMIT,
         }
     }
 }
@@ -474,7 +479,7 @@ where
         initial_delay: 1,
         slow_timeout: opts.slow_timeout,
         rt_priority: None,
-        ..Default::default()
+        stall_limit: Some(opts.stall_limit),
     };
     // Only πR² async runs the backbone on its own worker; every other row of the paper's
     // table runs it inside each call, so its time counts in the call's `d`.
@@ -489,6 +494,13 @@ where
             encoder,
         }
     };
+    if opts.stall_limit.is_zero() || opts.stall_limit > pir2_runtime::realtime::MAX_STALL_LIMIT {
+        return Err(Gr00tError::Config(format!(
+            "the control watchdog's stall limit must be in (0, {:?}], got {:?}",
+            pir2_runtime::realtime::MAX_STALL_LIMIT,
+            opts.stall_limit
+        )));
+    }
     let slow_grace = opts.slow_grace.unwrap_or(cfg.slow_grace());
     if slow_grace.is_zero() {
         return Err(Gr00tError::Config(
