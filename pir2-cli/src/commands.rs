@@ -200,7 +200,9 @@ pub fn robot(cmd: &RobotCmd) -> Result<()> {
 }
 
 /// `pir2 robot check`: connect to an xArm (`host` or `host:port`, port 502 by default)
-/// and/or an XHand serial device, read state, print a report.
+/// and/or an XHand serial device, read state, print a report; an error (exit status 1) when
+/// the report lists a problem (a latched error, a failed report stream, an arm in motion, a
+/// finger error), so scripts can gate a run on it.
 pub fn robot_check(xarm: Option<&str>, xhand: Option<&Path>, clear_errors: bool) -> Result<()> {
     let addr = match xarm {
         None => None,
@@ -217,6 +219,9 @@ pub fn robot_check(xarm: Option<&str>, xhand: Option<&Path>, clear_errors: bool)
     opts.clear_errors = clear_errors;
     let report = pir2_robots::check_with(&opts)?;
     println!("{report}");
+    if !report.healthy() {
+        bail!("the robot check found problems (listed above): fix them before a run");
+    }
     Ok(())
 }
 

@@ -695,6 +695,55 @@ mod remote_head {
         );
     }
 
+    /// The control watchdog through the binary: with the remote layer told to wait 50 ×
+    /// 200 ms, a policy server that dies still stops the robot after `--stall-limit-ms` of
+    /// ticks without a clean action, naming the watchdog (the robot is stopped before the
+    /// workers are joined).
+    #[test]
+    fn gr00t_run_stops_on_the_control_watchdog_when_the_policy_stalls() {
+        let s = Scratch::new("gr00t-remote-stall");
+        let ck = gr00t_checkpoint(&s);
+        let ck_s = ck.to_str().unwrap();
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let mut server = head_server_piped(ck_s, &endpoint);
+        let json = s.path().join("run.json");
+        let (mut run, mut err) = start_run(
+            ck_s,
+            &endpoint,
+            &json,
+            &[
+                "--seconds",
+                "60",
+                "--max-failed-calls",
+                "50",
+                "--stall-limit-ms",
+                "400",
+            ],
+        );
+        wait_first_request(&mut server);
+        wait_under_control(&mut err);
+        std::thread::sleep(Duration::from_millis(300));
+        drop(server);
+        let t0 = Instant::now();
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+        let status = run.wait().unwrap();
+        let took = t0.elapsed();
+        eprintln!("{rest}");
+        assert!(!status.success());
+        // The watchdog's stop comes first (400 ms = 10 ticks at 25 Hz; the first error is
+        // the one reported); the process then waits for the action worker's call in flight,
+        // which the remote layer ends after its own 50 attempts.
+        assert!(
+            rest.contains("safety stop: control watchdog") && rest.contains("(bound 10;"),
+            "{rest}"
+        );
+        assert!(took < Duration::from_secs(20), "{took:?}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        assert_eq!(v["limits"]["stall_limit_ms"], 400.0, "{v}");
+    }
+
     #[test]
     fn gr00t_run_without_a_policy_server_fails_before_the_robot_connects() {
         let s = Scratch::new("gr00t-remote-none");

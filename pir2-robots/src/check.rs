@@ -100,7 +100,9 @@ impl CheckReport {
     /// Whether everything asked answered without an error code.
     pub fn healthy(&self) -> bool {
         let arm_ok = self.xarm.as_ref().is_none_or(|a| {
-            a.after_clear.map_or(a.error, |c| c.0) == 0 && !matches!(a.report, Some(Err(_)))
+            a.after_clear.map_or(a.error, |c| c.0) == 0
+                && !matches!(a.report, Some(Err(_)))
+                && a.state != crate::xarm::proto::state::MOVING
         });
         let hand_ok = self
             .xhand
@@ -119,6 +121,14 @@ impl std::fmt::Display for CheckReport {
                 "  state {} error {} warning {}",
                 a.state, a.error, a.warning
             )?;
+            if a.state == crate::xarm::proto::state::MOVING {
+                writeln!(
+                    f,
+                    "  the arm is in motion (state 1): another client is streaming to it, or a \
+                     process died without stopping it (it holds its last servo target); stop \
+                     it before a run"
+                )?;
+            }
             if let Some((e, w)) = a.after_clear {
                 writeln!(
                     f,

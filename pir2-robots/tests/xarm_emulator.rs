@@ -414,11 +414,92 @@ fn command_port_drop_while_streaming_is_reported() {
         || arm.read_state(&mut s).is_err(),
         Duration::from_secs(2)
     ));
+    // The stop reopens the command port and gets SET_STATE 4 confirmed (before: it gave up
+    // because the port was closed and left the outcome to chance).
+    arm.stop().unwrap();
+    let sim = e.handle().sim();
+    assert_eq!(sim.state, state::STOP);
+    // The emulator had stopped the arm already: the connection that moved it closed.
+    assert_eq!(sim.client_loss_stops, 1);
+    assert!(matches!(
+        arm.send_targets(&[0.0; 6]),
+        Err(Error::Stopped { .. })
+    ));
+}
+
+/// A stop whose first SET_STATE 4 times out is retried on a fresh connection until the
+/// controller confirms state 4 (before: the first failure was final and only counted).
+#[test]
+fn a_stop_that_times_out_is_retried_until_confirmed() {
+    let e = emu();
+    let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    arm.send_targets(&[0.1, -0.3, -0.5, 0.0, 0.8, 0.0]).unwrap();
+    assert!(wait_until(
+        || e.handle().sim().state == state::MOVING,
+        Duration::from_secs(2)
+    ));
+    // Longer than the 300 ms request timeout; the streaming thread is halted before the stop
+    // request, so the stall hits SET_STATE 4.
+    e.handle()
+        .inject(XArmFault::Stall(Duration::from_millis(600)));
+    arm.stop().unwrap();
+    assert_eq!(e.handle().sim().state, state::STOP);
+}
+
+/// A controller that never confirms the stop: `stop` keeps trying for about a second, then
+/// fails naming the attempts, so the caller knows the arm may still hold servo mode.
+#[test]
+fn a_stop_the_controller_never_confirms_fails_naming_the_attempts() {
+    let e = emu();
+    let mut arm = XArm6::connect(arm_cfg(&e), clock()).unwrap();
+    for _ in 0..400 {
+        e.handle().inject(XArmFault::DropConnection);
+    }
+    let t0 = std::time::Instant::now();
     let err = arm.stop().unwrap_err();
+    let took = t0.elapsed();
     assert!(
-        matches!(err, Error::Stopped { ref reason, .. } if reason.contains("SET_STATE 4")),
+        matches!(err, Error::Stopped { ref reason, .. }
+            if reason.contains("SET_STATE 4 was not confirmed") && reason.contains("attempts")),
         "{err}"
     );
+    assert!(
+        took >= Duration::from_millis(900) && took < Duration::from_secs(5),
+        "{took:?}"
+    );
+    assert!(matches!(
+        arm.send_targets(&[0.0; 6]),
+        Err(Error::Stopped { .. })
+    ));
+}
+
+/// A client that dies while the arm moves (its sockets close) leaves the emulated arm stopped;
+/// while a client streams, `robot check` reports the arm in motion as a problem (before: a
+/// killed process left the arm in state 1 and the next check said OK).
+#[test]
+fn a_client_that_dies_while_moving_leaves_the_arm_stopped() {
+    let e = emu();
+    let mut c = client(&e);
+    c.identify().unwrap();
+    c.motion_enable(true).unwrap();
+    c.set_mode(1).unwrap();
+    c.set_state(0).unwrap();
+    c.servo_j(&[0.1, -0.3, -0.5, 0.0, 0.8, 0.0]).unwrap();
+    assert_eq!(e.handle().sim().state, state::MOVING);
+    let report = pir2_robots::check::check(Some(e.cmd_addr()), None).unwrap();
+    assert!(!report.healthy(), "{report}");
+    assert!(
+        report.to_string().contains("in motion (state 1)"),
+        "{report}"
+    );
+    drop(c);
+    assert!(wait_until(
+        || e.handle().sim().state == state::STOP,
+        Duration::from_secs(2)
+    ));
+    assert_eq!(e.handle().sim().client_loss_stops, 1);
+    let report = pir2_robots::check::check(Some(e.cmd_addr()), None).unwrap();
+    assert!(report.healthy(), "{report}");
 }
 
 #[test]

@@ -25,6 +25,12 @@
 //! `MOTION_EN`/`SET_STATE 0` again. The SDK's heartbeat frame (protocol id 1) gets no answer.
 //! Unknown registers answer with the invalid bit.
 //!
+//! Client loss: when the command connection whose servo-j last moved the arm closes while
+//! the arm is moving (state 1), the arm stops (state 4) and [`ArmSim::client_loss_stops`]
+//! counts it. A process that dies without stopping the arm closes its sockets, so a killed
+//! `pir2 run` leaves the emulated arm stopped, not in motion. (A real controller holds its
+//! last servo target instead; see [`crate::xarm`], "When this process dies".)
+//!
 //! One file on purpose: the register table, the command handlers and the motion model are one
 //! state machine, read against the protocol module line by line.
 
@@ -178,6 +184,10 @@ pub struct ArmSim {
     pub warning: u8,
     /// Servo-j frames applied.
     pub servoj: u64,
+    /// Stops because the connection that moved the arm closed (see the module docs).
+    pub client_loss_stops: u64,
+    /// The command connection whose servo-j last moved the arm.
+    owner: Option<u64>,
     /// Requests answered.
     pub requests: u64,
     /// CLEAN_ERR requests received.
@@ -203,6 +213,8 @@ impl ArmSim {
             error: 0,
             warning: 0,
             servoj: 0,
+            client_loss_stops: 0,
+            owner: None,
             requests: 0,
             clean_err: 0,
             set_mode_params: Vec::new(),
@@ -304,8 +316,19 @@ impl ArmSim {
         }
         r
     }
-    /// Answer one request: `(status, data)`.
-    fn handle(&mut self, c: &Command, version: &str) -> (u8, Vec<u8>) {
+    /// Command connection `conn` closed: if its servo-j moved the arm and the arm is still
+    /// moving, stop it.
+    fn client_gone(&mut self, conn: u64) {
+        if self.owner == Some(conn) {
+            self.owner = None;
+            if self.state == state::MOVING {
+                self.state = state::STOP;
+                self.client_loss_stops += 1;
+            }
+        }
+    }
+    /// Answer one request of command connection `conn`: `(status, data)`.
+    fn handle(&mut self, c: &Command, version: &str, conn: u64) -> (u8, Vec<u8>) {
         self.requests += 1;
         self.last_proto = c.proto;
         let mut data = Vec::new();
@@ -371,6 +394,7 @@ impl ArmSim {
                         self.target[..6].copy_from_slice(&v[..6]);
                         self.state = state::MOVING;
                         self.servoj += 1;
+                        self.owner = Some(conn);
                     } else {
                         invalid = true;
                     }
@@ -603,14 +627,21 @@ enum Role {
 
 fn accept_loop(l: TcpListener, h: XArmEmuHandle, role: Role) {
     let mut conns: Vec<JoinHandle<()>> = Vec::new();
+    let mut next_conn = 0u64;
     while !h.stop.load(Ordering::SeqCst) {
         match l.accept() {
             Ok((s, _)) => {
                 let h2 = h.clone();
                 let _ = s.set_nonblocking(false);
                 let _ = s.set_nodelay(true);
+                next_conn += 1;
+                let conn = next_conn;
                 let r = match role {
-                    Role::Cmd => spawn_named("xarm-emu-conn", move || serve_cmd(s, h2)),
+                    Role::Cmd => spawn_named("xarm-emu-conn", move || {
+                        serve_cmd(s, &h2, conn);
+                        // However the session ended (the client closed, a fault, garbage).
+                        lock(&h2.sim).client_gone(conn);
+                    }),
                     Role::Report { kind, period } => {
                         spawn_named("xarm-emu-stream", move || serve_report(s, h2, kind, period))
                     }
@@ -631,7 +662,7 @@ fn accept_loop(l: TcpListener, h: XArmEmuHandle, role: Role) {
     }
 }
 
-fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
+fn serve_cmd(mut s: TcpStream, h: &XArmEmuHandle, conn: u64) {
     let _ = s.set_read_timeout(Some(Duration::from_millis(20)));
     let mut fb = FrameBuf::new();
     let mut buf = [0u8; 1024];
@@ -656,7 +687,7 @@ fn serve_cmd(mut s: TcpStream, h: XArmEmuHandle) {
             let (st, data) = {
                 let mut sim = lock(&h.sim);
                 sim.advance(h.clock.now());
-                sim.handle(&cmd, &h.opts.version)
+                sim.handle(&cmd, &h.opts.version, conn)
             };
             let fault = lock(&h.faults).cmd.pop_front();
             let mut reply = Reply {

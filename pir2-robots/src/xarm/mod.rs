@@ -25,7 +25,24 @@
 //! # Behaviour on stop and faults
 //!
 //! [`Robot::stop`] halts the streaming thread first (so no further servo-j leaves), then sends
-//! `SET_STATE 4` (stop). The driver then refuses new targets; reconnect to move again.
+//! `SET_STATE 4` (stop) and reads the state back (`GET_STATE`) until the controller confirms
+//! it (state 4, or 5: not ready, which cannot move either). A request that fails (a timeout,
+//! a broken connection: the command port is reopened) is retried every
+//! [`STOP_RETRY_EVERY`] for up to [`STOP_WAIT`]; if the controller never confirms, `stop`
+//! returns [`Error::Stopped`] naming the attempts and the last answer, so the caller knows the
+//! arm may still hold servo mode, and dropping the driver tries once more. The driver refuses
+//! new targets from the first call on; reconnect to move again.
+//!
+//! # When this process dies
+//!
+//! In servo mode the controller holds the last servo-j target it received; the protocol has
+//! no dead-man input (the SDK's protocol id 3 only adds a keep-alive: its client sends
+//! `GET_STATE` after 30 s without traffic and gives up after 90 s). A process killed without
+//! [`Robot::stop`] therefore leaves a real arm standing at its last target in state 1:
+//! `pir2 robot check` reports that state as not healthy, and the arm's emergency stop remains
+//! the operator's last line. The emulator ([`crate::emu::xarm`]) stops the arm (state 4)
+//! when the connection that moved it closes, which is what a dead process does to its
+//! sockets.
 //! A fault in the streaming thread (I/O error, timeout, framing error, controller error bit in
 //! a reply, 10 consecutive replies with the not-ready bit) ends the thread — servo mode holds
 //! the last target it received — and the fault is returned by the next
@@ -55,6 +72,10 @@ use proto::{status, FirmwareVersion, ReportKind};
 const DEVICE: &str = "xArm6";
 /// Consecutive servo-j replies with the not-ready bit before the stream gives up.
 const NOT_READY_LIMIT: u32 = 10;
+/// How long [`Robot::stop`] keeps trying to get `SET_STATE 4` confirmed.
+pub const STOP_WAIT: Duration = Duration::from_secs(1);
+/// Pause between two attempts of [`Robot::stop`].
+pub const STOP_RETRY_EVERY: Duration = Duration::from_millis(50);
 
 /// Settings of an [`XArm6`].
 #[derive(Debug, Clone)]
@@ -169,6 +190,9 @@ pub struct XArm6 {
     version: String,
     firmware: FirmwareVersion,
     cleared: Option<(u8, u8)>,
+    /// `stop()` was called: new targets are refused.
+    stop_requested: bool,
+    /// The controller confirmed the stop (state 4 or 5 read back).
     stopped: bool,
 }
 
@@ -277,6 +301,7 @@ impl XArm6 {
             version,
             firmware,
             cleared,
+            stop_requested: false,
             stopped: false,
         })
     }
@@ -309,7 +334,7 @@ impl XArm6 {
     }
 
     fn check_fault(&self) -> Result<()> {
-        if self.stopped {
+        if self.stop_requested {
             return Err(Error::Stopped {
                 device: DEVICE,
                 reason: "stop() was called".into(),
@@ -322,6 +347,20 @@ impl XArm6 {
             });
         }
         Ok(())
+    }
+
+    /// One attempt at a confirmed stop: reopen the command port if it is closed, send
+    /// `SET_STATE 4`, read the state back.
+    fn stop_once(&self) -> Result<u8> {
+        let mut c = lock(&self.client);
+        if !c.is_open() {
+            let mut fresh =
+                XArmClient::connect(self.cfg.cmd_addr, self.cfg.timeout, self.clock.clone())?;
+            fresh.identify()?;
+            *c = fresh;
+        }
+        c.set_state(proto::state::STOP)?;
+        c.state()
     }
 
     fn halt_threads(&mut self) {
@@ -527,18 +566,36 @@ impl Robot for XArm6 {
     }
     fn stop(&mut self) -> Result<()> {
         self.halt_threads();
+        self.stop_requested = true;
         if self.stopped {
             return Ok(());
         }
-        self.stopped = true;
-        let mut c = lock(&self.client);
-        if !c.is_open() {
-            return Err(Error::Stopped {
-                device: DEVICE,
-                reason: "streaming halted; command port closed, could not send SET_STATE 4".into(),
-            });
-        }
-        c.set_state(proto::state::STOP).map(|_| ())
+        let t0 = std::time::Instant::now();
+        let mut attempts = 0u32;
+        let last = loop {
+            attempts += 1;
+            let answer = match self.stop_once() {
+                Ok(proto::state::STOP | proto::state::NOT_READY) => {
+                    self.stopped = true;
+                    return Ok(());
+                }
+                Ok(st) => format!("the controller still reports state {st}"),
+                Err(e) => e.to_string(),
+            };
+            if t0.elapsed() + STOP_RETRY_EVERY > STOP_WAIT {
+                break answer;
+            }
+            std::thread::sleep(STOP_RETRY_EVERY);
+        };
+        Err(Error::Stopped {
+            device: DEVICE,
+            reason: format!(
+                "streaming halted, but SET_STATE 4 was not confirmed after {attempts} attempts \
+                 in {} ms (last: {last}); the arm may hold its last target in servo mode: use \
+                 its emergency stop",
+                t0.elapsed().as_millis()
+            ),
+        })
     }
     /// The fault that ended streaming (a controller error code, a stop from the controller
     /// side, a broken connection), if any: the safety layer stops the whole robot on it at
