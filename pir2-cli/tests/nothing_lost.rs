@@ -1,7 +1,7 @@
 //! Nothing lost, through the `pir2` binary: a failed `pir2 run` still writes its `--json`
 //! report (with the error) and never replaces an existing one; `pir2 collect` on Ctrl-C
-//! finishes the episode in progress and writes what it kept; `--overwrite` keeps the old
-//! dataset until the new one has an episode.
+//! finishes the episode in progress and writes what it kept, and a killed one keeps what it
+//! wrote as it went; `--overwrite` keeps the old dataset until the new one has an episode.
 
 use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
@@ -187,5 +187,45 @@ fn an_interrupted_overwrite_never_leaves_no_dataset() {
         names.iter().all(|n| n == "data" || n == "meta"),
         "{names:?}"
     );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// SIGKILL during `pir2 collect ballplate` (no handler can run): the dataset on disk holds
+/// every episode written so far (it is written every 10 kept episodes) and `--resume`
+/// continues it. Before: the episodes were held in memory until the end and all lost.
+#[test]
+fn a_killed_collection_keeps_what_it_wrote_and_resumes() {
+    let dir = tmpdir("collect-kill");
+    let data = dir.join("dataset");
+    let mut child = spawn_collect(&data, &[]);
+    let t0 = Instant::now();
+    // Until the first flush is on disk (a whole dataset), then a little longer.
+    while pir2_sim::dataset::read_dataset(&data).is_err() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "nothing written in 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    child.kill().unwrap();
+    let out = child.wait_with_output().unwrap();
+    let log = text(&out.stdout) + &text(&out.stderr);
+    let ds = pir2_sim::dataset::read_dataset(&data).unwrap_or_else(|e| panic!("{e}: {log}"));
+    let n = ds.episodes.len();
+    assert!(n >= 10 && n % 10 == 0, "{n} episodes: {log}");
+    let more = (n + 3).to_string();
+    let out = pir2(&[
+        "collect",
+        "ballplate",
+        "--episodes",
+        &more,
+        "--resume",
+        "--out",
+        data.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let ds = pir2_sim::dataset::read_dataset(&data).unwrap();
+    assert_eq!(ds.episodes.len(), n + 3);
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -618,6 +618,7 @@ pub fn collect_leap(
     };
     let mut w = DatasetWriter::open(out, dataset_spec(), mode)
         .with_context(|| format!("opening dataset {}", out.display()))?;
+    let set_aside = w.set_aside().to_vec();
     let total = seeds.len() * per_seed;
     let mut done = w.num_episodes();
     let already = done;
@@ -692,6 +693,7 @@ pub fn collect_leap(
     match summary {
         Some(s) => Ok(DatasetSummary {
             written_episodes: done - already,
+            set_aside,
             ..s
         }),
         None => Ok(w.finish()?),

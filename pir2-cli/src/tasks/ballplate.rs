@@ -20,6 +20,7 @@ impl TaskCommands for BallPlate {
     fn collect(&self, o: &CollectOptions, stop: &AtomicBool) -> Result<()> {
         let (stats, summary) =
             ballplate::collect_into(&o.out, o.episodes, o.seed, o.write_mode(), stop)?;
+        super::report_set_aside(&summary);
         if stats.stopped {
             println!(
                 "interrupted: {} holds {} of {} episodes ({} written now); \

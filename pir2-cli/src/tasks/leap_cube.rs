@@ -66,6 +66,7 @@ impl TaskCommands for LeapCube {
         let t = std::time::Instant::now();
         let s =
             leap_cube::collect_leap(&o.out, &o.seeds, o.per_seed, o.write_mode(), &expert, stop)?;
+        super::report_set_aside(&s);
         println!(
             "{}: {} episodes, {} frames ({} written now, {:.1} s)",
             o.out.display(),

@@ -314,6 +314,17 @@ pub(crate) fn with_resume_hint(e: anyhow::Error, resume: &str) -> anyhow::Error 
     }
 }
 
+/// Say where a resumed collection moved the data files of an interrupted write.
+fn report_set_aside(s: &pir2_sim::dataset::DatasetSummary) {
+    for p in &s.set_aside {
+        println!(
+            "moved {} aside: a data file of a write that was killed before its metadata (its \
+             episodes are collected again)",
+            p.display()
+        );
+    }
+}
+
 /// `pir2 collect`: the task's expert demonstrations.
 pub fn collect(o: &CollectOptions, stop: &AtomicBool) -> Result<()> {
     task(&o.task)?.collect(o, stop)

@@ -26,6 +26,10 @@ pub struct CollectConfig {
     pub max_attempts_per_episode: usize,
     /// Task index written with every episode.
     pub task_index: i64,
+    /// [`collect_to_dataset`]: write the dataset to disk after every this many kept
+    /// episodes (a killed collection loses at most this many minus one); 0 writes only at
+    /// the end.
+    pub flush_every: usize,
 }
 
 impl Default for CollectConfig {
@@ -37,6 +41,7 @@ impl Default for CollectConfig {
             only_success: true,
             max_attempts_per_episode: 20,
             task_index: 0,
+            flush_every: 10,
         }
     }
 }
@@ -226,7 +231,8 @@ where
 }
 
 /// Collect demonstrations straight into a dataset at `root` (resuming if asked: only the
-/// missing episodes are collected, continuing the attempt sequence).
+/// missing episodes are collected, continuing the attempt sequence), written to disk every
+/// [`CollectConfig::flush_every`] kept episodes.
 pub fn collect_to_dataset<E, X>(
     env: &mut E,
     expert: &mut X,
@@ -272,7 +278,13 @@ where
         first_attempt,
         stop,
         progress,
-        &mut |ep, attempt| writer.append_attempt(&ep, attempt),
+        &mut |ep, attempt| {
+            writer.append_attempt(&ep, attempt)?;
+            if cfg.flush_every > 0 && writer.pending() >= cfg.flush_every {
+                writer.flush()?;
+            }
+            Ok(())
+        },
     )?;
     let summary = writer.finish()?;
     Ok((stats, summary))

@@ -94,6 +94,9 @@ pub const MAX_TEMPLATE_WIDTH: usize = 32;
 pub const MAX_TEMPLATE_LEN: usize = 4096;
 /// `meta/info.json`.
 pub const INFO_PATH: &str = "meta/info.json";
+/// Where a resumed session moves the data file of an interrupted write (outside `data/`, so
+/// LeRobot's `data/*/*.parquet` does not load it), under the same relative path.
+pub const INTERRUPTED_DIR: &str = ".pir2-interrupted";
 /// `meta/stats.json`.
 pub const STATS_PATH: &str = "meta/stats.json";
 /// `meta/tasks.parquet`.

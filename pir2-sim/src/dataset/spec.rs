@@ -119,4 +119,7 @@ pub struct DatasetSummary {
     pub written_episodes: usize,
     /// Data file written in this session, if any.
     pub data_file: Option<PathBuf>,
+    /// Data files of an interrupted write that a resumed session moved aside (see
+    /// [`crate::dataset::DatasetWriter::open`]), where they are now.
+    pub set_aside: Vec<PathBuf>,
 }

@@ -239,36 +239,47 @@ fn refuses_to_overwrite_and_resumes() {
 }
 
 #[test]
-fn resume_refuses_orphan_data_files() {
+fn resume_moves_aside_an_interrupted_write_and_refuses_other_orphans() {
     let root = tmpdir("orphan");
     let (mut env, mut ex) = setup();
     let spec = DatasetSpec::ballplate(50);
-    collect_to_dataset(
-        &mut env,
-        &mut ex,
-        &short(1),
-        &root,
-        &spec,
-        WriteMode::New,
-        &mut |_| {},
-    )
-    .unwrap();
-    // A data file whose episodes file never got written.
+    let upto = |n, root: &std::path::Path, mode, env: &mut _, ex: &mut _| {
+        collect_to_dataset(env, ex, &short(n), root, &spec, mode, &mut |_| {}).unwrap()
+    };
+    upto(1, &root, WriteMode::New, &mut env, &mut ex);
+    // The tail of a write killed between its data file and its episodes file.
     fs::copy(
         root.join("data/chunk-000/file-000.parquet"),
         root.join("data/chunk-000/file-001.parquet"),
     )
     .unwrap();
-    let err = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap_err();
+    let w = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap();
+    let aside = root.join(".pir2-interrupted/data/chunk-000/file-001.parquet");
+    assert_eq!(w.set_aside(), std::slice::from_ref(&aside));
+    assert!(aside.exists() && !root.join("data/chunk-000/file-001.parquet").exists());
+    assert_eq!(w.file_no, 1);
+    drop(w);
+    assert_eq!(read_dataset(&root).unwrap().episodes.len(), 1);
+    // A temporary leftover is harmless and its number is not reused.
+    fs::write(root.join("data/chunk-000/file-001.parquet.tmp"), b"partial").unwrap();
+    let w = DatasetWriter::open(&root, spec.clone(), WriteMode::Resume).unwrap();
+    assert_eq!(w.file_no, 2);
+    drop(w);
+    // A data file below the last referenced one that no episode references is not an
+    // interrupted write: refused by name. (The leftover makes the next session write 002.)
+    upto(2, &root, WriteMode::Resume, &mut env, &mut ex);
+    assert!(root.join("data/chunk-000/file-002.parquet").exists());
+    fs::remove_file(root.join("data/chunk-000/file-001.parquet.tmp")).unwrap();
+    fs::copy(
+        root.join("data/chunk-000/file-000.parquet"),
+        root.join("data/chunk-000/file-001.parquet"),
+    )
+    .unwrap();
+    let err = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap_err();
     assert!(
         matches!(&err, Error::Inconsistent { path, .. } if path.ends_with("data/chunk-000/file-001.parquet")),
         "{err}"
     );
-    fs::remove_file(root.join("data/chunk-000/file-001.parquet")).unwrap();
-    // A temporary leftover is harmless and its number is not reused.
-    fs::write(root.join("data/chunk-000/file-001.parquet.tmp"), b"partial").unwrap();
-    let w = DatasetWriter::open(&root, spec, WriteMode::Resume).unwrap();
-    assert_eq!(w.file_no, 2);
     fs::remove_dir_all(&root).unwrap();
 }
 
@@ -822,5 +833,69 @@ fn a_stopped_collection_writes_the_episodes_it_finished() {
     .unwrap();
     assert!(!stats.stopped);
     assert_eq!((stats.kept, summary.total_episodes), (1, 3));
+    fs::remove_dir_all(&root).unwrap();
+}
+
+/// A collection writes its dataset every `flush_every` kept episodes: while it runs, the
+/// dataset on disk is whole and holds every flushed episode (before: everything stayed in
+/// memory until the end, and a killed process lost it all); an overwrite replaces the old
+/// dataset at its first flush.
+#[test]
+fn a_collection_writes_as_it_goes() {
+    let root = tmpdir("flush");
+    let (mut env, mut ex) = setup();
+    let spec = DatasetSpec::ballplate(50);
+    let cfg = CollectConfig {
+        flush_every: 2,
+        ..short(5)
+    };
+    let mut on_disk = Vec::new();
+    let (_, summary) = collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &cfg,
+        &root,
+        &spec,
+        WriteMode::New,
+        &mut |p| on_disk.push((p.kept, read_dataset(&root).map_or(0, |d| d.episodes.len()))),
+    )
+    .unwrap();
+    // Progress is reported after the sink ran: every second kept episode flushed the
+    // pending ones; the fifth is written by `finish`.
+    assert!(
+        on_disk.iter().all(|&(kept, disk)| disk == kept - kept % 2),
+        "{on_disk:?}"
+    );
+    assert!(on_disk.contains(&(4, 4)), "{on_disk:?}");
+    assert_eq!((summary.total_episodes, summary.written_episodes), (5, 5));
+    let first = read_dataset(&root).unwrap();
+    // Three flushes: three data files, read back as one dataset.
+    assert_eq!(first.episodes.len(), 5);
+
+    // Overwrite: the old dataset stays until the first flush, then the new one grows.
+    let mut seen = Vec::new();
+    let cfg = CollectConfig {
+        flush_every: 2,
+        seed: 99,
+        ..short(3)
+    };
+    collect_to_dataset(
+        &mut env,
+        &mut ex,
+        &cfg,
+        &root,
+        &spec,
+        WriteMode::Overwrite,
+        &mut |p| seen.push((p.kept, read_dataset(&root).unwrap().episodes.len())),
+    )
+    .unwrap();
+    assert_eq!(seen, [(0, 5), (1, 5), (2, 2), (3, 2)], "{seen:?}");
+    assert_eq!(read_dataset(&root).unwrap().episodes.len(), 3);
+    let mut names: Vec<String> = fs::read_dir(&root)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(names, ["data", "meta"], "staging removed");
     fs::remove_dir_all(&root).unwrap();
 }

@@ -158,7 +158,10 @@ pub(super) struct FrameBuffer {
 }
 
 /// Writes a LeRobotDataset v3.0 (state-only), one new data file and one new episodes file
-/// per session. Episodes are buffered in memory and written by [`DatasetWriter::finish`].
+/// per flush. Episodes are buffered in memory until [`DatasetWriter::flush`] or
+/// [`DatasetWriter::finish`] writes them; after a flush the dataset on disk is complete and
+/// readable (a killed process loses only the episodes appended since), and a
+/// [`WriteMode::Resume`] session continues it.
 #[derive(Debug)]
 pub struct DatasetWriter {
     pub(super) root: PathBuf,
@@ -173,6 +176,12 @@ pub struct DatasetWriter {
     /// `root` is then a staging directory inside it, swapped in by [`DatasetWriter::finish`]
     /// once at least one episode is written (and removed if the writer is dropped first).
     pub(super) replace: Option<PathBuf>,
+    /// Episodes written by earlier flushes of this session.
+    pub(super) flushed: usize,
+    /// The data file of the last flush.
+    pub(super) last_data_file: Option<PathBuf>,
+    /// Data files of an interrupted write moved aside by [`DatasetWriter::open`].
+    pub(super) set_aside: Vec<PathBuf>,
 }
 
 impl DatasetWriter {
@@ -185,6 +194,7 @@ impl DatasetWriter {
             Err(e) => return Err(Error::io(root, e)),
         };
         let mut existing = Vec::new();
+        let mut set_aside = Vec::new();
         match mode {
             WriteMode::New if non_empty => {
                 let what = if info_path.exists() {
@@ -213,9 +223,23 @@ impl DatasetWriter {
                     .iter()
                     .map(|r| r.data_chunk as usize * CHUNKS_SIZE + r.data_file as usize)
                     .collect();
+                let last = referenced.iter().next_back().copied();
                 for n in file_numbers(&root.join("data"), true)? {
                     if !referenced.contains(&n) {
                         let (c, f) = chunk_file(n);
+                        // The tail of a flush killed between its data file and its episodes
+                        // file: its episodes are in no metadata (a seeded collection makes
+                        // them again). Moved aside, out of LeRobot's `data/*/*.parquet`.
+                        let rel = fill_template(DATA_PATH, c, f);
+                        let interrupted = last.is_none_or(|l| n > l)
+                            && !root.join(fill_template(EPISODES_PATH, c, f)).exists();
+                        if interrupted {
+                            let to = root.join(INTERRUPTED_DIR).join(&rel);
+                            create_parent(&to)?;
+                            rename(&root.join(&rel), &to)?;
+                            set_aside.push(to);
+                            continue;
+                        }
                         return Err(Error::Inconsistent {
                             path: root.join(fill_template(DATA_PATH, c, f)),
                             reason: "data file not referenced by meta/episodes (left by an interrupted session?); \
@@ -256,6 +280,9 @@ impl DatasetWriter {
             total_frames,
             next_attempt,
             replace,
+            flushed: 0,
+            last_data_file: None,
+            set_aside,
         })
     }
 
@@ -269,7 +296,20 @@ impl DatasetWriter {
         self.next_attempt
     }
 
-    /// Append one episode (buffered until [`DatasetWriter::finish`]).
+    /// Data files of an interrupted write that [`DatasetWriter::open`] moved aside (a
+    /// [`WriteMode::Resume`] of a dataset whose last flush was killed before its metadata),
+    /// where they are now.
+    pub fn set_aside(&self) -> &[PathBuf] {
+        &self.set_aside
+    }
+
+    /// Episodes appended since the last flush (what a killed process would lose).
+    pub fn pending(&self) -> usize {
+        self.new_rows.len()
+    }
+
+    /// Append one episode (buffered until [`DatasetWriter::flush`] or
+    /// [`DatasetWriter::finish`]).
     pub fn append(&mut self, ep: &Episode) -> Result<()> {
         self.append_attempt(ep, self.next_attempt)
     }
@@ -347,12 +387,36 @@ impl DatasetWriter {
         })
     }
 
-    /// Write the data and episodes files of this session, then `tasks.parquet`,
-    /// `stats.json` (recomputed over the whole dataset) and `info.json`.
+    /// Write the episodes appended since the last flush: one new data file and one new
+    /// episodes file, then `tasks.parquet`, `stats.json` (recomputed over the whole dataset)
+    /// and `info.json`, the metadata last so the dataset on disk is always whole. Nothing
+    /// pending: nothing written.
     ///
-    /// A [`WriteMode::Overwrite`] session of an existing dataset replaces its `data/` and
-    /// `meta/` only here, and only if it wrote at least one episode; with none, the old
-    /// dataset is left as it was and its summary returned.
+    /// In a [`WriteMode::Overwrite`] session of an existing dataset the first flush is where
+    /// the old `data/` and `meta/` are replaced (the old dataset stays until the new one has
+    /// an episode); later flushes add to the new dataset.
+    pub fn flush(&mut self) -> Result<()> {
+        if self.new_rows.is_empty() {
+            return Ok(());
+        }
+        let mut summary = self.write_all()?;
+        if let Some(old_root) = self.replace.take() {
+            swap_in(&self.root, &old_root)?;
+            summary.data_file = summary
+                .data_file
+                .and_then(|p| p.strip_prefix(&self.root).ok().map(|r| old_root.join(r)));
+            self.root = old_root;
+        }
+        self.last_data_file = summary.data_file;
+        self.flushed += self.new_rows.len();
+        self.existing.append(&mut self.new_rows);
+        self.file_no += 1;
+        Ok(())
+    }
+
+    /// Flush what is pending (see [`DatasetWriter::flush`]) and return the dataset's
+    /// summary. A session that wrote nothing leaves an existing dataset as it was (a
+    /// [`WriteMode::Overwrite`] one included); a new one gets its metadata with no episode.
     pub fn finish(mut self) -> Result<DatasetSummary> {
         if self.replace.is_some() && self.new_rows.is_empty() {
             let old = self.replace.clone().unwrap_or_default();
@@ -362,16 +426,20 @@ impl DatasetWriter {
                 total_frames: rows.iter().map(|r| r.length).sum::<i64>() as usize,
                 written_episodes: 0,
                 data_file: None,
+                set_aside: self.set_aside.clone(),
             });
         }
-        let mut summary = self.write_all()?;
-        if let Some(old_root) = self.replace.take() {
-            swap_in(&self.root, &old_root)?;
-            summary.data_file = summary
-                .data_file
-                .and_then(|p| p.strip_prefix(&self.root).ok().map(|r| old_root.join(r)));
+        if self.new_rows.is_empty() && self.flushed == 0 {
+            return self.write_all();
         }
-        Ok(summary)
+        self.flush()?;
+        Ok(DatasetSummary {
+            total_episodes: self.existing.len(),
+            total_frames: self.existing.iter().map(|r| r.length).sum::<i64>() as usize,
+            written_episodes: self.flushed,
+            data_file: self.last_data_file.clone(),
+            set_aside: self.set_aside.clone(),
+        })
     }
 
     fn write_all(&mut self) -> Result<DatasetSummary> {
@@ -422,6 +490,7 @@ impl DatasetWriter {
             total_frames,
             written_episodes: self.new_rows.len(),
             data_file,
+            set_aside: self.set_aside.clone(),
         })
     }
 }
