@@ -295,6 +295,9 @@ fn policy_server_restart_mid_run_is_survived_and_counted() {
     let c = stats.counters();
     assert!(c.timeouts >= 1, "{c:?}");
     assert!(c.reconnects >= 1, "{c:?}");
+    // The new instance refused the old session (a foreign reply): the client shook hands
+    // with it again before using its replies.
+    assert!(c.foreign_replies >= 1, "{c:?}");
     assert_eq!(c.failed_calls, 0, "{c:?}");
     assert_eq!(c.attempts, c.calls + c.timeouts, "{c:?}");
     // The 400 ms outage outlasts the clean slots: the overrun path ran.
@@ -810,4 +813,48 @@ fn features_of_a_rogue_publisher_are_counted_never_used() {
     drop(publisher);
     rogue.close().wait().unwrap();
     server.kill();
+}
+
+/// A server that comes back announcing another identity (another checkpoint) is not used:
+/// the new handshake sees the change and the call ends in a safety stop.
+#[test]
+fn a_restarted_server_with_another_identity_is_refused() {
+    let port = free_port();
+    let start = |identity: &str| {
+        let stop = Arc::new(AtomicBool::new(false));
+        let cfg = PolicyServerConfig {
+            link: Link::listen(ep(port)),
+            key: "test/policy".into(),
+            identity: Some(identity.into()),
+            ..Default::default()
+        };
+        let s = stop.clone();
+        let handle = std::thread::spawn(move || {
+            serve_policy(
+                SleepyModel {
+                    latency: Duration::ZERO,
+                },
+                &cfg,
+                s,
+            )
+        });
+        Server { stop, handle }
+    };
+    let server = start("weights A");
+    let mut m = remote_model(port, 100, 20);
+    assert_eq!(m.server_identity(), Some("weights A"));
+    call(&mut m, 1, 0).unwrap();
+    server.kill();
+    let server = start("weights B");
+    let e = call(&mut m, 1, 0).unwrap_err();
+    server.kill();
+    assert!(
+        matches!(e, pir2_runtime::remote::Error::IdentityChanged { .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("weights B"), "{e}");
+    assert!(matches!(
+        pir2_runtime::Error::from(e),
+        pir2_runtime::Error::SafetyStop(_)
+    ));
 }
