@@ -723,12 +723,14 @@ fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
     let stats = m.stats();
     let q = rogue.declare_queryable("test/policy").wait().unwrap();
     let stop = Arc::new(AtomicBool::new(false));
-    let s = stop.clone();
+    let answered = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let (s, a) = (stop.clone(), answered.clone());
     let answering = std::thread::spawn(move || {
         while !s.load(Ordering::Acquire) {
             let Ok(Some(query)) = q.recv_timeout(Duration::from_millis(20)) else {
                 continue;
             };
+            a.fetch_add(1, Ordering::SeqCst);
             let bytes = query.payload().map(|p| p.to_bytes().to_vec()).unwrap();
             let token = Some([7, 7, 7, 7]);
             let reply = match wire::decode_request(&bytes) {
@@ -745,14 +747,18 @@ fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
             query.reply("test/policy", reply).wait().unwrap();
         }
     });
-    for _ in 0..5 {
-        let v = call(&mut m, 1, 0).unwrap();
-        let want: Vec<f32> = (0..8).map(|i| -(i as f32)).collect();
-        assert_eq!(v, want, "a rogue reply was used");
+    // Calls until the rogue (once its queryable is known to the client) answered 5 of them.
+    let want: Vec<f32> = (0..8).map(|i| -(i as f32)).collect();
+    while answered.load(Ordering::SeqCst) < 5 {
+        assert!(
+            stats.counters().calls < 200,
+            "the rogue never got a request"
+        );
+        assert_eq!(call(&mut m, 1, 0).unwrap(), want, "a rogue reply was used");
     }
     let c = stats.counters();
-    assert!(c.foreign_replies >= 5, "{c:?}");
-    assert_eq!((c.calls, c.attempts, c.timeouts), (5, 5, 0), "{c:?}");
+    assert!(c.foreign_replies >= 4, "{c:?}");
+    assert_eq!((c.attempts, c.timeouts), (c.calls, 0), "{c:?}");
     // Both answer the handshake: the client refuses to pick one.
     let e = RemoteModel::connect(cfg).unwrap_err();
     assert!(
@@ -800,7 +806,12 @@ fn features_of_a_rogue_publisher_are_counted_never_used() {
     };
     assert_eq!(block_on_frame(&mut *source).values.len(), 4);
     let publisher = rogue.declare_publisher("test/slow").wait().unwrap();
-    for seq in 1..=10u64 {
+    // Until a few of the rogue's frames reached the source (its publisher needs a moment to
+    // be known), none of them used.
+    let mut seq = 0u64;
+    while stats.counters().foreign_replies < 3 {
+        seq += 1;
+        assert!(seq < 200, "no rogue frame reached the source");
         let now = base.now();
         let fake = wire::encode_features(77, seq, now, now, 1, 4, &[1e6; 4]);
         publisher.put(fake).wait().unwrap();
@@ -808,7 +819,6 @@ fn features_of_a_rogue_publisher_are_counted_never_used() {
         assert!(f.values.iter().all(|&v| v != 1e6), "a rogue frame was used");
     }
     let c = stats.counters();
-    assert!(c.foreign_replies >= 1, "{c:?}");
     assert_eq!(c.reconnects, 0, "{c:?}");
     drop(publisher);
     rogue.close().wait().unwrap();
