@@ -95,7 +95,7 @@ pub struct PolicyServerCounters {
     /// A reply could not be sent (the client went away); the server kept serving.
     pub reply_failures: u64,
     /// Refused: the client has no session with this server instance (it never pinged this
-    /// instance, e.g. the server restarted); the client hands shake again.
+    /// instance, e.g. the server restarted); the client shakes hands again.
     #[serde(default)]
     pub no_session: u64,
 }
