@@ -49,7 +49,8 @@ pub struct TlsOptions {
 
 #[cfg(feature = "remote")]
 impl TlsOptions {
-    /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files, and a
+    /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files (readable
+    /// PEM, [`pir2_runtime::remote::TlsFiles::check`]), and a
     /// non-loopback address without TLS is refused, to listen on or to connect to, unless
     /// `insecure` (then it says so loudly on stderr).
     pub fn apply(&self, link: pir2_runtime::remote::Link) -> Result<pir2_runtime::remote::Link> {
@@ -63,6 +64,10 @@ impl TlsOptions {
             _ => anyhow::bail!("--tls-ca, --tls-cert and --tls-key go together: give all three"),
         };
         link.check_exposure(self.insecure)?;
+        // An unreadable or garbled file is named now, before anything is loaded or dialled.
+        if let Some(t) = &link.tls {
+            t.check()?;
+        }
         if self.insecure && link.check_exposure(false).is_err() {
             eprintln!(
                 "WARNING: --insecure: talking WITHOUT TLS beyond this machine (listen {:?}, \
@@ -367,7 +372,8 @@ mod imp {
         let c = stats.counters();
         eprintln!(
             "policy server: {} requests, {} answered; refused: {} oversized, {} batch too large, \
-             {} malformed, {} model errors, {} model panics; {} replies not delivered",
+             {} malformed, {} model errors, {} model panics, {} without a session (no handshake \
+             with this server); {} replies not delivered",
             c.requests,
             c.answered,
             c.oversized,
@@ -375,6 +381,7 @@ mod imp {
             c.malformed,
             c.model_errors,
             c.model_panics,
+            c.no_session,
             c.reply_failures
         );
         r
@@ -572,13 +579,15 @@ mod imp {
         pub(super) fn report(&self) -> String {
             let c = self.stats.counters();
             format!(
-                "remote policy {}: calls {} attempts {} timeouts {} reconnects {} failed calls {} last rtt {} µs",
+                "remote policy {}: calls {} attempts {} timeouts {} reconnects {} failed calls {} \
+                 foreign replies {} last rtt {} µs",
                 self.endpoint,
                 c.calls,
                 c.attempts,
                 c.timeouts,
                 c.reconnects,
                 c.failed_calls,
+                c.foreign_replies,
                 c.last_rtt_ns / 1000
             )
         }

@@ -354,6 +354,56 @@ fn a_client_refuses_plain_tcp_beyond_loopback_without_insecure() {
     assert!(err.contains("no answer"), "{err}");
 }
 
+/// A TLS file that is not PEM is one error naming TLS and the file, on both sides, before
+/// anything is dialled (before: the client waited, then reported "no answer").
+#[test]
+fn a_garbled_tls_file_is_named_on_both_sides() {
+    let s = Scratch::new("tls-garbage");
+    let garbage = s.path().join("garbage.pem");
+    std::fs::write(&garbage, "not a certificate\n").unwrap();
+    let g = garbage.to_str().unwrap();
+    let tls = ["--tls-ca", g, "--tls-cert", g, "--tls-key", g];
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let out = pir2()
+        .args([
+            "serve",
+            "policy",
+            "--checkpoint",
+            "unused",
+            "--listen",
+            &endpoint,
+        ])
+        .args(tls)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("TLS: the CA file") && err.contains(g) && err.contains("not a PEM"),
+        "{err}"
+    );
+    let ck = checkpoint(s.path());
+    let out = pir2()
+        .args(EVAL)
+        .args([
+            "5",
+            "--checkpoint",
+            ck.to_str().unwrap(),
+            "--remote",
+            &endpoint,
+        ])
+        .args(["--connect-timeout", "1"])
+        .args(tls)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("TLS: the CA file") && err.contains(g) && !err.contains("no answer"),
+        "{err}"
+    );
+}
+
 #[cfg(feature = "gr00t")]
 #[test]
 fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {

@@ -295,6 +295,9 @@ fn policy_server_restart_mid_run_is_survived_and_counted() {
     let c = stats.counters();
     assert!(c.timeouts >= 1, "{c:?}");
     assert!(c.reconnects >= 1, "{c:?}");
+    // The new instance refused the old session (a foreign reply): the client shook hands
+    // with it again before using its replies.
+    assert!(c.foreign_replies >= 1, "{c:?}");
     assert_eq!(c.failed_calls, 0, "{c:?}");
     assert_eq!(c.attempts, c.calls + c.timeouts, "{c:?}");
     // The 400 ms outage outlasts the clean slots: the overrun path ran.
@@ -650,8 +653,9 @@ fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
             };
             let bytes = query.payload().map(|p| p.to_bytes().to_vec()).unwrap();
             let (h, _) = wire::decode_header(&bytes).unwrap();
+            let token = Some([9, 9, 9, 9]);
             let reply = if h.kind == wire::Kind::Ping {
-                wire::encode_pong(9, &h, 0)
+                wire::encode_pong_with_token(9, &h, 0, None, token)
             } else {
                 n += 1;
                 if n % 2 == 1 {
@@ -661,7 +665,7 @@ fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
                         seq: h.seq + 100,
                         ..h
                     };
-                    wire::encode_reply(9, &other, 0, [1, 4, 2], &[0.0; 8])
+                    wire::encode_reply_with_token(9, &other, 0, [1, 4, 2], &[0.0; 8], token)
                 }
             };
             query.reply("test/policy", reply).wait().unwrap();
@@ -688,4 +692,179 @@ fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
     );
     stop.store(true, Ordering::SeqCst);
     rogue.join().unwrap();
+}
+
+/// A rogue peer on the policy key, answering every request faster than the server with
+/// finite, well-shaped but wrong velocities (and pongs with a session token of its own):
+/// the client pinned the server at its handshake, so it uses only the server's replies and
+/// counts the rogue's; a client that shakes hands while both answer pins neither (before:
+/// the first reply of any responder was used).
+#[test]
+fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
+    use pir2_runtime::remote::wire;
+    use zenoh::Wait;
+
+    let (port, rogue_port) = (free_port(), free_port());
+    let server = policy_server(port, 20, Duration::ZERO);
+    let rogue = test_session("listen", rogue_port);
+    let link = Link {
+        retry: Duration::from_millis(20),
+        connect: vec![ep(port), ep(rogue_port)],
+        ..Link::connect(ep(port))
+    };
+    let cfg = RemoteModelConfig {
+        link,
+        key: "test/policy".into(),
+        timeout: Duration::from_millis(500),
+        max_failed_calls: 3,
+        connect_timeout: Duration::from_secs(5),
+    };
+    let mut m = RemoteModel::connect(cfg.clone()).unwrap();
+    let stats = m.stats();
+    let q = rogue.declare_queryable("test/policy").wait().unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let answered = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let (s, a) = (stop.clone(), answered.clone());
+    let answering = std::thread::spawn(move || {
+        while !s.load(Ordering::Acquire) {
+            let Ok(Some(query)) = q.recv_timeout(Duration::from_millis(20)) else {
+                continue;
+            };
+            a.fetch_add(1, Ordering::SeqCst);
+            let bytes = query.payload().map(|p| p.to_bytes().to_vec()).unwrap();
+            let token = Some([7, 7, 7, 7]);
+            let reply = match wire::decode_request(&bytes) {
+                Ok(r) => {
+                    let shape = [r.batch, r.horizon, r.action_dim];
+                    let v = vec![42.0f32; shape.iter().product()];
+                    wire::encode_reply_with_token(7, &r.header, 0, shape, &v, token)
+                }
+                Err(_) => {
+                    let (h, _) = wire::decode_header(&bytes).unwrap();
+                    wire::encode_pong_with_token(7, &h, 0, None, token)
+                }
+            };
+            query.reply("test/policy", reply).wait().unwrap();
+        }
+    });
+    // Calls until the rogue (once its queryable is known to the client) answered 5 of them.
+    let want: Vec<f32> = (0..8).map(|i| -(i as f32)).collect();
+    while answered.load(Ordering::SeqCst) < 5 {
+        assert!(
+            stats.counters().calls < 200,
+            "the rogue never got a request"
+        );
+        assert_eq!(call(&mut m, 1, 0).unwrap(), want, "a rogue reply was used");
+    }
+    let c = stats.counters();
+    assert!(c.foreign_replies >= 4, "{c:?}");
+    assert_eq!((c.attempts, c.timeouts), (c.calls, 0), "{c:?}");
+    // Both answer the handshake: the client refuses to pick one.
+    let e = RemoteModel::connect(cfg).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            pir2_runtime::remote::Error::Ambiguous { responders: 2, .. }
+        ),
+        "{e}"
+    );
+    stop.store(true, Ordering::SeqCst);
+    answering.join().unwrap();
+    rogue.close().wait().unwrap();
+    server.kill();
+}
+
+/// A rogue publishing well-formed features (another sender id) on the slow key while the
+/// server publishes: the source stays with the server it synchronised with and counts the
+/// rogue's frames.
+#[test]
+fn features_of_a_rogue_publisher_are_counted_never_used() {
+    use pir2_runtime::remote::wire;
+    use zenoh::Wait;
+
+    let (port, rogue_port) = (free_port(), free_port());
+    let base = Arc::new(SystemClock::new());
+    let server = slow_server(port, clock(&base, 0));
+    let rogue = test_session("listen", rogue_port);
+    let (slow, stats) = remote_slow_channel(
+        RemoteSlowConfig {
+            link: Link {
+                retry: Duration::from_millis(20),
+                connect: vec![ep(port), ep(rogue_port)],
+                ..Link::connect(ep(port))
+            },
+            key: "test/slow".into(),
+            stale_poll: Duration::from_millis(200),
+            first_timeout: Duration::from_secs(5),
+            ..Default::default()
+        },
+        clock(&base, 0),
+    )
+    .unwrap();
+    let SlowChannel::Async { mut source, .. } = slow else {
+        panic!("the remote slow channel is async");
+    };
+    assert_eq!(block_on_frame(&mut *source).values.len(), 4);
+    let publisher = rogue.declare_publisher("test/slow").wait().unwrap();
+    // Until a few of the rogue's frames reached the source (its publisher needs a moment to
+    // be known), none of them used.
+    let mut seq = 0u64;
+    while stats.counters().foreign_replies < 3 {
+        seq += 1;
+        assert!(seq < 200, "no rogue frame reached the source");
+        let now = base.now();
+        let fake = wire::encode_features(77, seq, now, now, 1, 4, &[1e6; 4]);
+        publisher.put(fake).wait().unwrap();
+        let f = block_on_frame(&mut *source);
+        assert!(f.values.iter().all(|&v| v != 1e6), "a rogue frame was used");
+    }
+    let c = stats.counters();
+    assert_eq!(c.reconnects, 0, "{c:?}");
+    drop(publisher);
+    rogue.close().wait().unwrap();
+    server.kill();
+}
+
+/// A server that comes back announcing another identity (another checkpoint) is not used:
+/// the new handshake sees the change and the call ends in a safety stop.
+#[test]
+fn a_restarted_server_with_another_identity_is_refused() {
+    let port = free_port();
+    let start = |identity: &str| {
+        let stop = Arc::new(AtomicBool::new(false));
+        let cfg = PolicyServerConfig {
+            link: Link::listen(ep(port)),
+            key: "test/policy".into(),
+            identity: Some(identity.into()),
+            ..Default::default()
+        };
+        let s = stop.clone();
+        let handle = std::thread::spawn(move || {
+            serve_policy(
+                SleepyModel {
+                    latency: Duration::ZERO,
+                },
+                &cfg,
+                s,
+            )
+        });
+        Server { stop, handle }
+    };
+    let server = start("weights A");
+    let mut m = remote_model(port, 100, 20);
+    assert_eq!(m.server_identity(), Some("weights A"));
+    call(&mut m, 1, 0).unwrap();
+    server.kill();
+    let server = start("weights B");
+    let e = call(&mut m, 1, 0).unwrap_err();
+    server.kill();
+    assert!(
+        matches!(e, pir2_runtime::remote::Error::IdentityChanged { .. }),
+        "{e}"
+    );
+    assert!(e.to_string().contains("weights B"), "{e}");
+    assert!(matches!(
+        pir2_runtime::Error::from(e),
+        pir2_runtime::Error::SafetyStop(_)
+    ));
 }

@@ -34,8 +34,13 @@ fn ca(dir: &Path, name: &str) -> Ca {
 
 /// A certificate for 127.0.0.1 / localhost signed by `issuer`, trusting `trust`.
 fn leaf(dir: &Path, name: &str, issuer: &Ca, trust: &Ca) -> TlsFiles {
-    let mut p =
-        CertificateParams::new(vec!["localhost".to_string(), "127.0.0.1".to_string()]).unwrap();
+    leaf_for(dir, name, &["localhost", "127.0.0.1"], issuer, trust)
+}
+
+/// A certificate for `hosts` signed by `issuer`, trusting `trust`.
+fn leaf_for(dir: &Path, name: &str, hosts: &[&str], issuer: &Ca, trust: &Ca) -> TlsFiles {
+    let hosts: Vec<String> = hosts.iter().map(|h| h.to_string()).collect();
+    let mut p = CertificateParams::new(hosts).unwrap();
     p.distinguished_name.push(DnType::CommonName, name);
     let key = KeyPair::generate().unwrap();
     let cert = p.signed_by(&key, &issuer.cert, &issuer.key).unwrap();
@@ -70,8 +75,7 @@ fn client(link: Link) -> pir2_runtime::remote::Result<RemoteModel> {
     })
 }
 
-#[test]
-fn mutual_tls_serves_the_right_client_and_refuses_the_others() {
+fn scratch() -> PathBuf {
     let dir = std::env::temp_dir().join(format!(
         "pir2-tls-{}-{}",
         std::process::id(),
@@ -81,6 +85,116 @@ fn mutual_tls_serves_the_right_client_and_refuses_the_others() {
             .as_nanos()
     ));
     std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn tls_server(port: u16, files: TlsFiles, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<()> {
+    let cfg = PolicyServerConfig {
+        link: Link::listen(format!("tls/127.0.0.1:{port}")).with_tls(files),
+        key: "test/tls".into(),
+        ..Default::default()
+    };
+    std::thread::spawn(move || {
+        serve_policy(
+            SleepyModel {
+                latency: Duration::ZERO,
+            },
+            &cfg,
+            stop,
+        )
+        .unwrap()
+    })
+}
+
+/// A TLS failure is one error naming TLS and what was wrong (before: "no answer"): a file
+/// that cannot be read or is not PEM is named before any session opens; a handshake the
+/// server's certificate fails (another CA, another host name) is reported as a failed TLS
+/// handshake with the usual causes.
+#[test]
+fn tls_failures_are_named_as_such() {
+    let dir = scratch();
+    let user_ca = ca(&dir, "user-ca");
+    let other_ca = ca(&dir, "other-ca");
+    let good = leaf(&dir, "robot", &user_ca, &user_ca);
+    let (port, named_port) = (free_port(), free_port());
+    let stop = Arc::new(AtomicBool::new(false));
+    let servers = [
+        tls_server(port, leaf(&dir, "server", &user_ca, &user_ca), stop.clone()),
+        // A certificate of the right CA for another host than the one dialled.
+        tls_server(
+            named_port,
+            leaf_for(
+                &dir,
+                "elsewhere",
+                &["elsewhere.example"],
+                &user_ca,
+                &user_ca,
+            ),
+            stop.clone(),
+        ),
+    ];
+    let ep = format!("tls/127.0.0.1:{port}");
+    let err = |files: TlsFiles, ep: &str| {
+        client(Link::connect(ep).with_tls(files))
+            .map(|_| ())
+            .unwrap_err()
+            .to_string()
+    };
+
+    let garbage = dir.join("garbage.crt");
+    std::fs::write(&garbage, "this is not a certificate\n").unwrap();
+    let e = err(
+        TlsFiles {
+            cert: garbage.clone(),
+            ..good.clone()
+        },
+        &ep,
+    );
+    assert!(
+        e.starts_with("TLS: the certificate file")
+            && e.contains(&garbage.display().to_string())
+            && e.contains("not a PEM certificate"),
+        "{e}"
+    );
+    let missing = dir.join("missing.key");
+    let e = err(
+        TlsFiles {
+            key: missing.clone(),
+            ..good.clone()
+        },
+        &ep,
+    );
+    assert!(
+        e.starts_with("TLS: the private key file")
+            && e.contains(&missing.display().to_string())
+            && e.contains("cannot be read"),
+        "{e}"
+    );
+    // Trusts another CA than the one that signed the server's certificate.
+    let wrong_ca = leaf(&dir, "robot-other-ca", &user_ca, &other_ca);
+    let e = err(wrong_ca, &ep);
+    assert!(
+        e.contains("TLS: the TLS handshake with `tls/127.0.0.1:") && e.contains("not signed by"),
+        "{e}"
+    );
+    let e = err(good.clone(), &format!("tls/127.0.0.1:{named_port}"));
+    assert!(
+        e.contains("TLS handshake") && e.contains("does not name the host"),
+        "{e}"
+    );
+    // The right files against the right server still work.
+    assert!(client(Link::connect(ep).with_tls(good)).is_ok());
+
+    stop.store(true, Ordering::SeqCst);
+    for s in servers {
+        s.join().unwrap();
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn mutual_tls_serves_the_right_client_and_refuses_the_others() {
+    let dir = scratch();
     let user_ca = ca(&dir, "user-ca");
     let rogue_ca = ca(&dir, "rogue-ca");
     let server_files = leaf(&dir, "server", &user_ca, &user_ca);

@@ -65,14 +65,16 @@ pub fn estimate_offset(samples: &[OffsetSample]) -> Option<ClockOffset> {
         })
 }
 
-/// Send one request on `key` and wait for the first reply's payload until `timeout`.
-/// `Ok(None)`: no reply (no server, or too late).
-pub(crate) fn query(
+/// Send one request on `key` and hand each reply's payload to `each` as it arrives, until
+/// `each` returns `Some` (returned), `timeout` passes or every responder has answered
+/// (`Ok(None)`). Error replies of the transport (not of a server) are skipped.
+pub(crate) fn query_each<T>(
     session: &zenoh::Session,
     key: &zenoh::key_expr::KeyExpr<'static>,
     payload: zenoh::bytes::ZBytes,
     timeout: Duration,
-) -> Result<Option<Vec<u8>>> {
+    mut each: impl FnMut(&[u8]) -> Result<Option<T>>,
+) -> Result<Option<T>> {
     let deadline = Instant::now() + timeout;
     let replies = session
         .get(key)
@@ -81,18 +83,25 @@ pub(crate) fn query(
         .timeout(timeout)
         .wait()
         .map_err(transport("query"))?;
-    match replies.recv_deadline(deadline) {
-        Ok(Some(reply)) => match reply.result() {
-            Ok(sample) => Ok(Some(sample.payload().to_bytes().into_owned())),
-            Err(_) => Ok(None),
-        },
-        // Timed out, or the query finished without any reply.
-        Ok(None) | Err(_) => Ok(None),
+    loop {
+        match replies.recv_deadline(deadline) {
+            Ok(Some(reply)) => {
+                if let Ok(sample) = reply.result() {
+                    if let Some(t) = each(&sample.payload().to_bytes())? {
+                        return Ok(Some(t));
+                    }
+                }
+            }
+            // Timed out, or the query finished (every responder answered).
+            Ok(None) | Err(_) => return Ok(None),
+        }
     }
 }
 
 /// Ping `key` `n` times and estimate the offset of the server `sender` (pongs from another
-/// instance are ignored). Errors: nothing answered, or a wire error.
+/// instance are ignored: with `Some(sender)`, only that instance's pongs count; with `None`,
+/// the first instance that answers is pinned for the rest). Errors: nothing answered, or a
+/// wire error.
 pub(crate) fn sync_clock(
     session: &zenoh::Session,
     key: &zenoh::key_expr::KeyExpr<'static>,
@@ -107,14 +116,20 @@ pub(crate) fn sync_clock(
     for i in 0..n.max(1) {
         let t0 = clock.now();
         let ping = wire::encode_ping(me, i as u64, t0);
-        let Some(bytes) = query(session, key, ping.into(), timeout)? else {
+        let pong = query_each(session, key, ping.into(), timeout, |bytes| {
+            let pong = match wire::decode_pong(bytes) {
+                Ok(p) => p,
+                Err(e @ wire::WireError::Version { .. }) => return Err(e.into()),
+                // Not a pong (another responder, damage): not this server's answer.
+                Err(_) => return Ok(None),
+            };
+            let ours = pong.t_a == t0 && from.is_none_or(|s| s == pong.sender);
+            Ok(ours.then_some(pong))
+        })?;
+        let Some(pong) = pong else {
             continue;
         };
         let t1 = clock.now();
-        let pong = wire::decode_pong(&bytes)?;
-        if pong.t_a != t0 || from.is_some_and(|s| s != pong.sender) {
-            continue;
-        }
         from = Some(pong.sender);
         samples.push(OffsetSample {
             t0,

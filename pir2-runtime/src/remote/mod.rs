@@ -22,7 +22,18 @@
 //! [`TlsFiles`]): both sides present a certificate signed by that CA and verify the other's,
 //! and a connecting side checks that the server's certificate names the host it dialled.
 //! [`Link::check_exposure`] refuses to listen beyond this machine without TLS unless the
-//! user accepts the risk explicitly (`pir2 serve --insecure`).
+//! user accepts the risk explicitly (`pir2 serve --insecure`). TLS files are checked before a
+//! session opens and a refused TLS handshake is reported as such ([`Error::Tls`]).
+//!
+//! Trust in the peer: a client uses only replies of the peer it shook hands with. The policy
+//! client pins the [`wire::SessionToken`] the server's pong issued and drops (and counts in
+//! [`RemoteCounters::foreign_replies`]) every reply without it; a restarted server is used
+//! only after a new handshake with the same identity. The slow client pins the server
+//! instance it synchronised its clock with and drops features of any other instance while
+//! that one keeps publishing. Limit: without TLS, a peer that answers the very first
+//! handshake alone (before the real server is up), or that publishes alone after the real
+//! slow server went quiet, cannot be told from the server; with mutual TLS only peers holding
+//! a certificate of the user's CA can answer at all.
 //!
 //! Faults (see `docs/remote-faults.md` for the measured behaviour):
 //! - a message larger than [`Link::max_message_bytes`] is dropped by the transport before it
@@ -110,6 +121,36 @@ pub enum Error {
         /// Why the last one was unusable.
         last: String,
     },
+    /// More than one peer answered the handshake on a key: the client cannot tell which one
+    /// is its server and pins none.
+    #[error(
+        "{responders} peers answered the handshake on `{key}`: refusing to pick one (another \
+         server, or an impostor, answers on the same key; use mutual TLS or another key)"
+    )]
+    Ambiguous {
+        /// The key.
+        key: String,
+        /// How many answered.
+        responders: usize,
+    },
+    /// The server that answered a new handshake (e.g. after a restart) announces another
+    /// identity than the one the client connected to: stop the robot.
+    #[error(
+        "the policy server on `{key}` now announces identity {got:?}, not {expected:?} as when \
+         the client connected: its replies are not used"
+    )]
+    IdentityChanged {
+        /// The key.
+        key: String,
+        /// The identity announced at connect.
+        expected: Option<String>,
+        /// The identity announced now.
+        got: Option<String>,
+    },
+    /// TLS failed: a certificate or key file that cannot be used, or a handshake the peer
+    /// refused (what was wrong, and the usual causes).
+    #[error("TLS: {0}")]
+    Tls(String),
     /// Invalid configuration.
     #[error("invalid remote configuration: {0}")]
     Config(String),
@@ -125,7 +166,7 @@ impl From<Error> for crate::Error {
     fn from(e: Error) -> Self {
         match e {
             Error::Runtime(e) => e,
-            Error::ServerGone { .. } | Error::Unusable { .. } => {
+            Error::ServerGone { .. } | Error::Unusable { .. } | Error::IdentityChanged { .. } => {
                 crate::Error::SafetyStop(e.to_string())
             }
             Error::Server(m) => crate::Error::Model(format!("remote: {m}")),
@@ -298,14 +339,7 @@ impl Link {
             ),
         ];
         if let Some(t) = &self.tls {
-            for (what, p) in [("CA", &t.ca), ("certificate", &t.cert), ("key", &t.key)] {
-                if !p.is_file() {
-                    return Err(Error::Config(format!(
-                        "TLS {what} file {} does not exist",
-                        p.display()
-                    )));
-                }
-            }
+            t.check()?;
             let path = |p: &std::path::Path| {
                 serde_json::to_string(&p.display().to_string()).unwrap_or_else(|_| "\"\"".into())
             };
@@ -328,9 +362,140 @@ impl Link {
 
     pub(crate) fn open(&self) -> Result<zenoh::Session> {
         use zenoh::Wait;
-        zenoh::open(self.zenoh_config()?)
-            .wait()
-            .map_err(transport("open session"))
+        let config = self.zenoh_config()?;
+        zenoh::open(config).wait().map_err(|e| {
+            let m = e.to_string();
+            let l = m.to_lowercase();
+            match &self.tls {
+                // The files looked like PEM but Zenoh's TLS stack refused them.
+                Some(t) if ["tls", "cert", "key", "pem"].iter().any(|w| l.contains(w)) => {
+                    Error::Tls(format!(
+                        "the TLS files were refused ({m}); CA {}, certificate {}, key {}",
+                        t.ca.display(),
+                        t.cert.display(),
+                        t.key.display()
+                    ))
+                }
+                _ => Error::Transport {
+                    what: "open session",
+                    message: m,
+                },
+            }
+        })
+    }
+
+    /// The error for "nothing answered within `after`" on `session`: with TLS, when no peer
+    /// is connected and a `tls/…` endpoint this side dials accepts a plain TCP connection,
+    /// the TLS handshake is what failed ([`Error::Tls`], naming the usual causes); otherwise
+    /// [`Error::Timeout`].
+    pub(crate) fn no_answer(
+        &self,
+        session: &zenoh::Session,
+        what: &'static str,
+        after: Duration,
+    ) -> Error {
+        use zenoh::Wait;
+        let timeout = Error::Timeout { what, after };
+        let Some(t) = &self.tls else {
+            return timeout;
+        };
+        if session.info().peers_zid().wait().next().is_some() {
+            return timeout;
+        }
+        let refused: Vec<&str> = self
+            .connect
+            .iter()
+            .filter(|e| e.starts_with("tls/") && tcp_accepts(e))
+            .map(String::as_str)
+            .collect();
+        if refused.is_empty() {
+            return timeout;
+        }
+        Error::Tls(format!(
+            "the TLS handshake with `{}` failed: the port accepts connections but no session \
+             was established within {after:?} ({what}). Usual causes: the server's certificate \
+             is not signed by the CA given here ({}) or ours ({}) not by the CA the server \
+             trusts; the server's certificate does not name the host dialled; a certificate \
+             has expired; or the server does not speak TLS on that port",
+            refused.join("`, `"),
+            t.ca.display(),
+            t.cert.display(),
+        ))
+    }
+}
+
+/// Whether `tls/HOST:PORT` accepts a TCP connection within half a second.
+fn tcp_accepts(endpoint: &str) -> bool {
+    use std::net::ToSocketAddrs;
+    let addr = endpoint.split_once('/').map_or(endpoint, |(_, a)| a);
+    let addr = addr.split(['#', '?']).next().unwrap_or(addr);
+    let Ok(addrs) = addr.to_socket_addrs() else {
+        return false;
+    };
+    addrs
+        .into_iter()
+        .any(|a| std::net::TcpStream::connect_timeout(&a, Duration::from_millis(500)).is_ok())
+}
+
+impl TlsFiles {
+    /// Check that each file can be read and holds what it should in PEM (a certificate for
+    /// `ca` and `cert`, a private key for `key`), before any session is opened: a missing or
+    /// garbled file is an [`Error::Tls`] naming it, not a peer that never answers.
+    pub fn check(&self) -> Result<()> {
+        for (what, p, label) in [
+            ("CA", &self.ca, "CERTIFICATE"),
+            ("certificate", &self.cert, "CERTIFICATE"),
+            ("private key", &self.key, "PRIVATE KEY"),
+        ] {
+            let bytes = std::fs::read(p).map_err(|e| {
+                Error::Tls(format!(
+                    "the {what} file {} cannot be read: {e}",
+                    p.display()
+                ))
+            })?;
+            pem_block(&String::from_utf8_lossy(&bytes), label).map_err(|why| {
+                Error::Tls(format!(
+                    "the {what} file {} is not a PEM {}: {why}",
+                    p.display(),
+                    label.to_lowercase()
+                ))
+            })?;
+        }
+        Ok(())
+    }
+}
+
+/// Check that `text` holds at least one PEM block whose label ends with `label`, with a
+/// base64 body; every block must be well formed.
+fn pem_block(text: &str, label: &str) -> std::result::Result<(), String> {
+    let mut found = false;
+    let mut rest = text;
+    while let Some(i) = rest.find("-----BEGIN ") {
+        let after = &rest[i + 11..];
+        let Some(j) = after.find("-----") else {
+            return Err("a BEGIN line without its closing dashes".into());
+        };
+        let name = &after[..j];
+        let body_and_more = &after[j + 5..];
+        let end = format!("-----END {name}-----");
+        let Some(k) = body_and_more.find(&end) else {
+            return Err(format!("`BEGIN {name}` without `END {name}`"));
+        };
+        let body: String = body_and_more[..k]
+            .chars()
+            .filter(|c| !c.is_whitespace())
+            .collect();
+        let base64 = |c: char| c.is_ascii_alphanumeric() || matches!(c, '+' | '/' | '=');
+        if body.is_empty() || body.len() % 4 != 0 || !body.chars().all(base64) {
+            return Err(format!("the `{name}` block is not base64"));
+        }
+        found |= name.ends_with(label);
+        rest = &body_and_more[k + end.len()..];
+    }
+    if found {
+        Ok(())
+    } else {
+        Err(format!("no `-----BEGIN …{label}-----` block"))
     }
 }
 
@@ -350,6 +515,7 @@ pub struct RemoteStats {
     failed_calls: AtomicU64,
     server_errors: AtomicU64,
     malformed: AtomicU64,
+    foreign_replies: AtomicU64,
     offset_ns: AtomicI64,
     offset_rtt_ns: AtomicU64,
     last_rtt_ns: AtomicU64,
@@ -383,6 +549,11 @@ pub struct RemoteCounters {
     /// Messages that could not be used (malformed, or a reply to another request): dropped.
     #[serde(default)]
     pub malformed: u64,
+    /// Messages from a peer other than the one of the last handshake (policy: replies
+    /// without the session token; slow: features or pongs from another server instance
+    /// while the pinned one is alive): dropped, never used.
+    #[serde(default)]
+    pub foreign_replies: u64,
     /// Slow: current offset estimate, server clock − robot clock, ns.
     pub offset_ns: i64,
     /// Slow: round trip of the sample the offset came from (accuracy bound = half), ns.
@@ -408,6 +579,7 @@ impl RemoteStats {
             failed_calls: r(&self.failed_calls),
             server_errors: r(&self.server_errors),
             malformed: r(&self.malformed),
+            foreign_replies: r(&self.foreign_replies),
             offset_ns: self.offset_ns.load(Ordering::Relaxed),
             offset_rtt_ns: r(&self.offset_rtt_ns),
             last_rtt_ns: r(&self.last_rtt_ns),

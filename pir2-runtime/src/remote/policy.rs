@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 use zenoh::key_expr::KeyExpr;
 use zenoh::Wait;
 
-use super::clock_sync::query;
+use super::clock_sync::query_each;
+use super::wire::SessionToken;
 use super::{bump, instance_id, transport, wire, Error, Link, RemoteStats, Result};
 use crate::clock::{Clock, SystemClock};
 use crate::model::{ModelInput, VelocityModel};
@@ -70,6 +71,7 @@ pub struct PolicyServerStats {
     model_errors: AtomicU64,
     model_panics: AtomicU64,
     reply_failures: AtomicU64,
+    no_session: AtomicU64,
 }
 
 /// A snapshot of [`PolicyServerStats`]. Every request that was not answered with
@@ -92,6 +94,10 @@ pub struct PolicyServerCounters {
     pub model_panics: u64,
     /// A reply could not be sent (the client went away); the server kept serving.
     pub reply_failures: u64,
+    /// Refused: the client has no session with this server instance (it never pinged this
+    /// instance, e.g. the server restarted); the client shakes hands again.
+    #[serde(default)]
+    pub no_session: u64,
 }
 
 impl PolicyServerStats {
@@ -107,6 +113,7 @@ impl PolicyServerStats {
             model_errors: r(&self.model_errors),
             model_panics: r(&self.model_panics),
             reply_failures: r(&self.reply_failures),
+            no_session: r(&self.no_session),
         }
     }
 }
@@ -117,7 +124,9 @@ fn key(k: &str) -> Result<KeyExpr<'static>> {
 
 /// Answer requests with `model` until `stop` is set (checked every 20 ms). A request that
 /// does not decode, or a model error, is answered with an error message (the caller gets a
-/// typed error) and serving goes on. Pings are answered (liveness).
+/// typed error) and serving goes on. Pings are answered (liveness) and are the handshake:
+/// each pong issues the pinging client a fresh [`SessionToken`] that every later reply to
+/// that client carries; a request from a client without one is refused (it pings again).
 pub fn serve_policy<M: VelocityModel>(
     model: M,
     cfg: &PolicyServerConfig,
@@ -152,6 +161,7 @@ pub fn serve_policy_counted<M: VelocityModel>(
         .wait()
         .map_err(transport("declare queryable"))?;
     let mut v = Vec::new();
+    let mut sessions = std::collections::HashMap::<u64, SessionToken>::new();
     while !stop.load(Ordering::Acquire) {
         let q = match queryable.recv_timeout(Duration::from_millis(20)) {
             Ok(Some(q)) => q,
@@ -163,13 +173,21 @@ pub fn serve_policy_counted<M: VelocityModel>(
         let size = q.payload().map_or(0, |p| p.len());
         let reply = if size > cfg.max_request_bytes {
             bump(&stats.oversized);
-            wire::encode_error(
+            // Only the header is read: the refusal goes to the client it names.
+            let mut head = [0u8; wire::HEADER_LEN];
+            let header = q
+                .payload()
+                .and_then(|p| std::io::Read::read_exact(&mut p.reader(), &mut head).ok())
+                .and_then(|()| wire::decode_header(&head).ok())
+                .map(|(h, _)| h);
+            wire::encode_error_with_token(
                 me,
-                0,
+                header.map_or(0, |h| h.seq),
                 &format!(
                     "request of {size} bytes refused: the server takes at most {} bytes",
                     cfg.max_request_bytes
                 ),
+                header.and_then(|h| sessions.get(&h.sender).copied()),
             )
         } else {
             let bytes = q.payload().map(|p| p.to_bytes()).unwrap_or_default();
@@ -179,23 +197,51 @@ pub fn serve_policy_counted<M: VelocityModel>(
                     wire::encode_error(me, 0, &e.to_string())
                 }
                 Ok((h, _)) if h.kind == wire::Kind::Ping => {
-                    wire::encode_pong_with_identity(me, &h, t_recv, cfg.identity.as_deref())
+                    // A client that floods pings with made-up ids cannot grow this without
+                    // bound; the clients it forgets ping again.
+                    if sessions.len() >= MAX_SESSIONS && !sessions.contains_key(&h.sender) {
+                        sessions.clear();
+                    }
+                    let token = session_token();
+                    sessions.insert(h.sender, token);
+                    wire::encode_pong_with_token(
+                        me,
+                        &h,
+                        t_recv,
+                        cfg.identity.as_deref(),
+                        Some(token),
+                    )
                 }
-                Ok((h, _)) => match answer(&mut model, &bytes, &mut v, cfg.max_batch) {
-                    Ok((req, shape)) => {
-                        bump(&stats.answered);
-                        let took = clock.now().saturating_sub(t_recv);
-                        wire::encode_reply(me, &req, took, shape, &v)
+                Ok((h, _)) => match sessions.get(&h.sender).copied() {
+                    None => {
+                        bump(&stats.no_session);
+                        wire::encode_error(
+                            me,
+                            h.seq,
+                            "no session with this server instance: ping it first (handshake)",
+                        )
                     }
-                    Err(refused) => {
-                        bump(match refused {
-                            Refused::Malformed(_) => &stats.malformed,
-                            Refused::Batch(_) => &stats.too_large_batch,
-                            Refused::Model(_) => &stats.model_errors,
-                            Refused::Panic(_) => &stats.model_panics,
-                        });
-                        wire::encode_error(me, h.seq, &refused.to_string())
-                    }
+                    Some(token) => match answer(&mut model, &bytes, &mut v, cfg.max_batch) {
+                        Ok((req, shape)) => {
+                            bump(&stats.answered);
+                            let took = clock.now().saturating_sub(t_recv);
+                            wire::encode_reply_with_token(me, &req, took, shape, &v, Some(token))
+                        }
+                        Err(refused) => {
+                            bump(match refused {
+                                Refused::Malformed(_) => &stats.malformed,
+                                Refused::Batch(_) => &stats.too_large_batch,
+                                Refused::Model(_) => &stats.model_errors,
+                                Refused::Panic(_) => &stats.model_panics,
+                            });
+                            wire::encode_error_with_token(
+                                me,
+                                h.seq,
+                                &refused.to_string(),
+                                Some(token),
+                            )
+                        }
+                    },
                 },
             }
         };
@@ -209,6 +255,65 @@ pub fn serve_policy_counted<M: VelocityModel>(
     drop(queryable);
     session.close().wait().map_err(transport("close"))?;
     Ok(())
+}
+
+/// Clients a policy server keeps session tokens for (then it forgets them all at once).
+const MAX_SESSIONS: usize = 4096;
+
+/// 128 unpredictable bits: std's randomly keyed SipHash (keys from the OS) over the time,
+/// the process and a counter.
+fn session_token() -> SessionToken {
+    use std::hash::{BuildHasher, Hasher};
+    static N: AtomicU64 = AtomicU64::new(0);
+    let half = || {
+        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+        h.write_u64(N.fetch_add(1, Ordering::Relaxed));
+        h.write_u64(instance_id());
+        h.finish()
+    };
+    let (a, b) = (half(), half());
+    [a as u32, (a >> 32) as u32, b as u32, (b >> 32) as u32]
+}
+
+/// What answered one handshake ping.
+enum Handshake {
+    /// Nobody (in time).
+    Nobody,
+    /// Exactly one server: its pong.
+    One(wire::Pong),
+    /// More than one peer answered: the client cannot tell which is its server.
+    Many(usize),
+}
+
+/// Ping `key` and gather every pong until all responders answered or `timeout` passed.
+/// Pongs without a session token (not a policy server of this version) are not counted.
+fn handshake(
+    session: &zenoh::Session,
+    key: &KeyExpr<'static>,
+    me: u64,
+    seq: u64,
+    clock: &dyn Clock,
+    timeout: Duration,
+) -> Result<Handshake> {
+    let t0 = clock.now();
+    let ping = wire::encode_ping(me, seq, t0);
+    let mut pongs = Vec::new();
+    query_each::<()>(session, key, ping.into(), timeout, |bytes| {
+        match wire::decode_pong_full(bytes) {
+            Ok(p) if p.header.t_a == t0 && p.header.seq == seq && p.token.is_some() => {
+                pongs.push(p)
+            }
+            Ok(_) => {}
+            Err(e @ wire::WireError::Version { .. }) => return Err(e.into()),
+            Err(_) => {}
+        }
+        Ok(None)
+    })?;
+    Ok(match pongs.len() {
+        0 => Handshake::Nobody,
+        1 => Handshake::One(pongs.remove(0)),
+        n => Handshake::Many(n),
+    })
 }
 
 /// Why a request got an error instead of velocities.
@@ -284,6 +389,18 @@ impl Default for RemoteModelConfig {
 
 /// A [`VelocityModel`] served by [`serve_policy`] on another machine.
 ///
+/// Trust: [`RemoteModel::connect`] pings the server (the handshake) and pins the peer that
+/// answered through the session token its pong issued; afterwards only replies carrying
+/// that token are used. Replies from anyone else on the key (another responder, a restarted
+/// server the client has not shaken hands with yet) are dropped and counted in
+/// [`RemoteCounters::foreign_replies`](super::RemoteCounters::foreign_replies). After an
+/// attempt that got only such replies the client pings again: a single answering server
+/// with the same identity as at connect is pinned (a restart), another identity ends the
+/// call ([`Error::IdentityChanged`], a safety stop), several answering peers pin nobody
+/// ([`Error::Ambiguous`] at connect). Limit: without TLS, a peer that answers the very
+/// first handshake alone cannot be told from the server; with mutual TLS only peers with a
+/// certificate of the user's CA can answer at all.
+///
 /// Each call sends the request and waits up to [`RemoteModelConfig::timeout`]; without a
 /// reply it sends the same request again (the control thread meanwhile runs the overrun
 /// path), and after [`RemoteModelConfig::max_failed_calls`] consecutive failures it returns
@@ -303,6 +420,9 @@ pub struct RemoteModel {
     failing: bool,
     stats: Arc<RemoteStats>,
     server_identity: Option<String>,
+    /// The session token of the last handshake: only replies carrying it are used.
+    token: SessionToken,
+    handshakes: u64,
 }
 
 impl std::fmt::Debug for RemoteModel {
@@ -327,17 +447,26 @@ impl RemoteModel {
         let me = instance_id();
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
         let until = Instant::now() + cfg.connect_timeout;
-        let server_identity = loop {
+        let mut handshakes = 0;
+        let (server_identity, token) = loop {
             let t0 = Instant::now();
-            let ping = wire::encode_ping(me, 0, clock.now());
-            if let Some(bytes) = query(&session, &key, ping.into(), cfg.timeout)? {
-                break wire::decode_pong_identity(&bytes)?.1;
+            handshakes += 1;
+            match handshake(&session, &key, me, handshakes, &*clock, cfg.timeout)? {
+                Handshake::One(p) => break (p.identity, p.token.unwrap_or_default()),
+                Handshake::Many(n) => {
+                    return Err(Error::Ambiguous {
+                        key: cfg.key.clone(),
+                        responders: n,
+                    })
+                }
+                Handshake::Nobody => {}
             }
             if Instant::now() >= until {
-                return Err(Error::Timeout {
-                    what: "policy server (ping)",
-                    after: cfg.connect_timeout,
-                });
+                return Err(cfg.link.no_answer(
+                    &session,
+                    "policy server (ping)",
+                    cfg.connect_timeout,
+                ));
             }
             // No queryable yet: the query may return at once; pace the retries.
             std::thread::sleep(Duration::from_millis(20).saturating_sub(t0.elapsed()));
@@ -352,7 +481,44 @@ impl RemoteModel {
             failing: false,
             stats: Arc::new(RemoteStats::default()),
             server_identity,
+            token,
+            handshakes,
         })
+    }
+
+    /// Shake hands again after an attempt that got only foreign replies (e.g. the server
+    /// restarted and refuses the old session): pin a single answering server of the same
+    /// identity; several answering peers pin nobody (counted as foreign replies).
+    fn handshake_again(&mut self) -> Result<()> {
+        self.handshakes += 1;
+        let timeout = self.cfg.timeout;
+        match handshake(
+            &self.session,
+            &self.key,
+            self.me,
+            self.handshakes,
+            &*self.clock,
+            timeout,
+        )? {
+            Handshake::One(p) if p.identity == self.server_identity => {
+                self.token = p.token.unwrap_or_default();
+            }
+            Handshake::One(p) => {
+                bump(&self.stats.failed_calls);
+                return Err(Error::IdentityChanged {
+                    key: self.cfg.key.clone(),
+                    expected: self.server_identity.clone(),
+                    got: p.identity,
+                });
+            }
+            Handshake::Many(n) => {
+                self.stats
+                    .foreign_replies
+                    .fetch_add(n as u64, Ordering::Relaxed);
+            }
+            Handshake::Nobody => {}
+        }
+        Ok(())
     }
 
     /// The identity the server announced when it answered the connecting ping
@@ -388,64 +554,85 @@ impl RemoteModel {
         loop {
             bump(&self.stats.attempts);
             let t0 = Instant::now();
-            match query(&self.session, &self.key, payload.clone(), self.cfg.timeout)? {
-                Some(bytes) => {
-                    let unusable = match wire::decode_reply(&bytes) {
-                        Ok(wire::Reply::Error(m)) => {
-                            bump(&self.stats.server_errors);
-                            return Err(Error::Server(m));
-                        }
-                        Ok(wire::Reply::Velocity { header, shape, v })
-                            if header.seq == self.seq && shape == want =>
-                        {
-                            out.copy_from_slice(&v);
-                            if self.failing {
-                                self.failing = false;
-                                bump(&self.stats.reconnects);
-                            }
-                            self.stats.last_rtt_ns.store(
-                                self.clock.now().saturating_sub(t_send),
-                                std::sync::atomic::Ordering::Relaxed,
-                            );
-                            return Ok(());
-                        }
-                        Ok(wire::Reply::Velocity { header, shape, .. }) => format!(
-                            "reply seq {} shape {shape:?} for request seq {} shape {want:?}",
-                            header.seq, self.seq
-                        ),
-                        // A peer of another wire version cannot heal by retrying.
-                        Err(e @ wire::WireError::Version { .. }) => return Err(e.into()),
-                        Err(e) => e.to_string(),
-                    };
-                    // Dropped and counted; it counts as a failed attempt, like no reply.
-                    bump(&self.stats.malformed);
-                    self.failing = true;
-                    failed += 1;
-                    if failed >= self.cfg.max_failed_calls {
-                        bump(&self.stats.failed_calls);
-                        return Err(Error::Unusable {
-                            failed,
-                            last: unusable,
-                        });
+            let (seq, token, stats) = (self.seq, self.token, &*self.stats);
+            let (mut foreign, mut unusable) = (0u64, None::<String>);
+            let got = query_each(
+                &self.session,
+                &self.key,
+                payload.clone(),
+                self.cfg.timeout,
+                |bytes| match wire::decode_reply_with_token(bytes) {
+                    // A peer of another wire version cannot heal by retrying.
+                    Err(e @ wire::WireError::Version { .. }) => Err(e.into()),
+                    Err(e) => {
+                        bump(&stats.malformed);
+                        unusable = Some(e.to_string());
+                        Ok(None)
                     }
-                    std::thread::sleep(self.cfg.timeout.saturating_sub(t0.elapsed()));
-                }
-                None => {
-                    bump(&self.stats.timeouts);
-                    self.failing = true;
-                    failed += 1;
-                    if failed >= self.cfg.max_failed_calls {
-                        bump(&self.stats.failed_calls);
-                        return Err(Error::ServerGone {
-                            failed,
-                            timeout: self.cfg.timeout,
-                        });
+                    // Not from the peer of the last handshake: never used.
+                    Ok((_, t)) if t != Some(token) => {
+                        bump(&stats.foreign_replies);
+                        foreign += 1;
+                        Ok(None)
                     }
-                    // A missing server answers "no reply" at once: wait out the timeout so
-                    // `max_failed_calls × timeout` is the time to the safety stop.
-                    std::thread::sleep(self.cfg.timeout.saturating_sub(t0.elapsed()));
+                    Ok((wire::Reply::Error(m), _)) => Ok(Some(Err(m))),
+                    Ok((wire::Reply::Velocity { header, shape, v }, _))
+                        if header.seq == seq && shape == want =>
+                    {
+                        Ok(Some(Ok(v)))
+                    }
+                    Ok((wire::Reply::Velocity { header, shape, .. }, _)) => {
+                        bump(&stats.malformed);
+                        unusable = Some(format!(
+                            "reply seq {} shape {shape:?} for request seq {seq} shape {want:?}",
+                            header.seq
+                        ));
+                        Ok(None)
+                    }
+                },
+            )?;
+            match got {
+                Some(Err(m)) => {
+                    bump(&self.stats.server_errors);
+                    return Err(Error::Server(m));
                 }
+                Some(Ok(v)) => {
+                    out.copy_from_slice(&v);
+                    if self.failing {
+                        self.failing = false;
+                        bump(&self.stats.reconnects);
+                    }
+                    self.stats.last_rtt_ns.store(
+                        self.clock.now().saturating_sub(t_send),
+                        std::sync::atomic::Ordering::Relaxed,
+                    );
+                    return Ok(());
+                }
+                None => {}
             }
+            // No usable reply from our server in this attempt.
+            self.failing = true;
+            failed += 1;
+            if unusable.is_none() {
+                bump(&self.stats.timeouts);
+            }
+            if failed >= self.cfg.max_failed_calls {
+                bump(&self.stats.failed_calls);
+                return Err(match unusable {
+                    // Dropped and counted; each counted as a failed attempt, like no reply.
+                    Some(last) => Error::Unusable { failed, last },
+                    None => Error::ServerGone {
+                        failed,
+                        timeout: self.cfg.timeout,
+                    },
+                });
+            }
+            if foreign > 0 {
+                self.handshake_again()?;
+            }
+            // A missing server answers "no reply" at once: wait out the timeout so
+            // `max_failed_calls × timeout` is the time to the safety stop.
+            std::thread::sleep(self.cfg.timeout.saturating_sub(t0.elapsed()));
         }
     }
 }
@@ -500,7 +687,7 @@ mod tests {
                 let bytes = q.payload().map(|p| p.to_bytes().into_owned()).unwrap();
                 let (h, _) = wire::decode_header(&bytes).unwrap();
                 let reply = if h.kind == Kind::Ping {
-                    wire::encode_pong(1, &h, 0)
+                    wire::encode_pong_with_token(1, &h, 0, None, Some([1, 2, 3, 4]))
                 } else {
                     v2(Kind::PolicyReply)
                 };

@@ -334,6 +334,16 @@ impl RemoteSlowSource {
             {
                 continue; // old or duplicated
             }
+            // Another instance while the pinned one keeps publishing: not the server this
+            // source synchronised with (an impostor on the key). A restarted server is taken
+            // once the pinned one has been quiet for a stale poll.
+            let pinned_alive = self
+                .last_fresh
+                .is_some_and(|t| t.elapsed() < self.cfg.stale_poll);
+            if pinned_alive && self.sync.as_ref().is_some_and(|s| s.sender != msg.sender) {
+                bump(&self.stats.foreign_replies);
+                continue;
+            }
             if !self.ensure_sync(msg.sender)? {
                 continue;
             }
@@ -356,10 +366,10 @@ impl RemoteSlowSource {
             return Ok(frame);
         }
         match &self.last {
-            None => Err(Error::Timeout {
-                what: "first slow features",
-                after: wait,
-            }),
+            None => Err(self
+                .cfg
+                .link
+                .no_answer(&self.session, "first slow features", wait)),
             Some(_)
                 if self
                     .last_fresh

@@ -3,7 +3,7 @@
 /// Magic bytes at the start of every message.
 pub const MAGIC: [u8; 4] = *b"PIR2";
 /// The version this build speaks.
-pub const WIRE_VERSION: u16 = 1;
+pub const WIRE_VERSION: u16 = 2;
 /// Size of the fixed header.
 pub const HEADER_LEN: usize = 40;
 /// Largest tensor rank.

@@ -1,4 +1,4 @@
-//! The wire format of the remote slow channel and the remote action head (version 1).
+//! The wire format of the remote slow channel and the remote action head (version 2).
 //!
 //! Every message is one Zenoh payload: a fixed 40-byte header, then `n_tensors` tensors.
 //! All integers and floats are little-endian.
@@ -24,15 +24,19 @@
 //! |------|---------------|-------------------------|--------------------------|---------|
 //! | 1    | Features      | capture time (sender clock) | publish time (sender clock) | f32 `[T, D]` |
 //! | 2    | PolicyRequest | send time (robot clock) | 0                        | f32 x `[B,H,A]`, f32 τ `[B,H]`, f32 obs `[B,n_obs,F]`, u32 d_vis `[B]`, optional f32 slow `[B,S]` or `[B,T,D]` |
-//! | 3    | PolicyReply   | echo of request t_a     | model time, ns           | f32 v `[B,H,A]` |
+//! | 3    | PolicyReply   | echo of request t_a     | model time, ns           | f32 v `[B,H,A]`, u32 session token `[4]` |
 //! | 4    | Ping          | send time (robot clock) | 0                        | none |
-//! | 5    | Pong          | echo of ping t_a        | receive time (server clock) | none, or u8 `[n]` UTF-8 identity of a policy server's checkpoint |
-//! | 6    | Error         | 0                       | 0                        | u8 `[n]` UTF-8 message |
+//! | 5    | Pong          | echo of ping t_a        | receive time (server clock) | optional u8 `[n]` UTF-8 identity of a policy server's checkpoint, then (policy server) u32 session token `[4]` |
+//! | 6    | Error         | 0                       | 0                        | u8 `[n]` UTF-8 message, then the session token `[4]` when the server knows the client |
 //!
 //! A policy server's pong may carry its identity (for a candle checkpoint, the JSON of
 //! `pir2_backends::checkpoint::Identity`: the policy it was trained as and the SHA-256 of
-//! its weights), so a client can refuse a server running another checkpoint; a version-1
-//! peer that ignores the tensor still reads the pong.
+//! its weights), so a client can refuse a server running another checkpoint.
+//!
+//! Version 2 added the session token ([`SessionToken`]): a policy server issues a fresh one
+//! in each pong (per client `sender`) and repeats it in every reply and error to that
+//! client; the client takes only replies carrying the token of its last handshake, so a
+//! peer that merely answers on the same key cannot have its replies used.
 //!
 //! Decoding checks every length before allocating, so garbage of any length returns a
 //! [`WireError`] and never panics or allocates more than the input's size.

@@ -1,7 +1,7 @@
 //! Kinds 2 and 3: action-head requests and replies.
 
 use super::codec::*;
-use super::control::error_text;
+use super::control::{error_text, token, SessionToken};
 use crate::model::{ModelInput, SlowInput};
 
 /// Slow input of a decoded request.
@@ -211,7 +211,19 @@ pub fn encode_reply(
     shape: [usize; 3],
     v: &[f32],
 ) -> Vec<u8> {
-    Writer::new(
+    encode_reply_with_token(sender, req, model_ns, shape, v, None)
+}
+
+/// [`encode_reply`] carrying the session token of the client it answers.
+pub fn encode_reply_with_token(
+    sender: u64,
+    req: &Header,
+    model_ns: u64,
+    shape: [usize; 3],
+    v: &[f32],
+    token: Option<SessionToken>,
+) -> Vec<u8> {
+    let w = Writer::new(
         Header {
             kind: Kind::PolicyReply,
             sender,
@@ -219,10 +231,14 @@ pub fn encode_reply(
             t_a: req.t_a,
             t_b: model_ns,
         },
-        1,
-        16 + 4 * v.len(),
+        1 + u8::from(token.is_some()),
+        16 + 4 * v.len() + 24,
     )
-    .f32(&shape, v)
+    .f32(&shape, v);
+    match token {
+        Some(t) => w.u32(&[4], &t),
+        None => w,
+    }
     .finish()
 }
 
@@ -244,16 +260,30 @@ pub enum Reply {
 
 /// Decode a reply (a velocity or a server error).
 pub fn decode_reply(bytes: &[u8]) -> Result<Reply, WireError> {
-    let msg = decode(bytes)?;
-    if msg.header.kind == Kind::Error {
-        return Ok(Reply::Error(error_text(msg)?));
+    decode_reply_with_token(bytes).map(|(r, _)| r)
+}
+
+/// Decode a reply and the session token it carries (`None`: a reply without one, which a
+/// client never takes as its server's).
+pub fn decode_reply_with_token(bytes: &[u8]) -> Result<(Reply, Option<SessionToken>), WireError> {
+    let mut msg = decode(bytes)?;
+    let n = msg.tensors.len();
+    if msg.header.kind != Kind::Error {
+        expect(&msg, Kind::PolicyReply)?;
     }
-    expect(&msg, Kind::PolicyReply)?;
+    if n == 0 || n > 2 {
+        return Err(WireError::Malformed(format!("reply: {n} tensors")));
+    }
+    let tok = if n == 2 {
+        msg.tensors.pop().map(token).transpose()?
+    } else {
+        None
+    };
+    if msg.header.kind == Kind::Error {
+        return Ok((Reply::Error(error_text(msg)?), tok));
+    }
     let header = msg.header;
-    let [t]: [Tensor; 1] = msg
-        .tensors
-        .try_into()
-        .map_err(|v: Vec<Tensor>| WireError::Malformed(format!("reply: {} tensors", v.len())))?;
+    let t = msg.tensors.pop().unwrap_or_else(empty);
     let (shape, v) = f32_tensor(t, "v")?;
-    Ok(Reply::Velocity { header, shape, v })
+    Ok((Reply::Velocity { header, shape, v }, tok))
 }

@@ -25,7 +25,11 @@ fn version_mismatch_is_a_typed_error() {
         }
     );
     let msg = decode_pong(&bytes).unwrap_err().to_string();
-    assert!(msg.contains("v2") && msg.contains("v1"), "{msg}");
+    assert!(
+        msg.contains(&format!("v{}", WIRE_VERSION + 1))
+            && msg.contains(&format!("v{WIRE_VERSION}")),
+        "{msg}"
+    );
 }
 
 #[test]
