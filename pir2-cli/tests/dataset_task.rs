@@ -145,6 +145,11 @@ fn trains_on_the_lerobot_written_fixture_and_exports_to_onnx() {
 /// A dataset written by our writer under custom keys: the action drives the joints toward
 /// a per-episode target, `action = 0.5 · (target − q)`.
 fn custom_dataset(root: &Path) {
+    custom_dataset_with(root, None);
+}
+
+/// [`custom_dataset`], with a NaN action in episode `nan_in` if given.
+fn custom_dataset_with(root: &Path, nan_in: Option<usize>) {
     let spec = DatasetSpec {
         fps: 20,
         robot_type: Some("two_joint_arm".into()),
@@ -164,9 +169,14 @@ fn custom_dataset(root: &Path) {
         let target = [0.6 - k, 0.3 * k - 0.2];
         let mut q = [-0.4 + 0.1 * k, 0.5 - k];
         let mut ep = Episode::new(2, 2, 2);
-        for _ in 0..25 {
+        for t in 0..25 {
             let a = [0.5 * (target[0] - q[0]), 0.5 * (target[1] - q[1])];
-            ep.push(&q, &target, &a);
+            let label = if nan_in == Some(e) && t == 3 {
+                [f32::NAN, a[1]]
+            } else {
+                a
+            };
+            ep.push(&q, &target, &label);
             q = [q[0] + a[0], q[1] + a[1]];
         }
         w.append(&ep).unwrap();
@@ -314,4 +324,31 @@ fn same_seed_same_bits_and_resume_continues_bit_identically() {
     // Resuming with another task is refused.
     let err = dataset::train(&data, &small(3), &b, true).unwrap_err();
     assert!(format!("{err:#}").contains("task differs"), "{err:#}");
+}
+
+/// A NaN in a held-out episode is one error naming the episode, the frame and the key,
+/// before any training (before: the validation metric came out NaN, was printed as "held-out
+/// flow loss NaN", and the run exited 0 with a checkpoint chosen on it).
+#[test]
+fn a_nan_in_a_held_out_episode_is_an_error() {
+    let dir = Scratch::new("dataset-nan");
+    let data = dir.path().join("data");
+    let last = 7;
+    custom_dataset_with(&data, Some(last));
+    let task = write(
+        dir.path(),
+        "task.toml",
+        &CUSTOM
+            .replace("held_out = 0.25", &format!("held_out_episodes = [{last}]"))
+            .replace("steps = 300", "steps = 20")
+            .replace("warmup = 20", "warmup = 2"),
+    );
+    let out = dir.path().join("run");
+    let err = failed(&train(&data, &task, &out, &[]));
+    assert!(
+        err.contains("episode 7 (by position), frame 3: action.joint_delta[0] is NaN"),
+        "{err}"
+    );
+    assert!(!out.exists(), "nothing written before the error");
+    assert!(!err.contains("panicked"), "{err}");
 }

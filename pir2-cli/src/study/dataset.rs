@@ -321,6 +321,31 @@ pub fn spec(cfg: &DatasetTaskConfig, ep: &Episode) -> Spec {
     }
 }
 
+/// Every value the task reads must be finite: a NaN or an infinity would make the statistics,
+/// the training loss or the validation metric non-finite far from its cause. The first one is
+/// one error naming the episode (by position), the frame and the key.
+fn check_finite(episodes: &[pir2_sim::dataset::Episode], cfg: &DatasetTaskConfig) -> Result<()> {
+    for (e, ep) in episodes.iter().enumerate() {
+        let parts: [(&[f32], usize, String); 3] = [
+            (&ep.fast, ep.fast_dim, cfg.fast_keys.join(" + ")),
+            (&ep.slow, ep.slow_dim, cfg.slow_keys.join(" + ")),
+            (&ep.action, ep.action_dim, cfg.action_key.clone()),
+        ];
+        for (values, dim, key) in parts {
+            if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+                bail!(
+                    "episode {e} (by position), frame {}: {key}[{}] is {}; the dataset must \
+                     hold finite values only",
+                    i / dim.max(1),
+                    i % dim.max(1),
+                    values[i]
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Train `cfg` on the dataset at `data` into `out` (a new directory, or with `resume` the
 /// directory of an interrupted run with the same task file); returns the validation report.
 pub fn train(
@@ -333,6 +358,8 @@ pub fn train(
     let ds = read_selected(data, &cfg.selection())
         .with_context(|| format!("reading dataset {}", data.display()))?;
     let n = ds.episodes.len();
+    check_finite(&ds.episodes, cfg)
+        .with_context(|| format!("reading dataset {}", data.display()))?;
     let (train_idx, held_idx) = split(n, &cfg.validation, cfg.seed)?;
     let task_file = out.join("task.toml");
     let text = toml::to_string(cfg).context("serialising the task")?;
