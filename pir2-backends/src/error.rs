@@ -4,7 +4,7 @@
 //! The GR00T stack's variants exist with feature `gr00t`; those whose bare name would say
 //! less than the crate's own (`Config`, `Contract`, `Candle`) carry a `Gr00t` prefix. Errors
 //! leave the crate one way only: into the runtime's [`pir2_runtime::Error`] when they cross
-//! its traits; the runtime's errors come in unchanged ([`Error::Runtime`], with `gr00t`) and
+//! its traits; the runtime's errors come in unchanged (`Error::Runtime`, with `gr00t`) and
 //! go back out as themselves.
 
 use std::fmt::Debug;
@@ -316,7 +316,7 @@ pub enum Error {
         problem: String,
     },
 
-    /// A GR00T checkpoint being imported ([`crate::gr00t::import`]) has a file or a field pir2
+    /// A GR00T checkpoint being imported (`gr00t::import`) has a file or a field pir2
     /// cannot map: the file, the field (a JSON path, or a tensor name) and why.
     #[cfg(feature = "gr00t")]
     #[error("import: `{path}`: `{field}` {problem}")]
@@ -329,7 +329,7 @@ pub enum Error {
         /// What is wrong and, where there is one, the way out.
         problem: String,
     },
-    /// An ONNX file could not be rewritten from bfloat16 to float32 ([`crate::gr00t::onnx_f32`]).
+    /// An ONNX file could not be rewritten from bfloat16 to float32 (`gr00t::onnx_f32`).
     #[cfg(feature = "gr00t")]
     #[error("ONNX model `{path}`: {what}: {problem}")]
     OnnxRewrite {
@@ -411,7 +411,7 @@ pub enum Error {
     },
 
     // -- test support --
-    /// Writing a synthetic test checkpoint failed ([`crate::gr00t::testing`]).
+    /// Writing a synthetic test checkpoint failed (`gr00t::testing`).
     #[cfg(feature = "gr00t")]
     #[error("synthetic GR00T checkpoint: {0}")]
     Fixture(String),
