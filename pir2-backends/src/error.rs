@@ -1,5 +1,11 @@
 //! The backends' error type: one sectioned enum (configuration, shapes and tensors, training,
-//! files, ONNX export, the native backends) and a [`Result`] alias.
+//! files, ONNX export, the native backends, the GR00T stack) and a [`Result`] alias.
+//!
+//! The GR00T stack's variants exist with feature `gr00t`; those whose bare name would say
+//! less than the crate's own (`Config`, `Contract`, `Candle`) carry a `Gr00t` prefix. Errors
+//! leave the crate one way only: into the runtime's [`pir2_runtime::Error`] when they cross
+//! its traits; the runtime's errors come in unchanged (`Error::Runtime`, with `gr00t`) and
+//! go back out as themselves.
 
 use std::fmt::Debug;
 use std::path::PathBuf;
@@ -242,6 +248,188 @@ pub enum Error {
     /// The dataset cannot feed the trainer.
     #[error("dataset: {0}")]
     Dataset(String),
+
+    // ---- the GR00T stack ([`crate::gr00t`], feature `gr00t`) ----
+    // -- files --
+    /// A file could not be read.
+    #[cfg(feature = "gr00t")]
+    #[error("cannot read `{path}`: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A file could not be parsed (JSON, TOML, safetensors, vocabulary, tokenizer).
+    #[cfg(feature = "gr00t")]
+    #[error("cannot parse `{path}`: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// The checkpoint has no tokenizer file.
+    #[cfg(feature = "gr00t")]
+    #[error("no tokenizer: neither `{tokenizer}` nor `{vocab}` exists")]
+    NoTokenizer {
+        /// The VLM's Hugging Face tokenizer (preferred).
+        tokenizer: PathBuf,
+        /// The vocabulary file of older pir2 checkpoints.
+        vocab: PathBuf,
+    },
+    /// The embodiment configuration is inconsistent.
+    #[cfg(feature = "gr00t")]
+    #[error("invalid GR00T embodiment configuration: {0}")]
+    Gr00tConfig(String),
+    /// A normalisation statistic is missing or malformed.
+    #[cfg(feature = "gr00t")]
+    #[error("statistics file `{path}`: `{key}` {problem}")]
+    Statistics {
+        /// The statistics file.
+        path: PathBuf,
+        /// `embodiment.modality.group.stat`.
+        key: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// A weight in the pir2 side file (`pir2_gr00t.safetensors`) is missing or malformed.
+    #[cfg(feature = "gr00t")]
+    #[error("weights file `{path}`: tensor `{tensor}` {problem}")]
+    Weights {
+        /// The safetensors file.
+        path: PathBuf,
+        /// The tensor name.
+        tensor: String,
+        /// What is wrong.
+        problem: String,
+    },
+
+    /// The checkpoint's backbone files do not form one backbone: the fused `backbone.onnx`
+    /// and the split ViT + LLM set both present, or a split set with a file missing.
+    #[cfg(feature = "gr00t")]
+    #[error("backbone files of `{dir}`: {problem}")]
+    BackboneFiles {
+        /// The checkpoint directory.
+        dir: PathBuf,
+        /// Which files are present and which are missing.
+        problem: String,
+    },
+
+    /// A GR00T checkpoint being imported (`gr00t::import`) has a file or a field pir2
+    /// cannot map: the file, the field (a JSON path, or a tensor name) and why.
+    #[cfg(feature = "gr00t")]
+    #[error("import: `{path}`: `{field}` {problem}")]
+    Import {
+        /// The file of the GR00T checkpoint (or the output directory).
+        path: PathBuf,
+        /// The field (`processor_kwargs.modality_configs.TAG.action.delta_indices`), the
+        /// tensor name, or the file's own name when the file is missing.
+        field: String,
+        /// What is wrong and, where there is one, the way out.
+        problem: String,
+    },
+    /// An ONNX file could not be rewritten from bfloat16 to float32 (`gr00t::onnx_f32`).
+    #[cfg(feature = "gr00t")]
+    #[error("ONNX model `{path}`: {what}: {problem}")]
+    OnnxRewrite {
+        /// The ONNX file (or its external-data file).
+        path: PathBuf,
+        /// The message or tensor concerned, e.g. "initializer `w`".
+        what: String,
+        /// What is wrong.
+        problem: String,
+    },
+
+    // -- ONNX contract --
+    /// An ONNX file does not meet the GR00T export contract (see `docs/gr00t-contract.md`).
+    #[cfg(feature = "gr00t")]
+    #[error("ONNX model `{path}` breaks the GR00T contract at `{tensor}`: {problem}")]
+    Gr00tContract {
+        /// The ONNX file.
+        path: PathBuf,
+        /// The input/output name concerned.
+        tensor: String,
+        /// What is wrong.
+        problem: String,
+    },
+    /// The execution provider has no kernel for an op of a graph at its element types (e.g.
+    /// a `bfloat16` graph on the CPU provider).
+    #[cfg(feature = "gr00t")]
+    #[error(
+        "ONNX model `{path}` ({role}) cannot run on {provider}: ONNX Runtime has no kernel \
+         for {op} there; {hint}"
+    )]
+    NoKernel {
+        /// The ONNX file.
+        path: PathBuf,
+        /// Its role, e.g. "LLM".
+        role: &'static str,
+        /// ONNX Runtime's name of the provider, e.g. `CPUExecutionProvider`.
+        provider: &'static str,
+        /// The op with its opset version and the node, as ONNX Runtime names them, e.g.
+        /// "MatMul(13) at node `/layers.0/mlp/MatMul`".
+        op: String,
+        /// What to do.
+        hint: String,
+    },
+    /// Running an ONNX graph failed.
+    #[cfg(feature = "gr00t")]
+    #[error("running `{path}`: {message}")]
+    Run {
+        /// The ONNX file.
+        path: PathBuf,
+        /// ONNX Runtime's message.
+        message: String,
+    },
+
+    // -- inputs --
+    /// The prompt tokenizer failed.
+    #[cfg(feature = "gr00t")]
+    #[error("tokenizer: {0}")]
+    Tokenizer(String),
+    /// An input had the wrong size.
+    #[cfg(feature = "gr00t")]
+    #[error("GR00T input `{what}`: expected {expected}, got {got}")]
+    Input {
+        /// What was being checked.
+        what: String,
+        /// Expected.
+        expected: String,
+        /// Received.
+        got: String,
+    },
+
+    /// Writing the example checkpoint (`pir2 gr00t example`) failed.
+    #[cfg(feature = "gr00t")]
+    #[error("example checkpoint `{path}`: {message}")]
+    Example {
+        /// The file or directory concerned.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+
+    // -- test support --
+    /// Writing a synthetic test checkpoint failed (`gr00t::testing`).
+    #[cfg(feature = "gr00t")]
+    #[error("synthetic GR00T checkpoint: {0}")]
+    Fixture(String),
+
+    // -- runtime --
+    /// An error of the runtime (driver, robot, camera).
+    #[cfg(feature = "gr00t")]
+    #[error(transparent)]
+    Runtime(#[from] pir2_runtime::Error),
+    /// The candle action head (`Gr00tCandleHead`) failed to load or to run.
+    #[cfg(feature = "gr00t")]
+    #[error("candle GR00T N1.7 head `{path}`: {source}")]
+    Gr00tCandle {
+        /// The step / checkpoint directory of the head.
+        path: PathBuf,
+        /// What candle reported.
+        source: Box<Error>,
+    },
 }
 
 /// Result alias for the backends.
@@ -266,13 +454,72 @@ impl Error {
             message: message.into(),
         }
     }
+    /// [`Error::Input`]: a GR00T input of the wrong size.
+    #[cfg(feature = "gr00t")]
+    pub(crate) fn input(
+        what: impl Into<String>,
+        expected: impl std::fmt::Display,
+        got: impl std::fmt::Display,
+    ) -> Self {
+        Error::Input {
+            what: what.into(),
+            expected: expected.to_string(),
+            got: got.to_string(),
+        }
+    }
+    /// Whether this is an error of the GR00T stack (its messages cross into the runtime
+    /// prefixed `gr00t: `).
+    #[cfg(feature = "gr00t")]
+    fn is_gr00t(&self) -> bool {
+        matches!(
+            self,
+            Error::Read { .. }
+                | Error::Parse { .. }
+                | Error::NoTokenizer { .. }
+                | Error::Gr00tConfig(_)
+                | Error::Statistics { .. }
+                | Error::Weights { .. }
+                | Error::BackboneFiles { .. }
+                | Error::Import { .. }
+                | Error::OnnxRewrite { .. }
+                | Error::Gr00tContract { .. }
+                | Error::NoKernel { .. }
+                | Error::Run { .. }
+                | Error::Tokenizer(_)
+                | Error::Input { .. }
+                | Error::Example { .. }
+                | Error::Fixture(_)
+                | Error::Gr00tCandle { .. }
+        )
+    }
+    /// Without feature `gr00t` there is no GR00T stack.
+    #[cfg(not(feature = "gr00t"))]
+    fn is_gr00t(&self) -> bool {
+        false
+    }
 }
 
+/// Errors crossing into the runtime's traits become [`pir2_runtime::Error`]s that keep the
+/// message; the runtime's own errors, shapes and schedules go back unchanged, a GR00T input
+/// of the wrong size as a [`pir2_runtime::Error::Shape`].
 impl From<Error> for pir2_runtime::Error {
     fn from(e: Error) -> Self {
         match e {
             Error::Shape(s) => pir2_runtime::Error::Shape(s),
             Error::Schedule(s) => pir2_runtime::Error::Schedule(s),
+            #[cfg(feature = "gr00t")]
+            Error::Runtime(r) => r,
+            #[cfg(feature = "gr00t")]
+            Error::Input {
+                what,
+                expected,
+                got,
+            } => pir2_runtime::Error::Shape(ShapeMismatch {
+                what,
+                expected,
+                got,
+            }),
+            other if other.is_gr00t() => pir2_runtime::Error::Model(format!("gr00t: {other}")),
             other => pir2_runtime::Error::Model(other.to_string()),
         }
     }

@@ -36,14 +36,14 @@ fn fixture(name: &str, variant: &str) -> PathBuf {
     dir
 }
 
-fn load_head(dir: &Path) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
+fn load_head(dir: &Path) -> pir2_backends::Result<Gr00tActionHead> {
     load_head_as(dir, embodiment())
 }
 
 fn load_head_as(
     dir: &Path,
     cfg: pir2_backends::gr00t::EmbodimentConfig,
-) -> pir2_backends::gr00t::Result<Gr00tActionHead> {
+) -> pir2_backends::Result<Gr00tActionHead> {
     let files = CheckpointFiles::in_dir(dir);
     let norm = Normalizer::load(&files.statistics, &cfg)?;
     Gr00tActionHead::load(&files, &cfg, norm, 3, &OrtOptions::default())
@@ -232,7 +232,7 @@ fn vocab_backbone(
     files: &CheckpointFiles,
     cfg: &pir2_backends::gr00t::EmbodimentConfig,
     d_vl: usize,
-) -> pir2_backends::gr00t::Result<Gr00tBackbone> {
+) -> pir2_backends::Result<Gr00tBackbone> {
     let tok = VocabTokenizer::load(&files.vocab)?;
     Gr00tBackbone::load(
         files,

@@ -14,8 +14,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use pir2_backends::gr00t::onnx_f32::{convert_bf16_to_f32, has_bf16};
-use pir2_backends::gr00t::Gr00tError;
 use pir2_backends::ort::{runtime, session_builder, OrtOptions};
+use pir2_backends::Error;
 
 const IN: usize = 64;
 const OUT: usize = 32;
@@ -141,7 +141,7 @@ fn a_bf16_graph_rewritten_to_f32_runs_on_the_cpu_and_matches_f32() {
         assert!(worst < 1e-5, "{mode}: {worst}");
         // Nothing a user wrote is overwritten.
         let again = convert_bf16_to_f32(&src, &dst).unwrap_err();
-        assert!(matches!(again, Gr00tError::OnnxRewrite { .. }), "{again}");
+        assert!(matches!(again, Error::OnnxRewrite { .. }), "{again}");
         assert!(again.to_string().contains("already exists"), "{again}");
     }
     // External data that is not next to the file: one error naming the tensor.

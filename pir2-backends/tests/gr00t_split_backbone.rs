@@ -15,9 +15,10 @@ use pir2_backends::gr00t::testing::{
     add_bpe_tokenizer, python_from_env, write_split_backbone, write_tiny_checkpoint, D_VL,
 };
 use pir2_backends::gr00t::{
-    load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, Gr00tError, EMBED_TOKENS_KEY,
+    load_tokenizer, CheckpointFiles, EmbodimentConfig, Gr00tBackbone, EMBED_TOKENS_KEY,
 };
 use pir2_backends::ort::OrtOptions;
+use pir2_backends::Error;
 use pir2_runtime::View;
 
 const PROMPT: &str = "Catch the book!";
@@ -79,7 +80,7 @@ fn fused_copy(dir: &Path, name: &str) -> PathBuf {
     out
 }
 
-fn load(dir: &Path) -> pir2_backends::gr00t::Result<Gr00tBackbone> {
+fn load(dir: &Path) -> pir2_backends::Result<Gr00tBackbone> {
     let files = CheckpointFiles::in_dir(dir);
     let cfg = files.embodiment_config()?;
     let tok = load_tokenizer(&files, &cfg.prompt)?;
@@ -213,7 +214,7 @@ fn backbone_file_sets_are_one_form_or_one_error() {
     // Both forms: one error naming the three graphs.
     std::fs::copy(dir.join("fused_backbone.onnx"), &files.backbone).unwrap();
     let e = load(&dir).unwrap_err();
-    assert!(matches!(e, Gr00tError::BackboneFiles { .. }), "{e}");
+    assert!(matches!(e, Error::BackboneFiles { .. }), "{e}");
     let e = e.to_string();
     assert!(
         e.contains("backbone.onnx") && e.contains("vit_fp32.onnx") && e.contains("llm_fp32.onnx"),
@@ -362,7 +363,7 @@ fn bf16_and_f16_exports_match_the_float32_composition() {
 fn unsupported_element_types_and_kernels_are_named_at_load() {
     let (dir, _) = split_fixture("types", "llm_f64", |_| {});
     let e = load(&dir).unwrap_err();
-    assert!(matches!(e, Gr00tError::Contract { .. }), "{e}");
+    assert!(matches!(e, Error::Gr00tContract { .. }), "{e}");
     let e = e.to_string();
     assert!(
         e.contains("llm_fp32.onnx")
@@ -373,7 +374,7 @@ fn unsupported_element_types_and_kernels_are_named_at_load() {
     );
     regenerate(&dir, "llm_bf16_matmul");
     match load(&dir) {
-        Err(e @ Gr00tError::NoKernel { .. }) => {
+        Err(e @ Error::NoKernel { .. }) => {
             let e = e.to_string();
             println!("{e}");
             assert!(

@@ -17,9 +17,10 @@ use pir2_backends::gr00t::testing::{
     python_from_env, BPE_FIXTURE_PY, BPE_TOKENIZER_CONFIG, BPE_TOKENIZER_JSON,
 };
 use pir2_backends::gr00t::{
-    build_sequence, formalize_language, load_tokenizer, ChatTemplate, CheckpointFiles, Gr00tError,
-    HfTokenizer, PromptTokenizer,
+    build_sequence, formalize_language, load_tokenizer, ChatTemplate, CheckpointFiles, HfTokenizer,
+    PromptTokenizer,
 };
+use pir2_backends::Error;
 
 fn fixture_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("pir2-gr00t-tok-{}-{name}", std::process::id()));
@@ -155,7 +156,7 @@ fn token_ids_match_python_tokenizers_and_the_jinja_chat_template() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-fn load_err(files: &CheckpointFiles, prompt: &PromptConfig) -> Gr00tError {
+fn load_err(files: &CheckpointFiles, prompt: &PromptConfig) -> Error {
     match load_tokenizer(files, prompt) {
         Ok(t) => panic!("loaded {}", t.describe()),
         Err(e) => e,
@@ -187,7 +188,7 @@ fn the_checkpoints_tokenizer_json_wins_and_bad_files_are_one_error_naming_them()
     let mut p = PromptConfig::default();
     p.chat.pad_token = "<pad>".into();
     let e = load_err(&files, &p);
-    assert!(matches!(e, Gr00tError::Parse { .. }), "{e:?}");
+    assert!(matches!(e, Error::Parse { .. }), "{e:?}");
     let m = e.to_string();
     assert!(
         m.contains("tokenizer.json") && m.contains("`<pad>`") && m.contains("pad_token"),
@@ -211,7 +212,7 @@ fn the_checkpoints_tokenizer_json_wins_and_bad_files_are_one_error_naming_them()
     // Neither.
     std::fs::remove_file(&files.vocab).unwrap();
     let e = load_err(&files, &prompt);
-    assert!(matches!(e, Gr00tError::NoTokenizer { .. }), "{e:?}");
+    assert!(matches!(e, Error::NoTokenizer { .. }), "{e:?}");
     let m = e.to_string();
     assert!(
         m.contains("tokenizer.json") && m.contains("vocab.txt"),

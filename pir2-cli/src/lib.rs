@@ -5,7 +5,8 @@
 //! lock-step runtime; [`study::dataset`]: a policy trained on a user's own state-only
 //! LeRobotDataset v3.0 from a `task.toml`, validated on held-out episodes), plots, benchmarks,
 //! and one function per subcommand: [`tasks`] (`collect|train|eval|report TASK`, the stock
-//! tasks from one registry), [`gr00t`] (`pir2 gr00t …`), [`run`], [`serve`] and
+//! tasks from one registry), [`gr00t`] (`pir2 gr00t …`), [`run`], [`serve`] (with
+//! [`remote`], the robot side and TLS options it shares with the others) and
 //! [`commands`] (the rest). Each subcommand's options are a struct deriving clap's `Args`
 //! (the doc comments are the help), so `main.rs` only parses and dispatches.
 
@@ -15,6 +16,7 @@ pub mod ep;
 pub mod gr00t;
 pub mod identity;
 pub mod plot;
+pub mod remote;
 pub mod run;
 pub mod serve;
 pub mod signals;

@@ -150,7 +150,7 @@ pub struct RunOptions {
     pub no_ensemble: bool,
     /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
     #[command(flatten)]
-    pub tls: crate::serve::TlsOptions,
+    pub tls: crate::remote::TlsOptions,
     /// Where ONNX Runtime runs the action head and the backbone.
     #[command(flatten)]
     pub ep: crate::ep::EpOptions,

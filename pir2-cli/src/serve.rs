@@ -1,4 +1,5 @@
-//! `pir2 serve policy|slow` and the robot side of `pir2 eval --remote` (feature `remote`).
+//! `pir2 serve policy|slow` (feature `remote`); the robot side of `pir2 eval --remote` and
+//! the TLS options are [`crate::remote`]'s.
 //!
 //! Transport, wire format, clock sync and fault handling are `pir2_runtime::remote`'s (Zenoh
 //! peers with multicast and gossip scouting off: they meet only through the given
@@ -6,7 +7,7 @@
 //!
 //! - `serve policy --checkpoint DIR`: a candle checkpoint (e.g. `pir2 train`'s `best/`)
 //!   answers one-NFE requests; `pir2 eval --remote ENDPOINT` sends the ball-plate
-//!   evaluation's action-head calls there ([`RemotePolicy::models`] is a model factory for
+//!   evaluation's action-head calls there ([`crate::remote::RemotePolicy::models`] is a model factory for
 //!   the study pipeline's one closed loop) (the lock-step eval is deterministic, so the result
 //!   equals the local eval's, outages included: a call is retried until the server answers or
 //!   `max_failed_calls` timeouts in a row stop the run);
@@ -21,6 +22,7 @@ use std::sync::Arc;
 
 use anyhow::Result;
 
+<<<<<<< HEAD
 use pir2_backends::candle::CandleModel;
 
 use crate::study::pipeline::Models;
@@ -79,6 +81,11 @@ impl TlsOptions {
         Ok(link)
     }
 }
+=======
+use crate::remote::TlsOptions;
+#[cfg(not(feature = "remote"))]
+use crate::remote::NO_REMOTE;
+>>>>>>> reno
 
 /// What `pir2 serve …` runs.
 #[derive(Debug, Clone, clap::Subcommand)]
@@ -167,107 +174,23 @@ pub fn serve(_cmd: &ServeOptions, _stop: Arc<AtomicBool>) -> Result<()> {
     anyhow::bail!("{NO_REMOTE}")
 }
 
-#[cfg(not(feature = "remote"))]
-const NO_REMOTE: &str = "this pir2 was built without the Zenoh transport: rebuild with \
-                         `cargo build --release -p pir2-cli --features remote`";
-
-/// The robot side of `pir2 eval --remote`: a connection to `pir2 serve policy`.
-pub struct RemotePolicy {
-    #[cfg(feature = "remote")]
-    inner: imp::RemotePolicy,
-}
-
-impl std::fmt::Debug for RemotePolicy {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("RemotePolicy").finish_non_exhaustive()
-    }
-}
-
-impl RemotePolicy {
-    /// Connect to `endpoint` (a Zenoh locator such as `tcp/10.0.0.2:7447`), waiting up to
-    /// `connect_timeout` for the server; each request may take `timeout` before it is sent
-    /// again, and `max_failed` timeouts in a row stop the evaluation.
-    #[allow(unused_variables)]
-    pub fn connect(
-        endpoint: &str,
-        tls: &TlsOptions,
-        timeout: std::time::Duration,
-        connect_timeout: std::time::Duration,
-        max_failed: u32,
-    ) -> Result<Self> {
-        #[cfg(feature = "remote")]
-        return Ok(Self {
-            inner: imp::RemotePolicy::connect(endpoint, tls, timeout, connect_timeout, max_failed)?,
-        });
-        #[cfg(not(feature = "remote"))]
-        anyhow::bail!("--remote: {NO_REMOTE}")
-    }
-
-    /// The server as a model factory for the one closed loop
-    /// ([`crate::study::pipeline::closed_loop`]): every model made shares this connection;
-    /// `local` supplies only the output (denormalisation) map and must be the checkpoint the
-    /// server runs.
-    #[allow(unused_variables)]
-    pub fn models(&self, local: &CandleModel) -> Models<'_> {
-        let output = crate::study::pipeline::output_map(local);
-        #[cfg(feature = "remote")]
-        return self.inner.models(output);
-        #[cfg(not(feature = "remote"))]
-        unreachable!("a RemotePolicy exists only in a build with feature `remote`")
-    }
-
-    /// Refuse the server unless it runs the checkpoint `dir` (loaded as `local`) as
-    /// `policy`, by the identity it announced ([`crate::identity::expect_server`]).
-    #[allow(unused_variables)]
-    pub fn expect_checkpoint(
-        &self,
-        local: &CandleModel,
-        dir: &std::path::Path,
-        policy: pir2_runtime::Policy,
-    ) -> Result<()> {
-        #[cfg(feature = "remote")]
-        return self.inner.expect_checkpoint(local, dir, policy);
-        #[cfg(not(feature = "remote"))]
-        unreachable!("a RemotePolicy exists only in a build with feature `remote`")
-    }
-
-    /// A line naming the server and its counters, for errors of an evaluation through it.
-    pub fn context(&self) -> String {
-        #[cfg(feature = "remote")]
-        return self.inner.context();
-        #[cfg(not(feature = "remote"))]
-        String::new()
-    }
-
-    /// One line of counters (calls, attempts, timeouts, reconnects, last round trip).
-    pub fn report(&self) -> String {
-        #[cfg(feature = "remote")]
-        return self.inner.report();
-        #[cfg(not(feature = "remote"))]
-        String::new()
-    }
-}
-
 #[cfg(feature = "remote")]
 mod imp {
     use std::sync::atomic::AtomicBool;
-    use std::sync::{Arc, Mutex};
+    use std::sync::Arc;
     use std::time::Duration;
 
     use anyhow::{Context, Result};
 
     use pir2_backends::candle::CandleModel;
     use pir2_runtime::remote::{
-        serve_policy_counted, serve_slow, Link, PolicyServerConfig, PolicyServerStats, RemoteModel,
-        RemoteModelConfig, RemoteStats, SlowServerConfig,
+        serve_policy_counted, serve_slow, Link, PolicyServerConfig, PolicyServerStats,
+        SlowServerConfig,
     };
     use pir2_runtime::testing::{CameraStub, PassThroughEncoder};
-    use pir2_runtime::{
-        Clock, ModelInput, OutputMap, SlowEncoder, SlowSource, SystemClock, VelocityModel,
-    };
+    use pir2_runtime::{Clock, ModelInput, SlowEncoder, SlowSource, SystemClock, VelocityModel};
 
     use super::ServeOptions;
-    use crate::study::pipeline::Models;
 
     pub(super) fn serve(cmd: &ServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
         match cmd {
@@ -494,6 +417,7 @@ mod imp {
     ) -> Result<SlowPair> {
         anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
     }
+<<<<<<< HEAD
 
     /// One connection shared by every evaluation thread (the server answers one request at a
     /// time anyway).
@@ -592,4 +516,6 @@ mod imp {
             )
         }
     }
+=======
+>>>>>>> reno
 }

@@ -1,5 +1,10 @@
 //! A safety layer that wraps any [`Robot`].
 //!
+//! One file on purpose: the limits ([`SafetyConfig`]), the checks that apply them in the
+//! order below and the counters that record every intervention ([`SafetyStats`]) are one
+//! safety argument, reviewed together; apart, a limit would sit away from the only code that
+//! enforces it.
+//!
 //! Per target sent ([`Robot::send_targets`]), in this order:
 //! 1. **Non-finite rejection**: a target with a NaN or ±inf is dropped whole; the last safe
 //!    target is sent again (hold).

@@ -1,4 +1,7 @@
-//! The one error type of `pir2-sim`, sectioned by origin.
+//! The one error type of `pir2-sim`, sectioned by origin: configuration, experts, datasets
+//! (files, content, camera videos) and, with feature `mujoco`, the Leap-cube scene and
+//! environment and the PPO trainer and expert. Only errors of the libraries below convert
+//! into it (TOML's); it converts into nothing, so no conversion runs back up.
 
 use std::path::PathBuf;
 
@@ -204,6 +207,114 @@ pub enum Error {
         episode: usize,
         /// What does not match.
         reason: String,
+    },
+
+    // ---- the Leap-cube scene and environment (`leap`, feature `mujoco`) ---------------
+    // -- scene files --
+    /// `PIR2_LEAP_CUBE_DIR` is unset and no explicit path was given.
+    #[cfg(feature = "mujoco")]
+    #[error(
+        "the Leap-cube scene directory is unknown: set PIR2_LEAP_CUBE_DIR (run \
+         `scripts/setup-native.sh` and `source .native/env.sh`) or pass a path"
+    )]
+    SceneDirUnset,
+    /// A scene file (or the directory) does not exist or cannot be read.
+    #[cfg(feature = "mujoco")]
+    #[error(
+        "cannot read the Leap-cube scene file {path}: {source} (run `scripts/setup-native.sh`, \
+         which installs the playground scene into .native/leap_cube)"
+    )]
+    SceneFile {
+        /// The file that could not be read.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A mesh whose file is missing is used by a geom that takes part in the physics, so it
+    /// cannot be stripped without changing the dynamics.
+    #[cfg(feature = "mujoco")]
+    #[error(
+        "mesh `{mesh}` (file {file}) is missing and used by a colliding or massive geom in {xml}; \
+         only visual-only meshes may be stripped"
+    )]
+    PhysicalMeshMissing {
+        /// Mesh asset name.
+        mesh: String,
+        /// The missing file.
+        file: PathBuf,
+        /// The XML that uses it.
+        xml: PathBuf,
+    },
+    /// MuJoCo rejected the scene.
+    #[cfg(feature = "mujoco")]
+    #[error("MuJoCo could not load {path}: {message}")]
+    SceneLoad {
+        /// The top-level scene file.
+        path: PathBuf,
+        /// MuJoCo's message.
+        message: String,
+    },
+    /// The loaded model lacks an element the task needs (wrong scene file).
+    #[cfg(feature = "mujoco")]
+    #[error("the scene has no {kind} named `{name}` (is this the LeapCubeReorient scene?)")]
+    MissingElement {
+        /// Element kind (body, site, sensor, joint).
+        kind: &'static str,
+        /// Element name.
+        name: String,
+    },
+    // -- use --
+    /// A buffer had the wrong length.
+    #[cfg(feature = "mujoco")]
+    #[error("{what}: expected length {expected}, got {got}")]
+    LeapShape {
+        /// Which buffer.
+        what: &'static str,
+        /// Expected length.
+        expected: usize,
+        /// Actual length.
+        got: usize,
+    },
+    /// A configuration value of the Leap-cube environment or its MPC expert is out of range
+    /// (or a saved state does not fit the model).
+    #[cfg(feature = "mujoco")]
+    #[error("invalid configuration: {0}")]
+    LeapInvalid(String),
+
+    // ---- the PPO trainer and expert (`leap::ppo`, feature `mujoco`) -------------------
+    /// A configuration value is out of range.
+    #[cfg(feature = "mujoco")]
+    #[error("invalid PPO configuration: {0}")]
+    PpoInvalid(String),
+    /// Reading or writing a file failed.
+    #[cfg(feature = "mujoco")]
+    #[error("{action} {path}: {source}")]
+    PpoIo {
+        /// What was being done ("cannot write", ...).
+        action: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// A weights or checkpoint file is malformed or does not match the configuration.
+    #[cfg(feature = "mujoco")]
+    #[error("{path}: {message}")]
+    PpoFormat {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// Training produced a non-finite loss, gradient or parameter (fail closed: the
+    /// checkpoint on disk is the last good state).
+    #[cfg(feature = "mujoco")]
+    #[error("training diverged at iteration {iteration}: {what} is not finite")]
+    PpoDiverged {
+        /// The PPO iteration.
+        iteration: u64,
+        /// Which quantity.
+        what: &'static str,
     },
 }
 

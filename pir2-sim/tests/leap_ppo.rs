@@ -9,8 +9,9 @@ use std::sync::OnceLock;
 use nalgebra::{UnitQuaternion, Vector3};
 use pir2_sim::leap::math::{self, Quat};
 use pir2_sim::leap::ppo::task::{actor_dim, critic_dim, tolerance_linear, PpoEnv};
-use pir2_sim::leap::ppo::{evaluate, PpoConfig, PpoError, PpoExpert, Trainer};
+use pir2_sim::leap::ppo::{evaluate, PpoConfig, PpoExpert, Trainer};
 use pir2_sim::leap::{LeapConfig, LeapModel, NU};
+use pir2_sim::Error;
 
 fn model() -> &'static LeapModel {
     static M: OnceLock<LeapModel> = OnceLock::new();
@@ -213,7 +214,7 @@ fn expert_weights_round_trip_and_act_deterministically() {
     let ck = dir.join("checkpoint.safetensors");
     tr.save_checkpoint(&ck).unwrap();
     match PpoExpert::load(&ck) {
-        Err(PpoError::Format { message, .. }) => assert!(message.contains("format"), "{message}"),
+        Err(Error::PpoFormat { message, .. }) => assert!(message.contains("format"), "{message}"),
         other => panic!("loading a checkpoint as an expert: {other:?}"),
     }
     assert!(Trainer::load_checkpoint(m, &path, 1).is_err());

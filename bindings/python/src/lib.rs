@@ -5,6 +5,11 @@
 //! latency window: the numbers are computed by the Rust code, so the same seed gives the
 //! same bits as Rust. Every invalid input is a Rust `pir2_schedule::Error`, raised in
 //! Python as `ValueError` with the error's text; nothing here panics on user input.
+//!
+//! One file on purpose: it is the Python module `pir2._pir2` whole, one section per class,
+//! read side by side with the module's stub (`python/pir2/__init__.pyi`); every section is a
+//! thin layer over one Rust type, and all of them share the argument helpers at the top that
+//! turn every invalid input into that one `ValueError`.
 
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArrayDyn, PyUntypedArrayMethods};

@@ -4,6 +4,12 @@
 //! normalisation [`Stats`]. It implements [`VelocityModel`] in **normalised action space**
 //! (see [`crate::config`]); observations are passed raw and normalised inside.
 //!
+//! One file on purpose (the architectures, layers and kernels are submodules): a
+//! [`CandleModel`]'s weights live twice, as candle `Var`s and as host copies for the batch-1
+//! fast paths, and every method that changes one (training, restoring, loading) marks or
+//! refreshes the other; loading, saving, encoding and both forward paths stay beside the
+//! fields they keep in step.
+//!
 //! ```
 //! use pir2_backends::candle::CandleModel;
 //! use pir2_backends::config::{Config, ModelConfig, MlpConfig, Spec, SlowSpec, Stats};

@@ -35,12 +35,12 @@ use super::config::{
     BackboneForm, CheckpointFiles, ImageConfig, ImagePipeline, PromptConfig, VisionConfig,
 };
 use super::contract::{feed, Bindings, Graph, BACKBONE, VL_SELF_ATTENTION};
-use super::error::{Gr00tError, Result};
 use super::image::{gr00t_n17_transform, Rgb};
 use super::prompt::{PromptTokenizer, Sequence, VlLayout};
 use super::split::SplitBackbone;
 use super::tokenizer::build_sequence;
 use super::weights::SideWeights;
+use crate::error::{Error, Result};
 use crate::ort::OrtOptions;
 
 /// Preprocess an HWC `u8` RGB camera image with `cfg` (GR00T N1.7's transform by default,
@@ -53,7 +53,7 @@ pub fn preprocess_image(
     out: &mut Vec<f32>,
 ) -> Result<()> {
     if h == 0 || w == 0 || rgb.len() != h * w * 3 {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             "camera image (HWC u8 RGB)",
             format!("{h}×{w}×3 = {} bytes, non-empty", h * w * 3),
             format!("{} bytes", rgb.len()),
@@ -64,7 +64,7 @@ pub fn preprocess_image(
             let img = Rgb::new(h, w, rgb.to_vec())?;
             let t = gr00t_n17_transform(&img, cfg.letterbox, cfg.shortest_edge, cfg.crop_fraction)?;
             if (t.h, t.w) != (cfg.shortest_edge, cfg.shortest_edge) {
-                return Err(Gr00tError::Config(format!(
+                return Err(Error::Gr00tConfig(format!(
                     "image.letterbox = false with a non-square {w}×{h} camera frame gives a \
                      {}×{} image; GR00T N1.7 letterboxes every frame (its \
                      `letter_box_transform` setting is not read), so set image.letterbox = \
@@ -290,7 +290,7 @@ impl Gr00tBackbone {
     ) -> Result<()> {
         let seq = build_sequence(tokenizer, prompt, prompt_cfg)?;
         if seq.ids.len() != self.seq.ids.len() {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("the token count T of prompt {prompt:?}"),
                 self.seq.ids.len(),
                 seq.ids.len(),
@@ -372,7 +372,7 @@ impl Gr00tBackbone {
                 &mut out,
             )?;
             if out.len() != t * d {
-                return Err(Gr00tError::input(
+                return Err(Error::input(
                     format!("`{}` output [1,T,D_vl]", g.path().display()),
                     t * d,
                     out.len(),
@@ -391,7 +391,7 @@ impl Gr00tBackbone {
     ) -> Result<()> {
         let n = views.len();
         if n != self.views {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 "camera views of a slow frame",
                 format!(
                     "{} (prompt.chat.images of the embodiment config)",
@@ -467,7 +467,7 @@ impl Gr00tBackbone {
         }
         g.run_into(feeds, "embeddings", out)?;
         if out.len() != t * d {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("`{}` output embeddings [1,T,D_vl]", g.path().display()),
                 t * d,
                 out.len(),

@@ -15,8 +15,8 @@ use candle_core::{Device, Tensor};
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 use super::config::{EmbodimentConfig, Normalizer};
-use super::error::{Gr00tError, Result};
 use super::head::VlLayout;
+use crate::error::{Error, Result};
 use crate::gr00t::n17::{timestep_bucket, Gr00tN17Head, Timesteps, VlTokens};
 
 /// GR00T N1.7's action head in candle behind the ONNX head's interface (module docs).
@@ -48,13 +48,13 @@ impl Gr00tCandleHead {
         embodiment_id: i64,
     ) -> Result<Self> {
         cfg.validate()?;
-        let head = Gr00tN17Head::load(step, &Device::Cpu).map_err(|e| Gr00tError::Candle {
+        let head = Gr00tN17Head::load(step, &Device::Cpu).map_err(|e| Error::Gr00tCandle {
             path: step.to_path_buf(),
             source: Box::new(e),
         })?;
         let c = head.config();
         let bad = |problem: String| {
-            Gr00tError::Config(format!("candle head `{}`: {problem}", step.display()))
+            Error::Gr00tConfig(format!("candle head `{}`: {problem}", step.display()))
         };
         if cfg.n_obs != c.state_history_length {
             return Err(bad(format!(
@@ -144,8 +144,8 @@ impl Gr00tCandleHead {
         &self.d_vis_counts
     }
 
-    fn candle(&self, e: impl Into<crate::error::Error>) -> Gr00tError {
-        Gr00tError::Candle {
+    fn candle(&self, e: impl Into<Error>) -> Error {
+        Error::Gr00tCandle {
             path: self.path.clone(),
             source: Box::new(e.into()),
         }
@@ -164,7 +164,7 @@ impl Gr00tCandleHead {
             SlowInput::Tokens { data, tokens, dim } if dim == d_vl => (data, tokens),
             SlowInput::Vector { data, dim } if dim > 0 && dim % d_vl == 0 => (data, dim / d_vl),
             _ => {
-                return Err(Gr00tError::input(
+                return Err(Error::input(
                     "backbone features",
                     format!("[B, T, {d_vl}] tokens"),
                     "another width or none",
@@ -173,7 +173,7 @@ impl Gr00tCandleHead {
         };
         chk("backbone features [B,T,D_vl]", b * t * d_vl, vl.len())?;
         let layout = self.layout.as_ref().ok_or_else(|| {
-            Gr00tError::Config("the candle head has no VL token layout (set_vl_layout)".into())
+            Error::Gr00tConfig("the candle head has no VL token layout (set_vl_layout)".into())
         })?;
         chk("VL layout masks (length T)", t, layout.image_mask.len())?;
         chk("VL layout masks (length T)", t, layout.attention_mask.len())?;

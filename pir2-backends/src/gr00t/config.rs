@@ -31,8 +31,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::error::{Gr00tError, Result};
 use super::prompt::ChatTemplate;
+use crate::error::{Error, Result};
 
 mod normalizer;
 mod policy;
@@ -511,7 +511,7 @@ impl EmbodimentConfig {
             .map(|g| (g.name.as_str(), g.dim))
             .collect();
         if ours != robot {
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "the checkpoint's action groups {ours:?} do not match the robot's {robot:?} \
                  (names, widths and order must agree)"
             )));
@@ -521,11 +521,11 @@ impl EmbodimentConfig {
 
     /// Read a TOML (`.toml`) or JSON (anything else) file and validate it.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
             path: path.to_path_buf(),
             source,
         })?;
-        let parse = |message: String| Gr00tError::Parse {
+        let parse = |message: String| Error::Parse {
             path: path.to_path_buf(),
             message,
         };
@@ -540,7 +540,7 @@ impl EmbodimentConfig {
 
     /// TOML text of this configuration.
     pub fn to_toml(&self) -> Result<String> {
-        toml::to_string(self).map_err(|e| Gr00tError::Config(e.to_string()))
+        toml::to_string(self).map_err(|e| Error::Gr00tConfig(e.to_string()))
     }
 
     /// Proprioception width (sum of the state groups).
@@ -645,7 +645,7 @@ impl EmbodimentConfig {
 
     /// Check sizes and limits; the message names the field.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(Gr00tError::Config(m));
+        let bad = |m: String| Err(Error::Gr00tConfig(m));
         if !(self.control_hz.is_finite()
             && self.control_hz > 0.0
             && self.control_hz <= MAX_CONTROL_HZ)
@@ -861,15 +861,14 @@ pub fn read_embodiment_id(path: &Path, tag: &str) -> Result<Option<i64>> {
     if !path.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+    let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
         path: path.to_path_buf(),
         source,
     })?;
-    let map: BTreeMap<String, i64> =
-        serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
-            path: path.to_path_buf(),
-            message: format!("expected {{tag: id}}: {e}"),
-        })?;
+    let map: BTreeMap<String, i64> = serde_json::from_str(&text).map_err(|e| Error::Parse {
+        path: path.to_path_buf(),
+        message: format!("expected {{tag: id}}: {e}"),
+    })?;
     Ok(map.get(tag).copied())
 }
 
@@ -974,7 +973,7 @@ impl CheckpointFiles {
             .unwrap_or(Path::new("."))
             .to_path_buf();
         let err = |problem: String| {
-            Err(Gr00tError::BackboneFiles {
+            Err(Error::BackboneFiles {
                 dir: dir.clone(),
                 problem,
             })

@@ -21,7 +21,7 @@ use std::path::{Path, PathBuf};
 use ::ort::session::{Session, SessionInputValue};
 use ::ort::value::{TensorElementType, ValueType};
 
-use super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 use crate::ort::{runtime, session_builder, OrtOptions};
 
 /// Element type of a tensor.
@@ -366,7 +366,7 @@ pub fn check(
     outputs: &[(String, TensorElementType, Vec<i64>)],
     bindings: &mut Bindings,
 ) -> Result<Declared> {
-    let bad = |tensor: &str, problem: String| Gr00tError::Contract {
+    let bad = |tensor: &str, problem: String| Error::Gr00tContract {
         path: path.to_path_buf(),
         tensor: tensor.to_string(),
         problem,
@@ -561,14 +561,12 @@ impl Graph {
         bindings: &mut Bindings,
     ) -> Result<Self> {
         let rt = runtime(opts.dylib_path.as_deref())?;
-        let session_err = |e: String| {
-            Gr00tError::Ort(crate::Error::OrtSession {
-                path: path.to_path_buf(),
-                message: e,
-            })
+        let session_err = |e: String| Error::OrtSession {
+            path: path.to_path_buf(),
+            message: e,
         };
         if !path.exists() {
-            return Err(Gr00tError::Read {
+            return Err(Error::Read {
                 path: path.to_path_buf(),
                 source: std::io::Error::new(
                     std::io::ErrorKind::NotFound,
@@ -581,7 +579,7 @@ impl Graph {
             .map_err(|e| {
                 let message = e.to_string();
                 match missing_kernel(&message) {
-                    Some((op, node)) => Gr00tError::NoKernel {
+                    Some((op, node)) => Error::NoKernel {
                         path: path.to_path_buf(),
                         role: spec.role,
                         provider: opts.provider.ort_name(),
@@ -597,7 +595,7 @@ impl Graph {
                 .map(|o| {
                     describe(o.dtype())
                         .map(|(t, s)| (o.name().to_string(), t, s))
-                        .ok_or_else(|| Gr00tError::Contract {
+                        .ok_or_else(|| Error::Gr00tContract {
                             path: path.to_path_buf(),
                             tensor: o.name().to_string(),
                             problem: format!("is not a tensor ({:?})", o.dtype()),
@@ -655,14 +653,14 @@ impl Graph {
     {
         let out = narrow_all(data, narrow, widen).map_err(|(i, x)| {
             let p = self.declared.precision(name);
-            Gr00tError::input(
+            Error::input(
                 format!("`{}` input `{name}` ({})", self.path.display(), p.name()),
                 format!("values a {} can hold", p.name()),
                 format!("{x} at element {i}"),
             )
         })?;
         let v = ::ort::value::Tensor::from_array((shape.to_vec(), out)).map_err(|e| {
-            Gr00tError::input(
+            Error::input(
                 format!("{name} {shape:?}"),
                 "a tensor",
                 format!("{} elements: {e}", data.len()),
@@ -678,7 +676,7 @@ impl Graph {
         outs: &mut [(&str, &mut Vec<f32>)],
     ) -> Result<()> {
         let path = self.path.clone();
-        let run_err = |m: String| Gr00tError::Run {
+        let run_err = |m: String| Error::Run {
             path: path.clone(),
             message: m,
         };
@@ -703,7 +701,7 @@ impl Graph {
         out: &mut Vec<f32>,
     ) -> Result<Vec<usize>> {
         let path = self.path.clone();
-        let run_err = |m: String| Gr00tError::Run {
+        let run_err = |m: String| Error::Run {
             path: path.clone(),
             message: m,
         };
@@ -786,7 +784,7 @@ fn missing_kernel(message: &str) -> Option<(String, String)> {
     Some((op, node))
 }
 
-/// What to do about a missing kernel on `provider` (see [`Gr00tError::NoKernel`]).
+/// What to do about a missing kernel on `provider` (see [`Error::NoKernel`]).
 fn no_kernel_hint(provider: &crate::ort::Provider) -> String {
     let fix = "re-export the graph in float32 (GR00T's exporter: `use_bf16=False`, which \
                writes `llm_fp32.onnx` / `vit_fp32.onnx`)";
@@ -807,7 +805,7 @@ where
     T: ::ort::value::PrimitiveTensorElementType + Clone + std::fmt::Debug + 'static,
 {
     let v = ::ort::value::TensorRef::from_array_view((shape.to_vec(), data)).map_err(|e| {
-        Gr00tError::input(
+        Error::input(
             format!("{name} {shape:?}"),
             "a tensor",
             format!("{} elements: {e}", data.len()),

@@ -25,10 +25,10 @@ use std::path::{Path, PathBuf};
 use candle_core::Device;
 
 use super::config::EmbodimentConfig;
-use super::error::{Gr00tError, Result};
 use super::n17::export::{export_gr00t_n17, WeightStorage};
 use super::n17::{head_tensor_shapes, Gr00tN17Config, Gr00tN17Head, DELAY_EMBEDDING, PREFIX};
 use super::testing::{statistics_json, BPE_TOKENIZER_CONFIG, BPE_TOKENIZER_JSON};
+use crate::error::{Error, Result};
 use crate::export::graph::{attr, GraphBuilder};
 use crate::export::proto::{AttrValue, DataType, Dim};
 
@@ -82,8 +82,8 @@ pub struct ExampleSummary {
     pub embodiment: EmbodimentConfig,
 }
 
-fn fail(path: &Path, message: impl std::fmt::Display) -> Gr00tError {
-    Gr00tError::Example {
+fn fail(path: &Path, message: impl std::fmt::Display) -> Error {
+    Error::Example {
         path: path.to_path_buf(),
         message: message.to_string(),
     }
@@ -222,7 +222,7 @@ pub fn write_example(dir: &Path, seed: u64) -> Result<ExampleSummary> {
     if dir.exists() {
         let empty = dir.is_dir()
             && std::fs::read_dir(dir)
-                .map_err(|source| Gr00tError::Read {
+                .map_err(|source| Error::Read {
                     path: dir.to_path_buf(),
                     source,
                 })?
@@ -366,8 +366,8 @@ fn write_into(dir: &Path, seed: u64) -> Result<(Vec<String>, EmbodimentConfig)> 
     Ok((files, emb))
 }
 
-fn candle(path: &Path, e: crate::error::Error) -> Gr00tError {
-    Gr00tError::Candle {
+fn candle(path: &Path, e: Error) -> Error {
+    Error::Gr00tCandle {
         path: path.to_path_buf(),
         source: Box::new(e),
     }

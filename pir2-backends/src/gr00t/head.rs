@@ -27,9 +27,9 @@ use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
 use super::config::{CheckpointFiles, EmbodimentConfig, Normalizer};
 use super::contract::{feed, Bindings, Graph, ACTION_DECODER, ACTION_ENCODER, DIT, STATE_ENCODER};
-use super::error::{Gr00tError, Result};
 pub use super::prompt::VlLayout;
 use super::weights::SideWeights;
+use crate::error::{Error, Result};
 use crate::ort::OrtOptions;
 
 /// `want == got`, else an input error naming `what`.
@@ -37,7 +37,7 @@ pub(super) fn expect_size(what: &str, want: usize, got: usize) -> Result<()> {
     if want == got {
         Ok(())
     } else {
-        Err(Gr00tError::input(what, want, got))
+        Err(Error::input(what, want, got))
     }
 }
 
@@ -138,7 +138,7 @@ impl Gr00tActionHead {
         let action_decoder = Graph::load(&files.action_decoder, ACTION_DECODER, opts, &mut b)?;
         let need = |n: &str| b.get(n).expect("bound by the contract check");
         let (s_in, a_max) = (need("S_in"), need("A_max"));
-        let contract_err = |path: &Path, tensor: &str, problem: String| Gr00tError::Contract {
+        let contract_err = |path: &Path, tensor: &str, problem: String| Error::Gr00tContract {
             path: path.to_path_buf(),
             tensor: tensor.to_string(),
             problem,
@@ -185,7 +185,7 @@ impl Gr00tActionHead {
         };
         if norm.state_dim() != dims.state_dim || norm.encoded_state_dim() != dims.encoded_state_dim
         {
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "normaliser has {} state dims ({} encoded), the embodiment {} ({})",
                 norm.state_dim(),
                 norm.encoded_state_dim(),
@@ -248,7 +248,7 @@ impl Gr00tActionHead {
     /// Overwrite one row of the delay table (tests, ablations).
     pub fn set_delay_row(&mut self, d_vis: usize, row: &[f32]) -> Result<()> {
         if d_vis > self.dims.d_vis_max || row.len() != self.dims.d_in {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 "delay row",
                 format!(
                     "d_vis <= {} and {} values",
@@ -277,13 +277,13 @@ impl Gr00tActionHead {
         let (data, t) = match *slow {
             SlowInput::Tokens { data, tokens, dim } => {
                 if dim != d_vl {
-                    return Err(Gr00tError::input("backbone token width", d_vl, dim));
+                    return Err(Error::input("backbone token width", d_vl, dim));
                 }
                 (data, tokens)
             }
             SlowInput::Vector { data, dim } => {
                 if dim == 0 || dim % d_vl != 0 {
-                    return Err(Gr00tError::input(
+                    return Err(Error::input(
                         "backbone features (flat T·D_vl)",
                         format!("a multiple of D_vl = {d_vl}"),
                         dim,
@@ -292,7 +292,7 @@ impl Gr00tActionHead {
                 (data, dim / d_vl)
             }
             SlowInput::None => {
-                return Err(Gr00tError::input(
+                return Err(Error::input(
                     "backbone features",
                     format!("[B, T, {d_vl}] tokens"),
                     "none",
@@ -300,7 +300,7 @@ impl Gr00tActionHead {
             }
         };
         if data.len() != batch * t * d_vl {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 "backbone features [B,T,D_vl]",
                 batch * t * d_vl,
                 data.len(),
@@ -337,7 +337,7 @@ impl Gr00tActionHead {
         ] {
             if let Some(fb) = g.declared.batch {
                 if fb != b {
-                    return Err(Gr00tError::input(
+                    return Err(Error::input(
                         format!("batch (fixed in `{}`)", g.path().display()),
                         fb,
                         b,
@@ -436,13 +436,13 @@ impl Gr00tActionHead {
         let wants_att = self.dit.declared.has("backbone_attention_mask");
         if wants_img || wants_att {
             let layout = self.layout.as_ref().ok_or_else(|| {
-                Gr00tError::Config(format!(
+                Error::Gr00tConfig(format!(
                     "`{}` declares the VL masks but no token layout was set (Gr00tActionHead::set_vl_layout)",
                     self.dit.path().display()
                 ))
             })?;
             if layout.image_mask.len() != t || layout.attention_mask.len() != t {
-                return Err(Gr00tError::input(
+                return Err(Error::input(
                     "VL layout masks (length T)",
                     t,
                     layout.image_mask.len(),
@@ -501,9 +501,7 @@ impl Gr00tActionHead {
 /// The velocity a head returns must be finite: the first bad index is one error.
 pub(super) fn ensure_finite(out: &[f32]) -> Result<()> {
     match out.iter().position(|x| !x.is_finite()) {
-        Some(index) => Err(Gr00tError::Runtime(pir2_runtime::Error::NonFinite {
-            index,
-        })),
+        Some(index) => Err(Error::Runtime(pir2_runtime::Error::NonFinite { index })),
         None => Ok(()),
     }
 }

@@ -42,7 +42,7 @@
 //! multiples of its 32-pixel merged patch (bicubic) and the image would take another number of
 //! tokens than `prompt.image_tokens`, neither of which pir2 implements.
 
-use super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 
 /// An HWC `u8` RGB image.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -59,7 +59,7 @@ impl Rgb {
     /// Check and wrap `data` (HWC RGB, `h · w · 3` bytes, non-empty).
     pub fn new(h: usize, w: usize, data: Vec<u8>) -> Result<Self> {
         if h == 0 || w == 0 || h.checked_mul(w).and_then(|n| n.checked_mul(3)) != Some(data.len()) {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 "camera image (HWC u8 RGB)",
                 format!("{h}×{w}×3 bytes, non-empty"),
                 format!("{} bytes", data.len()),
@@ -251,7 +251,7 @@ pub fn gr00t_n17_transform(
     crop_fraction: f64,
 ) -> Result<Rgb> {
     if shortest_edge == 0 || !(crop_fraction > 0.0 && crop_fraction <= 1.0) {
-        return Err(Gr00tError::Config(format!(
+        return Err(Error::Gr00tConfig(format!(
             "image.shortest_edge = {shortest_edge} must be > 0 and image.crop_fraction = \
              {crop_fraction} in (0, 1]"
         )));

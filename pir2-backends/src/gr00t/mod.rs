@@ -64,8 +64,6 @@ pub mod candle_head;
 pub mod config;
 #[cfg(feature = "gr00t")]
 pub mod contract;
-#[cfg(feature = "gr00t")]
-pub mod error;
 #[cfg(all(feature = "gr00t", feature = "candle"))]
 pub mod example;
 #[cfg(feature = "gr00t")]
@@ -100,8 +98,6 @@ pub use config::{
     PolicySection, SafetySection, VisionConfig, DEFAULT_SLOW_GRACE_MS, EMBED_TOKENS_KEY,
     PAPER_TASKS,
 };
-#[cfg(feature = "gr00t")]
-pub use error::{Gr00tError, Result};
 #[cfg(all(feature = "gr00t", feature = "candle"))]
 pub use example::{write_example, ExampleSummary};
 #[cfg(feature = "gr00t")]

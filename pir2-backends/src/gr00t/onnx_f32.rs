@@ -1,5 +1,10 @@
 //! bfloat16 → float32 rewriting of an ONNX file, in Rust, on the protobuf wire format.
 //!
+//! One file on purpose: the rewriter is one walk down ONNX's message types (model, graph,
+//! node, attribute, tensor, type), one function per message, each copying the fields it does
+//! not rewrite; the walk is read against `onnx.proto` as a whole, and the external-data
+//! writer it feeds is the one place the offsets are chosen.
+//!
 //! GR00T N1.7's exporter writes the LLM graph in bfloat16 (`llm_bf16.onnx`), and ONNX
 //! Runtime's CPU provider has no bfloat16 kernel for most of the ops such a graph uses
 //! (`docs/gr00t-contract.md`, "Precision"). [`convert_bf16_to_f32`] writes a float32 copy that
@@ -30,7 +35,7 @@
 //! ONNX's external-data layout (4 KiB-aligned offsets); ONNX Runtime reads it next to the
 //! `.onnx` file, so keep the two together. Smaller tensors stay inside the protobuf.
 //!
-//! **Refused** (one [`Gr00tError::OnnxRewrite`] naming the file and the message or tensor): a
+//! **Refused** (one [`Error::OnnxRewrite`] naming the file and the message or tensor): a
 //! file that is not a protobuf `ModelProto`, a tensor stored in segments, external data whose
 //! file is missing or too short, a bfloat16 tensor whose value count does not match its
 //! dims, protobuf groups (wire types 3/4), and `ModelProto.training_info` (training graphs).
@@ -43,7 +48,7 @@ use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
-use super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 
 /// ONNX `TensorProto.DataType.FLOAT`.
 pub const FLOAT: u64 = 1;
@@ -194,8 +199,8 @@ struct Rewriter {
 }
 
 impl Rewriter {
-    fn err(&self, what: impl Into<String>, problem: impl Into<String>) -> Gr00tError {
-        Gr00tError::OnnxRewrite {
+    fn err(&self, what: impl Into<String>, problem: impl Into<String>) -> Error {
+        Error::OnnxRewrite {
             path: self.input.clone(),
             what: what.into(),
             problem: problem.into(),
@@ -209,7 +214,7 @@ impl Rewriter {
     /// Append `bytes` to the external-data file; returns its offset.
     fn write_external(&mut self, bytes: &[u8]) -> Result<u64> {
         if self.data.is_none() {
-            let f = File::create(&self.data_path).map_err(|source| Gr00tError::Read {
+            let f = File::create(&self.data_path).map_err(|source| Error::Read {
                 path: self.data_path.clone(),
                 source,
             })?;
@@ -218,7 +223,7 @@ impl Rewriter {
         }
         let pad = (ALIGN - self.offset % ALIGN) % ALIGN;
         let f = self.data.as_mut().expect("opened above");
-        let io = |source| Gr00tError::Read {
+        let io = |source| Error::Read {
             path: self.data_path.clone(),
             source,
         };
@@ -634,7 +639,7 @@ fn rewrite(input: &Path, output: &Path, convert: bool) -> Result<Bf16Report> {
     let name = output
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
-        .ok_or_else(|| Gr00tError::OnnxRewrite {
+        .ok_or_else(|| Error::OnnxRewrite {
             path: output.to_path_buf(),
             what: "output".into(),
             problem: "has no file name".into(),
@@ -643,14 +648,14 @@ fn rewrite(input: &Path, output: &Path, convert: bool) -> Result<Bf16Report> {
     let data_path = output.with_file_name(&data_name);
     for p in [output, data_path.as_path()] {
         if p.exists() {
-            return Err(Gr00tError::OnnxRewrite {
+            return Err(Error::OnnxRewrite {
                 path: p.to_path_buf(),
                 what: "output".into(),
                 problem: "already exists; nothing was overwritten".into(),
             });
         }
     }
-    let bytes = std::fs::read(input).map_err(|source| Gr00tError::Read {
+    let bytes = std::fs::read(input).map_err(|source| Error::Read {
         path: input.to_path_buf(),
         source,
     })?;
@@ -684,12 +689,12 @@ fn rewrite(input: &Path, output: &Path, convert: bool) -> Result<Bf16Report> {
         }
     };
     if let Some(f) = rw.data.take() {
-        f.sync_all().map_err(|source| Gr00tError::Read {
+        f.sync_all().map_err(|source| Error::Read {
             path: data_path.clone(),
             source,
         })?;
     }
-    std::fs::write(output, out).map_err(|source| Gr00tError::Read {
+    std::fs::write(output, out).map_err(|source| Error::Read {
         path: output.to_path_buf(),
         source,
     })?;
@@ -699,7 +704,7 @@ fn rewrite(input: &Path, output: &Path, convert: bool) -> Result<Bf16Report> {
 /// Whether the ONNX file `path` declares any bfloat16 tensor, type or `to`/`dtype` attribute
 /// (the same walk as [`convert_bf16_to_f32`], nothing written).
 pub fn has_bf16(path: &Path) -> Result<bool> {
-    let bytes = std::fs::read(path).map_err(|source| Gr00tError::Read {
+    let bytes = std::fs::read(path).map_err(|source| Error::Read {
         path: path.to_path_buf(),
         source,
     })?;

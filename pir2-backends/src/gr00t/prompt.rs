@@ -8,7 +8,7 @@
 use serde::{Deserialize, Serialize};
 use unicode_categories::UnicodeCategories;
 
-use super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 
 /// Which end of the sequence padding goes to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -134,7 +134,7 @@ impl ChatTemplate {
     /// Placeholders per image for `image_tokens` in total (an error unless it divides).
     pub fn tokens_per_image(&self, image_tokens: usize) -> Result<usize> {
         if self.images == 0 || image_tokens % self.images != 0 {
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "prompt.image_tokens = {image_tokens} must be a positive multiple of \
                  prompt.chat.images = {}",
                 self.images

@@ -36,10 +36,10 @@ use super::backbone::Gr00tBackbone;
 use super::config::{
     read_embodiment_id, CheckpointFiles, EmbodimentConfig, ModeOverrides, Normalizer,
 };
-use super::error::{Gr00tError, Result};
 use super::head::{Gr00tActionHead, VlLayout};
 use super::prompt::PromptTokenizer;
 use super::tokenizer::load_tokenizer;
+use crate::error::{Error, Result};
 use crate::ort::OrtOptions;
 
 /// Where the backbone features come from.
@@ -258,7 +258,7 @@ pub fn load_action_head(
     cfg.validate()?;
     let prompt = cfg.prompt_for(task).to_string();
     if prompt.trim().is_empty() {
-        return Err(Gr00tError::Config("empty task prompt".to_string()));
+        return Err(Error::Gr00tConfig("empty task prompt".to_string()));
     }
     let norm = Normalizer::load(&files.statistics, &cfg)?;
     let embodiment_id =
@@ -268,7 +268,7 @@ pub fn load_action_head(
     let layout = super::tokenizer::build_sequence(tok.as_ref(), &prompt, &cfg.prompt)?.layout;
     if let Some(t) = head.dims().vl_tokens {
         if t != layout.image_mask.len() {
-            return Err(Gr00tError::Contract {
+            return Err(Error::Gr00tContract {
                 path: files.dit.clone(),
                 tensor: "vl_embs".to_string(),
                 problem: format!(
@@ -299,7 +299,7 @@ pub fn load_candle_head(
     cfg.validate()?;
     let prompt = cfg.prompt_for(task).to_string();
     if prompt.trim().is_empty() {
-        return Err(Gr00tError::Config("empty task prompt".to_string()));
+        return Err(Error::Gr00tConfig("empty task prompt".to_string()));
     }
     let root = step.parent().unwrap_or(step);
     for (name, mine) in [
@@ -311,7 +311,7 @@ pub fn load_candle_head(
             if !theirs.is_file() {
                 continue;
             }
-            let a = std::fs::read(&theirs).map_err(|source| Gr00tError::Read {
+            let a = std::fs::read(&theirs).map_err(|source| Error::Read {
                 path: theirs.clone(),
                 source,
             })?;
@@ -321,7 +321,7 @@ pub fn load_candle_head(
                 _ => std::fs::read(mine).map(|b| b == a).unwrap_or(false),
             };
             if !same {
-                return Err(Gr00tError::Config(format!(
+                return Err(Error::Gr00tConfig(format!(
                     "`{}` differs from the checkpoint's `{}`: the candle head was trained with the former",
                     theirs.display(),
                     mine.display()
@@ -371,7 +371,7 @@ where
     let run_mode = cfg.policy.mode(&opts.mode)?;
     let prompt = cfg.prompt_for(task).to_string();
     if prompt.trim().is_empty() {
-        return Err(Gr00tError::Config("empty task prompt".to_string()));
+        return Err(Error::Gr00tConfig("empty task prompt".to_string()));
     }
     let norm = Normalizer::load(&files.statistics, &cfg)?;
     let mut local: RunHead = match opts.head {
@@ -430,7 +430,7 @@ where
     };
     let tokens = layout.image_mask.len();
     if tokens == 0 || layout.attention_mask.len() != tokens {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             "VL layout (image and attention masks of one length T > 0)",
             tokens,
             layout.attention_mask.len(),
@@ -438,7 +438,7 @@ where
     }
     if let Some(t) = vl_tokens {
         if t != tokens {
-            return Err(Gr00tError::Contract {
+            return Err(Error::Gr00tContract {
                 path: files.dit.clone(),
                 tensor: "vl_embs".to_string(),
                 problem: format!(
@@ -495,7 +495,7 @@ where
         }
     };
     if opts.stall_limit.is_zero() || opts.stall_limit > pir2_runtime::realtime::MAX_STALL_LIMIT {
-        return Err(Gr00tError::Config(format!(
+        return Err(Error::Gr00tConfig(format!(
             "the control watchdog's stall limit must be in (0, {:?}], got {:?}",
             pir2_runtime::realtime::MAX_STALL_LIMIT,
             opts.stall_limit
@@ -503,7 +503,7 @@ where
     }
     let slow_grace = opts.slow_grace.unwrap_or(cfg.slow_grace());
     if slow_grace.is_zero() {
-        return Err(Gr00tError::Config(
+        return Err(Error::Gr00tConfig(
             "the stale-slow grace must be > 0".into(),
         ));
     }

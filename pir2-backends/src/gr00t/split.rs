@@ -27,15 +27,15 @@
 //! runs *inside* a bfloat16 graph is the execution provider's business: ONNX Runtime's CPU
 //! provider has no bfloat16 kernels for the math ops (MatMul, Add, Mul, Softmax…), so such a
 //! graph needs the CUDA or TensorRT provider, and on the CPU loading it is one
-//! [`Gr00tError::NoKernel`] naming the file, the op and the way out.
+//! [`Error::NoKernel`] naming the file, the op and the way out.
 
 use std::path::Path;
 
 use super::config::{CheckpointFiles, ImageConfig, PromptConfig, VisionConfig};
 use super::contract::{feed, Bindings, Graph, DEEPSTACK_INPUTS, LLM, VIT};
-use super::error::{Gr00tError, Result};
 use super::prompt::{PromptTokenizer, Sequence};
 use super::weights::read_table_rows;
+use crate::error::{Error, Result};
 use crate::ort::OrtOptions;
 
 /// Patch grid of one image before merging: `(t, h, w)` patches (Qwen's `image_grid_thw`).
@@ -45,7 +45,7 @@ pub type Grid = (usize, usize, usize);
 pub fn image_grid(side: usize, vision: &VisionConfig) -> Result<Grid> {
     let (p, m) = (vision.patch_size, vision.merge_size);
     if p == 0 || m == 0 || vision.temporal_patch_size == 0 || side % (p * m) != 0 {
-        return Err(Gr00tError::Config(format!(
+        return Err(Error::Gr00tConfig(format!(
             "the image side {side} must be a multiple of vision.patch_size × vision.merge_size \
              = {p} × {m} (all three positive, temporal_patch_size = {} too)",
             vision.temporal_patch_size
@@ -71,7 +71,7 @@ pub fn patchify(
     );
     let n = side * side;
     if pixels.len() != views * 3 * n {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             "pixel_values [V, 3, s, s]",
             views * 3 * n,
             pixels.len(),
@@ -132,7 +132,7 @@ pub fn mrope_position_ids(
 ) -> Result<Vec<i64>> {
     let t_len = ids.len();
     if attention.len() != t_len {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             "attention_mask",
             format!("{t_len} values (as input_ids)"),
             attention.len(),
@@ -148,7 +148,7 @@ pub fn mrope_position_ids(
         None => 0,
     };
     if images > grids.len() {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             "images in the prompt (vision_start + image token)",
             format!("at most {} (camera views)", grids.len()),
             images,
@@ -168,7 +168,7 @@ pub fn mrope_position_ids(
     };
     for (k, &(gt, gh, gw)) in grids.iter().enumerate().take(images) {
         let Some(ed) = (st..tokens.len()).find(|&i| tokens[i] == image_token) else {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("image {k} of the prompt"),
                 "image placeholder tokens",
                 "none left",
@@ -177,7 +177,7 @@ pub fn mrope_position_ids(
         let (lh, lw) = (gh / merge, gw / merge);
         let n = gt * lh * lw;
         if ed + n > tokens.len() || tokens[ed..ed + n].iter().any(|&t| t != image_token) {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("image {k} of the prompt (valid token {ed})"),
                 format!("{n} consecutive image placeholder tokens ({gt}×{lh}×{lw})"),
                 "a shorter run",
@@ -277,7 +277,7 @@ impl SplitBackbone {
         let views = prompt_cfg.chat.images;
         let per_image = grid.0 * (grid.1 / vision.merge_size) * (grid.2 / vision.merge_size);
         if views * per_image != prompt_cfg.image_tokens {
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "prompt.image_tokens = {} but {views} view(s) of {side}×{side} px with \
                  vision.patch_size = {} and merge_size = {} give {} image tokens",
                 prompt_cfg.image_tokens,
@@ -299,7 +299,7 @@ impl SplitBackbone {
         let vit = Graph::load(&files.vit, VIT, opts, b)?;
         let llm = Graph::load(&files.llm, LLM, opts, b)?;
         let d = b.get("D_vl").expect("bound by the contract check");
-        let llm_err = |tensor: &str, problem: String| Gr00tError::Contract {
+        let llm_err = |tensor: &str, problem: String| Error::Gr00tContract {
             path: files.llm.clone(),
             tensor: tensor.to_string(),
             problem,
@@ -377,7 +377,7 @@ impl SplitBackbone {
             .filter(|&i| seq.ids[i] == image_token)
             .collect();
         if image_pos.len() != self.image_tokens {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 "image placeholder tokens in the prompt",
                 self.image_tokens,
                 image_pos.len(),
@@ -407,7 +407,7 @@ impl SplitBackbone {
             } else {
                 &files.model_weights
             };
-            return Err(Gr00tError::Weights {
+            return Err(Error::Weights {
                 path: file.clone(),
                 tensor: vision.embed_tokens_key.clone(),
                 problem: format!(
@@ -475,14 +475,14 @@ impl SplitBackbone {
         r?;
         let vit = self.vit.path().display().to_string();
         if self.image_embeds.len() != n * d {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("`{vit}` output image_embeds [N, D]"),
                 format!("{n}×{d} = {}", n * d),
                 self.image_embeds.len(),
             ));
         }
         if self.ds.len() < self.deepstack * n * d {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!("`{vit}` output deepstack_features [L, N, D]"),
                 format!("≥ {}×{n}×{d}", self.deepstack),
                 self.ds.len(),
@@ -509,7 +509,7 @@ impl SplitBackbone {
         }
         self.llm.run_into(feeds, "embeddings", out)?;
         if out.len() != t * d {
-            return Err(Gr00tError::input(
+            return Err(Error::input(
                 format!(
                     "`{}` output embeddings [1, T, D]",
                     self.llm.path().display()

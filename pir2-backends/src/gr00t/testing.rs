@@ -21,9 +21,9 @@ use std::time::Duration;
 use pir2_runtime::{Clock, SlowFrame, SlowSource, View};
 
 use super::config::{CheckpointFiles, EmbodimentConfig};
-use super::error::{Gr00tError, Result};
 use super::tokenizer::build_sequence;
 use super::weights::{write_f32, DELAY_EMBEDDING, POSITION_EMBEDDING};
+use crate::error::{Error, Result};
 
 /// `D_in` of the synthetic graphs (action-token width).
 pub const D_IN: usize = 32;
@@ -73,7 +73,7 @@ pub fn python_from_env() -> Result<PathBuf> {
     std::env::var_os("PIR2_PYTHON")
         .map(PathBuf::from)
         .ok_or_else(|| {
-            Gr00tError::Fixture(
+            Error::Fixture(
                 "PIR2_PYTHON is not set: run `source .native/env.sh` (scripts/setup-native.sh) \
                  first"
                     .into(),
@@ -161,8 +161,8 @@ pub fn make_relative(dir: &Path, groups: &[&str]) -> Result<()> {
     write("statistics.json", statistics_json(&cfg, None))
 }
 
-fn io<'a>(what: &'a str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Gr00tError + 'a {
-    move |e| Gr00tError::Fixture(format!("{what} `{}`: {e}", path.display()))
+fn io<'a>(what: &'a str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Error + 'a {
+    move |e| Error::Fixture(format!("{what} `{}`: {e}", path.display()))
 }
 
 /// Write a tiny synthetic checkpoint into `dir` (created if missing): `onnx/*.onnx` made by
@@ -192,10 +192,10 @@ pub fn write_tiny_checkpoint_with_width(
         .arg(variant)
         .arg(d_vl.to_string())
         .output()
-        .map_err(|e| Gr00tError::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
+        .map_err(|e| Error::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
     let _ = std::fs::remove_file(&script);
     if !out.status.success() {
-        return Err(Gr00tError::Fixture(format!(
+        return Err(Error::Fixture(format!(
             "make_graphs.py failed ({}): {}",
             out.status,
             String::from_utf8_lossy(&out.stderr)
@@ -289,11 +289,11 @@ pub fn write_split_backbone(
         .arg(dir)
         .arg(variant)
         .output()
-        .map_err(|e| Gr00tError::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
+        .map_err(|e| Error::Fixture(format!("cannot run `{}`: {e}", python.display())))?;
     let _ = std::fs::remove_file(&script);
     let _ = std::fs::remove_file(&spec_path);
     if !out.status.success() {
-        return Err(Gr00tError::Fixture(format!(
+        return Err(Error::Fixture(format!(
             "make_split_backbone.py failed ({}): {}",
             out.status,
             String::from_utf8_lossy(&out.stderr)
@@ -302,7 +302,7 @@ pub fn write_split_backbone(
     let _ = std::fs::remove_file(&files.backbone);
     let pos_path = dir.join("position_ids.json");
     let text = std::fs::read_to_string(&pos_path).map_err(io("reading", &pos_path))?;
-    serde_json::from_str(&text).map_err(|e| Gr00tError::Fixture(format!("position_ids.json: {e}")))
+    serde_json::from_str(&text).map_err(|e| Error::Fixture(format!("position_ids.json: {e}")))
 }
 
 /// A synthetic 640×480 RGB camera: a horizontal gradient whose brightness changes every

@@ -28,10 +28,10 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use super::config::{CheckpointFiles, PromptConfig};
-use super::error::{Gr00tError, Result};
 pub use super::prompt::{
     formalize_language, ChatTemplate, PaddingSide, PromptTokenizer, Sequence, VlLayout,
 };
+use crate::error::{Error, Result};
 
 /// Token ids, mask and layout of `prompt` through `chat`'s template, with `tok`'s ids:
 /// `prompt.image_tokens + prompt.text_tokens` positions, where the template and the
@@ -48,7 +48,7 @@ pub(crate) fn chat_sequence(
     let image = tok.image_token_id();
     let n_image = ids.iter().filter(|&&i| i == image).count();
     if n_image != cfg.image_tokens {
-        return Err(Gr00tError::Tokenizer(format!(
+        return Err(Error::Tokenizer(format!(
             "the chat template with prompt {prompt:?} has {n_image} image tokens \
              (`{}`), prompt.image_tokens is {}",
             chat.image_token, cfg.image_tokens
@@ -56,7 +56,7 @@ pub(crate) fn chat_sequence(
     }
     let n_text = ids.len() - n_image;
     if n_text > cfg.text_tokens {
-        return Err(Gr00tError::input(
+        return Err(Error::input(
             format!("text tokens of the chat template with prompt {prompt:?}"),
             format!("at most prompt.text_tokens = {}", cfg.text_tokens),
             n_text,
@@ -117,11 +117,11 @@ impl std::fmt::Debug for HfTokenizer {
 impl HfTokenizer {
     /// Load `tokenizer.json`; `chat`'s image and padding tokens must each be one token of it.
     pub fn load(path: &Path, chat: &ChatTemplate) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
             path: path.to_path_buf(),
             source,
         })?;
-        let parse = |message: String| Gr00tError::Parse {
+        let parse = |message: String| Error::Parse {
             path: path.to_path_buf(),
             message,
         };
@@ -155,7 +155,7 @@ impl PromptTokenizer for HfTokenizer {
     /// the tokenizer's post-processor, if any, is applied, as `transformers` does).
     fn encode(&self, text: &str) -> Result<Vec<i64>> {
         let enc = self.inner.encode(text, true).map_err(|e| {
-            Gr00tError::Tokenizer(format!("`{}` encoding {text:?}: {e}", self.path.display()))
+            Error::Tokenizer(format!("`{}` encoding {text:?}: {e}", self.path.display()))
         })?;
         Ok(enc.get_ids().iter().map(|&i| i64::from(i)).collect())
     }
@@ -184,7 +184,7 @@ pub fn load_tokenizer(
     } else if files.vocab.exists() {
         Ok(Box::new(VocabTokenizer::load(&files.vocab)?))
     } else {
-        Err(Gr00tError::NoTokenizer {
+        Err(Error::NoTokenizer {
             tokenizer: files.tokenizer.clone(),
             vocab: files.vocab.clone(),
         })
@@ -212,7 +212,7 @@ impl VocabTokenizer {
 
     /// Read a vocabulary file.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
             path: path.to_path_buf(),
             source,
         })?;
@@ -229,7 +229,7 @@ impl VocabTokenizer {
             }
         }
         let get = |t: &str| {
-            vocab.get(t).copied().ok_or_else(|| Gr00tError::Parse {
+            vocab.get(t).copied().ok_or_else(|| Error::Parse {
                 path: path.to_path_buf(),
                 message: format!("vocabulary has no `{t}` token (needs {:?})", Self::SPECIALS),
             })

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 
 use safetensors::{Dtype, SafeTensors};
 
-use super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 
 /// Name of the delay table.
 pub const DELAY_EMBEDDING: &str = "delay_embedding.weight";
@@ -32,11 +32,11 @@ pub struct SideWeights {
 impl SideWeights {
     /// Read the file.
     pub fn load(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|source| Gr00tError::Read {
+        let bytes = std::fs::read(path).map_err(|source| Error::Read {
             path: path.to_path_buf(),
             source,
         })?;
-        SafeTensors::deserialize(&bytes).map_err(|e| Gr00tError::Parse {
+        SafeTensors::deserialize(&bytes).map_err(|e| Error::Parse {
             path: path.to_path_buf(),
             message: e.to_string(),
         })?;
@@ -46,8 +46,8 @@ impl SideWeights {
         })
     }
 
-    fn err(&self, tensor: &str, problem: String) -> Gr00tError {
-        Gr00tError::Weights {
+    fn err(&self, tensor: &str, problem: String) -> Error {
+        Error::Weights {
             path: self.path.clone(),
             tensor: tensor.to_string(),
             problem,
@@ -56,7 +56,7 @@ impl SideWeights {
 
     /// A tensor as `f32` with its shape, or `None` if absent.
     pub fn get(&self, name: &str) -> Result<Option<(Vec<usize>, Vec<f32>)>> {
-        let st = SafeTensors::deserialize(&self.bytes).map_err(|e| Gr00tError::Parse {
+        let st = SafeTensors::deserialize(&self.bytes).map_err(|e| Error::Parse {
             path: self.path.clone(),
             message: e.to_string(),
         })?;
@@ -150,13 +150,13 @@ pub fn write_f32(path: &Path, tensors: &[(&str, Vec<usize>, Vec<f32>)]) -> Resul
         .map(|((n, s, _), b)| {
             safetensors::tensor::TensorView::new(Dtype::F32, s.clone(), b)
                 .map(|v| (n.to_string(), v))
-                .map_err(|e| Gr00tError::Parse {
+                .map_err(|e| Error::Parse {
                     path: path.to_path_buf(),
                     message: format!("tensor `{n}`: {e}"),
                 })
         })
         .collect::<Result<_>>()?;
-    safetensors::serialize_to_file(views, None, path).map_err(|e| Gr00tError::Parse {
+    safetensors::serialize_to_file(views, None, path).map_err(|e| Error::Parse {
         path: path.to_path_buf(),
         message: e.to_string(),
     })
@@ -175,11 +175,11 @@ pub fn read_table_rows(
     ids: &[i64],
 ) -> Result<(usize, Vec<f32>)> {
     let file = if index.exists() {
-        let text = std::fs::read_to_string(index).map_err(|source| Gr00tError::Read {
+        let text = std::fs::read_to_string(index).map_err(|source| Error::Read {
             path: index.to_path_buf(),
             source,
         })?;
-        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::Parse {
             path: index.to_path_buf(),
             message: e.to_string(),
         })?;
@@ -187,7 +187,7 @@ pub fn read_table_rows(
             .get("weight_map")
             .and_then(|m| m.get(key))
             .and_then(|s| s.as_str())
-            .ok_or_else(|| Gr00tError::Weights {
+            .ok_or_else(|| Error::Weights {
                 path: index.to_path_buf(),
                 tensor: key.to_string(),
                 problem: "is not in the index's weight_map (set `vision.embed_tokens_key` of \
@@ -195,7 +195,7 @@ pub fn read_table_rows(
                     .into(),
             })?;
         if shard.contains("..") || Path::new(shard).is_absolute() {
-            return Err(Gr00tError::Parse {
+            return Err(Error::Parse {
                 path: index.to_path_buf(),
                 message: format!("shard `{shard}` of `{key}` is not a file next to the index"),
             });
@@ -209,15 +209,15 @@ pub fn read_table_rows(
 
 fn read_rows_from(path: &Path, key: &str, ids: &[i64]) -> Result<(usize, Vec<f32>)> {
     use std::io::{Read, Seek, SeekFrom};
-    let io = |source| Gr00tError::Read {
+    let io = |source| Error::Read {
         path: path.to_path_buf(),
         source,
     };
-    let parse = |message: String| Gr00tError::Parse {
+    let parse = |message: String| Error::Parse {
         path: path.to_path_buf(),
         message,
     };
-    let bad = |problem: String| Gr00tError::Weights {
+    let bad = |problem: String| Error::Weights {
         path: path.to_path_buf(),
         tensor: key.to_string(),
         problem,

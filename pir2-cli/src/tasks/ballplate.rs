@@ -88,7 +88,7 @@ impl TaskCommands for BallPlate {
                 ballplate::eval_checkpoint(&models, policy, &o.d0, episodes, o.seed)?
             }
             Some(endpoint) => {
-                let remote = crate::serve::RemotePolicy::connect(
+                let remote = crate::remote::RemotePolicy::connect(
                     endpoint,
                     &o.tls,
                     Duration::from_millis(o.remote_timeout_ms.max(1)),

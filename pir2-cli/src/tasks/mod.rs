@@ -21,7 +21,7 @@ use clap::builder::{PossibleValuesParser, TypedValueParser};
 use pir2_runtime::Policy;
 use pir2_sim::dataset::WriteMode;
 
-use crate::serve::TlsOptions;
+use crate::remote::TlsOptions;
 
 /// What `pir2 collect|train|eval|report` do for one stock task.
 pub trait TaskCommands: Sync {

@@ -2,6 +2,9 @@
 //! byte for byte as current firmware does (see that module's reference), on a command port
 //! and the three report ports, with simple joint dynamics and fault injection.
 //!
+//! One file on purpose: the register table, the command handlers and the motion model are one
+//! state machine, read against the protocol module line by line.
+//!
 //! Ports: the standard ones (502, 30001 normal, 30002 rich, 30003 real) with
 //! [`XArmPorts::standard`], or ephemeral ones (port 0, chosen by the OS) with
 //! [`XArmPorts::ephemeral`]; [`XArmEmulator::cmd_addr`] and [`XArmEmulator::report_addr`] tell
@@ -30,9 +33,6 @@
 //! counts it. A process that dies without stopping the arm closes its sockets, so a killed
 //! `pir2 run` leaves the emulated arm stopped, not in motion. (A real controller holds its
 //! last servo target instead; see [`crate::xarm`], "When this process dies".)
-//!
-//! One file on purpose: the register table, the command handlers and the motion model are one
-//! state machine, read against the protocol module line by line.
 
 use std::collections::VecDeque;
 use std::io::{ErrorKind, Write};

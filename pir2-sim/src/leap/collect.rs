@@ -17,9 +17,9 @@ use pir2_runtime::Environment;
 use pir2_schedule::Rng;
 
 use super::env::{LeapConfig, LeapCubeEnv};
-use super::error::Result;
 use super::model::{LeapModel, NU};
 use super::mpc::{MpcConfig, MpcExpert};
+use crate::error::Result;
 
 /// What to collect.
 #[derive(Debug, Clone, Copy, PartialEq)]

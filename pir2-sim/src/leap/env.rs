@@ -35,9 +35,9 @@ use pir2_runtime::io::EnvSpec;
 use pir2_runtime::{EnvStep, Environment};
 use pir2_schedule::Rng;
 
-use super::error::{LeapError, Result};
 use super::math::{self, Quat};
 use super::model::{LeapModel, NU};
+use crate::error::{Error, Result};
 
 /// Which task definition.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -190,7 +190,7 @@ impl LeapCubeEnv {
         let ratio = cfg.ctrl_dt / model.timestep();
         let n_sub = ratio.round() as usize;
         if n_sub == 0 || (ratio - n_sub as f64).abs() > 1e-6 {
-            return Err(LeapError::Config(format!(
+            return Err(Error::LeapInvalid(format!(
                 "ctrl_dt {} is not a positive multiple of the time step {}",
                 cfg.ctrl_dt,
                 model.timestep()
@@ -302,10 +302,10 @@ impl LeapCubeEnv {
     pub fn restore(&mut self, s: &LeapEnvState) -> Result<()> {
         self.data
             .set_state(&s.physics, STATE_SPEC)
-            .map_err(|e| LeapError::Config(format!("restoring a saved state: {e:?}")))?;
+            .map_err(|e| Error::LeapInvalid(format!("restoring a saved state: {e:?}")))?;
         let n = self.data.sensordata().len();
         if s.sensors.len() != n {
-            return Err(LeapError::Config(format!(
+            return Err(Error::LeapInvalid(format!(
                 "restoring a saved state: {} sensor values, the model has {n}",
                 s.sensors.len()
             )));

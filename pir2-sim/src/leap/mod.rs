@@ -15,7 +15,6 @@
 
 mod collect;
 mod env;
-mod error;
 pub mod math;
 mod model;
 mod mpc;
@@ -24,6 +23,5 @@ pub mod scene;
 
 pub use collect::{collect, collect_with, episode_seeds, CollectConfig, Episode, Expert, Frame};
 pub use env::{LeapConfig, LeapCubeEnv, LeapEnvState, NoiseConfig, Variant};
-pub use error::{LeapError, Result};
 pub use model::{LeapModel, NU};
 pub use mpc::{MpcConfig, MpcExpert, MpcSnapshot};

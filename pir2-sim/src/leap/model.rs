@@ -6,8 +6,8 @@ use std::sync::Arc;
 
 use mujoco_rs::prelude::*;
 
-use super::error::{LeapError, Result};
 use super::scene::{load_model, StripReport};
+use crate::error::{Error, Result};
 
 /// Number of hand joints / actuators.
 pub const NU: usize = 16;
@@ -40,7 +40,7 @@ pub struct LeapModel {
 
 fn id(m: &MjModel, kind: MjtObjBase, label: &'static str, name: &str) -> Result<usize> {
     m.name_to_id(kind, name)
-        .ok_or_else(|| LeapError::MissingElement {
+        .ok_or_else(|| Error::MissingElement {
             kind: label,
             name: name.to_string(),
         })
@@ -57,7 +57,7 @@ impl LeapModel {
         let m: &MjModel = &model;
         let f = m.ffi();
         if f.nu as usize != NU {
-            return Err(LeapError::Shape {
+            return Err(Error::LeapShape {
                 what: "actuators",
                 expected: NU,
                 got: f.nu as usize,

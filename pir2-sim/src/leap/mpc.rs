@@ -30,9 +30,9 @@ use mujoco_rs::prelude::*;
 use pir2_schedule::Rng;
 
 use super::env::LeapCubeEnv;
-use super::error::{LeapError, Result};
 use super::math::{self, Quat};
 use super::model::{LeapModel, NU};
+use crate::error::{Error, Result};
 
 const STATE_SPEC: u32 = MjtState::mjSTATE_INTEGRATION as u32;
 
@@ -107,7 +107,7 @@ impl MpcConfig {
 
     fn validate(&self) -> Result<()> {
         if self.samples == 0 || self.horizon == 0 || self.knots < 2 || self.replan_every == 0 {
-            return Err(LeapError::Config(format!(
+            return Err(Error::LeapInvalid(format!(
                 "MpcConfig needs samples ≥ 1, horizon ≥ 1, knots ≥ 2, replan_every ≥ 1: {self:?}"
             )));
         }

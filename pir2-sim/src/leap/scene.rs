@@ -15,7 +15,7 @@ use std::sync::Arc;
 use mujoco_rs::prelude::*;
 use mujoco_rs::wrappers::mj_auxiliary::MjVfs;
 
-use super::error::{LeapError, Result};
+use crate::error::{Error, Result};
 
 /// Environment variable naming the directory that holds `scene_mjx_cube.xml`.
 pub const SCENE_DIR_ENV: &str = "PIR2_LEAP_CUBE_DIR";
@@ -38,7 +38,7 @@ pub fn scene_dir(explicit: Option<&Path>) -> Result<PathBuf> {
         None => std::env::var_os(SCENE_DIR_ENV)
             .filter(|v| !v.is_empty())
             .map(PathBuf::from)
-            .ok_or(LeapError::SceneDirUnset),
+            .ok_or(Error::SceneDirUnset),
     }
 }
 
@@ -51,7 +51,7 @@ pub fn load_model(dir: Option<&Path>) -> Result<(Arc<MjModel>, StripReport)> {
     let mut report = StripReport::default();
     let mut seen = BTreeSet::new();
     add_xml(&dir, SCENE_FILE, &mut vfs, &mut report, &mut seen)?;
-    let model = MjModel::from_xml_vfs(SCENE_FILE, &vfs).map_err(|e| LeapError::Load {
+    let model = MjModel::from_xml_vfs(SCENE_FILE, &vfs).map_err(|e| Error::SceneLoad {
         path: top.clone(),
         message: e.to_string(),
     })?;
@@ -59,7 +59,7 @@ pub fn load_model(dir: Option<&Path>) -> Result<(Arc<MjModel>, StripReport)> {
 }
 
 fn read_bytes(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|source| LeapError::SceneFile {
+    std::fs::read(path).map_err(|source| Error::SceneFile {
         path: path.to_path_buf(),
         source,
     })
@@ -81,7 +81,7 @@ fn add_xml(
     let text = String::from_utf8_lossy(&bytes).into_owned();
     let base = Path::new(rel).parent().unwrap_or(Path::new(""));
     let (text, stripped) = strip_missing_meshes(&text, &|f| dir.join(base).join(f).exists())
-        .map_err(|(mesh, file)| LeapError::PhysicalMeshMissing {
+        .map_err(|(mesh, file)| Error::PhysicalMeshMissing {
             mesh,
             file: dir.join(base).join(file),
             xml: path.clone(),
@@ -99,14 +99,14 @@ fn add_xml(
             seen.insert(file_rel.clone());
             let data = read_bytes(&dir.join(&file_rel))?;
             vfs.add_from_buffer(&file_rel, &data)
-                .map_err(|e| LeapError::Load {
+                .map_err(|e| Error::SceneLoad {
                     path: dir.join(&file_rel),
                     message: e.to_string(),
                 })?;
         }
     }
     vfs.add_from_buffer(rel, text.as_bytes())
-        .map_err(|e| LeapError::Load {
+        .map_err(|e| Error::SceneLoad {
             path,
             message: e.to_string(),
         })?;

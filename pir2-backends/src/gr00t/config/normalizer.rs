@@ -6,8 +6,8 @@ use std::path::Path;
 
 use serde::Deserialize;
 
-use super::super::error::{Gr00tError, Result};
 use super::{EmbodimentConfig, Group, Norm};
+use crate::error::{Error, Result};
 
 /// GR00T's per-group normalisation of the state and the action (see the module docs).
 #[derive(Debug, Clone, PartialEq)]
@@ -103,11 +103,11 @@ impl Normalizer {
     /// action group reads `relative_action.<group>`, of shape `[H, D]` (per chunk slot) or
     /// `[D]`; another shape is one error naming the key and both shapes.
     pub fn load(path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Read {
             path: path.to_path_buf(),
             source,
         })?;
-        let stats: StatsFile = serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
+        let stats: StatsFile = serde_json::from_str(&text).map_err(|e| Error::Parse {
             path: path.to_path_buf(),
             message: format!(
                 "expected {{embodiment: {{modality: {{group: {{stat: [numbers] or \
@@ -118,12 +118,11 @@ impl Normalizer {
     }
 
     fn from_stats(stats: &StatsFile, path: &Path, cfg: &EmbodimentConfig) -> Result<Self> {
-        let err =
-            |modality: &str, group: &str, stat: &str, problem: String| Gr00tError::Statistics {
-                path: path.to_path_buf(),
-                key: format!("{}.{modality}.{group}.{stat}", cfg.embodiment_tag),
-                problem,
-            };
+        let err = |modality: &str, group: &str, stat: &str, problem: String| Error::Statistics {
+            path: path.to_path_buf(),
+            key: format!("{}.{modality}.{group}.{stat}", cfg.embodiment_tag),
+            problem,
+        };
         let emb = stats.get(&cfg.embodiment_tag).ok_or_else(|| {
             err(
                 "*",

@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::super::error::{Gr00tError, Result};
+use crate::error::{Error, Result};
 
 /// How a deployment runs the action head: the rows of the paper's real-robot table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -148,7 +148,7 @@ impl PolicySection {
         let allowed = Self::trained_for(kind);
         if !allowed.contains(&self.trained) {
             let names: Vec<String> = allowed.iter().map(|p| policy_name(*p)).collect();
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "mode {} needs an action head trained as {}, but the checkpoint declares \
                  [policy] trained = \"{}\"",
                 kind.name(),
@@ -158,7 +158,7 @@ impl PolicySection {
         }
         let nfe = o.nfe.unwrap_or(self.nfe);
         if o.nfe.is_some_and(|n| n != self.nfe) {
-            return Err(Gr00tError::Config(format!(
+            return Err(Error::Gr00tConfig(format!(
                 "--nfe {nfe}: the checkpoint declares [policy] nfe = {} (a πR² head runs with \
                  the n it was trained for)",
                 self.nfe
@@ -169,7 +169,7 @@ impl PolicySection {
         let ensemble = o.ensemble.unwrap_or(self.ensemble);
         let positive = |what: &str, v: usize| {
             if v == 0 {
-                Err(Gr00tError::Config(format!("[policy] {what} must be >= 1")))
+                Err(Error::Gr00tConfig(format!("[policy] {what} must be >= 1")))
             } else {
                 Ok(v)
             }
@@ -212,7 +212,7 @@ impl PolicySection {
             DeployKind::NaiveAsync => {
                 if let Some(m) = ensemble {
                     if !(m > 0.0 && m <= 1.0) {
-                        return Err(Gr00tError::Config(format!(
+                        return Err(Error::Gr00tConfig(format!(
                             "[policy] ensemble = {m}: the decay must be in (0, 1]"
                         )));
                     }

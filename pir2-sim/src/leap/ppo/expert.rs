@@ -31,11 +31,11 @@ use pir2_runtime::Environment;
 
 use crate::leap::{episode_seeds, LeapConfig, LeapCubeEnv, LeapModel, NU};
 
-use super::error::Result;
 use super::io::{format_err, TensorReader, TensorWriter};
 use super::mlp::{Activation, Mlp};
 use super::norm::FrozenNorm;
 use super::task::{actor_dim, BASE_OBS_DIM};
+use crate::error::Result;
 use crate::leap::math::{blue_side_up_goals, rot_rows_23};
 
 /// How the actor's output becomes an action.
@@ -422,7 +422,7 @@ pub fn evaluate(
             for h in hs {
                 all.extend(h.join().expect("evaluation thread panicked")?);
             }
-            Ok::<_, super::PpoError>(all)
+            Ok::<_, crate::Error>(all)
         })?
     };
     results.sort_by_key(|r| r.0);

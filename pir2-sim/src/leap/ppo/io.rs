@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 
-use super::error::{PpoError, Result};
+use crate::error::{Error, Result};
 
 /// Tensors (name → little-endian data) and string metadata, to be written as one
 /// safetensors file.
@@ -59,7 +59,7 @@ pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = PathBuf::from(tmp);
     let io = |action: &'static str, p: &Path| {
         let p = p.to_path_buf();
-        move |source| PpoError::Io {
+        move |source| Error::PpoIo {
             action,
             path: p,
             source,
@@ -79,8 +79,8 @@ pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn format_err(path: &Path, message: String) -> PpoError {
-    PpoError::Format {
+pub(crate) fn format_err(path: &Path, message: String) -> Error {
+    Error::PpoFormat {
         path: path.to_path_buf(),
         message,
     }
@@ -96,7 +96,7 @@ pub(crate) struct TensorReader {
 
 impl TensorReader {
     pub fn open(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|source| PpoError::Io {
+        let bytes = std::fs::read(path).map_err(|source| Error::PpoIo {
             action: "cannot read",
             path: path.to_path_buf(),
             source,

@@ -25,7 +25,6 @@
 //! action size, so both were lowered.
 
 pub mod algo;
-mod error;
 mod expert;
 mod io;
 pub mod mlp;
@@ -33,7 +32,6 @@ pub mod norm;
 pub mod task;
 mod trainer;
 
-pub use error::{PpoError, Result};
 pub use expert::{
     evaluate, nearest_goal_rows, EvalReport, OrientationInput, PpoExpert, Squash, EXPERT_FORMAT,
 };

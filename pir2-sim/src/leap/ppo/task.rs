@@ -24,10 +24,11 @@ use mujoco_rs::prelude::*;
 use nalgebra::UnitQuaternion;
 use pir2_runtime::Environment;
 
+use crate::error::Error;
 use crate::leap::math::{self, Quat};
-use crate::leap::{LeapConfig, LeapCubeEnv, LeapError, LeapModel, NU};
+use crate::leap::{LeapConfig, LeapCubeEnv, LeapModel, NU};
 
-use super::error::Result;
+use crate::error::Result;
 
 /// The paper's observation width (fast 32 + slow 9).
 pub const BASE_OBS_DIM: usize = 41;
@@ -128,7 +129,7 @@ impl ExtraSensors {
         let adr = |name: &str| -> Result<usize> {
             let id = m
                 .name_to_id(MjtObjBase::mjOBJ_SENSOR, name)
-                .ok_or_else(|| LeapError::MissingElement {
+                .ok_or_else(|| Error::MissingElement {
                     kind: "sensor",
                     name: name.to_string(),
                 })?;
@@ -190,7 +191,7 @@ impl PpoEnv {
     /// observation layout is required).
     pub fn new(model: &LeapModel, cfg: LeapConfig, prev_action: bool) -> Result<Self> {
         if cfg.obs_dims() != (32, 9) {
-            return Err(super::PpoError::Config(format!(
+            return Err(Error::PpoInvalid(format!(
                 "PPO needs the paper's 32 + 9 observation, got {:?}",
                 cfg.obs_dims()
             )));

@@ -44,12 +44,12 @@ use serde::{Deserialize, Serialize};
 use crate::leap::{LeapConfig, LeapModel, NU};
 
 use super::algo::{self, Cut};
-use super::error::{PpoError, Result};
 use super::expert::PpoExpert;
 use super::io::{format_err, TensorReader, TensorWriter};
 use super::mlp::{clip_global_norm, Activation, Adam, Mlp, MlpCache};
 use super::norm::{FrozenNorm, RunningNorm};
 use super::task::{actor_dim, critic_dim, Ending, PpoEnv, RewardTerms};
+use crate::error::{Error, Result};
 
 /// Format tag of checkpoint files.
 pub const CHECKPOINT_FORMAT: &str = "pir2-ppo-checkpoint-v1";
@@ -135,7 +135,7 @@ impl PpoConfig {
     /// Check divisibility and ranges.
     pub fn validate(&self) -> Result<()> {
         let batch = self.n_envs * self.rollout_len;
-        let bad = |m: String| Err(PpoError::Config(m));
+        let bad = |m: String| Err(Error::PpoInvalid(m));
         if self.n_envs == 0 || self.rollout_len == 0 || self.env_chunk == 0 {
             return bad("n_envs, rollout_len and env_chunk must be positive".into());
         }
@@ -751,7 +751,7 @@ impl Trainer {
                 clip_global_norm(&mut [&mut g_actor[..], &mut g_std[..]], cfg.max_grad_norm);
                 let gn = clip_global_norm(&mut [&mut g_critic[..]], cfg.max_grad_norm);
                 if !gn.is_finite() || g_actor.iter().any(|g| !g.is_finite()) {
-                    return Err(PpoError::Diverged {
+                    return Err(Error::PpoDiverged {
                         iteration: self.iteration,
                         what: "gradient",
                     });
@@ -770,7 +770,7 @@ impl Trainer {
             .chain(&self.log_std)
             .any(|p| !p.is_finite())
         {
-            return Err(PpoError::Diverged {
+            return Err(Error::PpoDiverged {
                 iteration: self.iteration,
                 what: "parameter",
             });
@@ -788,7 +788,7 @@ impl Trainer {
     /// Write a checkpoint (atomically). Only at a segment boundary (see the module docs).
     pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
         if !self.at_segment_boundary() {
-            return Err(PpoError::Config(format!(
+            return Err(Error::PpoInvalid(format!(
                 "checkpoints are taken at segment boundaries; iteration {} is inside a segment",
                 self.iteration
             )));

@@ -1,85 +1,30 @@
-//! `pir2 gr00t import`: a GR00T N1.7 checkpoint directory, as Isaac-GR00T writes and NVIDIA
-//! releases it, to the checkpoint layout `pir2 run` and `pir2 gr00t train` read
-//! (`docs/gr00t-contract.md`; the mapping is documented field by field in
-//! `docs/gr00t-import.md`).
-//!
-//! **Input** (Isaac-GR00T; facts read at the commits named, file and lines):
-//!
-//! - `config.json`: the model configuration `Gr00tN1d7Config` (`model_type = "Gr00tN1d7"`),
-//!   `gr00t/configs/model/gr00t_n1d7.py` @ 543b45271898211a63f5bf5e03633316bd6189f5,
-//!   class `Gr00tN1d7Config`;
-//! - the weights: `model.safetensors`, or `model.safetensors.index.json` + the shards
-//!   `model-0000K-of-0000N.safetensors` (Hugging Face's `save_pretrained`); the action head is
-//!   every tensor under `action_head.`, the VLM's token table is
-//!   `backbone.model.model.language_model.embed_tokens.weight`. The released file set is the one
-//!   `scripts/deployment/README.md` @ 1ca4b07087c8497c75aecf072dd95519f23726c2 downloads
-//!   ("Step 0", its `hf download --include` list): `config.json`, `embodiment_id.json`, `model-*.safetensors`,
-//!   `model.safetensors.index.json`, `processor_config.json`, `statistics.json`;
-//! - `processor_config.json`, `statistics.json`, `embodiment_id.json`: written together by
-//!   `Gr00tN1d7Processor.save_pretrained`,
-//!   `gr00t/model/gr00t_n1d7/processing_gr00t_n1d7.py` @ 1852a8c13382b25cb656331b660600859925cfa0
-//!   (`save_pretrained`: `{"processor_class", "processor_kwargs": {modality_configs, image and VLM
-//!   settings, max dims, normalisation flags}}`, the statistics as
-//!   `{tag: {"state"|"action"|"relative_action": {group: {stat: [..]}}}}`, and `{tag: slot}`);
-//!   the modality configs are `ModalityConfig` dataclasses serialised by `to_json_serializable`
-//!   (enums by name: `"RELATIVE"`, `"NON_EEF"`, `"XYZ_ROT6D"`), `gr00t/data/types.py` @
-//!   be889e7a1ac76a409eaca575a5139338e41dedfc (`ModalityConfig`, `ActionConfig` and its enums) and
-//!   `gr00t/data/utils.py` @ 066d167414aed0c97541274fdb1b06ff36564868
-//!   (`to_json_serializable`, `parse_modality_configs`);
-//! - how a group is normalised: `StateActionProcessor`,
-//!   `gr00t/data/state_action/state_action_processor.py` @
-//!   98a45fe6604c96ff2244750473aeee6efb43b08b (`_compute_normalization_parameters`: `use_percentiles` picks
-//!   `q01`/`q99`, relative groups take `relative_action` statistics; `apply_state`: state groups are
-//!   sin/cos when `apply_sincos_state_encoding` and listed in `sin_cos_embedding_keys`, mean/std
-//!   when listed in `mean_std_embedding_keys`, else min/max clipped when `clip_outliers`);
-//! - the image pipeline: `build_image_transformations_albumentations`,
-//!   `gr00t/model/gr00t_n1d7/image_augmentations.py` @ 1852a8c13382b25cb656331b660600859925cfa0
-//!   (`build_image_transformations_albumentations`: `crop_fraction` else `image_crop_size[0] / image_target_size[0]`;
-//!   `SmallestMaxSize(shortest_image_edge)` else a plain `Resize(image_target_size)`).
-//!
-//! **Output**: `config.json` (copied), `model.safetensors` (the `action_head.*` tensors and the
-//! token table, bytes copied as stored), the four ONNX action-head graphs and
-//! `pir2_gr00t.safetensors` (`n17::export`, with a zero delay table: exactly GR00T's head),
-//! `embodiment.toml` (mapped, `[policy] trained = "flow"`: a released head is a flow-matching
-//! head, not πR²-fine-tuned), `statistics.json`, `embodiment_id.json` and
-//! `processor_config.json` (copied), the VLM tokenizer when the checkpoint has one, and, with
-//! [`ImportOptions::backbone_onnx`], GR00T's exported ViT and LLM graphs (bfloat16 ones
-//! rewritten to float32 by [`super::onnx_f32`] unless [`ImportOptions::keep_bf16`]).
-//!
-//! Every field of the GR00T files either maps, is known to be training-only (ignored, listed
-//! in the docs), or is refused: one [`Gr00tError::Import`] naming the file and the field
-//! (JSON path), before anything is written. The files are written to a hidden sibling of the
-//! output directory and moved into place at the end.
+//! The mapping: Isaac-GR00T's configuration files (`config.json`, `processor_config.json`,
+//! `statistics.json`, `embodiment_id.json`) and weight index read, checked field by field and
+//! turned into our embodiment configuration and the tensors to copy ([`Plan`]), before
+//! anything is written. The per-group normalisation GR00T applies, and the statistics the
+//! group widths are read from, are decided here too.
 
 use std::collections::BTreeMap;
-use std::fs::File;
-use std::io::{Read, Seek, SeekFrom, Write};
+
 use std::path::{Path, PathBuf};
 
-use candle_core::Device;
-use serde_json::{Map, Value};
+use serde_json::Value;
 
-use super::config::{
+use super::read::{
+    err, from_head, processor_file, read_json, At, CONFIG_FILE, EMBODIMENT_ID_FILE, PROCESSOR_FILE,
+    STATISTICS_FILE,
+};
+use crate::error::{Error, Result};
+use crate::gr00t::config::{
     EmbodimentConfig, Group, GroupFormat, ImagePipeline, Norm, Normalizer, EMBED_TOKENS_KEY,
 };
-use super::error::{Gr00tError, Result};
-use super::n17::{Gr00tN17Config, Gr00tN17Head, TensorIndex, INDEX_FILE, PREFIX, SINGLE_FILE};
-use super::onnx_f32::{convert_bf16_to_f32, has_bf16, Bf16Report};
-
-/// GR00T's model configuration file.
-pub const CONFIG_FILE: &str = "config.json";
-/// GR00T's processor configuration (`Gr00tN1d7Processor.save_pretrained`).
-pub const PROCESSOR_FILE: &str = "processor_config.json";
-/// GR00T's normalisation statistics.
-pub const STATISTICS_FILE: &str = "statistics.json";
-/// GR00T's embodiment slots `{tag: id}`.
-pub const EMBODIMENT_ID_FILE: &str = "embodiment_id.json";
+use crate::gr00t::n17::{Gr00tN17Config, TensorIndex, INDEX_FILE, PREFIX, SINGLE_FILE};
 
 /// The VLM the prompt and vision defaults of pir2 are those of (GR00T N1.7's default
 /// `model_name`).
 pub const N17_VLM: &str = "nvidia/Cosmos-Reason2-2B";
 
-/// Options of [`import_checkpoint`].
+/// Options of [`import_checkpoint`](super::import_checkpoint).
 #[derive(Debug, Clone)]
 pub struct ImportOptions {
     /// The embodiment tag (a key of `processor_kwargs.modality_configs`); `None`: the
@@ -107,265 +52,8 @@ impl Default for ImportOptions {
     }
 }
 
-/// A file the import could not produce, and how to add it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct MissingFile {
-    /// Path relative to the output directory.
-    pub file: String,
-    /// How to add it.
-    pub how: String,
-}
-
-/// What [`import_checkpoint`] wrote.
-#[derive(Debug, Clone)]
-pub struct ImportSummary {
-    /// The output directory.
-    pub out: PathBuf,
-    /// The files written, relative to `out`, sorted.
-    pub files: Vec<String>,
-    /// The embodiment imported.
-    pub embodiment_tag: String,
-    /// Its slot.
-    pub embodiment_id: i64,
-    /// The chunk length `H` (the action modality's `delta_indices`).
-    pub horizon: usize,
-    /// State and action widths.
-    pub state_dim: usize,
-    /// See [`Self::state_dim`].
-    pub action_dim: usize,
-    /// Backbone graphs rewritten from bfloat16 to float32: `(file, report)`.
-    pub converted: Vec<(String, Bf16Report)>,
-    /// What the user must still add before `pir2 run`.
-    pub missing: Vec<MissingFile>,
-}
-
-fn err(path: &Path, field: impl Into<String>, problem: impl Into<String>) -> Gr00tError {
-    Gr00tError::Import {
-        path: path.to_path_buf(),
-        field: field.into(),
-        problem: problem.into(),
-    }
-}
-
-/// A JSON value with the file it is in and its JSON path, so every error names both.
-#[derive(Clone, Copy)]
-struct Node<'a> {
-    v: &'a Value,
-    path: &'a Path,
-}
-
-struct At<'a> {
-    node: Node<'a>,
-    field: String,
-}
-
-impl<'a> At<'a> {
-    fn root(v: &'a Value, path: &'a Path, field: &str) -> Self {
-        At {
-            node: Node { v, path },
-            field: field.to_string(),
-        }
-    }
-    fn err(&self, problem: impl Into<String>) -> Gr00tError {
-        err(self.node.path, &self.field, problem)
-    }
-    fn sub(&self, key: &str) -> String {
-        if self.field.is_empty() {
-            key.to_string()
-        } else {
-            format!("{}.{key}", self.field)
-        }
-    }
-    fn obj(&self) -> Result<&'a Map<String, Value>> {
-        self.node
-            .v
-            .as_object()
-            .ok_or_else(|| self.err(format!("must be an object, got {}", short(self.node.v))))
-    }
-    /// The value at `key` (absent or null: `None`).
-    fn opt(&self, key: &str) -> Result<Option<At<'a>>> {
-        Ok(match self.obj()?.get(key) {
-            None | Some(Value::Null) => None,
-            Some(v) => Some(At {
-                node: Node {
-                    v,
-                    path: self.node.path,
-                },
-                field: self.sub(key),
-            }),
-        })
-    }
-    fn key(&self, key: &str) -> Result<At<'a>> {
-        self.opt(key)?
-            .ok_or_else(|| err(self.node.path, self.sub(key), "is missing"))
-    }
-    fn bool(&self) -> Result<bool> {
-        self.node
-            .v
-            .as_bool()
-            .ok_or_else(|| self.err(format!("must be true or false, got {}", short(self.node.v))))
-    }
-    fn u64(&self) -> Result<u64> {
-        self.node.v.as_u64().ok_or_else(|| {
-            self.err(format!(
-                "must be a non-negative integer, got {}",
-                short(self.node.v)
-            ))
-        })
-    }
-    fn f64(&self) -> Result<f64> {
-        self.node
-            .v
-            .as_f64()
-            .ok_or_else(|| self.err(format!("must be a number, got {}", short(self.node.v))))
-    }
-    fn str(&self) -> Result<&'a str> {
-        self.node
-            .v
-            .as_str()
-            .ok_or_else(|| self.err(format!("must be a string, got {}", short(self.node.v))))
-    }
-    fn items(&self) -> Result<Vec<At<'a>>> {
-        let a = self
-            .node
-            .v
-            .as_array()
-            .ok_or_else(|| self.err(format!("must be a list, got {}", short(self.node.v))))?;
-        Ok(a.iter()
-            .enumerate()
-            .map(|(i, v)| At {
-                node: Node {
-                    v,
-                    path: self.node.path,
-                },
-                field: format!("{}[{i}]", self.field),
-            })
-            .collect())
-    }
-    fn strings(&self) -> Result<Vec<String>> {
-        self.items()?
-            .iter()
-            .map(|a| a.str().map(str::to_string))
-            .collect()
-    }
-    fn ints(&self) -> Result<Vec<i64>> {
-        self.items()?
-            .iter()
-            .map(|a| {
-                a.node
-                    .v
-                    .as_i64()
-                    .ok_or_else(|| a.err(format!("must be an integer, got {}", short(a.node.v))))
-            })
-            .collect()
-    }
-    /// Refuse keys outside `known`.
-    fn only(&self, known: &[&str], whose: &str) -> Result<()> {
-        for k in self.obj()?.keys() {
-            if !known.contains(&k.as_str()) {
-                return Err(err(
-                    self.node.path,
-                    self.sub(k),
-                    format!(
-                        "is not a field of {whose} that pir2 knows (known: {}); pir2 does not \
-                         guess what it means",
-                        known.join(", ")
-                    ),
-                ));
-            }
-        }
-        Ok(())
-    }
-}
-
-fn short(v: &Value) -> String {
-    let s = v.to_string();
-    if s.len() > 60 {
-        format!(
-            "{}…",
-            &s[..s.char_indices().nth(57).map_or(s.len(), |(i, _)| i)]
-        )
-    } else {
-        s
-    }
-}
-
-fn read_json(path: &Path) -> Result<Value> {
-    if !path.is_file() {
-        return Err(err(
-            path,
-            path.file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default(),
-            "is missing (Isaac-GR00T writes it next to config.json)",
-        ));
-    }
-    let text = std::fs::read_to_string(path).map_err(|source| Gr00tError::Read {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    serde_json::from_str(&text).map_err(|e| Gr00tError::Parse {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
-}
-
-/// The processor's files are in the checkpoint root; a checkpoint whose processor was saved
-/// into `processor/` is read from there.
-fn processor_file(ckpt: &Path, name: &str) -> PathBuf {
-    let root = ckpt.join(name);
-    let sub = ckpt.join("processor").join(name);
-    if !root.exists() && sub.exists() {
-        sub
-    } else {
-        root
-    }
-}
-
-/// A crate error of the head loader as one import error naming the file and the tensor or
-/// field.
-fn from_head(e: crate::error::Error, fallback: &Path) -> Gr00tError {
-    use crate::error::Error as E;
-    match e {
-        E::MissingTensor { path, name } => err(&path, name, "is missing"),
-        E::TensorShape {
-            path,
-            name,
-            expected,
-            got,
-        } => err(
-            &path,
-            name,
-            format!("has shape {got:?}; config.json's sizes need {expected:?}"),
-        ),
-        E::UnexpectedTensor { path, name } => err(
-            &path,
-            name,
-            "is not a tensor of the action head config.json describes",
-        ),
-        E::Format { path, message } => {
-            let field = message
-                .split('`')
-                .nth(1)
-                .unwrap_or("(file)")
-                .trim_start_matches('`')
-                .to_string();
-            err(&path, field, message)
-        }
-        E::Safetensors { path, message } => err(&path, "(safetensors header)", message),
-        E::Io { path, source } => Gr00tError::Read { path, source },
-        other => Gr00tError::Candle {
-            path: fallback.to_path_buf(),
-            source: Box::new(other),
-        },
-    }
-}
-
 /// `(rep, type, format, state_key)` of an `ActionConfig`, enum names as GR00T writes them.
 type ActionCfg = (String, String, String, Option<String>);
-
-/// What the write step produced: converted graphs and the files still missing.
-type Written = (Vec<(String, Bf16Report)>, Vec<MissingFile>);
 
 /// One modality of one embodiment (`ModalityConfig`).
 struct Modality {
@@ -494,20 +182,20 @@ fn stat_width(stats: &At<'_>, modality: &str, group: &str, stat: &str) -> Result
 }
 
 /// Everything read and checked before anything is written.
-struct Plan {
-    cfg: Gr00tN17Config,
-    emb: EmbodimentConfig,
-    tag: String,
-    index: TensorIndex,
-    embed: Option<TensorIndex>,
-    config_path: PathBuf,
-    processor_path: PathBuf,
-    statistics_path: PathBuf,
-    embodiment_id_path: PathBuf,
-    model_name: String,
+pub(super) struct Plan {
+    pub(super) cfg: Gr00tN17Config,
+    pub(super) emb: EmbodimentConfig,
+    pub(super) tag: String,
+    pub(super) index: TensorIndex,
+    pub(super) embed: Option<TensorIndex>,
+    pub(super) config_path: PathBuf,
+    pub(super) processor_path: PathBuf,
+    pub(super) statistics_path: PathBuf,
+    pub(super) embodiment_id_path: PathBuf,
+    pub(super) model_name: String,
 }
 
-fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
+pub(super) fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     if !ckpt.is_dir() {
         return Err(err(ckpt, "(directory)", "is not a directory"));
     }
@@ -849,10 +537,10 @@ fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     emb.prompt.chat.formalize_language = formalize;
     emb.policy.trained = pir2_runtime::Policy::Flow;
     emb.policy.flow_steps = cfg.num_inference_timesteps.max(1);
-    emb.policy.mode = super::config::DeployKind::SyncFlow;
+    emb.policy.mode = crate::gr00t::config::DeployKind::SyncFlow;
     emb.policy.h = emb.policy.h.min(h).max(1);
     emb.validate().map_err(|e| match e {
-        Gr00tError::Config(m) => err(
+        Error::Gr00tConfig(m) => err(
             &processor_path,
             format!("processor_kwargs.modality_configs.{tag}"),
             format!("does not make a valid pir2 embodiment: {m}"),
@@ -983,286 +671,4 @@ fn norm_and_width_stat(
     } else {
         (Norm::MinMax, minmax_stat)
     }
-}
-
-/// Write the tensors `names` of the indices to one safetensors file, bytes copied from their
-/// sources as stored (no conversion).
-fn write_safetensors(out: &Path, tensors: &[(&TensorIndex, String)]) -> Result<()> {
-    let io = |source| Gr00tError::Read {
-        path: out.to_path_buf(),
-        source,
-    };
-    let mut header = Map::new();
-    let mut at = 0u64;
-    let mut parts = Vec::new();
-    for (index, name) in tensors {
-        let (file, dtype, shape, start, end) = index
-            .location(name)
-            .ok_or_else(|| err(index.source(), name.clone(), "is missing"))?;
-        header.insert(
-            name.clone(),
-            serde_json::json!({"dtype": dtype, "shape": shape, "data_offsets": [at, at + end - start]}),
-        );
-        at += end - start;
-        parts.push((file.to_path_buf(), start, end));
-    }
-    let mut h = serde_json::to_vec(&Value::Object(header)).map_err(|e| Gr00tError::Parse {
-        path: out.to_path_buf(),
-        message: e.to_string(),
-    })?;
-    while h.len() % 8 != 0 {
-        h.push(b' ');
-    }
-    let mut f = std::io::BufWriter::new(File::create(out).map_err(io)?);
-    f.write_all(&(h.len() as u64).to_le_bytes()).map_err(io)?;
-    f.write_all(&h).map_err(io)?;
-    for (file, start, end) in parts {
-        let mut src = File::open(&file).map_err(|source| Gr00tError::Read {
-            path: file.clone(),
-            source,
-        })?;
-        src.seek(SeekFrom::Start(start))
-            .map_err(|source| Gr00tError::Read {
-                path: file.clone(),
-                source,
-            })?;
-        let copied = std::io::copy(&mut src.take(end - start), &mut f).map_err(io)?;
-        if copied != end - start {
-            return Err(err(
-                &file,
-                "(tensor data)",
-                "is shorter than its header says",
-            ));
-        }
-    }
-    f.flush().map_err(io)?;
-    Ok(())
-}
-
-fn copy(from: &Path, to: &Path) -> Result<()> {
-    std::fs::copy(from, to).map_err(|source| Gr00tError::Read {
-        path: from.to_path_buf(),
-        source,
-    })?;
-    Ok(())
-}
-
-/// The NVIDIA exporter's file for `role` in `dir` (or `dir/onnx`), f32 preferred.
-fn exported(dir: &Path, role: &str) -> Option<PathBuf> {
-    for d in [dir.to_path_buf(), dir.join("onnx")] {
-        for p in ["fp32", "bf16"] {
-            let f = d.join(format!("{role}_{p}.onnx"));
-            if f.is_file() {
-                return Some(f);
-            }
-        }
-    }
-    None
-}
-
-/// Import the GR00T N1.7 checkpoint `ckpt` into `out` (see the module docs). `out` must not
-/// exist or be empty; on an error nothing is left there.
-pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Result<ImportSummary> {
-    if out.exists() {
-        let empty = out.is_dir()
-            && std::fs::read_dir(out)
-                .map_err(|source| Gr00tError::Read {
-                    path: out.to_path_buf(),
-                    source,
-                })?
-                .next()
-                .is_none();
-        if !empty {
-            return Err(err(
-                out,
-                "--out",
-                "exists and is not empty; choose a new directory (nothing was written)",
-            ));
-        }
-    }
-    if !(opts.control_hz.is_finite() && opts.control_hz > 0.0) {
-        return Err(err(
-            out,
-            "--control-hz",
-            format!("must be > 0, got {}", opts.control_hz),
-        ));
-    }
-    let backbone = match &opts.backbone_onnx {
-        None => None,
-        Some(d) => {
-            let (vit, llm) = (exported(d, "vit"), exported(d, "llm"));
-            match (vit, llm) {
-                (Some(v), Some(l)) => Some((v, l)),
-                (v, l) => {
-                    let missing: Vec<&str> =
-                        [("vit_{fp32,bf16}.onnx", v), ("llm_{bf16,fp32}.onnx", l)]
-                            .into_iter()
-                            .filter(|(_, f)| f.is_none())
-                            .map(|(n, _)| n)
-                            .collect();
-                    return Err(err(
-                        d,
-                        missing.join(" and "),
-                        "is missing from the exporter's directory (export with \
-                         `--export-mode full_pipeline`)",
-                    ));
-                }
-            }
-        }
-    };
-    let plan = plan(ckpt, opts)?;
-    let device = Device::Cpu;
-    // GR00T's head with a zero delay table: what the released head computes.
-    let head = Gr00tN17Head::trainable_from_index(
-        &plan.index,
-        plan.cfg.clone(),
-        plan.emb.d_vis_max,
-        &device,
-    )
-    .map_err(|e| from_head(e, ckpt))?;
-    let export = super::n17::export::export_gr00t_n17(&head, plan.emb.horizon).map_err(|e| {
-        Gr00tError::Candle {
-            path: ckpt.to_path_buf(),
-            source: Box::new(e),
-        }
-    })?;
-    drop(head);
-
-    let name = out
-        .file_name()
-        .ok_or_else(|| err(out, "--out", "has no directory name"))?;
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let io = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| Gr00tError::Read { path, source }
-    };
-    std::fs::create_dir_all(&parent).map_err(io(&parent))?;
-    let tmp = parent.join(format!(
-        ".{}.import-{}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
-    }
-    std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
-    let written = (|| -> Result<Written> {
-        export
-            .write(&tmp, super::n17::export::WeightStorage::Auto)
-            .map_err(|e| Gr00tError::Candle {
-                path: tmp.clone(),
-                source: Box::new(e),
-            })?;
-        copy(&plan.config_path, &tmp.join(CONFIG_FILE))?;
-        copy(&plan.processor_path, &tmp.join(PROCESSOR_FILE))?;
-        copy(&plan.statistics_path, &tmp.join(STATISTICS_FILE))?;
-        copy(&plan.embodiment_id_path, &tmp.join(EMBODIMENT_ID_FILE))?;
-        let mut tensors: Vec<(&TensorIndex, String)> = plan
-            .index
-            .names()
-            .map(|n| (&plan.index, n.to_string()))
-            .collect();
-        if let Some(e) = &plan.embed {
-            tensors.push((e, EMBED_TOKENS_KEY.to_string()));
-        }
-        write_safetensors(&tmp.join(SINGLE_FILE), &tensors)?;
-        let toml = plan.emb.to_toml()?;
-        std::fs::write(tmp.join("embodiment.toml"), toml).map_err(io(&tmp))?;
-        let mut missing = Vec::new();
-        let mut tokenizer = false;
-        for f in ["tokenizer.json", "tokenizer_config.json"] {
-            let src = processor_file(ckpt, f);
-            if src.is_file() {
-                copy(&src, &tmp.join(f))?;
-                tokenizer |= f == "tokenizer.json";
-            }
-        }
-        if !tokenizer {
-            missing.push(MissingFile {
-                file: "tokenizer.json".into(),
-                how: format!(
-                    "the VLM's tokenizer: `tokenizer.json` of the Hugging Face model `{}` \
-                     (processor_config.json `processor_kwargs.model_name`), copied into the \
-                     directory",
-                    plan.model_name
-                ),
-            });
-        }
-        let mut converted = Vec::new();
-        let onnx = tmp.join("onnx");
-        match &backbone {
-            Some((vit, llm)) => {
-                for (role, src) in [("vit", vit), ("llm", llm)] {
-                    let bf16 = has_bf16(src)?;
-                    let precision = if bf16 && opts.keep_bf16 {
-                        "bf16"
-                    } else {
-                        "fp32"
-                    };
-                    let dst = onnx.join(format!("{role}_{precision}.onnx"));
-                    let report = if bf16 && opts.keep_bf16 {
-                        super::onnx_f32::copy_onnx(src, &dst)?
-                    } else {
-                        convert_bf16_to_f32(src, &dst)?
-                    };
-                    if report.changed() {
-                        converted.push((format!("onnx/{role}_{precision}.onnx"), report));
-                    }
-                }
-            }
-            None => missing.push(MissingFile {
-                file: "onnx/vit_fp32.onnx, onnx/llm_fp32.onnx".into(),
-                how: format!(
-                    "the backbone: the checkpoint holds PyTorch weights, not ONNX graphs. Export \
-                     them with NVIDIA's exporter (Isaac-GR00T `scripts/deployment/export_onnx_n1d7.py \
-                     --model-path {} --dataset-path DATASET --output-dir EXPORT --export-mode \
-                     full_pipeline --embodiment-tag TAG`), then import again with \
-                     `--backbone-onnx EXPORT` (its bfloat16 LLM is rewritten to float32 for \
-                     ONNX Runtime's CPU provider; `--keep-bf16` keeps it for --ep cuda|tensorrt)",
-                    ckpt.display()
-                ),
-            }),
-        }
-        Ok((converted, missing))
-    })();
-    let (converted, missing) = match written {
-        Ok(x) => x,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            return Err(e);
-        }
-    };
-    let mut files = Vec::new();
-    list_files(&tmp, &tmp, &mut files).map_err(io(&tmp))?;
-    files.sort();
-    if out.exists() {
-        std::fs::remove_dir(out).map_err(io(out))?;
-    }
-    std::fs::rename(&tmp, out).map_err(io(out))?;
-    Ok(ImportSummary {
-        out: out.to_path_buf(),
-        files,
-        embodiment_tag: plan.tag,
-        embodiment_id: plan.emb.embodiment_id,
-        horizon: plan.emb.horizon,
-        state_dim: plan.emb.state_dim(),
-        action_dim: plan.emb.action_dim(),
-        converted,
-        missing,
-    })
-}
-
-fn list_files(root: &Path, dir: &Path, out: &mut Vec<String>) -> std::io::Result<()> {
-    for e in std::fs::read_dir(dir)? {
-        let p = e?.path();
-        if p.is_dir() {
-            list_files(root, &p, out)?;
-        } else if let Ok(r) = p.strip_prefix(root) {
-            out.push(r.to_string_lossy().into_owned());
-        }
-    }
-    Ok(())
 }
