@@ -38,8 +38,9 @@ pub struct TlsOptions {
 
 #[cfg(feature = "remote")]
 impl TlsOptions {
-    /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files, and a
-    /// non-loopback address without TLS is refused, to listen on or to connect to, unless
+    /// `link` with these TLS files, checked: a `tls/…` endpoint needs the files (readable
+    /// PEM, [`pir2_runtime::remote::TlsFiles::check`]), and a non-loopback address without
+    /// TLS is refused, to listen on or to connect to, unless
     /// `insecure` (then it says so loudly on stderr).
     pub fn apply(&self, link: pir2_runtime::remote::Link) -> Result<pir2_runtime::remote::Link> {
         let link = match (&self.ca, &self.cert, &self.key) {
@@ -52,6 +53,10 @@ impl TlsOptions {
             _ => anyhow::bail!("--tls-ca, --tls-cert and --tls-key go together: give all three"),
         };
         link.check_exposure(self.insecure)?;
+        // An unreadable or garbled file is named now, before anything is loaded or dialled.
+        if let Some(t) = &link.tls {
+            t.check()?;
+        }
         if self.insecure && link.check_exposure(false).is_err() {
             eprintln!(
                 "WARNING: --insecure: talking WITHOUT TLS beyond this machine (listen {:?}, \
@@ -242,13 +247,15 @@ mod imp {
         pub(super) fn report(&self) -> String {
             let c = self.stats.counters();
             format!(
-                "remote policy {}: calls {} attempts {} timeouts {} reconnects {} failed calls {} last rtt {} µs",
+                "remote policy {}: calls {} attempts {} timeouts {} reconnects {} failed calls {} \
+                 foreign replies {} last rtt {} µs",
                 self.endpoint,
                 c.calls,
                 c.attempts,
                 c.timeouts,
                 c.reconnects,
                 c.failed_calls,
+                c.foreign_replies,
                 c.last_rtt_ns / 1000
             )
         }
