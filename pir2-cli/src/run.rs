@@ -347,7 +347,29 @@ impl std::fmt::Display for RunSummary {
 /// Run the stack (see the module docs); `stop` ends the run early (Ctrl-C).
 #[cfg(feature = "gr00t")]
 pub fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
-    imp::run(args, stop)
+    imp::run(args, stop, None)
+}
+
+/// Where a run that fails after its control loop started leaves the metrics of the ticks it
+/// ran, for the trace of its failure report.
+pub type FailedMetrics = Arc<std::sync::Mutex<Option<pir2_runtime::RunMetrics>>>;
+
+#[cfg(feature = "gr00t")]
+fn run_keeping_metrics(
+    args: &RunOptions,
+    stop: Arc<AtomicBool>,
+    failed: &FailedMetrics,
+) -> Result<RunSummary> {
+    imp::run(args, stop, Some(failed.clone()))
+}
+
+#[cfg(not(feature = "gr00t"))]
+fn run_keeping_metrics(
+    args: &RunOptions,
+    stop: Arc<AtomicBool>,
+    _failed: &FailedMetrics,
+) -> Result<RunSummary> {
+    run(args, stop)
 }
 
 /// What `--json` holds when a run fails: the error (its whole chain) and what was run.
@@ -364,6 +386,10 @@ pub struct RunFailure {
     /// The safety limits the run would have enforced, when the checkpoint got that far.
     #[serde(default)]
     pub limits: Option<LimitsInForce>,
+    /// The trace of the ticks the run made before it failed (absent when it failed before
+    /// its control loop started).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trace: Option<pir2_runtime::RunTrace>,
 }
 
 /// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set: the
@@ -374,20 +400,32 @@ pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
     if let Some(p) = &args.json {
         check_report_path(p)?;
     }
-    let result = run(args, stop);
+    let failed = FailedMetrics::default();
+    let result = run_keeping_metrics(args, stop, &failed);
     if let Ok(summary) = &result {
         print!("{summary}");
     }
     if let Some(p) = &args.json {
         let text = match &result {
             Ok(summary) => serde_json::to_string_pretty(summary)?,
-            Err(e) => serde_json::to_string_pretty(&RunFailure {
-                error: format!("{e:#}"),
-                stack: args.stack.clone(),
-                checkpoint: args.checkpoint.clone(),
-                task: args.task.clone(),
-                limits: limits_in_force(args).ok(),
-            })?,
+            Err(e) => {
+                let limits = limits_in_force(args).ok();
+                // The ticks the run made before the failure (a safety stop's post-mortem).
+                let trace = failed
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .take()
+                    .zip(limits.as_ref())
+                    .map(|(m, l)| m.trace((1e9 / l.control_hz).round() as u64));
+                serde_json::to_string_pretty(&RunFailure {
+                    error: format!("{e:#}"),
+                    stack: args.stack.clone(),
+                    checkpoint: args.checkpoint.clone(),
+                    task: args.task.clone(),
+                    limits,
+                    trace,
+                })?
+            }
         };
         let written = write_new(p, &text).with_context(|| format!("writing {}", p.display()));
         match (&result, written) {
@@ -749,7 +787,11 @@ mod imp {
         })
     }
 
-    pub(super) fn run(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<RunSummary> {
+    pub(super) fn run(
+        args: &RunOptions,
+        stop: Arc<AtomicBool>,
+        failed: Option<super::FailedMetrics>,
+    ) -> Result<RunSummary> {
         let cfg = embodiment(args)?;
         check_task(&cfg, &args.task, args.free_prompt)?;
         // The deployment against what the head was trained as, before anything is loaded.
@@ -820,7 +862,10 @@ mod imp {
             )
             .context("starting the xArm6 + XHand emulators")?;
             let (source, actuator) = split(layer);
-            emergency_stop_on_second_signal(source.robot().clone());
+            emergency_stop_on_second_signal(
+                source.robot().clone(),
+                second_signal_report(args, &limits),
+            );
             let r = drive(
                 args,
                 head,
@@ -832,6 +877,7 @@ mod imp {
                 actuator,
                 clock,
                 stop,
+                failed.clone(),
                 "emulated xArm6 + XHand (in-process)",
             );
             crate::signals::clear_second_signal();
@@ -867,7 +913,10 @@ mod imp {
             )
         })?;
         let (source, actuator) = split(layer);
-        emergency_stop_on_second_signal(source.robot().clone());
+        emergency_stop_on_second_signal(
+            source.robot().clone(),
+            second_signal_report(args, &limits),
+        );
         let robot = format!("xArm6 at {cmd} + XHand on {}", xhand.display());
         let r = drive(
             args,
@@ -880,6 +929,7 @@ mod imp {
             actuator,
             clock,
             stop,
+            failed,
             &robot,
         );
         crate::signals::clear_second_signal();
@@ -888,25 +938,61 @@ mod imp {
         Ok(s)
     }
 
+    /// What `--json` gets when a second signal ends the process at once: the failure, the
+    /// limits in force (the trace stays with the control loop, which is not waited for).
+    fn second_signal_report(
+        args: &RunOptions,
+        limits: &super::LimitsInForce,
+    ) -> Option<(std::path::PathBuf, String)> {
+        let path = args.json.clone()?;
+        let text = serde_json::to_string_pretty(&super::RunFailure {
+            error: "a second SIGINT/SIGTERM: the robot was stopped (emergency stop) and the \
+                    process exited at once, without waiting for the control loop"
+                .into(),
+            stack: args.stack.clone(),
+            checkpoint: args.checkpoint.clone(),
+            task: args.task.clone(),
+            limits: Some(limits.clone()),
+            trace: None,
+        })
+        .ok()?;
+        Some((path, text))
+    }
+
     /// What a second SIGINT/SIGTERM runs before the process exits: the robot's `stop`, if
-    /// its lock comes free within 300 ms (a driver call in progress holds it).
-    fn emergency_stop_on_second_signal<R: Robot + Send + 'static>(robot: SharedRobot<R>) {
+    /// its lock comes free within 300 ms (a driver call in progress holds it), then the
+    /// failure report for `--json` (`report`), so that file is never left missing.
+    fn emergency_stop_on_second_signal<R: Robot + Send + 'static>(
+        robot: SharedRobot<R>,
+        report: Option<(std::path::PathBuf, String)>,
+    ) {
         crate::signals::on_second_signal(move || {
             let t0 = std::time::Instant::now();
+            let mut stopped = false;
             while t0.elapsed() < Duration::from_millis(300) {
                 match robot.try_lock() {
                     Ok(mut r) => {
                         let _ = r.stop();
-                        return;
+                        stopped = true;
+                        break;
                     }
                     Err(TryLockError::Poisoned(p)) => {
                         let _ = p.into_inner().stop();
-                        return;
+                        stopped = true;
+                        break;
                     }
                     Err(TryLockError::WouldBlock) => std::thread::sleep(Duration::from_millis(1)),
                 }
             }
-            eprintln!("emergency stop: the robot stayed busy for 300 ms; exiting without it");
+            if !stopped {
+                eprintln!("emergency stop: the robot stayed busy for 300 ms; exiting without it");
+            }
+            if let Some((path, text)) = report {
+                match super::write_new(&path, &text) {
+                    Ok(()) => eprintln!("the failure is recorded in {}", path.display()),
+                    Err(e) => eprintln!("error: writing {}: {e}", path.display()),
+                }
+            }
         });
     }
 
@@ -1088,6 +1174,7 @@ mod imp {
         actuator: A,
         clock: Arc<dyn Clock>,
         stop: Arc<AtomicBool>,
+        failed: Option<super::FailedMetrics>,
         robot: &str,
     ) -> Result<RunSummary> {
         let actuator = AnnounceFirst::new(actuator, clock.clone());
@@ -1103,6 +1190,7 @@ mod imp {
             slow_timeout,
             slow_grace: Some(slow_grace),
             stall_limit: Duration::from_secs_f64(args.stall_limit_ms / 1e3),
+            failed_metrics: failed,
             ort: args.ep.ort()?,
             ..Default::default()
         };

@@ -739,10 +739,47 @@ mod remote_head {
         let v: serde_json::Value = serde_json::from_str(&report).unwrap();
         let error = v["error"].as_str().expect("a failure report has an error");
         assert!(error.contains("safety stop"), "{report}");
+        // It keeps the trace of the ticks before the stop (before: the trace was lost).
         assert!(
-            v.get("trace").is_none(),
-            "a failure is not a summary: {report}"
+            v["trace"]["ticks"].as_u64().unwrap_or(0) > 0
+                && !v["trace"]["calls"].as_array().unwrap().is_empty(),
+            "a failure keeps its trace: {report}"
         );
+    }
+
+    /// A second SIGINT ends the process at once (exit 130) after the emergency stop, and
+    /// `--json` still gets the failure report with the limits in force (before: no file).
+    #[test]
+    fn a_second_signal_still_writes_the_failure_report() {
+        let s = Scratch::new("gr00t-remote-second-signal");
+        let ck = gr00t_checkpoint(&s);
+        let ck_s = ck.to_str().unwrap();
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let mut server = head_server_piped(ck_s, &endpoint);
+        let json = s.path().join("run.json");
+        let (mut run, mut err) = start_run(ck_s, &endpoint, &json, &["--seconds", "60"]);
+        wait_first_request(&mut server);
+        wait_under_control(&mut err);
+        for _ in 0..2 {
+            // SAFETY: plain kill(2) on our own child.
+            assert_eq!(unsafe { libc::kill(run.id() as i32, libc::SIGINT) }, 0);
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let status = run.wait().unwrap();
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+        // The first signal may have ended the run cleanly before the second one arrived.
+        let report = std::fs::read_to_string(&json).expect("--json must be written");
+        let v: serde_json::Value = serde_json::from_str(&report).unwrap();
+        eprintln!("exit {status:?}: {report}");
+        if status.code() == Some(130) {
+            let error = v["error"].as_str().expect("a failure report");
+            assert!(error.contains("second SIGINT/SIGTERM"), "{report}");
+            assert!(v["limits"]["control_hz"].as_f64().is_some(), "{report}");
+        } else {
+            assert!(status.success(), "{status:?}: {rest}");
+            assert!(v["trace"]["ticks"].as_u64().is_some(), "{report}");
+        }
     }
 
     /// The control watchdog through the binary: with the remote layer told to wait 50 ×

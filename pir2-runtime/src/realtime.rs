@@ -460,13 +460,90 @@ fn stop_once<A: Actuator + ?Sized>(act: &mut A, done: &mut Option<Result<()>>) {
     }
 }
 
+/// A real-time run that ended in an error, with the metrics of the ticks it ran (`None` if
+/// it failed before the control loop started or the control thread panicked): the trace a
+/// post-mortem of a safety stop needs.
+#[derive(Debug)]
+pub struct RunFailed {
+    /// What ended the run.
+    pub error: Error,
+    /// The run's metrics up to the error.
+    pub metrics: Option<Box<RunMetrics>>,
+}
+
 /// Run the real-time driver until `max_ticks` or until `stop` is set. The robot is stopped
 /// (actuator `stop`) on every exit path, panics included, before the workers are joined.
 /// Returns the run's metrics; the first error of any thread is returned instead (after the
 /// safe stop). A stop requested during the warm-up ends the run before the robot moves,
-/// with an event saying so.
+/// with an event saying so. [`run_keeping_metrics`] also returns the metrics of a failed run.
 #[allow(clippy::too_many_arguments)]
 pub fn run<M, F, A>(
+    head: ActionHead<M>,
+    control: ControlConfig,
+    fast: F,
+    actuator: A,
+    slow: SlowChannel,
+    clock: Arc<dyn Clock>,
+    cfg: RealtimeConfig,
+    stop: Arc<AtomicBool>,
+) -> Result<(RunMetrics, ActionHead<M>)>
+where
+    M: VelocityModel,
+    F: FastSource,
+    A: Actuator,
+{
+    let mut failed = None;
+    run_inner(
+        head,
+        control,
+        fast,
+        actuator,
+        slow,
+        clock,
+        cfg,
+        stop,
+        &mut failed,
+    )
+}
+
+/// [`run`], returning with an error the metrics of the ticks that ran ([`RunFailed`]).
+#[allow(clippy::too_many_arguments)]
+pub fn run_keeping_metrics<M, F, A>(
+    head: ActionHead<M>,
+    control: ControlConfig,
+    fast: F,
+    actuator: A,
+    slow: SlowChannel,
+    clock: Arc<dyn Clock>,
+    cfg: RealtimeConfig,
+    stop: Arc<AtomicBool>,
+) -> std::result::Result<(RunMetrics, ActionHead<M>), RunFailed>
+where
+    M: VelocityModel,
+    F: FastSource,
+    A: Actuator,
+{
+    let mut failed = None;
+    run_inner(
+        head,
+        control,
+        fast,
+        actuator,
+        slow,
+        clock,
+        cfg,
+        stop,
+        &mut failed,
+    )
+    .map_err(|error| RunFailed {
+        error,
+        metrics: failed.map(Box::new),
+    })
+}
+
+/// [`run`]; on an error after the control loop ran, its metrics go to `failed`.
+#[allow(clippy::too_many_arguments)]
+fn run_inner<M, F, A>(
     mut head: ActionHead<M>,
     control: ControlConfig,
     mut fast: F,
@@ -475,6 +552,7 @@ pub fn run<M, F, A>(
     clock: Arc<dyn Clock>,
     cfg: RealtimeConfig,
     stop: Arc<AtomicBool>,
+    failed: &mut Option<RunMetrics>,
 ) -> Result<(RunMetrics, ActionHead<M>)>
 where
     M: VelocityModel,
@@ -734,9 +812,13 @@ where
         .unwrap_or_else(|p| p.into_inner())
         .take()
     {
+        *failed = Some(metrics);
         return Err(e);
     }
-    stopped.unwrap_or(Ok(()))?;
+    if let Err(e) = stopped.unwrap_or(Ok(())) {
+        *failed = Some(metrics);
+        return Err(e);
+    }
     if left_behind {
         metrics
             .events

@@ -23,10 +23,10 @@
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use pir2_runtime::realtime::{run, RealtimeConfig, SlowChannel};
+use pir2_runtime::realtime::{run_keeping_metrics, RealtimeConfig, SlowChannel};
 use pir2_runtime::{
     ActionHead, Actuator, Clock, ControlConfig, FastSource, HeadMode, HeadSpec, LatencyWindow,
     Mode, ModelInput, Nanos, RunMetrics, SlowEncoder, SlowSource, SystemClock, VelocityModel,
@@ -176,6 +176,9 @@ pub struct Gr00tRunOptions {
     /// chunk) stops the robot with a safety stop; in `(0, MAX_STALL_LIMIT]`
     /// ([`pir2_runtime::realtime::MAX_STALL_LIMIT`]), default one second.
     pub stall_limit: Duration,
+    /// Where a run that fails after its control loop started leaves the metrics of the ticks
+    /// it ran (the trace of a safety stop), if given.
+    pub failed_metrics: Option<Arc<Mutex<Option<RunMetrics>>>>,
 }
 
 impl Default for Gr00tRunOptions {
@@ -195,6 +198,7 @@ impl Default for Gr00tRunOptions {
             slow_timeout: Duration::from_secs(60),
             slow_grace: None,
             stall_limit: pir2_runtime::realtime::DEFAULT_STALL_LIMIT,
+            failed_metrics: None,
         }
     }
 }
@@ -518,6 +522,7 @@ where
         slow,
         clock: opts.clock,
         stop: opts.stop,
+        failed_metrics: opts.failed_metrics,
     };
     let (metrics, d_vis_counts) = match local {
         RunHead::Onnx(model) => {
@@ -561,6 +566,7 @@ struct Setup {
     slow: SlowChannel,
     clock: Arc<dyn Clock>,
     stop: Arc<AtomicBool>,
+    failed_metrics: Option<Arc<Mutex<Option<RunMetrics>>>>,
 }
 
 fn drive<M: VelocityModel + 'static, F: FastSource, A: Actuator>(
@@ -571,8 +577,15 @@ fn drive<M: VelocityModel + 'static, F: FastSource, A: Actuator>(
 ) -> Result<(RunMetrics, M)> {
     let mut head = ActionHead::new(model, s.spec, s.mode, s.window, s.seed)?;
     head.set_slow_grace(Some(s.slow_grace));
-    let (metrics, head) = run(
+    match run_keeping_metrics(
         head, s.control, fast, actuator, s.slow, s.clock, s.rt, s.stop,
-    )?;
-    Ok((metrics, head.into_model()))
+    ) {
+        Ok((metrics, head)) => Ok((metrics, head.into_model())),
+        Err(f) => {
+            if let (Some(sink), Some(m)) = (&s.failed_metrics, f.metrics) {
+                *sink.lock().unwrap_or_else(|p| p.into_inner()) = Some(*m);
+            }
+            Err(f.error.into())
+        }
+    }
 }
