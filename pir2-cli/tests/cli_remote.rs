@@ -695,18 +695,46 @@ mod remote_head {
         assert!(medians[1] >= 2, "{medians:?}");
     }
 
-    #[test]
-    fn gr00t_run_stops_the_robot_when_the_policy_server_is_gone() {
-        let s = Scratch::new("gr00t-remote-gone");
+    /// A run against a fresh policy server on `name`'s scratch, with `extra` flags; the
+    /// server is killed `after` the control phase began. Returns the scratch, the endpoint,
+    /// the `--json` path, the run's exit status, its stderr from then on, and how long after
+    /// the kill it ended.
+    fn lose_the_server_mid_run(
+        name: &str,
+        extra: &[&str],
+        after: Duration,
+    ) -> (
+        Scratch,
+        String,
+        PathBuf,
+        std::process::ExitStatus,
+        String,
+        Duration,
+    ) {
+        let s = Scratch::new(name);
         let ck = gr00t_checkpoint(&s);
         let ck_s = ck.to_str().unwrap();
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let mut server = head_server_piped(ck_s, &endpoint);
         let json = s.path().join("run.json");
-        let (mut run, mut err) = start_run(
-            ck_s,
-            &endpoint,
-            &json,
+        let (mut run, mut err) = start_run(ck_s, &endpoint, &json, extra);
+        wait_first_request(&mut server);
+        wait_under_control(&mut err);
+        std::thread::sleep(after);
+        drop(server);
+        let t0 = Instant::now();
+        let mut rest = String::new();
+        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
+        let status = run.wait().unwrap();
+        let took = t0.elapsed();
+        eprintln!("{rest}");
+        (s, endpoint, json, status, rest, took)
+    }
+
+    #[test]
+    fn gr00t_run_stops_the_robot_when_the_policy_server_is_gone() {
+        let (_s, endpoint, json, status, rest, took) = lose_the_server_mid_run(
+            "gr00t-remote-gone",
             &[
                 "--seconds",
                 "60",
@@ -715,19 +743,11 @@ mod remote_head {
                 "--policy-timeout-ms",
                 "100",
             ],
+            Duration::from_millis(500),
         );
-        wait_first_request(&mut server);
-        wait_under_control(&mut err);
-        std::thread::sleep(Duration::from_millis(500));
-        drop(server);
-        let t0 = Instant::now();
-        let mut rest = String::new();
-        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
-        let status = run.wait().unwrap();
-        eprintln!("{rest}");
         assert!(!status.success());
         // 5 × 100 ms without a reply, then a safety stop that names the server.
-        assert!(t0.elapsed() < Duration::from_secs(15), "{:?}", t0.elapsed());
+        assert!(took < Duration::from_secs(15), "{took:?}");
         assert!(
             rest.contains("safety stop") && rest.contains(&endpoint),
             "{rest}"
@@ -788,16 +808,8 @@ mod remote_head {
     /// workers are joined).
     #[test]
     fn gr00t_run_stops_on_the_control_watchdog_when_the_policy_stalls() {
-        let s = Scratch::new("gr00t-remote-stall");
-        let ck = gr00t_checkpoint(&s);
-        let ck_s = ck.to_str().unwrap();
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let mut server = head_server_piped(ck_s, &endpoint);
-        let json = s.path().join("run.json");
-        let (mut run, mut err) = start_run(
-            ck_s,
-            &endpoint,
-            &json,
+        let (_s, _endpoint, json, status, rest, took) = lose_the_server_mid_run(
+            "gr00t-remote-stall",
             &[
                 "--seconds",
                 "60",
@@ -806,17 +818,8 @@ mod remote_head {
                 "--stall-limit-ms",
                 "400",
             ],
+            Duration::from_millis(300),
         );
-        wait_first_request(&mut server);
-        wait_under_control(&mut err);
-        std::thread::sleep(Duration::from_millis(300));
-        drop(server);
-        let t0 = Instant::now();
-        let mut rest = String::new();
-        std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
-        let status = run.wait().unwrap();
-        let took = t0.elapsed();
-        eprintln!("{rest}");
         assert!(!status.success());
         // The watchdog's stop comes first (400 ms = 10 ticks at 25 Hz; the first error is
         // the one reported); the process then waits for the action worker's call in flight,

@@ -492,18 +492,7 @@ where
     F: FastSource,
     A: Actuator,
 {
-    let mut failed = None;
-    run_inner(
-        head,
-        control,
-        fast,
-        actuator,
-        slow,
-        clock,
-        cfg,
-        stop,
-        &mut failed,
-    )
+    run_keeping_metrics(head, control, fast, actuator, slow, clock, cfg, stop).map_err(|f| f.error)
 }
 
 /// [`run`], returning with an error the metrics of the ticks that ran ([`RunFailed`]).
