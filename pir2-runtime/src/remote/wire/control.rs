@@ -32,22 +32,7 @@ pub fn encode_pong_with_identity(
     t_recv: u64,
     identity: Option<&str>,
 ) -> Vec<u8> {
-    let header = Header {
-        kind: Kind::Pong,
-        sender,
-        seq: ping.seq,
-        t_a: ping.t_a,
-        t_b: t_recv,
-    };
-    match identity {
-        None => Writer::new(header, 0, 0).finish(),
-        Some(text) => {
-            let b = text.as_bytes();
-            Writer::new(header, 1, 8 + b.len())
-                .u8(&[b.len()], b)
-                .finish()
-        }
-    }
+    encode_pong_with_token(sender, ping, t_recv, identity, None)
 }
 
 /// The secret a policy server issues to one client in the pong that answers its ping, and
