@@ -618,10 +618,8 @@ pub fn collect_leap(
     };
     let mut w = DatasetWriter::open(out, dataset_spec(), mode)
         .with_context(|| format!("opening dataset {}", out.display()))?;
-    let set_aside = w.set_aside().to_vec();
     let total = seeds.len() * per_seed;
     let mut done = w.num_episodes();
-    let already = done;
     if done > total {
         bail!(
             "dataset {} already holds {done} episodes, more than the {total} requested",
@@ -643,7 +641,6 @@ pub fn collect_leap(
         ..base
     };
     let mut successes = 0usize;
-    let mut summary = None;
     let t0 = Instant::now();
     while done < total {
         // Ctrl-C: the batch in progress was finished and written; stop here (`--resume`
@@ -679,8 +676,7 @@ pub fn collect_leap(
             w.append(&to_dataset_episode(ep))?;
         }
         done += eps.len();
-        summary = Some(w.finish()?);
-        w = DatasetWriter::open(out, dataset_spec(), WriteMode::Resume)?;
+        w.flush()?;
         pb.set_message(format!("collecting ({successes} successes)"));
         log_line(&format!(
             "collected {done}/{total} episodes ({successes} successes this session), {:.0} s",
@@ -688,16 +684,7 @@ pub fn collect_leap(
         ));
     }
     pb.finish();
-    // Each batch reopens the writer, so its summary counts that batch only: report every
-    // episode this call wrote.
-    match summary {
-        Some(s) => Ok(DatasetSummary {
-            written_episodes: done - already,
-            set_aside,
-            ..s
-        }),
-        None => Ok(w.finish()?),
-    }
+    Ok(w.finish()?)
 }
 
 /// Load the dataset and keep the successful episodes.
