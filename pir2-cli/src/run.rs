@@ -131,7 +131,7 @@ pub struct RunOptions {
     pub json: Option<PathBuf>,
     /// Deployment (default: the checkpoint's `[policy] mode`, else pir2_async). A mode the
     /// action head was not trained for (`[policy] trained`) is refused.
-    #[arg(long, value_parser = ["pir2_async", "pir2_sync", "sync_flow", "naive_async", "rtc"])]
+    #[arg(long, value_parser = ["pir2_async", "pir2_sync", "sync_flow", "naive_async", "inference_rtc", "rtc"])]
     pub mode: Option<String>,
     /// πR²: NFEs per action (must equal the checkpoint's `[policy] nfe`).
     #[arg(long)]
@@ -148,6 +148,14 @@ pub struct RunOptions {
     /// Naive async: plain swap even if the checkpoint's `[policy] ensemble` is set.
     #[arg(long)]
     pub no_ensemble: bool,
+    /// N1.7 inference-time RTC: slots of each call started from the chunk in flight
+    /// (default: the checkpoint's `[policy] rtc_overlap`, else every slot it still covers).
+    #[arg(long)]
+    pub rtc_overlap: Option<usize>,
+    /// N1.7 inference-time RTC: rate of the velocity-strength ramp (default: the
+    /// checkpoint's `[policy] rtc_ramp_rate`, else 5).
+    #[arg(long)]
+    pub rtc_ramp_rate: Option<f32>,
     /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
     #[command(flatten)]
     pub tls: crate::remote::TlsOptions,
@@ -714,6 +722,8 @@ mod imp {
             } else {
                 args.ensemble.map(Some)
             },
+            rtc_overlap: args.rtc_overlap,
+            rtc_ramp_rate: args.rtc_ramp_rate,
         })
     }
 

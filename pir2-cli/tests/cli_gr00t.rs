@@ -234,6 +234,13 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
             "naive async (K = 4, temporal ensembling m = 0.1)",
         ),
         (
+            "flow",
+            "inference_rtc",
+            &["--rtc-overlap", "8"][..],
+            "inference_rtc",
+            "N1.7 inference-time RTC (K = 4, overlap = 8, ramp rate = 5)",
+        ),
+        (
             "rtc",
             "rtc",
             &[][..],
@@ -268,6 +275,17 @@ fn run_gr00t_runs_every_mode_of_the_robot_table() {
             assert!(v["trace"]["holds"].as_u64().unwrap() >= 1, "{text}");
         }
     }
+    // N1.7's RTC with a ramp rate that is not a rate: one error naming it, nothing started.
+    trained_as("flow");
+    let (out, text) = emulated(
+        &ck,
+        "catch_book",
+        5,
+        &["--mode", "inference_rtc", "--rtc-ramp-rate", "0"],
+    );
+    assert!(!out.status.success());
+    assert!(text.contains("rtc_ramp_rate = 0"), "{text}");
+    assert!(!text.contains("ticks 5"), "{text}");
     // A mode the head was not trained for: one error naming both, nothing started.
     trained_as("pi_r2");
     let (out, text) = emulated(&ck, "catch_book", 5, &["--mode", "rtc"]);
@@ -457,7 +475,8 @@ fn a_bad_camera_device_is_one_error_naming_it_before_any_robot() {
 
 /// Relative actions (GR00T N1.7's `use_relative_action`) on the emulators: the arm group
 /// made relative to the arm state with per-slot `relative_action` statistics runs in πR²
-/// async, train-time RTC and naive async with temporal ensembling, and the summary and
+/// async, train-time RTC, naive async with temporal ensembling and N1.7's inference-time
+/// RTC, and the summary and
 /// `--json` name the relative group; a statistic of the wrong shape is one error naming the
 /// key and both shapes, before any robot is connected.
 #[test]
@@ -472,6 +491,7 @@ fn relative_arm_actions_run_on_the_emulators() {
         ("pi_r2", "pir2_async", &[][..]),
         ("rtc", "rtc", &[][..]),
         ("flow", "naive_async", &["--ensemble", "0.1"][..]),
+        ("flow", "inference_rtc", &[][..]),
     ] {
         std::fs::write(
             &toml_path,

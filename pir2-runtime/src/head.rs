@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use pir2_schedule::baselines::StandardFlow;
+use pir2_schedule::baselines::{StandardFlow, VelocityStrengthRtc};
 use pir2_schedule::{Alignment, FrontMode, Rng, StreamBuffer, StreamConfig};
 
 use crate::chunk::Chunk;
@@ -69,6 +69,19 @@ pub enum HeadMode {
         /// Euler steps `K`.
         steps: usize,
     },
+    /// GR00T N1.7's inference-time RTC on a standard-flow model: `K` Euler steps from noise,
+    /// the first `overlap` slots started from the chunk in flight (the previous call's,
+    /// from the snapshot's tick on) and the first `d` of them kept exactly
+    /// ([`VelocityStrengthRtc`]).
+    InferenceRtc {
+        /// Euler steps `K`.
+        steps: usize,
+        /// Slots started from the chunk in flight (`None`: every slot it still covers;
+        /// always capped at what it covers).
+        overlap: Option<usize>,
+        /// Rate `ρ > 0` of the velocity-strength ramp.
+        ramp_rate: f32,
+    },
 }
 
 /// Everything a call reads, copied at the snapshot.
@@ -113,6 +126,13 @@ enum State {
     },
     Rtc {
         steps: usize,
+        prev: Chunk,
+        has_prev: bool,
+    },
+    InferenceRtc {
+        steps: usize,
+        overlap: Option<usize>,
+        ramp_rate: f32,
         prev: Chunk,
         has_prev: bool,
     },
@@ -188,6 +208,27 @@ impl<M: VelocityModel> ActionHead<M> {
                 }
                 State::Rtc {
                     steps: steps.max(1),
+                    prev: Chunk::new(h, a),
+                    has_prev: false,
+                }
+            }
+            HeadMode::InferenceRtc {
+                steps,
+                overlap,
+                ramp_rate,
+            } => {
+                VelocityStrengthRtc {
+                    steps,
+                    frozen: 0,
+                    overlap: overlap.unwrap_or(h),
+                    ramp_rate,
+                }
+                .validate(h)
+                .map_err(|e| Error::Config(format!("inference-time RTC: {e}")))?;
+                State::InferenceRtc {
+                    steps,
+                    overlap,
+                    ramp_rate,
                     prev: Chunk::new(h, a),
                     has_prev: false,
                 }
@@ -381,7 +422,7 @@ impl<M: VelocityModel> ActionHead<M> {
                 out.xhat.copy_from_slice(buf.xhat());
                 out.clean.fill(true);
             }
-            State::Flow { .. } | State::Rtc { .. } => {
+            State::Flow { .. } | State::Rtc { .. } | State::InferenceRtc { .. } => {
                 self.rng.fill_normal(x);
                 StandardFlow { steps: 10 }.sample(x, tau, v, |xs, ts, vs| {
                     Self::eval(model, &spec, snap, d_vis, xs, ts, vs)
@@ -390,7 +431,9 @@ impl<M: VelocityModel> ActionHead<M> {
                 out.xhat.copy_from_slice(x);
                 out.clean.fill(true);
                 out.reference.copy_from_slice(&self.reference);
-                if let State::Rtc { prev, has_prev, .. } = &mut self.state {
+                if let State::Rtc { prev, has_prev, .. }
+                | State::InferenceRtc { prev, has_prev, .. } = &mut self.state
+                {
                     prev.copy_from(out);
                     prev.base = snap.tick;
                     *has_prev = true;
@@ -484,27 +527,14 @@ impl<M: VelocityModel> ActionHead<M> {
                 x.copy_from_slice(eps);
                 // The committed front: what the robot executes during this call.
                 let front = d.min(h - 1);
-                for p in 0..front {
-                    let t = snap.tick + p as u64;
-                    let src = if *has_prev {
-                        prev.index_of(t).zip(prev.action_at(t))
-                    } else {
-                        None
-                    };
-                    // Past the previous chunk: hold its last slot.
-                    let (q, vals) = match src {
-                        Some((q, (vals, _))) => (q, vals),
-                        None => (h - 1, &prev.x[(h - 1) * a..]),
-                    };
-                    let dst = &mut x[p * a..(p + 1) * a];
-                    if rebase {
-                        // Committed in the previous chunk's coordinates: move it onto this
-                        // call's reference and slot (the command stays the same).
-                        output.rebase(vals, q, &prev.reference, p, reference, dst);
-                    } else {
-                        dst.copy_from_slice(vals);
-                    }
-                }
+                let carry = Carry {
+                    prev,
+                    has_prev: *has_prev,
+                    output,
+                    reference,
+                    rebase,
+                };
+                carry.fill(snap.tick, &mut x[..front * a]);
                 let dt = 1.0 / *steps as f32;
                 for i in 0..*steps {
                     let ti = i as f32 * dt;
@@ -523,6 +553,45 @@ impl<M: VelocityModel> ActionHead<M> {
                 prev.base = snap.tick;
                 *has_prev = true;
             }
+            State::InferenceRtc {
+                steps,
+                overlap,
+                ramp_rate,
+                prev,
+                has_prev,
+            } => {
+                self.rng.fill_normal(x);
+                // The chunk in flight from the snapshot's tick on: what it still covers.
+                let left = if *has_prev {
+                    prev.index_of(snap.tick).map_or(0, |i| h - i)
+                } else {
+                    0
+                };
+                let overlap = overlap.unwrap_or(h).min(left);
+                let rtc = VelocityStrengthRtc {
+                    steps: *steps,
+                    frozen: d.min(overlap),
+                    overlap,
+                    ramp_rate: *ramp_rate,
+                };
+                let carry = Carry {
+                    prev,
+                    has_prev: *has_prev,
+                    output,
+                    reference,
+                    rebase,
+                };
+                carry.fill(snap.tick, &mut eps[..overlap * a]);
+                rtc.sample(x, &eps[..overlap * a], a, tau, v, |xs, ts, vs| {
+                    Self::eval(model, &spec, snap, d_vis as u32, xs, ts, vs)
+                })?;
+                out.x.copy_from_slice(x);
+                out.xhat.copy_from_slice(x);
+                out.clean.fill(true);
+                prev.copy_from(out);
+                prev.base = snap.tick;
+                *has_prev = true;
+            }
         }
         out.base = snap.tick;
         out.snapshot_tick = snap.tick;
@@ -533,9 +602,48 @@ impl<M: VelocityModel> ActionHead<M> {
             d_vis,
             elapsed: 0,
         };
-        if let State::Rtc { prev, .. } = &mut self.state {
+        if let State::Rtc { prev, .. } | State::InferenceRtc { prev, .. } = &mut self.state {
             prev.snapshot_tick = snap.tick;
         }
         Ok(())
+    }
+}
+
+/// The actions of the chunk in flight carried into a call (train-time RTC's committed front,
+/// inference-time RTC's overlap), moved onto the call's reference and slot when actions are
+/// relative.
+struct Carry<'a> {
+    prev: &'a Chunk,
+    has_prev: bool,
+    output: &'a OutputMap,
+    reference: &'a [f32],
+    rebase: bool,
+}
+
+impl Carry<'_> {
+    /// Fill `dst` (`[m, A]`) with the actions the chunk in flight gives ticks
+    /// `tick .. tick + m`; past its end, its last slot is held.
+    fn fill(&self, tick: u64, dst: &mut [f32]) {
+        let (h, a) = (self.prev.horizon, self.prev.action_dim);
+        for (p, dst) in dst.chunks_exact_mut(a).enumerate() {
+            let t = tick + p as u64;
+            let src = if self.has_prev {
+                self.prev.index_of(t).zip(self.prev.action_at(t))
+            } else {
+                None
+            };
+            let (q, vals) = match src {
+                Some((q, (vals, _))) => (q, vals),
+                None => (h - 1, &self.prev.x[(h - 1) * a..]),
+            };
+            if self.rebase {
+                // Committed in the previous chunk's coordinates: move it onto this call's
+                // reference and slot (the command stays the same).
+                self.output
+                    .rebase(vals, q, &self.prev.reference, p, self.reference, dst);
+            } else {
+                dst.copy_from_slice(vals);
+            }
+        }
     }
 }

@@ -7,7 +7,8 @@ use pir2_schedule::{Alignment, FrontMode};
 use crate::control::CallPolicy;
 use crate::head::HeadMode;
 
-/// The five deployment modes of the paper's study.
+/// The five deployment modes of the paper's study, and GR00T N1.7's inference-time RTC (the
+/// baseline N1.7's users already have).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "kind")]
 pub enum Mode {
@@ -30,6 +31,18 @@ pub enum Mode {
     TrainTimeRtc {
         /// Euler steps.
         steps: usize,
+    },
+    /// GR00T N1.7's inference-time RTC: a standard-flow model, `K` Euler steps per call, the
+    /// first `overlap` slots started from the chunk in flight and the first `d` of them kept
+    /// (velocity strength, [`VelocityStrengthRtc`](pir2_schedule::baselines::VelocityStrengthRtc)).
+    /// Calls run asynchronously and swap in at the elapsed index, as naive async.
+    InferenceRtc {
+        /// Euler steps.
+        steps: usize,
+        /// Slots started from the chunk in flight (`None`: every slot it still covers).
+        overlap: Option<usize>,
+        /// Rate `ρ` of the exponential velocity-strength ramp.
+        ramp_rate: f32,
     },
     /// πR² with the slow channel computed inside each call.
     PiR2Sync {
@@ -86,6 +99,7 @@ impl Mode {
             Mode::SyncFlow { .. } => "sync flow",
             Mode::NaiveAsync { .. } => "naive async",
             Mode::TrainTimeRtc { .. } => "train-time RTC",
+            Mode::InferenceRtc { .. } => "N1.7 inference-time RTC",
             Mode::PiR2Sync { .. } => "πR² w/o async",
             Mode::PiR2Async { .. } => "πR² async",
         }
@@ -116,6 +130,20 @@ impl Mode {
                 None => format!("naive async (K = {steps}, plain swap)"),
             },
             Mode::TrainTimeRtc { steps } => format!("train-time RTC (K = {steps})"),
+            Mode::InferenceRtc {
+                steps,
+                overlap,
+                ramp_rate,
+            } => {
+                let o = match overlap {
+                    Some(o) => format!("overlap = {o}"),
+                    None => "overlap = every slot in flight".to_string(),
+                };
+                format!(
+                    "{} (K = {steps}, {o}, ramp rate = {ramp_rate})",
+                    self.name()
+                )
+            }
             Mode::PiR2Sync {
                 nfe,
                 alignment,
@@ -135,12 +163,13 @@ impl Mode {
     pub fn effective_delays(&self, d0: usize) -> EffectiveDelays {
         let slow = (7 * d0).div_ceil(4); // ⌈1.75·d0⌉ in integers
         match self {
-            Mode::SyncFlow { .. } | Mode::NaiveAsync { .. } | Mode::TrainTimeRtc { .. } => {
-                EffectiveDelays {
-                    d: slow.max(1),
-                    d_vis: 0,
-                }
-            }
+            Mode::SyncFlow { .. }
+            | Mode::NaiveAsync { .. }
+            | Mode::TrainTimeRtc { .. }
+            | Mode::InferenceRtc { .. } => EffectiveDelays {
+                d: slow.max(1),
+                d_vis: 0,
+            },
             Mode::PiR2Sync { .. } => EffectiveDelays {
                 d: d0.max(1),
                 d_vis: 0,
@@ -156,6 +185,15 @@ impl Mode {
                 HeadMode::Flow { steps }
             }
             Mode::TrainTimeRtc { steps } => HeadMode::TrainTimeRtc { steps },
+            Mode::InferenceRtc {
+                steps,
+                overlap,
+                ramp_rate,
+            } => HeadMode::InferenceRtc {
+                steps,
+                overlap,
+                ramp_rate,
+            },
             Mode::PiR2Sync {
                 nfe,
                 alignment,

@@ -187,6 +187,11 @@ fn baselines_with_the_oracle_track_the_target() {
             ensemble: Some(0.1),
         },
         Mode::TrainTimeRtc { steps: 5 },
+        Mode::InferenceRtc {
+            steps: 5,
+            overlap: None,
+            ramp_rate: 5.0,
+        },
     ] {
         let (r, env, _) = run(mode, LockstepTiming::for_mode(&mode, 2), 100);
         assert_eq!(r.metrics.overruns, 0);

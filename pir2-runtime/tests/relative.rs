@@ -151,6 +151,15 @@ fn relative_actions_reach_the_absolute_target_in_every_mode_while_the_state_move
         ),
         (Mode::TrainTimeRtc { steps: 4 }, 3, 0),
         (
+            Mode::InferenceRtc {
+                steps: 4,
+                overlap: None,
+                ramp_rate: 5.0,
+            },
+            3,
+            0,
+        ),
+        (
             Mode::NaiveAsync {
                 steps: 4,
                 ensemble: Some(0.1),
@@ -278,6 +287,83 @@ fn a_committed_action_does_not_move_when_the_state_moves() {
         }
         // The model-space value did change (the test would see a missing rebase).
         assert_ne!(c1.x[slot * A], c2.x[(slot - 1) * A]);
+    }
+}
+
+/// GR00T N1.7's inference-time RTC: the `d` slots the robot executes while a call runs are
+/// the chunk in flight's, exactly (rebased onto the new reference when actions are
+/// relative); the slot after them is denoised; an overlap shorter than `d` freezes only the
+/// overlap.
+#[test]
+fn inference_rtc_keeps_what_the_robot_executes_during_the_call() {
+    let sp = spec(4);
+    for relative in [false, true] {
+        for (overlap, frozen) in [(None, 3), (Some(2), 2), (Some(8), 3)] {
+            let mode = Mode::InferenceRtc {
+                steps: 4,
+                overlap,
+                ramp_rate: 5.0,
+            };
+            let mut head = ActionHead::new(
+                Wobbly,
+                sp,
+                mode.head_mode(4),
+                LatencyWindow::new(20, 0, PERIOD, sp.d_max),
+                5,
+            )
+            .unwrap();
+            let map = if relative {
+                relative_map()
+            } else {
+                OutputMap::default()
+            };
+            if relative {
+                head.set_output(&map).unwrap();
+            }
+            head.force_delay(Some(3));
+            let mut snap = Snapshot::new(&sp);
+            let set = |snap: &mut Snapshot, tick: u64, s: [f32; 2]| {
+                snap.tick = tick;
+                for k in 0..sp.n_obs {
+                    snap.fast[k * F..(k + 1) * F].copy_from_slice(&[tick as f32, s[0], s[1]]);
+                }
+            };
+            let decode = |c: &Chunk, slot: usize| -> Vec<f32> {
+                let x = &c.x[slot * A..(slot + 1) * A];
+                if !relative {
+                    return x.to_vec();
+                }
+                let mut u = [0.0; A];
+                map.decode(x, slot, &c.reference, &mut u);
+                u.to_vec()
+            };
+            let (mut c0, mut c1) = (Chunk::new(H, A), Chunk::new(H, A));
+            set(&mut snap, 10, [0.2, -0.4]);
+            head.warm_start(&snap, 3, &mut c0).unwrap();
+            // Two ticks later, the state has moved.
+            set(&mut snap, 12, [0.9, 0.35]);
+            head.call(&snap, &mut c1).unwrap();
+            assert_eq!(c1.base, 12);
+            let what = format!("relative {relative}, overlap {overlap:?}");
+            for p in 0..frozen {
+                let (before, after) = (decode(&c0, p + 2), decode(&c1, p));
+                for j in 0..A {
+                    assert!(
+                        (before[j] - after[j]).abs() < 1e-5,
+                        "{what}: frozen slot {p} dim {j}: {} became {}",
+                        before[j],
+                        after[j]
+                    );
+                }
+            }
+            // The slot after the frozen ones is denoised (the strengths themselves are
+            // tested in pir2-schedule).
+            let moved: f32 = {
+                let (b, a) = (decode(&c0, frozen + 2), decode(&c1, frozen));
+                (0..A).map(|j| (b[j] - a[j]).abs()).sum()
+            };
+            assert!(moved > 1e-4, "{what}: slot {frozen} never moved");
+        }
     }
 }
 

@@ -102,7 +102,7 @@ pub fn sample_chunk<M: VelocityModel>(
             head.force_delay(Some(delay));
             head.call(snap, &mut chunk)?;
         }
-        Mode::TrainTimeRtc { .. } => {
+        Mode::TrainTimeRtc { .. } | Mode::InferenceRtc { .. } => {
             head.warm_start(snap, delay, &mut chunk)?;
             head.force_delay(Some(delay));
             head.call(snap, &mut chunk)?;

@@ -26,13 +26,20 @@ pub enum DeployKind {
     /// Train-time RTC: the in-flight actions are the clean front of the next chunk.
     #[serde(rename = "rtc")]
     Rtc,
+    /// GR00T N1.7's inference-time RTC (its action head's `get_action` given the previous
+    /// chunk) on a standard-flow head: asynchronous like naive async, each call's first
+    /// `rtc_overlap` slots start from the chunk in flight, the `d` executed during the call
+    /// are kept, the rest ramp to a full denoise at rate `rtc_ramp_rate`.
+    #[serde(rename = "inference_rtc")]
+    InferenceRtc,
 }
 
 impl DeployKind {
     /// Every kind, in the paper's table order.
-    pub const ALL: [DeployKind; 5] = [
+    pub const ALL: [DeployKind; 6] = [
         DeployKind::SyncFlow,
         DeployKind::NaiveAsync,
+        DeployKind::InferenceRtc,
         DeployKind::Rtc,
         DeployKind::PiR2Sync,
         DeployKind::PiR2Async,
@@ -46,6 +53,7 @@ impl DeployKind {
             DeployKind::SyncFlow => "sync_flow",
             DeployKind::NaiveAsync => "naive_async",
             DeployKind::Rtc => "rtc",
+            DeployKind::InferenceRtc => "inference_rtc",
         }
     }
 
@@ -69,9 +77,11 @@ impl DeployKind {
 /// trained = "pi_r2"      # pi_r2 | pi_r2_hidden | pi_r2_full | rtc | flow
 /// nfe = 2                # πR²: NFEs per action (n)
 /// flow_steps = 4         # flow and train-time RTC: Euler steps K per chunk
-/// mode = "pir2_async"    # pir2_async | pir2_sync | sync_flow | naive_async | rtc
+/// mode = "pir2_async"    # pir2_async | pir2_sync | sync_flow | naive_async | inference_rtc | rtc
 /// h = 10                 # sync flow: actions executed per chunk
 /// # ensemble = 0.1       # naive async: ACT temporal ensembling decay (absent: plain swap)
+/// # rtc_overlap = 8      # inference_rtc: slots started from the chunk in flight (absent: all)
+/// rtc_ramp_rate = 5.0    # inference_rtc: rate of the velocity-strength ramp
 /// ```
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -89,6 +99,12 @@ pub struct PolicySection {
     pub h: usize,
     /// Naive async: ACT temporal ensembling decay `m` (`None`: plain swap).
     pub ensemble: Option<f32>,
+    /// N1.7 inference-time RTC: slots of each call started from the chunk in flight
+    /// (`None`: every slot it still covers).
+    pub rtc_overlap: Option<usize>,
+    /// N1.7 inference-time RTC: rate `ρ > 0` of the exponential velocity-strength ramp
+    /// (Isaac-GR00T's action-head tests use 5.0; `get_action` itself has no default).
+    pub rtc_ramp_rate: f32,
 }
 
 impl Default for PolicySection {
@@ -100,6 +116,8 @@ impl Default for PolicySection {
             mode: DeployKind::PiR2Async,
             h: 10,
             ensemble: None,
+            rtc_overlap: None,
+            rtc_ramp_rate: 5.0,
         }
     }
 }
@@ -118,6 +136,10 @@ pub struct ModeOverrides {
     pub h: Option<usize>,
     /// Naive async: temporal ensembling decay (`Some(None)`: plain swap).
     pub ensemble: Option<Option<f32>>,
+    /// N1.7 inference-time RTC: slots started from the chunk in flight.
+    pub rtc_overlap: Option<usize>,
+    /// N1.7 inference-time RTC: the velocity-strength ramp rate.
+    pub rtc_ramp_rate: Option<f32>,
 }
 
 impl PolicySection {
@@ -133,7 +155,7 @@ impl PolicySection {
                 P::PiR2ZeroDelay,
                 P::PiR2ZeroDelayFull,
             ],
-            DeployKind::SyncFlow | DeployKind::NaiveAsync => &[P::Flow],
+            DeployKind::SyncFlow | DeployKind::NaiveAsync | DeployKind::InferenceRtc => &[P::Flow],
             DeployKind::Rtc => &[P::Rtc],
         }
     }
@@ -225,6 +247,22 @@ impl PolicySection {
             DeployKind::Rtc => Mode::TrainTimeRtc {
                 steps: positive("flow_steps", steps)?,
             },
+            DeployKind::InferenceRtc => {
+                let r = o.rtc_ramp_rate.unwrap_or(self.rtc_ramp_rate);
+                if !(r.is_finite() && r > 0.0) {
+                    return Err(Error::Gr00tConfig(format!(
+                        "rtc_ramp_rate = {r} (--rtc-ramp-rate or [policy]): the ramp rate must be finite and > 0"
+                    )));
+                }
+                Mode::InferenceRtc {
+                    steps: positive("flow_steps", steps)?,
+                    overlap: match o.rtc_overlap.or(self.rtc_overlap) {
+                        Some(o) => Some(positive("rtc_overlap", o)?),
+                        None => None,
+                    },
+                    ramp_rate: r,
+                }
+            }
         })
     }
 }

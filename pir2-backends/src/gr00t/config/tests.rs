@@ -223,6 +223,36 @@ fn every_row_of_the_robot_table_resolves_from_the_policy_table() {
             ensemble: Some(0.1)
         }
     );
+    assert_eq!(
+        flow.mode(&over(DeployKind::InferenceRtc)).unwrap(),
+        Mode::InferenceRtc {
+            steps: 4,
+            overlap: None,
+            ramp_rate: 5.0
+        }
+    );
+    let irtc = section(
+        "trained = \"flow\"\nmode = \"inference_rtc\"\nrtc_overlap = 8\nrtc_ramp_rate = 6.0",
+    );
+    assert_eq!(
+        irtc.mode(&ModeOverrides::default()).unwrap(),
+        Mode::InferenceRtc {
+            steps: 4,
+            overlap: Some(8),
+            ramp_rate: 6.0
+        }
+    );
+    for (text, want) in [
+        ("rtc_overlap = 0", "rtc_overlap must be >= 1"),
+        ("rtc_ramp_rate = -1.0", "rtc_ramp_rate = -1"),
+        ("rtc_ramp_rate = nan", "rtc_ramp_rate = NaN"),
+    ] {
+        let bad = section(&format!(
+            "trained = \"flow\"\nmode = \"inference_rtc\"\n{text}"
+        ));
+        let e = bad.mode(&ModeOverrides::default()).unwrap_err().to_string();
+        assert!(e.contains(want), "{text}: {e}");
+    }
     let rtc = section("trained = \"rtc\"\nmode = \"rtc\"\nflow_steps = 4");
     assert_eq!(
         rtc.mode(&ModeOverrides::default()).unwrap(),
