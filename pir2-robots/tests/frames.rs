@@ -490,7 +490,7 @@ fn xhand_parser_reports_a_bad_crc_and_resyncs_on_the_next_frame() {
 // ---------------------------------------------------------------------------------------------
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+    #![proptest_config(pir2_tests::fuzz_cases(256, "proptest-regressions/frames.txt"))]
 
     #[test]
     fn xarm_decoders_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..200)) {

@@ -288,7 +288,7 @@ fn replies(n: usize) -> Vec<Reply> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+    #![proptest_config(pir2_tests::fuzz_cases(128, "proptest-regressions/xarm_wire.txt"))]
 
     /// Replies concatenated into one stream and cut at arbitrary points come out whole and
     /// in order.

@@ -163,7 +163,27 @@ fn bits(v: &[f32]) -> Vec<u32> {
     v.iter().map(|x| x.to_bits()).collect()
 }
 
+/// Proptest settings: 256 cases per property in CI, `PIR2_FUZZ_CASES` more
+/// (`scripts/check-extra.sh`); shrunk failures kept in `proptest-regressions/wire.txt`. The
+/// integration tests of other crates take the same rule from `pir2_tests::fuzz_cases`; this
+/// unit test cannot, since pir2-tests depends on this crate.
+fn fuzz_cases() -> ProptestConfig {
+    let cases = std::env::var("PIR2_FUZZ_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(256);
+    ProptestConfig {
+        cases,
+        failure_persistence: Some(Box::new(
+            proptest::test_runner::FileFailurePersistence::Direct("proptest-regressions/wire.txt"),
+        )),
+        ..ProptestConfig::default()
+    }
+}
+
 proptest! {
+    #![proptest_config(fuzz_cases())]
+
     #[test]
     fn request_round_trips_bit_exactly(req in request_strategy()) {
         let bytes = encode_request(req.header.sender, req.header.seq, req.header.t_a, &req.input());

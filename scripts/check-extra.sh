@@ -1,0 +1,94 @@
+#!/usr/bin/env bash
+# Checks too long or too heavy for CI (`.ci/run`, budget 60 min on 2 cores). Run the group an
+# issue needs before resolving it, and put the summary this script prints in the issue's note.
+#
+#   scripts/check-extra.sh fuzz-fast    # the byte parsers: Zenoh wire, xArm and XHand frames
+#   scripts/check-extra.sh fuzz-files   # the file parsers: dataset, study config, checkpoint,
+#                                       # embodiment (about 1 ms a case: ~20 min each at 10^6)
+#   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile here?
+#   scripts/check-extra.sh all
+#
+# Fuzzing: every property runs PIR2_FUZZ_CASES cases (default 10^6), in the test profile whose
+# builds CI already has. Each property starts from a corpus of valid inputs and mutates it,
+# besides arbitrary bytes:
+#   wire       encoded requests, replies, pongs and features of every message family
+#   frames     xArm commands/replies/reports and XHand frames as the protocol docs write them
+#   xarm_wire  report frames of every size the official SDK accepts, split anywhere
+#   reader     a small LeRobotDataset v3.0 written by `DatasetWriter` (info.json, parquet)
+#   config     the ball-plate task's TOML config
+#   checkpoint a candle checkpoint (config.json, stats.json, model.safetensors)
+#   embodiment the xArm6 + XHand embodiment.toml
+# A failure is shrunk and written to the crate's `proptest-regressions/` (commit it: CI then
+# replays it first on every run).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+export PIR2_FUZZ_CASES="${PIR2_FUZZ_CASES:-1000000}"
+summary=()
+
+timed() {
+    local name="$1"
+    shift
+    local t0=$SECONDS
+    echo "--- $name ($PIR2_FUZZ_CASES cases per property) ---"
+    if "$@"; then
+        summary+=("$name: ok, $((SECONDS - t0)) s")
+    else
+        summary+=("$name: FAILED after $((SECONDS - t0)) s")
+        return 1
+    fi
+}
+
+fuzz_fast() {
+    timed "wire (pir2-runtime remote::wire)" \
+        cargo test -p pir2-runtime --features remote --lib remote::wire
+    timed "frames + xarm_wire (pir2-robots)" \
+        cargo test -p pir2-robots --test frames --test xarm_wire
+}
+
+fuzz_files() {
+    if [ -f .native/env.sh ]; then
+        # shellcheck disable=SC1091
+        source .native/env.sh
+    fi
+    timed "reader + config (pir2-sim)" \
+        cargo test -p pir2-sim --test reader_fuzz --test config_fuzz
+    timed "checkpoint + embodiment (pir2-backends)" \
+        cargo test -p pir2-backends --features gr00t --test checkpoint_fuzz --test embodiment_fuzz
+}
+
+cuda() {
+    # candle's CUDA kernels need NVIDIA's compiler at build time; PyPI's nvidia-cuda-nvcc
+    # wheels ship `nvcc` but not the driver API stubs candle's build links against.
+    if command -v nvcc >/dev/null 2>&1; then
+        local t0=$SECONDS
+        if cargo check -p pir2-backends --features gr00t,cuda; then
+            summary+=("cuda: --features gr00t,cuda compiles, $((SECONDS - t0)) s")
+        else
+            summary+=("cuda: --features gr00t,cuda FAILED to compile")
+            return 1
+        fi
+    else
+        summary+=("cuda: not checked: no nvcc on PATH (install the CUDA toolkit)")
+    fi
+}
+
+status=0
+case "${1:-all}" in
+fuzz-fast) fuzz_fast || status=1 ;;
+fuzz-files) fuzz_files || status=1 ;;
+cuda) cuda || status=1 ;;
+all)
+    fuzz_fast || status=1
+    fuzz_files || status=1
+    cuda || status=1
+    ;;
+*)
+    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|all]" >&2
+    exit 2
+    ;;
+esac
+
+echo "=== check-extra summary ==="
+printf '%s\n' "${summary[@]}"
+exit $status
