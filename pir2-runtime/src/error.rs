@@ -46,6 +46,10 @@ pub enum Error {
         /// What went wrong.
         message: String,
     },
+    /// A model call given up because the run is stopping ([`crate::StopSignal`]); the
+    /// real-time driver does not report it as the run's error.
+    #[error("the call was abandoned: the run is stopping")]
+    Abandoned,
     /// A worker thread stopped unexpectedly.
     #[error("worker `{0}` stopped")]
     WorkerStopped(&'static str),

@@ -294,6 +294,12 @@ impl<M: VelocityModel> ActionHead<M> {
         &self.model
     }
 
+    /// Hand the run's [`StopSignal`](crate::StopSignal) to the model
+    /// ([`VelocityModel::watch_stop`]).
+    pub fn watch_stop(&mut self, stop: crate::StopSignal) {
+        self.model.watch_stop(stop);
+    }
+
     /// Give the model back (e.g. to read its counters after a run).
     pub fn into_model(self) -> M {
         self.model

@@ -76,7 +76,7 @@ pub use io::{
 pub use lockstep::{eval_cell, EpisodeResult, LockstepDriver, LockstepTiming, StudyCell};
 pub use metrics::{CallRecord, Histogram, Percentiles, RunMetrics, RunTrace};
 pub use mode::{EffectiveDelays, Mode};
-pub use model::{ModelInput, SlowInput, SlowSpec, VelocityModel};
+pub use model::{ModelInput, SlowInput, SlowSpec, StopSignal, VelocityModel};
 /// The schedule's public types a robot program names (so it needs no direct dependency on
 /// `pir2-schedule`).
 pub use pir2_schedule::{Alignment, FrontMode, Staircase};

@@ -165,6 +165,27 @@ impl ModelInput<'_> {
     }
 }
 
+/// Raised by the real-time driver when a run stops (the robot is stopped first), so a model
+/// whose call can block for long (a remote head retrying a server that is gone) gives the
+/// call up instead of holding the run's exit; see [`VelocityModel::watch_stop`].
+#[derive(Debug, Clone, Default)]
+pub struct StopSignal(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl StopSignal {
+    /// A signal not raised yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Raise it (every clone sees it).
+    pub fn raise(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+    /// Whether it was raised.
+    pub fn is_raised(&self) -> bool {
+        self.0.load(std::sync::atomic::Ordering::SeqCst)
+    }
+}
+
 /// A flow-matching velocity model `v(x, τ, obs_fast, obs_slow, d_vis)`.
 ///
 /// `velocity` writes `[B, H, A]` into `out`. Backends keep their scratch memory inside
@@ -182,6 +203,11 @@ pub trait VelocityModel: Send {
             backend: self.backend(),
         })
     }
+    /// Called by the real-time driver before the first call with the run's [`StopSignal`].
+    /// A model whose call can block for long should, once it is raised, end the call with
+    /// [`Error::Abandoned`] (the driver then ignores it: the run is already stopping).
+    /// Default: nothing (a local model's call is short).
+    fn watch_stop(&mut self, _stop: StopSignal) {}
 }
 
 impl<M: VelocityModel + ?Sized> VelocityModel for Box<M> {
@@ -193,5 +219,8 @@ impl<M: VelocityModel + ?Sized> VelocityModel for Box<M> {
     }
     fn export_onnx(&self, path: &std::path::Path) -> Result<()> {
         (**self).export_onnx(path)
+    }
+    fn watch_stop(&mut self, stop: StopSignal) {
+        (**self).watch_stop(stop)
     }
 }

@@ -606,6 +606,7 @@ where
         None => None,
     };
     let mut stopped: Option<Result<()>> = None;
+    let stop_signal = crate::StopSignal::new();
     let result = std::thread::scope(|s| -> Result<RunMetrics> {
         let mut worker = None;
         let body = catch_unwind(AssertUnwindSafe(|| -> Result<RunMetrics> {
@@ -710,6 +711,7 @@ where
                 Err(e) => return Err(e),
             };
             lp.control.deliver(&mut first);
+            head.watch_stop(stop_signal.clone());
             let head_ref = &mut head;
             let clock_ref: &dyn Clock = &*clock;
             let sh = &*shared;
@@ -718,7 +720,8 @@ where
                     action_worker(sh, head_ref, clock_ref, slow_inline)
                 }));
                 match r {
-                    Ok(Ok(())) => {}
+                    // A call the model gave up because the run is stopping is no error.
+                    Ok(Ok(())) | Ok(Err(Error::Abandoned)) => {}
                     Ok(Err(e)) => sh.fail(e),
                     Err(p) => sh.fail(Error::panicked("action worker", &*p)),
                 }
@@ -771,6 +774,7 @@ where
         // model call or capture).
         stop_once(&mut actuator, &mut stopped);
         shared.stop.store(true, Ordering::SeqCst);
+        stop_signal.raise();
         shared.fast_cv.notify_all();
         if let Some(w) = worker {
             if let Err(p) = w.join() {

@@ -329,6 +329,33 @@ fn policy_server_gone_stops_the_robot_safely() {
     assert!(r.sent < 500, "sent {}", r.sent);
 }
 
+/// A run stopped by its control watchdog while the action worker's call is still retrying a
+/// server that is gone: the robot stops first, then the call is abandoned (counted) instead
+/// of retrying for `max_failed_calls × timeout` (here 5,000 × 30 ms = 150 s), so the run
+/// ends in the watchdog's error well before that.
+#[test]
+fn a_call_still_retrying_when_the_run_stops_is_abandoned() {
+    let pp = free_port();
+    let policy = policy_server(pp, 2, Duration::ZERO);
+    let model = remote_model(pp, 30, 5_000);
+    let stats = model.stats();
+    let robot_clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let t0 = std::time::Instant::now();
+    let runner = std::thread::spawn(move || go(model, None, robot_clock, 100_000, None));
+    std::thread::sleep(Duration::from_millis(400));
+    policy.kill();
+    let r = runner.join().unwrap();
+    let took = t0.elapsed();
+    match r.result {
+        Err(Error::SafetyStop(msg)) => assert!(msg.contains("watchdog"), "{msg}"),
+        Err(e) => panic!("expected the control watchdog's safety stop, got {e}"),
+        Ok(_) => panic!("expected a safety stop, the run completed"),
+    }
+    let c = stats.counters();
+    assert_eq!((c.abandoned, c.failed_calls), (1, 0), "{c:?}");
+    assert!(took < Duration::from_secs(60), "the run took {took:?}");
+}
+
 #[test]
 fn slow_server_restart_resyncs_the_clock_and_resumes() {
     let base = Arc::new(SystemClock::new());

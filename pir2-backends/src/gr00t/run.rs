@@ -135,6 +135,9 @@ impl VelocityModel for CountDvis {
         }
         self.inner.velocity(input, out)
     }
+    fn watch_stop(&mut self, stop: pir2_runtime::StopSignal) {
+        self.inner.watch_stop(stop)
+    }
 }
 
 /// Options of [`run_gr00t`].

@@ -516,6 +516,7 @@ pub struct RemoteStats {
     server_errors: AtomicU64,
     malformed: AtomicU64,
     foreign_replies: AtomicU64,
+    abandoned: AtomicU64,
     offset_ns: AtomicI64,
     offset_rtt_ns: AtomicU64,
     last_rtt_ns: AtomicU64,
@@ -554,6 +555,10 @@ pub struct RemoteCounters {
     /// while the pinned one is alive): dropped, never used.
     #[serde(default)]
     pub foreign_replies: u64,
+    /// Policy: calls given up because the run stopped while they were retrying (the robot
+    /// was already stopped; see [`crate::StopSignal`]).
+    #[serde(default)]
+    pub abandoned: u64,
     /// Slow: current offset estimate, server clock − robot clock, ns.
     pub offset_ns: i64,
     /// Slow: round trip of the sample the offset came from (accuracy bound = half), ns.
@@ -580,6 +585,7 @@ impl RemoteStats {
             server_errors: r(&self.server_errors),
             malformed: r(&self.malformed),
             foreign_replies: r(&self.foreign_replies),
+            abandoned: r(&self.abandoned),
             offset_ns: self.offset_ns.load(Ordering::Relaxed),
             offset_rtt_ns: r(&self.offset_rtt_ns),
             last_rtt_ns: r(&self.last_rtt_ns),

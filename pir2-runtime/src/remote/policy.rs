@@ -423,6 +423,8 @@ pub struct RemoteModel {
     /// The session token of the last handshake: only replies carrying it are used.
     token: SessionToken,
     handshakes: u64,
+    /// The run's stop signal ([`VelocityModel::watch_stop`]): retries end once it is raised.
+    stop: Option<crate::StopSignal>,
 }
 
 impl std::fmt::Debug for RemoteModel {
@@ -483,6 +485,7 @@ impl RemoteModel {
             server_identity,
             token,
             handshakes,
+            stop: None,
         })
     }
 
@@ -627,6 +630,12 @@ impl RemoteModel {
                     },
                 });
             }
+            if self.stop.as_ref().is_some_and(|s| s.is_raised()) {
+                // The run is stopping (the robot is already stopped): retrying would only
+                // hold its exit for up to `max_failed_calls × timeout`.
+                bump(&self.stats.abandoned);
+                return Err(Error::Runtime(crate::Error::Abandoned));
+            }
             if foreign > 0 {
                 self.handshake_again()?;
             }
@@ -643,6 +652,9 @@ impl VelocityModel for RemoteModel {
     }
     fn velocity(&mut self, input: &ModelInput<'_>, out: &mut [f32]) -> crate::Result<()> {
         self.call(input, out).map_err(Into::into)
+    }
+    fn watch_stop(&mut self, stop: crate::StopSignal) {
+        self.stop = Some(stop);
     }
 }
 
