@@ -220,8 +220,10 @@ mod imp {
             s.files.join(", ")
         );
         println!(
-            "add the backbone (onnx/backbone.onnx) and the VLM's tokenizer.json to run it \
-             (docs/gr00t-contract.md)"
+            "add the backbone (onnx/backbone.onnx, or GR00T's split export: \
+             onnx/vit_fp32.onnx, onnx/llm_fp32.onnx and the token table's model.safetensors, \
+             e.g. from the `pir2 gr00t import` directory) and the VLM's tokenizer.json to run \
+             it (docs/gr00t-contract.md)"
         );
         Ok(())
     }

@@ -558,10 +558,12 @@ mod imp {
             .with_context(|| format!("checkpoint {}", dir.display()))
     }
 
-    /// Check `--task` against the configured tasks (keys or prompts).
+    /// Check `--task` against the configured tasks (keys or prompts). An embodiment without
+    /// `[tasks]` (what `pir2 gr00t import` writes) has nothing to check it against: the task
+    /// is the prompt itself, as docs/gr00t-import.md says.
     fn check_task(cfg: &EmbodimentConfig, task: &str, free: bool) -> Result<()> {
         let known = cfg.tasks.contains_key(task) || cfg.tasks.values().any(|p| p == task);
-        if known || free {
+        if known || free || cfg.tasks.is_empty() {
             return Ok(());
         }
         let list: Vec<String> = cfg
@@ -1367,5 +1369,29 @@ mod imp {
             trace: report.metrics.trace(period),
             limits: None,
         })
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn a_task_is_checked_only_against_a_tasks_table() {
+            let paper = EmbodimentConfig::xarm6_xhand();
+            check_task(&paper, "catch_book", false).unwrap();
+            check_task(&paper, "catch the book", false).unwrap();
+            let e = check_task(&paper, "catch the bok", false)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("unknown task") && e.contains("--free-prompt"),
+                "{e}"
+            );
+            check_task(&paper, "catch the bok", true).unwrap();
+            // An imported embodiment has no [tasks]: the task is the prompt.
+            let mut imported = paper;
+            imported.tasks.clear();
+            check_task(&imported, "pick the cube", false).unwrap();
+        }
     }
 }
