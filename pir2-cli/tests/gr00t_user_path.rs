@@ -25,11 +25,10 @@
 //!   and `action` columns are replaced with 45 and 18 values per frame (smooth synthetic
 //!   trajectories), so that they fit the embodiment.
 //!
-//! Three edits a user makes by hand are made here the same way, on the imported
+//! Two edits a user makes by hand are made here the same way, on the imported
 //! `embodiment.toml` written to a separate file: `cameras` (the import leaves it empty, see
-//! docs/gr00t-import.md), `[policy]` (the import declares a released flow head; it is
-//! fine-tuned as πR² and run as πR² async) and `d_max` (2: the tiny H = 5 this dataset's
-//! short episodes allow takes no longer delay under πR²'s fresh alignment). Needs `source .native/env.sh` (ONNX Runtime,
+//! docs/gr00t-import.md) and `[policy]` (the import declares a released flow head; it is
+//! fine-tuned as πR² and run as πR² async). Needs `source .native/env.sh` (ONNX Runtime,
 //! `ffmpeg`, `$PIR2_PYTHON` with `onnx` and `pyarrow`).
 #![cfg(feature = "gr00t")]
 
@@ -453,10 +452,9 @@ fn a_released_layout_checkpoint_imports_trains_exports_and_runs() {
         .collect();
     emb.policy.trained = pir2_runtime::Policy::PiR2;
     emb.policy.mode = DeployKind::PiR2Async;
-    // The import's d_max = min(5, H − 1) = 4; πR²'s fresh alignment needs H ≥ 3·d − 1, so
-    // H = 5 takes d ≤ 2 (the trainer refuses d_max = 4, naming that bound).
-    assert_eq!(emb.d_max, H - 1);
-    emb.d_max = 2;
+    // πR²'s fresh alignment needs H ≥ 3·d − 1: the import gives this H = 5 the d_max = 2 it
+    // takes (not the default 5, nor H − 1 = 4, which the trainer would refuse).
+    assert_eq!(emb.d_max, 2);
     let emb_path = root.join("embodiment.toml");
     std::fs::write(&emb_path, emb.to_toml().unwrap()).unwrap();
 

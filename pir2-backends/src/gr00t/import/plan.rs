@@ -520,7 +520,15 @@ pub(super) fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     emb.embodiment_id = embodiment_id;
     emb.control_hz = opts.control_hz;
     emb.horizon = h;
-    emb.d_max = emb.d_max.min(h.saturating_sub(1));
+    // The largest delay (at most the default 5, below H) every policy can be fine-tuned
+    // for: πR²'s fresh staircase needs H ≥ 3·d − 1, so a short chunk takes a smaller d_max.
+    let fits = |d: usize| {
+        pir2_schedule::Staircase::new(h, d, None, pir2_schedule::Alignment::Fresh).is_ok()
+    };
+    emb.d_max = (1..=emb.d_max.min(h.saturating_sub(1)))
+        .rev()
+        .find(|&d| fits(d))
+        .unwrap_or(emb.d_max.min(h.saturating_sub(1)));
     emb.n_obs = n_obs;
     emb.num_timestep_buckets = cfg.num_timestep_buckets as i64;
     emb.cameras = Vec::new();
