@@ -18,7 +18,7 @@
 //!
 //! `B` may be dynamic; `H, A, n_obs, F, S, T, D` must be fixed in the file. A loaded model is
 //! checked against this table (names, element types, ranks, dimensions) and rejected with an
-//! [`Error::OrtContract`](crate::Error::OrtContract) naming the file, the tensor and what was wrong. Files written by
+//! [`Error::OrtContract`] naming the file, the tensor and what was wrong. Files written by
 //! [`crate::export`] follow the contract by construction.
 //!
 //! # Loading ONNX Runtime
