@@ -19,7 +19,7 @@ fn default_toml() -> String {
     EmbodimentConfig::xarm6_xhand().to_toml().unwrap()
 }
 
-/// Load `text` as `embodiment.toml`; on success use it as `pir2 run` does.
+/// Load `text` as `embodiment.toml`; on success use it as `pir2 gr00t run` does.
 fn check(file: &File, text: &[u8]) {
     std::fs::write(&file.0, text).unwrap();
     if let Ok(cfg) = EmbodimentConfig::load(&file.0) {

@@ -356,7 +356,7 @@ fn parity_with(case: &str, storage: WeightStorage, heads: bool) {
     assert!(rel_err(&got_t, &want_t) <= TOL, "{case}");
     assert!(rel_err(&got_t, &got) > 100.0 * TOL, "{case}");
 
-    // The candle head behind the ONNX head's interface (`pir2 run --candle-head`): the same
+    // The candle head behind the ONNX head's interface (`pir2 gr00t run --candle-head`): the same
     // glue, so the same velocity.
     let mut direct = Gr00tCandleHead::load(&dir.0.join("step"), &cfg, norm.clone(), SLOT).unwrap();
     direct.set_vl_layout(i.layout.clone());

@@ -1,5 +1,5 @@
 //! `--ep cpu|cuda|tensorrt`, `--ep-device N`, `--trt-cache DIR`: where ONNX Runtime runs the
-//! GR00T graphs (`pir2 run`, `pir2 serve`, `pir2 gr00t bench`).
+//! GR00T graphs (`pir2 gr00t run|serve|bench`).
 
 use std::path::PathBuf;
 

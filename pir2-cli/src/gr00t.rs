@@ -1,20 +1,24 @@
 //! `pir2 gr00t <verb>`: the GR00T N1.7 commands (feature `gr00t`; a build without it offers
 //! the same verbs and options, and each says how to build it). The work is
-//! [`crate::study::gr00t`]'s and `crate::bench::gr00t`'s; this module prints what a user
-//! reads.
+//! [`crate::study::gr00t`]'s, `crate::bench::gr00t`'s, [`crate::run`]'s (`run`) and
+//! [`crate::serve`]'s (`serve`); this module prints what a user reads, and maps the old
+//! spellings of `run` and `serve` to these ([`new_spelling`]).
 
+use std::ffi::OsString;
 use std::path::PathBuf;
 
 use anyhow::Result;
 
 use crate::ep::EpOptions;
+use crate::run::RunOptions;
+use crate::serve::Gr00tServeCmd;
 use crate::study::gr00t::{Gr00tFeaturesOptions, Gr00tTrainOptions};
 
 /// The verbs of `pir2 gr00t`.
 #[derive(Debug, Clone, clap::Subcommand)]
 pub enum Gr00tCmd {
     /// Precompute GR00T N1.7's frozen backbone features (the checkpoint's ONNX backbone and
-    /// tokenizer, run as `pir2 run` runs them) on every frame of a LeRobotDataset v3.0,
+    /// tokenizer, run as `pir2 gr00t run` runs them) on every frame of a LeRobotDataset v3.0,
     /// written as the `--features` file of `pir2 gr00t train` (needs the `ffmpeg` program for
     /// video cameras).
     Features(Gr00tFeaturesOptions),
@@ -22,19 +26,55 @@ pub enum Gr00tCmd {
     /// precomputed backbone features, with candle.
     Train(Box<Gr00tTrainOptions>),
     /// A `pir2 gr00t train` step directory to the GR00T checkpoint layout
-    /// (docs/gr00t-contract.md), which `pir2 run` runs.
+    /// (docs/gr00t-contract.md), which `pir2 gr00t run` runs.
     Export(Gr00tExportOptions),
     /// One-NFE latency of a GR00T export's action head and backbone, and the delay `d` it
     /// implies.
     Bench(Gr00tBenchOptions),
     /// Write a small example checkpoint with random weights (the xArm6 + XHand embodiment,
     /// N1.7's shapes at tiny widths: action head, stand-in backbone, tokenizer) that
-    /// `pir2 run gr00t-xarm-xhand --emulate` runs; no download, no Python.
+    /// `pir2 gr00t run gr00t-xarm-xhand --emulate` runs; no download, no Python.
     Example(Gr00tExampleOptions),
     /// A GR00T N1.7 checkpoint as Isaac-GR00T writes it (config.json, safetensors,
     /// processor_config.json, statistics.json, embodiment_id.json) to the checkpoint layout
-    /// `pir2 run` and `pir2 gr00t train` read (docs/gr00t-import.md).
+    /// `pir2 gr00t run` and `pir2 gr00t train` read (docs/gr00t-import.md).
     Import(Gr00tImportOptions),
+    /// Run a GR00T stack on a robot (or its emulators): the action head one NFE per control
+    /// tick, the backbone on the slow channel, each here or on `pir2 gr00t serve`.
+    Run(Box<RunOptions>),
+    /// Servers for a GR00T run's remote action head and remote backbone (feature `remote`).
+    Serve {
+        #[command(subcommand)]
+        cmd: Gr00tServeCmd,
+    },
+}
+
+/// The arguments of a command line (program name first) in the current spelling, and the
+/// note to print on stderr when they used an old one: `pir2 run STACK …` is
+/// `pir2 gr00t run STACK …`, and `pir2 serve policy|slow … --gr00t-checkpoint DIR …` is
+/// `pir2 gr00t serve policy|slow … --checkpoint DIR …` (which still takes
+/// `--gr00t-checkpoint` under its old name). Other command lines are returned unchanged.
+pub fn new_spelling(mut args: Vec<OsString>) -> (Vec<OsString>, Option<String>) {
+    let is = |i: usize, s: &str| args.get(i).is_some_and(|a| a == s);
+    let note = if is(1, "run") {
+        "note: `pir2 run` is now `pir2 gr00t run` (the old spelling will go)".to_string()
+    } else if is(1, "serve")
+        && (is(2, "policy") || is(2, "slow"))
+        && args.iter().skip(3).any(|a| {
+            let a = a.to_string_lossy();
+            a == "--gr00t-checkpoint" || a.starts_with("--gr00t-checkpoint=")
+        })
+    {
+        let verb = args[2].to_string_lossy().into_owned();
+        format!(
+            "note: `pir2 serve {verb} --gr00t-checkpoint` is now `pir2 gr00t serve {verb} \
+             --checkpoint` (the old spelling will go)"
+        )
+    } else {
+        return (args, None);
+    };
+    args.insert(1, "gr00t".into());
+    (args, Some(note))
 }
 
 /// Options of `pir2 gr00t example`.
@@ -103,31 +143,45 @@ pub struct Gr00tBenchOptions {
     pub ep: EpOptions,
 }
 
-/// Run a `pir2 gr00t` verb. Training and feature extraction stop on SIGINT/SIGTERM
-/// ([`crate::signals::stop_flag`]) at a point they resume from.
+/// Run a `pir2 gr00t` verb. Training, feature extraction, runs and servers stop on
+/// SIGINT/SIGTERM ([`crate::signals::stop_flag`]); training and feature extraction at a point
+/// they resume from.
 pub fn gr00t(cmd: Gr00tCmd) -> Result<()> {
-    #[cfg(feature = "gr00t")]
-    match cmd {
-        Gr00tCmd::Features(o) => imp::features(o, crate::signals::stop_flag()),
-        Gr00tCmd::Train(o) => imp::train(*o, crate::signals::stop_flag()),
-        Gr00tCmd::Export(o) => imp::export(&o),
-        Gr00tCmd::Bench(o) => imp::bench(&o),
-        Gr00tCmd::Example(o) => imp::example(&o),
-        Gr00tCmd::Import(o) => imp::import(&o),
-    }
     #[cfg(not(feature = "gr00t"))]
-    {
-        let verb = match cmd {
-            Gr00tCmd::Features(_) => "features",
-            Gr00tCmd::Train(_) => "train",
-            Gr00tCmd::Export(_) => "export",
-            Gr00tCmd::Bench(_) => "bench",
-            Gr00tCmd::Example(_) => "example",
-            Gr00tCmd::Import(_) => "import",
-        };
+    let no_gr00t = |verb: &str| -> Result<()> {
         anyhow::bail!(
             "`pir2 gr00t {verb}` needs a pir2 built with feature `gr00t` (--features gr00t)"
         )
+    };
+    match cmd {
+        // `run` and `serve` say themselves what a build without `gr00t` or `remote` lacks
+        // (and a failed run writes its `--json` report in any build).
+        Gr00tCmd::Run(o) => crate::run::run_command(&o, crate::signals::stop_flag()),
+        Gr00tCmd::Serve { cmd } => crate::serve::serve_gr00t(&cmd, crate::signals::stop_flag()),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Features(o) => imp::features(o, crate::signals::stop_flag()),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Train(o) => imp::train(*o, crate::signals::stop_flag()),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Export(o) => imp::export(&o),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Bench(o) => imp::bench(&o),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Example(o) => imp::example(&o),
+        #[cfg(feature = "gr00t")]
+        Gr00tCmd::Import(o) => imp::import(&o),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Features(_) => no_gr00t("features"),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Train(_) => no_gr00t("train"),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Export(_) => no_gr00t("export"),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Bench(_) => no_gr00t("bench"),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Example(_) => no_gr00t("example"),
+        #[cfg(not(feature = "gr00t"))]
+        Gr00tCmd::Import(_) => no_gr00t("import"),
     }
 }
 
@@ -246,8 +300,8 @@ mod imp {
             s.files.join(", ")
         );
         println!(
-            "run it on the emulators: pir2 run gr00t-xarm-xhand --checkpoint {} --task \"catch \
-             the book\" --emulate --seconds 2",
+            "run it on the emulators: pir2 gr00t run gr00t-xarm-xhand --checkpoint {} --task \
+             \"catch the book\" --emulate --seconds 2",
             s.dir.display()
         );
         Ok(())
@@ -294,15 +348,56 @@ mod imp {
         }
         if s.missing.is_empty() {
             println!(
-                "complete: `pir2 run gr00t-xarm-xhand --checkpoint {}` reads it",
+                "complete: `pir2 gr00t run gr00t-xarm-xhand --checkpoint {}` reads it",
                 s.out.display()
             );
         } else {
-            println!("before `pir2 run`, add:");
+            println!("before `pir2 gr00t run`, add:");
             for m in &s.missing {
                 println!("  {}: {}", m.file, m.how);
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::new_spelling;
+    use std::ffi::OsString;
+
+    fn args(line: &str) -> Vec<OsString> {
+        line.split(' ').map(OsString::from).collect()
+    }
+
+    #[test]
+    fn the_old_spellings_become_the_gr00t_verbs_with_a_note() {
+        let (a, note) = new_spelling(args("pir2 run gr00t-xarm-xhand --emulate"));
+        assert_eq!(a, args("pir2 gr00t run gr00t-xarm-xhand --emulate"));
+        assert!(note.unwrap().contains("`pir2 gr00t run`"));
+        for verb in ["policy", "slow"] {
+            for flag in ["--gr00t-checkpoint ck", "--gr00t-checkpoint=ck"] {
+                let (a, note) = new_spelling(args(&format!("pir2 serve {verb} --task t {flag}")));
+                assert_eq!(a, args(&format!("pir2 gr00t serve {verb} --task t {flag}")));
+                assert!(note.unwrap().contains(&format!("`pir2 gr00t serve {verb}")));
+            }
+        }
+    }
+
+    #[test]
+    fn other_command_lines_are_unchanged() {
+        for line in [
+            "pir2",
+            "pir2 serve policy --checkpoint ck",
+            "pir2 serve slow --stub 4",
+            "pir2 serve",
+            "pir2 gr00t run gr00t-xarm-xhand --checkpoint ck",
+            "pir2 gr00t serve policy --checkpoint ck --task t",
+            "pir2 eval ball-plate --checkpoint run",
+        ] {
+            let (a, note) = new_spelling(args(line));
+            assert_eq!(a, args(line));
+            assert!(note.is_none(), "{line}");
+        }
     }
 }

@@ -1,12 +1,13 @@
 //! The `pir2` binary: parses arguments and makes one call into the library per subcommand.
 //! Every command's options are a struct of the library (`pir2_cli::commands`, `tasks`,
-//! `gr00t`, `run`, `serve`) whose fields are its arguments.
+//! `gr00t`, `run`, `serve`) whose fields are its arguments. The old spellings `pir2 run …`
+//! and `pir2 serve policy|slow --gr00t-checkpoint …` still run, as `pir2 gr00t run|serve`
+//! (`pir2_cli::gr00t::new_spelling`), with a note on stderr.
 
 use clap::{Parser, Subcommand};
 
 use pir2_cli::commands::{self, BenchOptions, DemoOptions, ExportOptions, PlotOptions, RobotCmd};
 use pir2_cli::gr00t::{self, Gr00tCmd};
-use pir2_cli::run::{self, RunOptions};
 use pir2_cli::serve::{self, ServeOptions};
 use pir2_cli::signals::stop_flag;
 use pir2_cli::tasks::{self, CollectOptions, EvalOptions, ReportOptions, TrainOptions};
@@ -41,9 +42,8 @@ enum Cmd {
     /// and per seed, as the evaluation computes them, without the checkpoints and without
     /// simulating; the log is only read.
     Report(ReportOptions),
-    /// Run a policy stack on a robot (or its emulators).
-    Run(Box<RunOptions>),
-    /// Servers for the remote slow channel and the remote action head (feature `remote`).
+    /// Servers for `pir2 eval --remote`'s action head and a stub slow channel (feature
+    /// `remote`; GR00T's: `pir2 gr00t serve`).
     Serve {
         #[command(subcommand)]
         cmd: ServeOptions,
@@ -56,7 +56,7 @@ enum Cmd {
     /// Benchmarks printed side by side (schedule, runtime).
     Bench(BenchOptions),
     /// GR00T N1.7 with πR² (needs a build with `--features gr00t`): backbone features, action
-    /// head fine-tuning, export, latency.
+    /// head fine-tuning, export, latency, a run on a robot and its servers.
     Gr00t {
         #[command(subcommand)]
         cmd: Gr00tCmd,
@@ -102,13 +102,16 @@ fn error_report(e: &anyhow::Error) -> String {
 /// The SIGINT/SIGTERM stop flag (`pir2_cli::signals`) is installed only for the commands
 /// that stop on it; `gr00t` and `robot` install it for the verbs that do.
 fn run() -> anyhow::Result<()> {
-    match Cli::parse().cmd {
+    let (args, note) = gr00t::new_spelling(std::env::args_os().collect());
+    if let Some(note) = note {
+        eprintln!("{note}");
+    }
+    match Cli::parse_from(args).cmd {
         Cmd::Demo(o) => commands::demo(&o),
         Cmd::Collect(o) => tasks::collect(&o, &stop_flag()),
         Cmd::Train(o) => tasks::train(&o),
         Cmd::Eval(o) => tasks::eval(&o),
         Cmd::Report(o) => tasks::report(&o),
-        Cmd::Run(o) => run::run_command(&o, stop_flag()),
         Cmd::Serve { cmd } => serve::serve(&cmd, stop_flag()),
         Cmd::Plot(o) => commands::plot(&o),
         Cmd::Export(o) => commands::export(&o),

@@ -1,6 +1,6 @@
 //! The robot side of a remote policy (feature `remote`): the TLS options every remote
-//! channel takes ([`TlsOptions`], shared by `pir2 serve`, `pir2 run` and `pir2 eval
-//! --remote`) and the connection `pir2 eval --remote` evaluates through ([`RemotePolicy`]).
+//! channel takes ([`TlsOptions`], shared by `pir2 serve`, `pir2 gr00t run|serve` and `pir2
+//! eval --remote`) and the connection `pir2 eval --remote` evaluates through ([`RemotePolicy`]).
 //!
 //! Transport, wire format and fault handling are `pir2_runtime::remote`'s. This module sits
 //! below both the servers ([`crate::serve`]) and the task commands ([`crate::tasks`]), which

@@ -1,5 +1,6 @@
-//! `pir2 run gr00t-xarm-xhand`: the GR00T-N1.7 xArm6 + XHand stack on a robot (feature
-//! `gr00t`; with feature `remote` the backbone features may come from `pir2 serve slow`).
+//! `pir2 gr00t run gr00t-xarm-xhand`: the GR00T-N1.7 xArm6 + XHand stack on a robot (feature
+//! `gr00t`; with feature `remote` the backbone features may come from `pir2 gr00t serve
+//! slow` and the action head may run on `pir2 gr00t serve policy`).
 //!
 //! Long on purpose: the run's whole wiring (checks before any robot is connected, emulated or
 //! real robots, local or remote head and backbone, the signal hooks, the report) reads top to
@@ -16,8 +17,8 @@
 //! `--emulate` and `--synthetic-camera` use a synthetic 640×480 camera
 //! (`gr00t::testing::SyntheticCamera`); `--frames DIR` replays recorded frames
 //! (`pir2_robots::FolderCamera`); `--remote-slow ENDPOINT` takes the backbone features
-//! (camera + backbone on another machine) from `pir2 serve slow`. A local camera is opened
-//! before any robot is connected, so a wrong device fails while nothing is powered.
+//! (camera + backbone on another machine) from `pir2 gr00t serve slow`. A local camera is
+//! opened before any robot is connected, so a wrong device fails while nothing is powered.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -26,7 +27,7 @@ use std::sync::Arc;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-/// Options of `pir2 run`.
+/// Options of `pir2 gr00t run`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RunOptions {
     /// The stack to run.
@@ -79,11 +80,11 @@ pub struct RunOptions {
     /// With --frames: ms between frames.
     #[arg(long, default_value_t = 33)]
     pub frame_ms: u64,
-    /// Take backbone features from `pir2 serve slow` at this Zenoh endpoint
+    /// Take backbone features from `pir2 gr00t serve slow` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.2:7448`); needs feature `remote`.
     #[arg(long)]
     pub remote_slow: Option<String>,
-    /// Run the action head on `pir2 serve policy --gr00t-checkpoint` at this Zenoh endpoint
+    /// Run the action head on `pir2 gr00t serve policy` at this Zenoh endpoint
     /// (e.g. `tcp/10.0.0.3:7447`) instead of in this process; needs feature `remote`. The
     /// checkpoint directory is still read here (embodiment, statistics, vocabulary) and the
     /// head is checked before any robot is connected. Each call's round trip is part of the
@@ -122,7 +123,7 @@ pub struct RunOptions {
     pub slow_grace_ms: Option<f64>,
     /// Control watchdog: this long without a clean action (the policy's calls stalled or its
     /// chunks ran out: overruns, holds) stops the robot with a safety stop, ms. At most 5000,
-    /// e.g. to ride through a restart of `pir2 serve policy`.
+    /// e.g. to ride through a restart of `pir2 gr00t serve policy`.
     #[arg(long, default_value_t = 1000.0)]
     pub stall_limit_ms: f64,
     /// Write the run summary (and the per-call trace) as JSON here; a failed run writes its
@@ -400,7 +401,7 @@ pub struct RunFailure {
     pub trace: Option<pir2_runtime::RunTrace>,
 }
 
-/// `pir2 run`: run, print the summary, and write it as JSON to `args.json` when set: the
+/// `pir2 gr00t run`: run, print the summary, and write it as JSON to `args.json` when set: the
 /// [`RunSummary`] after a run that ended normally, a [`RunFailure`] (with the error) after
 /// one that failed. An existing `--json` file is never replaced: the run refuses to start.
 pub fn run_command(args: &RunOptions, stop: Arc<AtomicBool>) -> Result<()> {
@@ -784,8 +785,8 @@ mod imp {
         };
         let model = RemoteModel::connect(cfg).with_context(|| {
             format!(
-                "connecting to the policy server at {endpoint} (is `pir2 serve policy \
-                 --gr00t-checkpoint …` running there?)"
+                "connecting to the policy server at {endpoint} (is `pir2 gr00t serve policy \
+                 --checkpoint …` running there?)"
             )
         })?;
         eprintln!("connected to the policy server at {endpoint}");
@@ -795,7 +796,7 @@ mod imp {
                 model: Box::new(model),
                 d_vl,
             },
-            what: format!("pir2 serve policy at {endpoint}"),
+            what: format!("pir2 gr00t serve policy at {endpoint}"),
         })
     }
 
@@ -837,8 +838,9 @@ mod imp {
         {
             bail!(
                 "no camera: use --camera /dev/videoN for a live camera, --remote-slow ENDPOINT \
-                 (camera and backbone behind `pir2 serve slow`), --frames DIR to replay recorded \
-                 frames, or --synthetic-camera to run the real robot on a synthetic image"
+                 (camera and backbone behind `pir2 gr00t serve slow`), --frames DIR to replay \
+                 recorded frames, or --synthetic-camera to run the real robot on a synthetic \
+                 image"
             );
         }
         let sources = [
@@ -1056,8 +1058,8 @@ mod imp {
     }
 
     /// Open the local cameras, one per camera view of the embodiment (`views`), joined into
-    /// one multi-view source (`None` when the features come from `pir2 serve slow`). Another
-    /// number of `--camera` or `--frames` than views is one error naming both.
+    /// one multi-view source (`None` when the features come from `pir2 gr00t serve slow`).
+    /// Another number of `--camera` or `--frames` than views is one error naming both.
     fn local_camera(
         args: &RunOptions,
         views: usize,
@@ -1306,8 +1308,9 @@ mod imp {
         bail!("--remote-slow needs a pir2 built with feature `remote` (--features gr00t,remote)")
     }
 
-    /// The backbone on another machine: features from `pir2 serve slow`, the VL token layout
-    /// from the local checkpoint (its tokenizer and prompt layout), the action head here.
+    /// The backbone on another machine: features from `pir2 gr00t serve slow`, the VL token
+    /// layout from the local checkpoint (its tokenizer and prompt layout), the action head
+    /// here.
     #[cfg(feature = "remote")]
     fn remote_slow<F: FastSource, A: Actuator>(
         args: &RunOptions,
@@ -1348,8 +1351,8 @@ mod imp {
         let counters = stats.counters();
         let report = r.with_context(|| {
             format!(
-                "running gr00t-xarm-xhand with backbone features from {endpoint} (is `pir2 serve \
-                 slow` running there? remote counters: {counters:?})"
+                "running gr00t-xarm-xhand with backbone features from {endpoint} (is `pir2 gr00t \
+                 serve slow` running there? remote counters: {counters:?})"
             )
         })?;
         let period = (1e9 / report.embodiment.control_hz).round() as u64;
@@ -1357,7 +1360,7 @@ mod imp {
             prompt: report.prompt,
             mode: report.mode,
             robot: robot.to_string(),
-            slow: format!("pir2 serve slow at {endpoint}"),
+            slow: format!("pir2 gr00t serve slow at {endpoint}"),
             head: String::new(),
             d_vis_counts: report.d_vis_counts,
             relative_actions: report.embodiment.relative_groups(),

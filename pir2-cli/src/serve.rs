@@ -1,5 +1,5 @@
-//! `pir2 serve policy|slow` (feature `remote`); the robot side of `pir2 eval --remote` and
-//! the TLS options are [`crate::remote`]'s.
+//! `pir2 serve policy|slow` and `pir2 gr00t serve policy|slow` (feature `remote`); the robot
+//! side of `pir2 eval --remote` and the TLS options are [`crate::remote`]'s.
 //!
 //! Transport, wire format, clock sync and fault handling are `pir2_runtime::remote`'s (Zenoh
 //! peers with multicast and gossip scouting off: they meet only through the given
@@ -7,14 +7,16 @@
 //!
 //! - `serve policy --checkpoint DIR`: a candle checkpoint (e.g. `pir2 train`'s `best/`)
 //!   answers one-NFE requests; `pir2 eval --remote ENDPOINT` sends the ball-plate
-//!   evaluation's action-head calls there ([`crate::remote::RemotePolicy::models`] is a model factory for
-//!   the study pipeline's one closed loop) (the lock-step eval is deterministic, so the result
-//!   equals the local eval's, outages included: a call is retried until the server answers or
-//!   `max_failed_calls` timeouts in a row stop the run);
-//! - `serve slow`: a camera + backbone publishing features with capture times, either the
-//!   GR00T ONNX backbone (`--gr00t-checkpoint DIR --task …`, needs feature `gr00t`, synthetic
-//!   camera) or a stub (`--stub DIM`: a counter camera and a pass-through encoder), for
-//!   `pir2 run gr00t-xarm-xhand --remote-slow ENDPOINT`.
+//!   evaluation's action-head calls there ([`crate::remote::RemotePolicy::models`] is a model
+//!   factory for the study pipeline's one closed loop) (the lock-step eval is deterministic,
+//!   so the result equals the local eval's, outages included: a call is retried until the
+//!   server answers or `max_failed_calls` timeouts in a row stop the run);
+//! - `serve slow --stub DIM`: a counter camera and a pass-through encoder publishing
+//!   features with capture times;
+//! - `gr00t serve policy --checkpoint DIR --task …` (needs feature `gr00t`): a GR00T export's
+//!   ONNX action head, for `pir2 gr00t run … --remote-policy ENDPOINT`;
+//! - `gr00t serve slow --checkpoint DIR --task …` (needs feature `gr00t`): the GR00T ONNX
+//!   backbone on a synthetic camera, for `pir2 gr00t run … --remote-slow ENDPOINT`.
 
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
@@ -26,90 +28,159 @@ use crate::remote::TlsOptions;
 #[cfg(not(feature = "remote"))]
 use crate::remote::NO_REMOTE;
 
-/// What `pir2 serve …` runs.
+/// What `pir2 serve …` runs (the GR00T servers are `pir2 gr00t serve`'s, [`Gr00tServeCmd`]).
 #[derive(Debug, Clone, clap::Subcommand)]
 pub enum ServeOptions {
-    /// Answer action-head (one-NFE) requests until Ctrl-C: a candle checkpoint
-    /// (`--checkpoint`, for `pir2 eval --remote`) or a GR00T export's ONNX action head
-    /// (`--gr00t-checkpoint --task`, for `pir2 run … --remote-policy`).
-    Policy {
-        /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
-        /// `best/` directory `pir2 train` writes.
-        #[arg(
-            long,
-            required_unless_present = "gr00t_checkpoint",
-            conflicts_with = "gr00t_checkpoint"
-        )]
-        checkpoint: Option<PathBuf>,
-        /// With --checkpoint: the policy the checkpoint must have been trained as (refused
-        /// by name if its `identity.json` records another). The server announces the
-        /// checkpoint's identity (policy, weights SHA-256) to `pir2 eval --remote`, which
-        /// refuses a server running another policy or other weights.
-        #[arg(long, requires = "checkpoint", value_parser = crate::tasks::policy_parser())]
-        policy: Option<pir2_runtime::Policy>,
-        /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
-        /// weights + statistics) is served; feature `gr00t`.
-        #[arg(long, requires = "task")]
-        gr00t_checkpoint: Option<PathBuf>,
-        /// With --gr00t-checkpoint: the task (key or prompt) whose prompt layout (image and
-        /// text token masks) the DiT is fed; must be the robot's `--task`.
-        #[arg(long)]
-        task: Option<String>,
-        /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
-        /// `d` follows the round trip). Zero in deployment.
-        #[arg(long, default_value_t = 0)]
-        inject_delay_ms: u64,
-        /// Zenoh endpoint to listen on.
-        #[arg(long, default_value = "tcp/127.0.0.1:7447")]
-        listen: String,
-        /// Key the requests arrive on.
-        #[arg(long, default_value = "pir2/policy")]
-        key: String,
-        /// Mutual TLS and `--insecure`.
-        #[command(flatten)]
-        tls: TlsOptions,
-        /// Where ONNX Runtime runs the GR00T action head.
-        #[command(flatten)]
-        ep: crate::ep::EpOptions,
-    },
-    /// Publish slow-channel features (camera → backbone) with capture times until Ctrl-C.
-    Slow {
-        /// Zenoh endpoint to listen on.
-        #[arg(long, default_value = "tcp/127.0.0.1:7448")]
-        listen: String,
-        /// Key the features are published on (clock pings on `<key>/clock`).
-        #[arg(long, default_value = "pir2/slow")]
-        key: String,
-        /// The GR00T ONNX backbone of this checkpoint (feature `gr00t`) on a synthetic camera.
-        #[arg(long, required_unless_present = "stub", conflicts_with = "stub")]
-        gr00t_checkpoint: Option<PathBuf>,
-        /// Task (key or prompt) whose prompt the GR00T backbone encodes.
-        #[arg(long, requires = "gr00t_checkpoint")]
-        task: Option<String>,
-        /// A stub: a counter camera of this many values and a pass-through encoder.
-        #[arg(long)]
-        stub: Option<usize>,
-        /// Camera frame period, ms.
-        #[arg(long, default_value_t = 60)]
-        frame_ms: u64,
-        /// Mutual TLS and `--insecure`.
-        #[command(flatten)]
-        tls: TlsOptions,
-        /// Where ONNX Runtime runs the GR00T backbone.
-        #[command(flatten)]
-        ep: crate::ep::EpOptions,
-    },
+    /// Answer a candle checkpoint's action-head (one-NFE) requests until Ctrl-C, for
+    /// `pir2 eval --remote` (a GR00T export's head: `pir2 gr00t serve policy`).
+    Policy(PolicyServeOptions),
+    /// Publish stub slow-channel features (a counter camera and a pass-through encoder) with
+    /// capture times until Ctrl-C (the GR00T backbone: `pir2 gr00t serve slow`).
+    Slow(SlowServeOptions),
+}
+
+/// Options of `pir2 serve policy`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PolicyServeOptions {
+    /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
+    /// `best/` directory `pir2 train` writes.
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// The policy the checkpoint must have been trained as (refused by name if its
+    /// `identity.json` records another). The server announces the checkpoint's identity
+    /// (policy, weights SHA-256) to `pir2 eval --remote`, which refuses a server running
+    /// another policy or other weights.
+    #[arg(long, value_parser = crate::tasks::policy_parser())]
+    pub policy: Option<pir2_runtime::Policy>,
+    /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
+    /// `d` follows the round trip). Zero in deployment.
+    #[arg(long, default_value_t = 0)]
+    pub inject_delay_ms: u64,
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    pub listen: String,
+    /// Key the requests arrive on.
+    #[arg(long, default_value = "pir2/policy")]
+    pub key: String,
+    /// Mutual TLS and `--insecure`.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+}
+
+/// Options of `pir2 serve slow`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SlowServeOptions {
+    /// The stub's counter camera: this many values per frame.
+    #[arg(long)]
+    pub stub: usize,
+    /// Camera frame period, ms.
+    #[arg(long, default_value_t = 60)]
+    pub frame_ms: u64,
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7448")]
+    pub listen: String,
+    /// Key the features are published on (clock pings on `<key>/clock`).
+    #[arg(long, default_value = "pir2/slow")]
+    pub key: String,
+    /// Mutual TLS and `--insecure`.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+}
+
+/// What `pir2 gr00t serve …` runs.
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum Gr00tServeCmd {
+    /// Answer a GR00T export's action-head (one-NFE) requests until Ctrl-C, for
+    /// `pir2 gr00t run … --remote-policy`.
+    Policy(Gr00tPolicyServeOptions),
+    /// Publish a GR00T export's backbone features (synthetic camera → ONNX backbone) with
+    /// capture times until Ctrl-C, for `pir2 gr00t run … --remote-slow`.
+    Slow(Gr00tSlowServeOptions),
+}
+
+/// Options of `pir2 gr00t serve policy`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Gr00tPolicyServeOptions {
+    /// A GR00T export (docs/gr00t-contract.md): its action head (four ONNX graphs + side
+    /// weights + statistics) is served.
+    #[arg(long, alias = "gr00t-checkpoint")]
+    pub checkpoint: PathBuf,
+    /// The task (key or prompt) whose prompt layout (image and text token masks) the DiT is
+    /// fed; must be the robot's `--task`.
+    #[arg(long)]
+    pub task: String,
+    /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
+    /// `d` follows the round trip). Zero in deployment.
+    #[arg(long, default_value_t = 0)]
+    pub inject_delay_ms: u64,
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
+    pub listen: String,
+    /// Key the requests arrive on.
+    #[arg(long, default_value = "pir2/policy")]
+    pub key: String,
+    /// Mutual TLS and `--insecure`.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+    /// Where ONNX Runtime runs the action head.
+    #[command(flatten)]
+    pub ep: crate::ep::EpOptions,
+}
+
+/// Options of `pir2 gr00t serve slow`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct Gr00tSlowServeOptions {
+    /// A GR00T export (docs/gr00t-contract.md) whose ONNX backbone encodes a synthetic
+    /// camera.
+    #[arg(long, alias = "gr00t-checkpoint")]
+    pub checkpoint: PathBuf,
+    /// Task (key or prompt) whose prompt the backbone encodes.
+    #[arg(long)]
+    pub task: String,
+    /// Camera frame period, ms.
+    #[arg(long, default_value_t = 60)]
+    pub frame_ms: u64,
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7448")]
+    pub listen: String,
+    /// Key the features are published on (clock pings on `<key>/clock`).
+    #[arg(long, default_value = "pir2/slow")]
+    pub key: String,
+    /// Mutual TLS and `--insecure`.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+    /// Where ONNX Runtime runs the backbone.
+    #[command(flatten)]
+    pub ep: crate::ep::EpOptions,
 }
 
 /// Run a server until `stop` (Ctrl-C).
 #[cfg(feature = "remote")]
 pub fn serve(cmd: &ServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-    imp::serve(cmd, stop)
+    match cmd {
+        ServeOptions::Policy(o) => imp::policy(o, stop),
+        ServeOptions::Slow(o) => imp::slow(o, stop),
+    }
+}
+
+/// Run a GR00T server until `stop` (Ctrl-C).
+#[cfg(feature = "remote")]
+pub fn serve_gr00t(cmd: &Gr00tServeCmd, stop: Arc<AtomicBool>) -> Result<()> {
+    match cmd {
+        Gr00tServeCmd::Policy(o) => imp::gr00t_policy(o, stop),
+        Gr00tServeCmd::Slow(o) => imp::gr00t_slow(o, stop),
+    }
 }
 
 /// Without feature `remote` there is no transport.
 #[cfg(not(feature = "remote"))]
 pub fn serve(_cmd: &ServeOptions, _stop: Arc<AtomicBool>) -> Result<()> {
+    anyhow::bail!("{NO_REMOTE}")
+}
+
+/// Without feature `remote` there is no transport.
+#[cfg(not(feature = "remote"))]
+pub fn serve_gr00t(_cmd: &Gr00tServeCmd, _stop: Arc<AtomicBool>) -> Result<()> {
     anyhow::bail!("{NO_REMOTE}")
 }
 
@@ -129,98 +200,102 @@ mod imp {
     use pir2_runtime::testing::{CameraStub, PassThroughEncoder};
     use pir2_runtime::{Clock, ModelInput, SlowEncoder, SlowSource, SystemClock, VelocityModel};
 
-    use super::ServeOptions;
+    use super::{
+        Gr00tPolicyServeOptions, Gr00tSlowServeOptions, PolicyServeOptions, SlowServeOptions,
+    };
+    use crate::remote::TlsOptions;
 
-    pub(super) fn serve(cmd: &ServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-        match cmd {
-            ServeOptions::Policy {
-                checkpoint,
-                policy,
-                gr00t_checkpoint,
-                task,
-                inject_delay_ms,
-                listen,
-                key,
-                tls,
-                ep,
-            } => {
-                let mut cfg = PolicyServerConfig {
-                    link: tls.apply(Link::listen(listen.clone()))?,
-                    key: key.clone(),
-                    reply_delay: Duration::from_millis(*inject_delay_ms),
-                    ..Default::default()
-                };
-                let delay = if *inject_delay_ms > 0 {
-                    format!(", every reply held {inject_delay_ms} ms")
-                } else {
-                    String::new()
-                };
-                let ctx = || format!("serving the policy on {listen}");
-                match (checkpoint, gr00t_checkpoint) {
-                    (Some(ck), _) => {
-                        let model = CandleModel::load(ck)
-                            .with_context(|| format!("loading checkpoint {}", ck.display()))?;
-                        if let Some(p) = policy {
-                            crate::identity::expect_policy(&model, ck, *p, "--policy")?;
-                        }
-                        cfg.identity = crate::identity::announce(&model);
-                        eprintln!(
-                            "serving {} ({}) on {listen}, key {key}{delay} (Ctrl-C to stop)",
-                            ck.display(),
-                            model.backend()
-                        );
-                        serve_counted(Announce::new(model), &cfg, stop).with_context(ctx)
-                    }
-                    (None, Some(dir)) => {
-                        let task = task
-                            .as_deref()
-                            .context("--task is required with --gr00t-checkpoint")?;
-                        let (model, what) = gr00t_head(dir, task, ep)?;
-                        eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
-                        serve_counted(Announce::new(model), &cfg, stop).with_context(ctx)
-                    }
-                    (None, None) => {
-                        anyhow::bail!("give --checkpoint DIR or --gr00t-checkpoint DIR --task T")
-                    }
-                }
-            }
-            ServeOptions::Slow {
-                listen,
-                key,
-                gr00t_checkpoint,
-                task,
-                stub,
-                frame_ms,
-                tls,
-                ep,
-            } => {
-                let link = tls.apply(Link::listen(listen.clone()))?;
-                let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-                let period = Duration::from_millis(*frame_ms);
-                let (source, encoder, what): (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String) =
-                    match (gr00t_checkpoint, stub) {
-                        (Some(dir), _) => gr00t_backbone(dir, task.as_deref(), &clock, period, ep)?,
-                        (None, Some(dim)) => (
-                            Box::new(CameraStub::new(clock.clone(), period, *dim)),
-                            Box::new(PassThroughEncoder {
-                                latency: Duration::ZERO,
-                            }),
-                            format!("stub camera ({dim} values) + pass-through encoder"),
-                        ),
-                        (None, None) => anyhow::bail!("give --gr00t-checkpoint DIR or --stub DIM"),
-                    };
-                let cfg = SlowServerConfig {
-                    link,
-                    key: key.clone(),
-                };
-                eprintln!(
-                    "serving slow features ({what}, one frame per {frame_ms} ms) on {listen}, \
-                     key {key} (Ctrl-C to stop)"
-                );
-                serve_slow(source, encoder, clock, &cfg, stop)
-                    .with_context(|| format!("serving slow features on {listen}"))
-            }
+    /// The server's configuration and the "every reply held" note of its start line.
+    fn policy_config(
+        listen: &str,
+        key: &str,
+        inject_delay_ms: u64,
+        tls: &TlsOptions,
+    ) -> Result<(PolicyServerConfig, String)> {
+        let cfg = PolicyServerConfig {
+            link: tls.apply(Link::listen(listen.to_string()))?,
+            key: key.to_string(),
+            reply_delay: Duration::from_millis(inject_delay_ms),
+            ..Default::default()
+        };
+        let delay = if inject_delay_ms > 0 {
+            format!(", every reply held {inject_delay_ms} ms")
+        } else {
+            String::new()
+        };
+        Ok((cfg, delay))
+    }
+
+    pub(super) fn policy(o: &PolicyServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
+        let (listen, key, ck) = (&o.listen, &o.key, &o.checkpoint);
+        let (mut cfg, delay) = policy_config(listen, key, o.inject_delay_ms, &o.tls)?;
+        let model = CandleModel::load(ck)
+            .with_context(|| format!("loading checkpoint {}", ck.display()))?;
+        if let Some(p) = o.policy {
+            crate::identity::expect_policy(&model, ck, p, "--policy")?;
         }
+        cfg.identity = crate::identity::announce(&model);
+        eprintln!(
+            "serving {} ({}) on {listen}, key {key}{delay} (Ctrl-C to stop)",
+            ck.display(),
+            model.backend()
+        );
+        serve_counted(Announce::new(model), &cfg, stop)
+            .with_context(|| format!("serving the policy on {listen}"))
+    }
+
+    pub(super) fn gr00t_policy(o: &Gr00tPolicyServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
+        let (listen, key) = (&o.listen, &o.key);
+        let (cfg, delay) = policy_config(listen, key, o.inject_delay_ms, &o.tls)?;
+        let (model, what) = gr00t_head(&o.checkpoint, &o.task, &o.ep)?;
+        eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
+        serve_counted(Announce::new(model), &cfg, stop)
+            .with_context(|| format!("serving the policy on {listen}"))
+    }
+
+    pub(super) fn slow(o: &SlowServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
+        let link = o.tls.apply(Link::listen(o.listen.clone()))?;
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let period = Duration::from_millis(o.frame_ms);
+        let dim = o.stub;
+        let pair: SlowPair = (
+            Box::new(CameraStub::new(clock.clone(), period, dim)),
+            Box::new(PassThroughEncoder {
+                latency: Duration::ZERO,
+            }),
+            format!("stub camera ({dim} values) + pass-through encoder"),
+        );
+        publish(pair, clock, link, &o.listen, &o.key, o.frame_ms, stop)
+    }
+
+    pub(super) fn gr00t_slow(o: &Gr00tSlowServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
+        let link = o.tls.apply(Link::listen(o.listen.clone()))?;
+        let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+        let period = Duration::from_millis(o.frame_ms);
+        let pair = gr00t_backbone(&o.checkpoint, &o.task, &clock, period, &o.ep)?;
+        publish(pair, clock, link, &o.listen, &o.key, o.frame_ms, stop)
+    }
+
+    /// Publish the features of `source` → `encoder` on `link` (`listen`) until `stop`.
+    fn publish(
+        (source, encoder, what): SlowPair,
+        clock: Arc<dyn Clock>,
+        link: Link,
+        listen: &str,
+        key: &str,
+        frame_ms: u64,
+        stop: Arc<AtomicBool>,
+    ) -> Result<()> {
+        let cfg = SlowServerConfig {
+            link,
+            key: key.to_string(),
+        };
+        eprintln!(
+            "serving slow features ({what}, one frame per {frame_ms} ms) on {listen}, \
+             key {key} (Ctrl-C to stop)"
+        );
+        serve_slow(source, encoder, clock, &cfg, stop)
+            .with_context(|| format!("serving slow features on {listen}"))
     }
 
     /// Serve, then say on stderr what was served and refused (also when serving failed).
@@ -309,7 +384,10 @@ mod imp {
         _: &str,
         _: &crate::ep::EpOptions,
     ) -> Result<(Box<dyn VelocityModel>, String)> {
-        anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
+        anyhow::bail!(
+            "`pir2 gr00t serve policy` needs a pir2 built with feature `gr00t` \
+             (--features gr00t,remote)"
+        )
     }
 
     type SlowPair = (Box<dyn SlowSource>, Box<dyn SlowEncoder>, String);
@@ -317,14 +395,13 @@ mod imp {
     #[cfg(feature = "gr00t")]
     fn gr00t_backbone(
         dir: &std::path::Path,
-        task: Option<&str>,
+        task: &str,
         clock: &Arc<dyn Clock>,
         period: Duration,
         ep: &crate::ep::EpOptions,
     ) -> Result<SlowPair> {
         use pir2_backends::gr00t::testing::SyntheticCamera;
         use pir2_backends::gr00t::Gr00tBackbone;
-        let task = task.context("--task is required with --gr00t-checkpoint")?;
         let ort = ep.ort()?;
         let (bb, prompt) = Gr00tBackbone::for_checkpoint(dir, task, &ort)
             .with_context(|| format!("loading the GR00T backbone from {}", dir.display()))?;
@@ -349,11 +426,14 @@ mod imp {
     #[cfg(not(feature = "gr00t"))]
     fn gr00t_backbone(
         _: &std::path::Path,
-        _: Option<&str>,
+        _: &str,
         _: &Arc<dyn Clock>,
         _: Duration,
         _: &crate::ep::EpOptions,
     ) -> Result<SlowPair> {
-        anyhow::bail!("--gr00t-checkpoint needs a pir2 built with feature `gr00t`")
+        anyhow::bail!(
+            "`pir2 gr00t serve slow` needs a pir2 built with feature `gr00t` \
+             (--features gr00t,remote)"
+        )
     }
 }

@@ -3,7 +3,7 @@
 //! The first signal sets a stop flag that the running command polls, so the robot is stopped
 //! through the command's normal path in any phase (warm-up included) and the process ends
 //! with its usual report. A second signal runs the registered emergency stop (for
-//! `pir2 run`, the robot's `stop`) and exits at once with status 130.
+//! `pir2 gr00t run`, the robot's `stop`) and exits at once with status 130.
 //!
 //! The handlers only count signals (one atomic add, async-signal-safe); a watcher thread
 //! turns the count into the flag and the emergency exit.

@@ -1,4 +1,4 @@
-//! `pir2 run gr00t-xarm-xhand` through the binary on tiny synthetic ONNX graphs
+//! `pir2 gr00t run gr00t-xarm-xhand` through the binary on tiny synthetic ONNX graphs
 //! (`pir2_backends::gr00t::testing`, `$PIR2_PYTHON` after `source .native/env.sh`): a bounded
 //! run against the in-process xArm6 + XHand emulators, and clear errors for a bad checkpoint,
 //! an unknown task and an unreachable robot.
@@ -20,7 +20,7 @@ fn checkpoint(name: &str, variant: &str) -> PathBuf {
 
 fn run(ck: &Path, extra: &[&str]) -> (Output, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
-        .args(["run", "gr00t-xarm-xhand", "--checkpoint"])
+        .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint"])
         .arg(ck)
         .args(extra)
         .output()
@@ -33,7 +33,7 @@ fn run(ck: &Path, extra: &[&str]) -> (Output, String) {
 /// Robot addresses that reach no robot: an unreachable xArm and a missing XHand port.
 const UNREACHABLE_ROBOT: [&str; 4] = ["--xarm", "127.0.0.1:1", "--xhand", "/nonexistent/ttyUSB9"];
 
-/// `pir2 run` of `catch_book` on [`UNREACHABLE_ROBOT`], with `extra` flags.
+/// `pir2 gr00t run` of `catch_book` on [`UNREACHABLE_ROBOT`], with `extra` flags.
 fn on_unreachable_robot(ck: &Path, extra: &[&str]) -> (Output, String) {
     let mut args = vec!["--task", "catch_book"];
     args.extend_from_slice(extra);
@@ -41,7 +41,7 @@ fn on_unreachable_robot(ck: &Path, extra: &[&str]) -> (Output, String) {
     run(ck, &args)
 }
 
-/// `pir2 run` of `task` on the in-process emulators for `ticks` ticks, with `extra` flags.
+/// `pir2 gr00t run` of `task` on the in-process emulators for `ticks` ticks, with `extra` flags.
 fn emulated(ck: &Path, task: &str, ticks: u32, extra: &[&str]) -> (Output, String) {
     let ticks = ticks.to_string();
     let mut args = vec!["--task", task, "--emulate", "--ticks", &ticks];
@@ -148,9 +148,9 @@ fn run_gr00t_errors_name_the_problem() {
     std::fs::remove_dir_all(&good).ok();
 }
 
-/// The embodiment's `[safety]` table reaches `pir2 run`: a bad value is one error naming the
+/// The embodiment's `[safety]` table reaches `pir2 gr00t run`: a bad value is one error naming the
 /// field, before any robot is connected; a valid table (tighter arm limits, a shorter grace)
-/// runs (before: there was no such table, and `pir2 run` used fixed 25 Hz limits).
+/// runs (before: there was no such table, and `pir2 gr00t run` used fixed 25 Hz limits).
 #[test]
 fn run_gr00t_takes_the_embodiments_safety_table() {
     let ck = checkpoint("safety-table", "");
@@ -202,7 +202,7 @@ fn run_gr00t_takes_the_embodiments_safety_table() {
     std::fs::remove_dir_all(&ck).ok();
 }
 
-/// Every row of the paper's robot table runs from one `pir2 run` command on the emulators
+/// Every row of the paper's robot table runs from one `pir2 gr00t run` command on the emulators
 /// and is named in the summary and `--json`; a mode the head was not trained for is refused
 /// by name before any robot is connected (before: πR² async with n = 2 was hard-coded).
 #[test]
@@ -534,7 +534,7 @@ fn relative_arm_actions_run_on_the_emulators() {
 
 /// A checkpoint with GR00T's split backbone export (`vit_fp32.onnx` + `llm_fp32.onnx` + the
 /// token table in `model.safetensors`, tiny stand-ins) instead of a fused `backbone.onnx`:
-/// `pir2 run` and `pir2 gr00t bench` pick it by its files and say so; a half split set is one
+/// `pir2 gr00t run` and `pir2 gr00t bench` pick it by its files and say so; a half split set is one
 /// error naming the missing file, before any robot; GR00T's bfloat16 LLM runs with its
 /// boundary converted, and one whose bfloat16 ops the CPU provider cannot run is one error.
 #[test]

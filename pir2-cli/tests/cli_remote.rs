@@ -1,8 +1,9 @@
 //! `pir2 serve policy` + `pir2 eval --remote` as two processes on 127.0.0.1: the remote eval
 //! gives the local eval's result (the lock-step eval is deterministic), also when the
 //! server is killed and restarted mid-run; without a server the eval fails with a clear
-//! error. With feature `gr00t` too: `pir2 serve slow` (GR00T ONNX backbone) feeding
-//! `pir2 run gr00t-xarm-xhand --emulate --remote-slow`.
+//! error. With feature `gr00t` too: `pir2 gr00t serve slow` (GR00T ONNX backbone) feeding
+//! `pir2 gr00t run gr00t-xarm-xhand --emulate --remote-slow`, and `pir2 gr00t serve policy`
+//! answering `pir2 gr00t run … --remote-policy`.
 //!
 //! One file on purpose: every test starts the same binary pair (server and client) with the
 //! shared helpers at its top.
@@ -71,6 +72,20 @@ fn serve(args: &[&str]) -> Server {
             .stderr(Stdio::null())
             .spawn()
             .expect("spawn pir2 serve"),
+    )
+}
+
+/// `pir2 gr00t serve ARGS…`.
+#[cfg(feature = "gr00t")]
+fn gr00t_serve(args: &[&str]) -> Server {
+    Server(
+        pir2()
+            .args(["gr00t", "serve"])
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn pir2 gr00t serve"),
     )
 }
 
@@ -414,9 +429,9 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
     let ck_s = ck.to_str().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let _server = serve(&[
+    let _server = gr00t_serve(&[
         "slow",
-        "--gr00t-checkpoint",
+        "--checkpoint",
         ck_s,
         "--task",
         "catch_book",
@@ -425,7 +440,7 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     ]);
     let json = s.path().join("run.json");
     let out = pir2()
-        .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck_s])
+        .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint", ck_s])
         .args(["--task", "catch the book", "--emulate", "--ticks", "50"])
         .args(["--remote-slow", &endpoint, "--slow-timeout", "20", "--json"])
         .arg(&json)
@@ -448,7 +463,7 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     assert!(calls.iter().all(|c| c["d_vis"].as_u64().unwrap() <= 5));
 }
 
-/// `pir2 run … --remote-policy`: the GR00T action head behind `pir2 serve policy`.
+/// `pir2 gr00t run … --remote-policy`: the GR00T action head behind `pir2 gr00t serve policy`.
 #[cfg(feature = "gr00t")]
 mod remote_head {
     use super::*;
@@ -463,7 +478,7 @@ mod remote_head {
     fn head_server(ck: &str, endpoint: &str, extra: &[&str]) -> Server {
         let mut a = vec![
             "policy",
-            "--gr00t-checkpoint",
+            "--checkpoint",
             ck,
             "--task",
             "catch_book",
@@ -471,29 +486,23 @@ mod remote_head {
             endpoint,
         ];
         a.extend_from_slice(extra);
-        serve(&a)
+        gr00t_serve(&a)
     }
 
     fn head_server_piped(ck: &str, endpoint: &str) -> Server {
         Server(
             pir2()
-                .args([
-                    "serve",
-                    "policy",
-                    "--gr00t-checkpoint",
-                    ck,
-                    "--task",
-                    "catch_book",
-                ])
+                .args(["gr00t", "serve", "policy", "--checkpoint", ck])
+                .args(["--task", "catch_book"])
                 .args(["--listen", endpoint])
                 .stdout(Stdio::null())
                 .stderr(Stdio::piped())
                 .spawn()
-                .expect("spawn pir2 serve"),
+                .expect("spawn pir2 gr00t serve"),
         )
     }
 
-    /// `pir2 run` with the head at `endpoint`, stderr piped; returns once it is connected.
+    /// `pir2 gr00t run` with the head at `endpoint`, stderr piped; returns once it is connected.
     // The child is returned to the caller, which waits for it.
     #[allow(clippy::zombie_processes)]
     fn start_run(
@@ -503,7 +512,7 @@ mod remote_head {
         extra: &[&str],
     ) -> (Child, BufReader<std::process::ChildStderr>) {
         let mut run = pir2()
-            .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck])
+            .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint", ck])
             .args(["--task", "catch the book", "--emulate"])
             .args(["--remote-policy", endpoint, "--json"])
             .arg(json)
@@ -842,12 +851,8 @@ mod remote_head {
         // Real-robot arguments pointing nowhere: the error must be the server's, i.e. no
         // robot connection was attempted.
         let out = pir2()
-            .args([
-                "run",
-                "gr00t-xarm-xhand",
-                "--checkpoint",
-                ck.to_str().unwrap(),
-            ])
+            .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint"])
+            .arg(&ck)
             .args(["--task", "catch_book", "--xarm", "10.255.255.1"])
             .args(["--xhand", "/nonexistent/ttyUSB0", "--synthetic-camera"])
             .args(["--remote-policy", &endpoint, "--connect-timeout", "1"])
@@ -856,12 +861,14 @@ mod remote_head {
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success());
         assert!(
-            err.contains(&endpoint) && err.contains("pir2 serve policy") && !err.contains("xArm"),
+            err.contains(&endpoint)
+                && err.contains("pir2 gr00t serve policy")
+                && !err.contains("xArm"),
             "{err}"
         );
     }
 }
-/// `pir2 run --emulate --remote-slow` with its stderr piped; returns once a stderr line
+/// `pir2 gr00t run --emulate --remote-slow` with its stderr piped; returns once a stderr line
 /// contains `marker` (e.g. the run has received its first slow features).
 #[cfg(feature = "gr00t")]
 #[allow(clippy::zombie_processes)]
@@ -872,7 +879,7 @@ fn start_slow_run(
     marker: &str,
 ) -> (Child, BufReader<std::process::ChildStderr>) {
     let mut run = pir2()
-        .args(["run", "gr00t-xarm-xhand", "--checkpoint", ck])
+        .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint", ck])
         .args(["--task", "catch the book", "--emulate"])
         .args(["--remote-slow", endpoint])
         .args(extra)
@@ -896,9 +903,10 @@ fn start_slow_run(
     }
 }
 
-/// Killing `pir2 serve slow` mid-run ends `pir2 run` in a safety stop within the stale-slow
-/// grace (before: `pir2 run` never enabled the stale-slow check and the slow source re-served
-/// the last features forever, so the run went on to its end on a frozen image).
+/// Killing `pir2 gr00t serve slow` mid-run ends `pir2 gr00t run` in a safety stop within the
+/// stale-slow grace (before: `pir2 gr00t run` never enabled the stale-slow check and the slow
+/// source re-served the last features forever, so the run went on to its end on a frozen
+/// image).
 #[cfg(feature = "gr00t")]
 #[test]
 fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
@@ -909,9 +917,9 @@ fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
     write_tiny_checkpoint(&ck, "", &python_from_env().unwrap()).unwrap();
     let ck_s = ck.to_str().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let server = serve(&[
+    let server = gr00t_serve(&[
         "slow",
-        "--gr00t-checkpoint",
+        "--checkpoint",
         ck_s,
         "--task",
         "catch_book",
@@ -957,7 +965,7 @@ fn gr00t_run_stops_within_the_grace_when_the_slow_server_dies() {
     );
 }
 
-/// SIGTERM while `pir2 run` waits for its first backbone features (warm-up) stops the
+/// SIGTERM while `pir2 gr00t run` waits for its first backbone features (warm-up) stops the
 /// emulated arm (`SET_STATE 4`) and ends the run at once (before: SIGTERM killed the process
 /// without stopping the arm, and SIGINT was ignored until the warm-up ended).
 #[cfg(feature = "gr00t")]

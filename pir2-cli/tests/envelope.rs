@@ -1,4 +1,4 @@
-//! The safety envelope through the binary (`pir2 run gr00t-xarm-xhand` on the in-process
+//! The safety envelope through the binary (`pir2 gr00t run gr00t-xarm-xhand` on the in-process
 //! emulators, tiny synthetic ONNX graphs from `$PIR2_PYTHON`): the robot's ceiling bounds
 //! every checkpoint and flag, statistics that would invert or blow up the actions are refused,
 //! the `--json` folder is checked before the robot moves, and the limits in force are printed
@@ -17,10 +17,11 @@ fn checkpoint(name: &str) -> PathBuf {
     dir
 }
 
-/// `pir2 run` on the emulators for 10 ticks with `extra` flags: (success, output).
+/// `pir2 gr00t run` on the emulators for 10 ticks with `extra` flags: (success, output).
 fn run(ck: &Path, extra: &[&str]) -> (bool, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_pir2"))
         .args([
+            "gr00t",
             "run",
             "gr00t-xarm-xhand",
             "--task",

@@ -1,5 +1,5 @@
 //! The README's two-command walkthrough through the binary: `pir2 gr00t example DIR` (pure
-//! Rust, seeded) then `pir2 run gr00t-xarm-xhand --checkpoint DIR --emulate` for a short
+//! Rust, seeded) then `pir2 gr00t run gr00t-xarm-xhand --checkpoint DIR --emulate` for a short
 //! time; the same seed writes the same bytes; a second `example` into the non-empty DIR is
 //! refused and changes nothing. Needs ONNX Runtime for the run (`source .native/env.sh`); no
 //! Python.
@@ -78,6 +78,7 @@ fn example_checkpoint_runs_on_the_emulators_and_is_never_overwritten() {
     // The walkthrough's run, on the emulators for 2 s.
     let json = scratch.path().join("run.json");
     let (out, text) = pir2(&[
+        OsStr::new("gr00t"),
         OsStr::new("run"),
         OsStr::new("gr00t-xarm-xhand"),
         OsStr::new("--checkpoint"),

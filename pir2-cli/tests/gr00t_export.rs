@@ -1,7 +1,7 @@
 //! Issue 20's chain through the binary, tiny: a synthetic N1.7-shaped checkpoint (GR00T's
 //! tensor names, random weights, sized for the xArm6 + XHand embodiment and the synthetic
 //! backbone of `pir2_backends::gr00t::testing`) → `pir2 gr00t train` (2 steps) → `pir2
-//! gr00t export` → `pir2 run gr00t-xarm-xhand --emulate` (25 ticks); and the export's
+//! gr00t export` → `pir2 gr00t run gr00t-xarm-xhand --emulate` (25 ticks); and the export's
 //! input errors. Needs `source .native/env.sh` (ONNX Runtime for the run, `$PIR2_PYTHON`
 //! with `onnx` for the synthetic backbone graph).
 #![cfg(feature = "gr00t")]
@@ -204,10 +204,11 @@ fn trained(tag: &str) -> (Scratch, PathBuf) {
     (dir, run)
 }
 
-/// `pir2 run gr00t-xarm-xhand` of the export `ck` (with the head of `candle_head` in candle,
+/// `pir2 gr00t run gr00t-xarm-xhand` of the export `ck` (with the head of `candle_head` in candle,
 /// if given) on the emulators for 25 ticks, its report written to `json`.
 fn run_emulated(ck: &Path, candle_head: Option<&Path>, json: &Path) -> (Output, String) {
     let mut args = vec![
+        OsStr::new("gr00t"),
         OsStr::new("run"),
         OsStr::new("gr00t-xarm-xhand"),
         OsStr::new("--checkpoint"),

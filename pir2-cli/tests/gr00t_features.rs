@@ -351,7 +351,7 @@ fn features_are_the_backbone_on_the_decoded_frames_and_train_accepts_them() {
     // The two tasks give different prompts: the text tokens differ between the episodes.
     assert_ne!(rows[0][4 * D_VL..], rows[5][4 * D_VL..]);
 
-    // Deployment agrees: `pir2 run`'s path (`encode_views`: vlln, here the identity
+    // Deployment agrees: `pir2 gr00t run`'s path (`encode_views`: vlln, here the identity
     // LayerNorm, and no VL self-attention in this copy) on frame 7 is LayerNorm(row 7).
     std::fs::remove_file(&files.vl_self_attention).unwrap();
     let mut deploy = load(data.task(&data.episodes[1], 0));

@@ -1,7 +1,7 @@
 //! Issue 46's user path, through the binary only: a released-layout GR00T N1.7 checkpoint →
 //! `pir2 gr00t import --backbone-onnx EXPORT` → the tokenizer copied in → `pir2 gr00t
 //! features` over a LeRobot v3.0 video dataset → `pir2 gr00t train` (2 steps) → `pir2 gr00t
-//! export` → the backbone and tokenizer copied in → `pir2 run gr00t-xarm-xhand --emulate`.
+//! export` → the backbone and tokenizer copied in → `pir2 gr00t run gr00t-xarm-xhand --emulate`.
 //! Every step must succeed and leave its output; a step whose input is missing (the
 //! tokenizer before `features`, the backbone before `run`) must fail naming it.
 //!
@@ -522,6 +522,7 @@ fn a_released_layout_checkpoint_imports_trains_exports_and_runs() {
     //    tokenizer copied in.
     let json_path = root.join("run.json");
     let run_args = os(&[
+        &"gr00t",
         &"run",
         &"gr00t-xarm-xhand",
         &"--checkpoint",

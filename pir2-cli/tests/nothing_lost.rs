@@ -1,4 +1,4 @@
-//! Nothing lost, through the `pir2` binary: a failed `pir2 run` still writes its `--json`
+//! Nothing lost, through the `pir2` binary: a failed `pir2 gr00t run` still writes its `--json`
 //! report (with the error) and never replaces an existing one; `pir2 collect` on Ctrl-C
 //! finishes the episode in progress and writes what it kept, and a killed one keeps what it
 //! wrote as it went; `--overwrite` keeps the old dataset until the new one has an episode.
@@ -26,7 +26,7 @@ fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
 }
 
-/// A `pir2 run` that fails (no checkpoint; in a build without the GR00T stack, no stack)
+/// A `pir2 gr00t run` that fails (no checkpoint; in a build without the GR00T stack, no stack)
 /// writes `{"error": …}` to `--json`; a second run with the same `--json` refuses to start
 /// and leaves the file as it was. Before: nothing was written on failure, and an existing
 /// file was overwritten by a run that succeeded.
@@ -36,6 +36,7 @@ fn run_json_records_a_failure_and_never_replaces_a_file() {
     let json = dir.join("run.json");
     let missing = dir.join("no-such-checkpoint");
     let args = [
+        "gr00t",
         "run",
         "gr00t-xarm-xhand",
         "--checkpoint",

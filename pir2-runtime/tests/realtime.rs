@@ -444,7 +444,7 @@ impl SlowSource for SlowFirstFrame {
 
 /// The stop flag is honoured while waiting for the first slow features: the robot is stopped
 /// and the run returns at once (before: the flag was ignored until the warm-up ended, here
-/// 5 s, up to the 60 s slow timeout of `pir2 run`).
+/// 5 s, up to the 60 s slow timeout of `pir2 gr00t run`).
 #[test]
 fn stop_during_warm_up_stops_the_robot_at_once() {
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());

@@ -22,7 +22,8 @@
 //!
 //! The prompt is tokenised by a [`PromptTokenizer`]: [`super::tokenizer::HfTokenizer`] loads
 //! the VLM's `tokenizer.json` (GR00T's own BPE tokenizer, with its chat template);
-//! [`VocabTokenizer`] reads the simpler vocabulary file of older pir2 checkpoints.
+//! [`super::tokenizer::VocabTokenizer`] reads the simpler vocabulary file of older pir2
+//! checkpoints.
 //!
 //! A remote backbone is any other [`SlowEncoder`] returning `[T, D_vl]` tokens (see
 //! [`super::run::BackboneChoice::Custom`]).

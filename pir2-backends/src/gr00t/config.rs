@@ -348,8 +348,8 @@ pub struct EmbodimentConfig {
 /// Default stale-slow grace, ms (see [`SafetySection::slow_grace_ms`]).
 pub const DEFAULT_SLOW_GRACE_MS: f64 = 200.0;
 
-/// Ceiling of the stale-slow grace, ms: a checkpoint (or `pir2 run --slow-grace-ms`) may set a
-/// shorter grace, never a longer one. One second of acting on features older than `d_vis_max`
+/// Ceiling of the stale-slow grace, ms: a checkpoint (or `pir2 gr00t run --slow-grace-ms`) may
+/// set a shorter grace, never a longer one. One second of acting on features older than `d_vis_max`
 /// ticks is already far past what any slow channel this project deploys produces.
 pub const MAX_SLOW_GRACE_MS: f64 = 1000.0;
 

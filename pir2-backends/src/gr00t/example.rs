@@ -1,5 +1,5 @@
 //! [`write_example`]: a small, seeded, N1.7-shaped example checkpoint written in pure Rust
-//! (no Python, no download), so that `pir2 run gr00t-xarm-xhand --emulate` runs on a fresh
+//! (no Python, no download), so that `pir2 gr00t run gr00t-xarm-xhand --emulate` runs on a fresh
 //! clone (`pir2 gr00t example DIR`).
 //!
 //! The checkpoint has the layout of `docs/gr00t-contract.md` for the paper's xArm6 + XHand
@@ -10,7 +10,7 @@
 //!
 //! | file | what |
 //! |------|------|
-//! | `head/config.json`, `head/model.safetensors` | a GR00T N1.7 action head (GR00T's configuration keys and tensor names, [`example_head_config`]: 4 DiT blocks of width 32) with πR²'s delay table; `pir2 gr00t train --checkpoint DIR/head` fine-tunes it, `pir2 run --candle-head DIR/head` runs it in candle |
+//! | `head/config.json`, `head/model.safetensors` | a GR00T N1.7 action head (GR00T's configuration keys and tensor names, [`example_head_config`]: 4 DiT blocks of width 32) with πR²'s delay table; `pir2 gr00t train --checkpoint DIR/head` fine-tunes it, `pir2 gr00t run --candle-head DIR/head` runs it in candle |
 //! | `onnx/{state_encoder,action_encoder,dit,action_decoder}.onnx`, `pir2_gr00t.safetensors` | that head exported by [`export_gr00t_n17`] (what `pir2 gr00t export` writes) |
 //! | `onnx/backbone.onnx` | a stand-in backbone ([`backbone_graph`]): token embeddings of the prompt plus a projection of the views' pooled pixels, width `D_vl` = [`EXAMPLE_D_VL`] |
 //! | `tokenizer.json`, `tokenizer_config.json` | a small byte-level BPE tokenizer shaped like GR00T N1.7's Qwen3-VL tokenizer ([`super::testing::BPE_TOKENIZER_JSON`]) |
@@ -203,12 +203,13 @@ xArm6 + XHand embodiment (docs/gr00t-contract.md in the pir2 repository), with s
 weights drawn from the seed it was given. It exercises the whole deployment stack and moves
 the robot meaninglessly: run it on the emulators only.
 
-    pir2 run gr00t-xarm-xhand --checkpoint THIS_DIR --task \"catch the book\" --emulate --seconds 2
+    pir2 gr00t run gr00t-xarm-xhand --checkpoint THIS_DIR --task \"catch the book\" \\
+        --emulate --seconds 2
 
 - `onnx/*.onnx`, `pir2_gr00t.safetensors`: the action head exported from `head/`, and a
   stand-in backbone;
 - `head/`: the same head as a GR00T N1.7 checkpoint (config.json + model.safetensors), for
-  `pir2 gr00t train --checkpoint THIS_DIR/head` or `pir2 run … --candle-head THIS_DIR/head`;
+  `pir2 gr00t train --checkpoint THIS_DIR/head` or `pir2 gr00t run … --candle-head THIS_DIR/head`;
 - `tokenizer.json`, `tokenizer_config.json`: a small BPE tokenizer shaped like the VLM's;
 - `embodiment.toml`, `statistics.json`, `embodiment_id.json`: the embodiment and its
   normalisation statistics.

@@ -43,7 +43,7 @@
 //!   template (`ChatTemplate`);
 //! - `split`: GR00T's own ViT + LLM export glued in Rust (`split::SplitBackbone`:
 //!   patches, token embedding, image-token scatter, multimodal positions, deepstack);
-//! - `run`: `run_gr00t`, the library side of `pir2 run gr00t-xarm-xhand`;
+//! - `run`: `run_gr00t`, the library side of `pir2 gr00t run gr00t-xarm-xhand`;
 //! - `example` (feature `candle`): `write_example`, the seeded N1.7-shaped example checkpoint
 //!   of `pir2 gr00t example`, written in pure Rust;
 //! - `import` (with `candle`): a GR00T N1.7 checkpoint as Isaac-GR00T writes it

@@ -152,8 +152,9 @@ pub trait PromptTokenizer: Send {
     fn pad_id(&self) -> i64;
     /// Id of the image placeholder token.
     fn image_token_id(&self) -> i64;
-    /// The chat template the prompt is rendered through ([`build_sequence`]); `None` (the
-    /// default): image placeholders first, then the bare prompt's tokens.
+    /// The chat template the prompt is rendered through
+    /// ([`super::tokenizer::build_sequence`]); `None` (the default): image placeholders first,
+    /// then the bare prompt's tokens.
     fn chat_template(&self) -> Option<&ChatTemplate> {
         None
     }

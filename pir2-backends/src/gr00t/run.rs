@@ -1,4 +1,4 @@
-//! [`run_gr00t`]: the `pir2 run gr00t-xarm-xhand` pipeline as a library function.
+//! [`run_gr00t`]: the `pir2 gr00t run gr00t-xarm-xhand` pipeline as a library function.
 //!
 //! Loads a checkpoint directory (layout in [`CheckpointFiles::in_dir`] and
 //! `docs/gr00t-contract.md`), builds the [`Gr00tActionHead`] and the backbone, and runs the
@@ -10,7 +10,7 @@
 //! the paper's robot table (sync flow with `h`, naive async ± temporal ensembling, train-time
 //! RTC, πR² without async) run the backbone inside each call (`SlowChannel::Inline`).
 //!
-//! Wiring for `pir2 run gr00t-xarm-xhand --checkpoint DIR --task "catch the book"` (the robot
+//! Wiring for `pir2 gr00t run gr00t-xarm-xhand --checkpoint DIR --task "catch the book"` (the robot
 //! from `pir2-robots`, any camera implementing [`SlowSource`] on the same clock):
 //!
 //! ```ignore
@@ -89,7 +89,7 @@ pub enum HeadChoice {
     #[cfg(feature = "candle")]
     Candle(Box<super::Gr00tCandleHead>),
     /// Any other model with the checkpoint's interface, e.g. a
-    /// `pir2_runtime::remote::RemoteModel` talking to `pir2 serve policy --gr00t-checkpoint`
+    /// `pir2_runtime::remote::RemoteModel` talking to `pir2 gr00t serve policy`
     /// on another machine. The checkpoint's embodiment and statistics are still read here
     /// (the executed actions are denormalised on the robot side); `d_vl` is the backbone
     /// token width the model expects. The runtime measures each call as a whole, so network
@@ -252,8 +252,8 @@ where
 /// Load the checkpoint's action head (embodiment, statistics, embodiment id, the four
 /// graphs and side weights, all checked against the contract) with the VL token layout of
 /// `task`'s prompt (from the checkpoint's tokenizer and the embodiment's prompt layout) set, so it answers
-/// calls on its own: what `pir2 serve policy --gr00t-checkpoint` serves, and what the
-/// pre-flight check of `pir2 run` loads before any robot is connected. Returns the head and
+/// calls on its own: what `pir2 gr00t serve policy` serves, and what the
+/// pre-flight check of `pir2 gr00t run` loads before any robot is connected. Returns the head and
 /// the prompt.
 pub fn load_action_head(
     checkpoint_dir: &Path,

@@ -308,7 +308,7 @@ pub fn write_split_backbone(
 /// A synthetic 640×480 RGB camera: a horizontal gradient whose brightness changes every
 /// frame, one frame per `period`, stamped on `clock`, with one image per view (each view's
 /// gradient offset differently). Stands in for the cameras in tests and in
-/// `pir2 run … --emulate`.
+/// `pir2 gr00t run … --emulate`.
 pub struct SyntheticCamera {
     clock: Arc<dyn Clock>,
     period: Duration,

@@ -18,7 +18,7 @@
 //! [`ChatTemplate`] holds these pieces (defaults: GR00T N1.7's) and is configurable in the
 //! embodiment's `[prompt.chat]` table for checkpoints whose VLM formats turns differently;
 //! [`HfTokenizer`] loads `tokenizer.json` with Hugging Face's own `tokenizers` crate. The
-//! backbone's token layout ([`super::backbone::build_sequence`]) then marks the image tokens
+//! backbone's token layout ([`build_sequence`]) then marks the image tokens
 //! where their ids are, as GR00T's backbone does (`image_mask = input_ids == image_token_id`).
 //!
 //! [`load_tokenizer`] picks the checkpoint's tokenizer: `tokenizer.json` when present, else

@@ -1,7 +1,9 @@
 //! ONNX Runtime backend ([`OrtModel`], feature `ort`).
 //!
-//! One file on purpose: the contract check, session set-up and the `VelocityModel` calls share
-//! the session and its bound shapes; providers are in `provider.rs`.
+//! One file on purpose (execution providers are in `provider.rs`): loading the library, the
+//! session set-up, the contract check of a graph's inputs and outputs and [`OrtModel`]'s
+//! `VelocityModel` calls share the session, its tensor list and its bound shapes, and must
+//! change together.
 //!
 //! # The graph contract
 //!
@@ -18,7 +20,7 @@
 //!
 //! `B` may be dynamic; `H, A, n_obs, F, S, T, D` must be fixed in the file. A loaded model is
 //! checked against this table (names, element types, ranks, dimensions) and rejected with an
-//! [`Error::OrtContract`](crate::Error::OrtContract) naming the file, the tensor and what was wrong. Files written by
+//! [`Error::OrtContract`] naming the file, the tensor and what was wrong. Files written by
 //! [`crate::export`] follow the contract by construction.
 //!
 //! # Loading ONNX Runtime
@@ -36,10 +38,6 @@
 //! Sessions are single-threaded by default (`intra_op = inter_op = 1`, sequential execution):
 //! one NFE at batch 1 is latency-bound, and the control loop's other threads must not be
 //! starved by a thread pool spinning on the same cores.
-//!
-//! One file on purpose (execution providers are in `provider.rs`): loading the library, the
-//! session options, the contract check of a graph's inputs and outputs and the binding of
-//! [`OrtModel`]'s inputs read the same tensor list and must change together.
 
 use std::ffi::{c_char, CStr};
 use std::path::{Path, PathBuf};

@@ -1,5 +1,5 @@
 //! The emulated xArm6 + XHand behind the safety layer: the one set-up that tests, examples
-//! and `pir2 run --emulate` use. The arm emulator listens on ephemeral loopback ports, the
+//! and `pir2 gr00t run --emulate` use. The arm emulator listens on ephemeral loopback ports, the
 //! hand emulator sits on an in-memory serial line, and the client side is the same
 //! [`ArmHand`] composite and [`SafetyLayer`] a real robot gets.
 

@@ -31,7 +31,7 @@
 //! Client loss: when the command connection whose servo-j last moved the arm closes while
 //! the arm is moving (state 1), the arm stops (state 4) and [`ArmSim::client_loss_stops`]
 //! counts it. A process that dies without stopping the arm closes its sockets, so a killed
-//! `pir2 run` leaves the emulated arm stopped, not in motion. (A real controller holds its
+//! `pir2 gr00t run` leaves the emulated arm stopped, not in motion. (A real controller holds its
 //! last servo target instead; see [`crate::xarm`], "When this process dies".)
 
 use std::collections::VecDeque;

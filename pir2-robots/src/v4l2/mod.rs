@@ -1,7 +1,10 @@
 //! A live USB (UVC) or other V4L2 camera as the slow channel's image source (Linux only).
 //!
-//! One file on purpose: the device's lifecycle (open, negotiate, map buffers, stream, stop) is
-//! one state machine over one file descriptor; the raw ioctl layer is `sys.rs`.
+//! One file on purpose (the raw ioctl layer, negotiation and pixel conversion are the
+//! submodules `sys`, `negotiate` and `convert`): the device's lifecycle (open, negotiate, map
+//! buffers, stream, stop) is one state machine over one file descriptor, with one
+//! buffer-ownership rule (every dequeued buffer goes back to the driver on every path),
+//! checked in one place.
 //!
 //! [`V4l2Camera`] talks to `/dev/videoN` with the kernel's V4L2 ioctls directly (no
 //! libv4l): it yields HWC `u8` RGB frames through [`SlowSource`], stamped with the time the
@@ -53,10 +56,6 @@
 //! another size than negotiated, or not newer than the previous frame
 //! ([`Error::CameraFrame`]). A stale frame is never returned as a new one. `EINTR` is
 //! retried within the same timeout.
-//!
-//! One file on purpose (ioctl layouts, negotiation and pixel conversion are submodules): the
-//! capture loop, the device node it drives and the open sequence share one buffer-ownership
-//! rule (every dequeued buffer goes back to the driver on every path), checked in one place.
 
 pub mod convert;
 pub mod negotiate;

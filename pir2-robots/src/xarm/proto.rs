@@ -206,9 +206,6 @@
 //! 0 go (request only), 1 moving, 2 sleeping (ready, idle), 3 paused, 4 stopped, 5 not
 //! ready / emergency stop, 6 (reported during some transitions). States 4 and 5 mean "not
 //! ready"; after a mode change the controller needs `SET_STATE 0` before it moves.
-//!
-//! One file on purpose: the protocol's framing, register numbers and codecs are one table,
-//! checked against UFACTORY's SDK as a whole.
 
 use crate::error::{Error, Result};
 

@@ -69,7 +69,7 @@ impl DeployKind {
 }
 
 /// The `[policy]` table of an embodiment: what the action head was fine-tuned as (the
-/// checkpoint's declaration) and the deployment `pir2 run` uses unless told otherwise. A
+/// checkpoint's declaration) and the deployment `pir2 gr00t run` uses unless told otherwise. A
 /// deployment the head was not trained for is refused ([`PolicySection::mode`]).
 ///
 /// ```toml

@@ -1,5 +1,5 @@
 //! `pir2 gr00t import`: a GR00T N1.7 checkpoint directory, as Isaac-GR00T writes and NVIDIA
-//! releases it, to the checkpoint layout `pir2 run` and `pir2 gr00t train` read
+//! releases it, to the checkpoint layout `pir2 gr00t run` and `pir2 gr00t train` read
 //! (`docs/gr00t-contract.md`; the mapping is documented field by field in
 //! `docs/gr00t-import.md`).
 //!

@@ -48,7 +48,7 @@ pub struct ImportSummary {
     pub action_dim: usize,
     /// Backbone graphs rewritten from bfloat16 to float32: `(file, report)`.
     pub converted: Vec<(String, Bf16Report)>,
-    /// What the user must still add before `pir2 run`.
+    /// What the user must still add before `pir2 gr00t run`.
     pub missing: Vec<MissingFile>,
 }
 

@@ -44,7 +44,7 @@
 //! [`Gr00tN17Head::velocity_train`]: the same network with GR00T's dropout in the DiT blocks
 //! ([`DitDropout`]: rate `diffusion_model_cfg.dropout`, 0.2 in N1.7, after the attention
 //! output and inside and after the feed-forward), its masks a pure function of
-//! `(seed, step, site)`. [`Gr00tN17Head::velocity`] (inference, export, `pir2 run`) never
+//! `(seed, step, site)`. [`Gr00tN17Head::velocity`] (inference, export, `pir2 gr00t run`) never
 //! drops. The frozen `vlln` / VL self-attention never drop either: GR00T puts frozen modules
 //! in `eval` mode, which is what lets their output be cached. Per-position AdaLN here means
 //! every token's AdaLN and output modulation read that token's own timestep embedding;

@@ -10,8 +10,8 @@
 //!    decoded frame within `tolerance_s`); an image feature (PNG/JPEG bytes in the data
 //!    files) is decoded from the frame's row. Both give the same RGB frame to step 3;
 //! 2. the frame's task (`task_index` → `meta/tasks.parquet`) becomes the prompt as
-//!    `pir2 run --task TASK` makes it (a key of the embodiment's `[tasks]`, else the text
-//!    itself), through the checkpoint's tokenizer and GR00T N1.7's chat template;
+//!    `pir2 gr00t run --task TASK` makes it (a key of the embodiment's `[tasks]`, else the
+//!    text itself), through the checkpoint's tokenizer and GR00T N1.7's chat template;
 //! 3. [`Gr00tBackbone::backbone_embeddings`] — the deployment backbone's own preprocessing
 //!    and graphs (fused `backbone.onnx` or GR00T's split export), stopping before `vlln` and
 //!    the VL self-attention, which the trainer applies itself — gives `[T, D_vl]`.

@@ -1,6 +1,6 @@
 //! GR00T N1.7 with πR² (`pir2 gr00t …`): the frozen backbone's features over a dataset
 //! (`features`), fine-tuning of a checkpoint's action head on them (`train`), and the export
-//! of a fine-tuned step to the checkpoint layout `pir2 run` runs (`export`).
+//! of a fine-tuned step to the checkpoint layout `pir2 gr00t run` runs (`export`).
 //!
 //! The options are here, compiled in every build (the command line offers them everywhere);
 //! the work needs feature `gr00t`.

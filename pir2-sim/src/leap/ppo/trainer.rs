@@ -1,8 +1,8 @@
 //! The PPO trainer: batched environments, rollouts, GAE, clipped-surrogate updates,
 //! observation normalisation, checkpoints.
 //!
-//! One file on purpose: rollout, GAE and the clipped-surrogate update share the rollout buffers
-//! and one iteration's order.
+//! One file on purpose: rollout, GAE, the clipped-surrogate update and the checkpoint share
+//! the rollout buffers and one state whose exact order makes resumption bit-identical.
 //!
 //! # One iteration
 //! 1. **Rollout.** `n_envs` environments, `rollout_len` steps each, with the Gaussian
@@ -32,9 +32,6 @@
 //! checkpoints are taken only at segment boundaries. A checkpoint therefore holds the whole
 //! state (weights, Adam moments, normalisers, counters), and a resumed run continues
 //! bit-identically to an uninterrupted one.
-//!
-//! One file on purpose: rollout, advantage estimation, the update and the checkpoint are one
-//! state whose exact order makes resumption bit-identical.
 
 use std::path::Path;
 
