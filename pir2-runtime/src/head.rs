@@ -552,12 +552,6 @@ impl<M: VelocityModel> ActionHead<M> {
                         x[j] += dt * v[j];
                     }
                 }
-                out.x.copy_from_slice(x);
-                out.xhat.copy_from_slice(x);
-                out.clean.fill(true);
-                prev.copy_from(out);
-                prev.base = snap.tick;
-                *has_prev = true;
             }
             State::InferenceRtc {
                 steps,
@@ -591,12 +585,6 @@ impl<M: VelocityModel> ActionHead<M> {
                 rtc.sample(x, &eps[..overlap * a], a, tau, v, |xs, ts, vs| {
                     Self::eval(model, &spec, snap, d_vis as u32, xs, ts, vs)
                 })?;
-                out.x.copy_from_slice(x);
-                out.xhat.copy_from_slice(x);
-                out.clean.fill(true);
-                prev.copy_from(out);
-                prev.base = snap.tick;
-                *has_prev = true;
             }
         }
         out.base = snap.tick;
@@ -608,8 +596,16 @@ impl<M: VelocityModel> ActionHead<M> {
             d_vis,
             elapsed: 0,
         };
-        if let State::Rtc { prev, .. } | State::InferenceRtc { prev, .. } = &mut self.state {
-            prev.snapshot_tick = snap.tick;
+        if let State::Rtc { prev, has_prev, .. } | State::InferenceRtc { prev, has_prev, .. } =
+            &mut self.state
+        {
+            // Both RTCs integrate every slot clean in `x`, and carry the chunk into the next
+            // call.
+            out.x.copy_from_slice(&self.x);
+            out.xhat.copy_from_slice(&self.x);
+            out.clean.fill(true);
+            prev.copy_from(out);
+            *has_prev = true;
         }
         Ok(())
     }
