@@ -5,7 +5,7 @@
 #   scripts/check-extra.sh fuzz-fast    # the byte parsers: Zenoh wire, xArm and XHand frames
 #   scripts/check-extra.sh fuzz-files   # the file parsers: dataset, study config, checkpoint,
 #                                       # embodiment (about 1 ms a case: ~20 min each at 10^6)
-#   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile here?
+#   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
 #   scripts/check-extra.sh all
 #
 # Fuzzing: every property runs PIR2_FUZZ_CASES cases (default 10^6), in the test profile whose
@@ -58,18 +58,30 @@ fuzz_files() {
 }
 
 cuda() {
-    # candle's CUDA kernels need NVIDIA's compiler at build time; PyPI's nvidia-cuda-nvcc
-    # wheels ship `nvcc` but not the driver API stubs candle's build links against.
-    if command -v nvcc >/dev/null 2>&1; then
-        local t0=$SECONDS
-        if cargo check -p pir2-backends --features gr00t,cuda; then
-            summary+=("cuda: --features gr00t,cuda compiles, $((SECONDS - t0)) s")
-        else
-            summary+=("cuda: --features gr00t,cuda FAILED to compile")
-            return 1
+    # candle's CUDA backend compiles its kernels with NVIDIA's `nvcc` at build time. PyPI's
+    # CUDA 13 wheel `nvidia-cuda-nvcc` ships it (the CUDA 12 wheel has only `ptxas`); without
+    # an `nvcc` on PATH this installs it into .native/venv-cuda. cudarc 0.19's build script
+    # knows CUDA up to 13.4, so the 13.5 toolkit is declared as 13.4 (same driver API);
+    # CUDA_COMPUTE_CAP picks the PTX target where no GPU can be queried.
+    local t0=$SECONDS
+    if ! command -v nvcc >/dev/null 2>&1; then
+        local venv=.native/venv-cuda
+        if [ ! -x "$venv/bin/python" ]; then
+            python3 -m venv "$venv"
         fi
+        "$venv/bin/pip" -q install "nvidia-cuda-nvcc==13.5.37" "nvidia-cuda-runtime==13.5.37" \
+            "nvidia-cuda-nvrtc==13.5.37" nvidia-cuda-cccl nvidia-cublas nvidia-curand
+        local cu
+        cu="$("$venv/bin/python" -c 'import nvidia, os; print(os.path.join(nvidia.__path__[0], "cu13"))')"
+        export PATH="$cu/bin:$PATH" CUDA_ROOT="$cu" CUDA_PATH="$cu" CUDA_TOOLKIT_ROOT_DIR="$cu"
+        export CUDARC_CUDA_VERSION="${CUDARC_CUDA_VERSION:-13040}"
+    fi
+    export CUDA_COMPUTE_CAP="${CUDA_COMPUTE_CAP:-80}"
+    if cargo check -p pir2-backends --features gr00t,cuda; then
+        summary+=("cuda: --features gr00t,cuda compiles ($(nvcc --version | tail -1)), $((SECONDS - t0)) s")
     else
-        summary+=("cuda: not checked: no nvcc on PATH (install the CUDA toolkit)")
+        summary+=("cuda: --features gr00t,cuda FAILED to compile after $((SECONDS - t0)) s")
+        return 1
     fi
 }
 
