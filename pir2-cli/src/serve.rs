@@ -39,19 +39,10 @@ pub enum ServeOptions {
     Slow(SlowServeOptions),
 }
 
-/// Options of `pir2 serve policy`.
+/// Where a policy server listens and how it answers: the flags `pir2 serve policy` and
+/// `pir2 gr00t serve policy` share.
 #[derive(Debug, Clone, clap::Args)]
-pub struct PolicyServeOptions {
-    /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
-    /// `best/` directory `pir2 train` writes.
-    #[arg(long)]
-    pub checkpoint: PathBuf,
-    /// The policy the checkpoint must have been trained as (refused by name if its
-    /// `identity.json` records another). The server announces the checkpoint's identity
-    /// (policy, weights SHA-256) to `pir2 eval --remote`, which refuses a server running
-    /// another policy or other weights.
-    #[arg(long, value_parser = crate::tasks::policy_parser())]
-    pub policy: Option<pir2_runtime::Policy>,
+pub struct PolicyEndpointOptions {
     /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
     /// `d` follows the round trip). Zero in deployment.
     #[arg(long, default_value_t = 0)]
@@ -65,6 +56,24 @@ pub struct PolicyServeOptions {
     /// Mutual TLS and `--insecure`.
     #[command(flatten)]
     pub tls: TlsOptions,
+}
+
+/// Options of `pir2 serve policy`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PolicyServeOptions {
+    /// Candle checkpoint directory (config.json, stats.json, model.safetensors), e.g. the
+    /// `best/` directory `pir2 train` writes.
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// The policy the checkpoint must have been trained as (refused by name if its
+    /// `identity.json` records another). The server announces the checkpoint's identity
+    /// (policy, weights SHA-256) to `pir2 eval --remote`, which refuses a server running
+    /// another policy or other weights.
+    #[arg(long, value_parser = crate::tasks::policy_parser())]
+    pub policy: Option<pir2_runtime::Policy>,
+    /// Where the server listens and how it answers.
+    #[command(flatten)]
+    pub endpoint: PolicyEndpointOptions,
 }
 
 /// Options of `pir2 serve slow`.
@@ -109,19 +118,9 @@ pub struct Gr00tPolicyServeOptions {
     /// fed; must be the robot's `--task`.
     #[arg(long)]
     pub task: String,
-    /// Hold every reply this many ms: a stand-in for a slow network (tests, measuring how
-    /// `d` follows the round trip). Zero in deployment.
-    #[arg(long, default_value_t = 0)]
-    pub inject_delay_ms: u64,
-    /// Zenoh endpoint to listen on.
-    #[arg(long, default_value = "tcp/127.0.0.1:7447")]
-    pub listen: String,
-    /// Key the requests arrive on.
-    #[arg(long, default_value = "pir2/policy")]
-    pub key: String,
-    /// Mutual TLS and `--insecure`.
+    /// Where the server listens and how it answers.
     #[command(flatten)]
-    pub tls: TlsOptions,
+    pub endpoint: PolicyEndpointOptions,
     /// Where ONNX Runtime runs the action head.
     #[command(flatten)]
     pub ep: crate::ep::EpOptions,
@@ -203,32 +202,28 @@ mod imp {
     use super::{
         Gr00tPolicyServeOptions, Gr00tSlowServeOptions, PolicyServeOptions, SlowServeOptions,
     };
-    use crate::remote::TlsOptions;
 
-    /// The server's configuration and the "every reply held" note of its start line.
-    fn policy_config(
-        listen: &str,
-        key: &str,
-        inject_delay_ms: u64,
-        tls: &TlsOptions,
-    ) -> Result<(PolicyServerConfig, String)> {
-        let cfg = PolicyServerConfig {
-            link: tls.apply(Link::listen(listen.to_string()))?,
-            key: key.to_string(),
-            reply_delay: Duration::from_millis(inject_delay_ms),
-            ..Default::default()
-        };
-        let delay = if inject_delay_ms > 0 {
-            format!(", every reply held {inject_delay_ms} ms")
-        } else {
-            String::new()
-        };
-        Ok((cfg, delay))
+    impl super::PolicyEndpointOptions {
+        /// The server's configuration and the "every reply held" note of its start line.
+        fn config(&self) -> Result<(PolicyServerConfig, String)> {
+            let cfg = PolicyServerConfig {
+                link: self.tls.apply(Link::listen(self.listen.clone()))?,
+                key: self.key.clone(),
+                reply_delay: Duration::from_millis(self.inject_delay_ms),
+                ..Default::default()
+            };
+            let delay = if self.inject_delay_ms > 0 {
+                format!(", every reply held {} ms", self.inject_delay_ms)
+            } else {
+                String::new()
+            };
+            Ok((cfg, delay))
+        }
     }
 
     pub(super) fn policy(o: &PolicyServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-        let (listen, key, ck) = (&o.listen, &o.key, &o.checkpoint);
-        let (mut cfg, delay) = policy_config(listen, key, o.inject_delay_ms, &o.tls)?;
+        let (listen, key, ck) = (&o.endpoint.listen, &o.endpoint.key, &o.checkpoint);
+        let (mut cfg, delay) = o.endpoint.config()?;
         let model = CandleModel::load(ck)
             .with_context(|| format!("loading checkpoint {}", ck.display()))?;
         if let Some(p) = o.policy {
@@ -245,8 +240,8 @@ mod imp {
     }
 
     pub(super) fn gr00t_policy(o: &Gr00tPolicyServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-        let (listen, key) = (&o.listen, &o.key);
-        let (cfg, delay) = policy_config(listen, key, o.inject_delay_ms, &o.tls)?;
+        let (listen, key) = (&o.endpoint.listen, &o.endpoint.key);
+        let (cfg, delay) = o.endpoint.config()?;
         let (model, what) = gr00t_head(&o.checkpoint, &o.task, &o.ep)?;
         eprintln!("serving {what} on {listen}, key {key}{delay} (Ctrl-C to stop)");
         serve_counted(Announce::new(model), &cfg, stop)
