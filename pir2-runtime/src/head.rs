@@ -477,7 +477,12 @@ impl<M: VelocityModel> ActionHead<M> {
             &mut self.v,
             &mut self.eps,
         );
-        let (output, reference, rebase) = (&self.output, &self.reference, self.rebase);
+        let carry = Carry {
+            output: &self.output,
+            reference: &self.reference,
+            rebase: self.rebase,
+        };
+        let (output, reference, rebase) = (carry.output, carry.reference, carry.rebase);
         match &mut self.state {
             State::PiR2 {
                 buf,
@@ -533,14 +538,7 @@ impl<M: VelocityModel> ActionHead<M> {
                 x.copy_from_slice(eps);
                 // The committed front: what the robot executes during this call.
                 let front = d.min(h - 1);
-                let carry = Carry {
-                    prev,
-                    has_prev: *has_prev,
-                    output,
-                    reference,
-                    rebase,
-                };
-                carry.fill(snap.tick, &mut x[..front * a]);
+                carry.fill(prev, *has_prev, snap.tick, &mut x[..front * a]);
                 let dt = 1.0 / *steps as f32;
                 for i in 0..*steps {
                     let ti = i as f32 * dt;
@@ -574,14 +572,7 @@ impl<M: VelocityModel> ActionHead<M> {
                     overlap,
                     ramp_rate: *ramp_rate,
                 };
-                let carry = Carry {
-                    prev,
-                    has_prev: *has_prev,
-                    output,
-                    reference,
-                    rebase,
-                };
-                carry.fill(snap.tick, &mut eps[..overlap * a]);
+                carry.fill(prev, *has_prev, snap.tick, &mut eps[..overlap * a]);
                 rtc.sample(x, &eps[..overlap * a], a, tau, v, |xs, ts, vs| {
                     Self::eval(model, &spec, snap, d_vis as u32, xs, ts, vs)
                 })?;
@@ -615,34 +606,32 @@ impl<M: VelocityModel> ActionHead<M> {
 /// inference-time RTC's overlap), moved onto the call's reference and slot when actions are
 /// relative.
 struct Carry<'a> {
-    prev: &'a Chunk,
-    has_prev: bool,
     output: &'a OutputMap,
     reference: &'a [f32],
     rebase: bool,
 }
 
 impl Carry<'_> {
-    /// Fill `dst` (`[m, A]`) with the actions the chunk in flight gives ticks
-    /// `tick .. tick + m`; past its end, its last slot is held.
-    fn fill(&self, tick: u64, dst: &mut [f32]) {
-        let (h, a) = (self.prev.horizon, self.prev.action_dim);
+    /// Fill `dst` (`[m, A]`) with the actions the chunk in flight `prev` gives ticks
+    /// `tick .. tick + m` (`has_prev`: there is one); past its end, its last slot is held.
+    fn fill(&self, prev: &Chunk, has_prev: bool, tick: u64, dst: &mut [f32]) {
+        let (h, a) = (prev.horizon, prev.action_dim);
         for (p, dst) in dst.chunks_exact_mut(a).enumerate() {
             let t = tick + p as u64;
-            let src = if self.has_prev {
-                self.prev.index_of(t).zip(self.prev.action_at(t))
+            let src = if has_prev {
+                prev.index_of(t).zip(prev.action_at(t))
             } else {
                 None
             };
             let (q, vals) = match src {
                 Some((q, (vals, _))) => (q, vals),
-                None => (h - 1, &self.prev.x[(h - 1) * a..]),
+                None => (h - 1, &prev.x[(h - 1) * a..]),
             };
             if self.rebase {
                 // Committed in the previous chunk's coordinates: move it onto this call's
                 // reference and slot (the command stays the same).
                 self.output
-                    .rebase(vals, q, &self.prev.reference, p, self.reference, dst);
+                    .rebase(vals, q, &prev.reference, p, self.reference, dst);
             } else {
                 dst.copy_from_slice(vals);
             }
