@@ -58,6 +58,24 @@ pub struct PolicyEndpointOptions {
     pub tls: TlsOptions,
 }
 
+/// How often, where and on which key a slow-channel server publishes: the flags `pir2 serve
+/// slow` and `pir2 gr00t serve slow` share.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SlowEndpointOptions {
+    /// Camera frame period, ms.
+    #[arg(long, default_value_t = 60)]
+    pub frame_ms: u64,
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = "tcp/127.0.0.1:7448")]
+    pub listen: String,
+    /// Key the features are published on (clock pings on `<key>/clock`).
+    #[arg(long, default_value = "pir2/slow")]
+    pub key: String,
+    /// Mutual TLS and `--insecure`.
+    #[command(flatten)]
+    pub tls: TlsOptions,
+}
+
 /// Options of `pir2 serve policy`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PolicyServeOptions {
@@ -82,18 +100,9 @@ pub struct SlowServeOptions {
     /// The stub's counter camera: this many values per frame.
     #[arg(long)]
     pub stub: usize,
-    /// Camera frame period, ms.
-    #[arg(long, default_value_t = 60)]
-    pub frame_ms: u64,
-    /// Zenoh endpoint to listen on.
-    #[arg(long, default_value = "tcp/127.0.0.1:7448")]
-    pub listen: String,
-    /// Key the features are published on (clock pings on `<key>/clock`).
-    #[arg(long, default_value = "pir2/slow")]
-    pub key: String,
-    /// Mutual TLS and `--insecure`.
+    /// How often, where and on which key the features are published.
     #[command(flatten)]
-    pub tls: TlsOptions,
+    pub endpoint: SlowEndpointOptions,
 }
 
 /// What `pir2 gr00t serve …` runs.
@@ -136,18 +145,9 @@ pub struct Gr00tSlowServeOptions {
     /// Task (key or prompt) whose prompt the backbone encodes.
     #[arg(long)]
     pub task: String,
-    /// Camera frame period, ms.
-    #[arg(long, default_value_t = 60)]
-    pub frame_ms: u64,
-    /// Zenoh endpoint to listen on.
-    #[arg(long, default_value = "tcp/127.0.0.1:7448")]
-    pub listen: String,
-    /// Key the features are published on (clock pings on `<key>/clock`).
-    #[arg(long, default_value = "pir2/slow")]
-    pub key: String,
-    /// Mutual TLS and `--insecure`.
+    /// How often, where and on which key the features are published.
     #[command(flatten)]
-    pub tls: TlsOptions,
+    pub endpoint: SlowEndpointOptions,
     /// Where ONNX Runtime runs the backbone.
     #[command(flatten)]
     pub ep: crate::ep::EpOptions,
@@ -249,9 +249,12 @@ mod imp {
     }
 
     pub(super) fn slow(o: &SlowServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-        let link = o.tls.apply(Link::listen(o.listen.clone()))?;
+        let link = o
+            .endpoint
+            .tls
+            .apply(Link::listen(o.endpoint.listen.clone()))?;
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-        let period = Duration::from_millis(o.frame_ms);
+        let period = Duration::from_millis(o.endpoint.frame_ms);
         let dim = o.stub;
         let pair: SlowPair = (
             Box::new(CameraStub::new(clock.clone(), period, dim)),
@@ -260,15 +263,18 @@ mod imp {
             }),
             format!("stub camera ({dim} values) + pass-through encoder"),
         );
-        publish(pair, clock, link, &o.listen, &o.key, o.frame_ms, stop)
+        publish(pair, clock, link, &o.endpoint, stop)
     }
 
     pub(super) fn gr00t_slow(o: &Gr00tSlowServeOptions, stop: Arc<AtomicBool>) -> Result<()> {
-        let link = o.tls.apply(Link::listen(o.listen.clone()))?;
+        let link = o
+            .endpoint
+            .tls
+            .apply(Link::listen(o.endpoint.listen.clone()))?;
         let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-        let period = Duration::from_millis(o.frame_ms);
+        let period = Duration::from_millis(o.endpoint.frame_ms);
         let pair = gr00t_backbone(&o.checkpoint, &o.task, &clock, period, &o.ep)?;
-        publish(pair, clock, link, &o.listen, &o.key, o.frame_ms, stop)
+        publish(pair, clock, link, &o.endpoint, stop)
     }
 
     /// Publish the features of `source` → `encoder` on `link` (`listen`) until `stop`.
@@ -276,11 +282,10 @@ mod imp {
         (source, encoder, what): SlowPair,
         clock: Arc<dyn Clock>,
         link: Link,
-        listen: &str,
-        key: &str,
-        frame_ms: u64,
+        endpoint: &super::SlowEndpointOptions,
         stop: Arc<AtomicBool>,
     ) -> Result<()> {
+        let (listen, key, frame_ms) = (&endpoint.listen, &endpoint.key, endpoint.frame_ms);
         let cfg = SlowServerConfig {
             link,
             key: key.to_string(),
