@@ -14,7 +14,7 @@
 #![cfg(feature = "gr00t")]
 
 use std::ffi::OsString;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use pir2_backends::gr00t::n17::train::PrecomputedFeatures;
@@ -36,28 +36,12 @@ use common::gr00t::{
     alt_checkpoint, arm_grip_embodiment, pir2, read_json, run_python, state_and_action, text,
     train_args,
 };
+use common::gr00t::{copy_dir, video_fixture as fixture};
 use common::Scratch;
 
 const VIEWS: [&str; 2] = ["observation.images.front", "observation.images.wrist"];
 /// `D_vl` of the training fixture `alt` (pir2-backends/tests/fixtures/gr00t_n17_head).
 const D_VL: usize = common::gr00t::ALT_D_VL;
-
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-sim/tests/fixtures/lerobot_video")
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let p = e.unwrap().path();
-        let dst = to.join(p.file_name().unwrap());
-        if p.is_dir() {
-            copy_dir(&p, &dst);
-        } else {
-            std::fs::copy(&p, &dst).unwrap();
-        }
-    }
-}
 
 /// PyAV the way LeRobot decodes (`decode_video_frames_pyav`): every frame's time is
 /// `pts · time_base`, the frame for a query is the nearest one and must lie within the

@@ -34,7 +34,7 @@
 
 use std::collections::HashMap;
 use std::ffi::OsString;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use candle_core::{DType, Device, Tensor};
@@ -47,6 +47,7 @@ use pir2_backends::gr00t::{DeployKind, EmbodimentConfig, ImagePipeline, EMBED_TO
 use serde_json::{json, Value};
 
 mod common;
+use common::gr00t::{copy_dir, video_fixture as fixture};
 use common::gr00t::{pir2_text, read_json, run_python, train_args};
 use common::Scratch;
 
@@ -68,23 +69,6 @@ const ACTION: [(&str, usize); 2] = [("arm_joints", 6), ("hand_joints", 12)];
 /// The dataset's frame rate (the import's `--control-hz`).
 const FPS: &str = "10";
 const TICKS: u64 = 20;
-
-fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-sim/tests/fixtures/lerobot_video")
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let p = e.unwrap().path();
-        let dst = to.join(p.file_name().unwrap());
-        if p.is_dir() {
-            copy_dir(&p, &dst);
-        } else {
-            std::fs::copy(&p, &dst).unwrap();
-        }
-    }
-}
 
 fn write_json(path: &Path, v: &Value) {
     std::fs::write(path, serde_json::to_string_pretty(v).unwrap()).unwrap();

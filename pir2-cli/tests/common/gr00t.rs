@@ -475,3 +475,22 @@ pub fn lockstep_sends_the_datasets_actions(
     }
     worst
 }
+
+/// The LeRobot v3.0 video fixture of pir2-sim (two cameras, real AV1 and H.264 videos).
+pub fn video_fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../pir2-sim/tests/fixtures/lerobot_video")
+}
+
+/// Copy the directory tree `from` to `to`.
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let dst = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &dst);
+        } else {
+            std::fs::copy(&p, &dst).unwrap();
+        }
+    }
+}
