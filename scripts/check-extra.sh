@@ -6,6 +6,8 @@
 #   scripts/check-extra.sh fuzz-files   # the file parsers: dataset, study config, checkpoint,
 #                                       # embodiment (about 1 ms a case: ~20 min each at 10^6)
 #   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
+#   scripts/check-extra.sh torch        # the Python package's PyTorch side (pir2.gr00t): its tests
+#                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB)
 #   scripts/check-extra.sh all
 #
 # Fuzzing: every property runs PIR2_FUZZ_CASES cases (default 10^6), in the test profile whose
@@ -85,18 +87,46 @@ cuda() {
     fi
 }
 
+torch() {
+    # `pir2.gr00t` needs a torch that imports: the full torch 2.13.0 wheel with its CUDA
+    # libraries (setup-native.sh installs a lean torch for libtorch only, which cannot
+    # `import torch`), diffusers for the tests' N1.7-shaped head, safetensors. They go into
+    # .native/venv-torch (or $PIR2_TORCH_VENV), with the package's wheel; the round trip needs
+    # a pir2 built with feature gr00t and ONNX Runtime (setup-native.sh).
+    local t0=$SECONDS venv=${PIR2_TORCH_VENV:-.native/venv-torch}
+    [ -f .native/env.sh ] || bash scripts/setup-native.sh
+    # shellcheck disable=SC1091
+    source .native/env.sh
+    [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+    "$venv/bin/pip" -q install "torch==2.13.0" "diffusers==0.42.1" "safetensors==0.8.0" numpy pytest
+    PIR2_PY_VENV="$venv" bash scripts/build-python.sh
+    "$venv/bin/pip" -q install --force-reinstall --no-deps bindings/python/target/wheels/pir2-*.whl
+    cargo build -p pir2-cli --features gr00t
+    local bin
+    bin="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/debug/pir2"
+    if (cd bindings/python/tests && PIR2_BIN="$bin" "$venv/bin/python" -m pytest -q -s -p no:cacheprovider \
+        test_gr00t_torch.py test_gr00t_roundtrip.py); then
+        summary+=("torch: pir2.gr00t tests and the PyTorch -> pir2 round trip ok, $((SECONDS - t0)) s")
+    else
+        summary+=("torch: FAILED after $((SECONDS - t0)) s")
+        return 1
+    fi
+}
+
 status=0
 case "${1:-all}" in
 fuzz-fast) fuzz_fast || status=1 ;;
 fuzz-files) fuzz_files || status=1 ;;
 cuda) cuda || status=1 ;;
+torch) torch || status=1 ;;
 all)
     fuzz_fast || status=1
     fuzz_files || status=1
     cuda || status=1
+    torch || status=1
     ;;
 *)
-    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|all]" >&2
+    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|torch|all]" >&2
     exit 2
     ;;
 esac

@@ -13,6 +13,9 @@ to the Rust crates'.
 - :class:`LatencyWindow`: the runtime's rolling latency window that measures ``d``;
 - :class:`Rng`: the seeded generator behind all of them.
 
+:mod:`pir2.gr00t` (needs torch) turns GR00T N1.7's action head into the paper's per-position
+form and fine-tunes it with these draws in PyTorch.
+
 Convention: ``τ = 0`` is pure noise, ``τ = 1`` is clean, ``x = (1 − τ)·ε + τ·a``. Invalid
 input raises ``ValueError`` carrying the Rust error's text.
 """
