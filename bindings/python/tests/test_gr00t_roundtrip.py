@@ -104,7 +104,8 @@ def test_pytorch_fine_tune_runs_in_pir2_with_the_same_first_nfe(tmp_path: pathli
            "backbone_attention_mask": nfe["backbone_attention_mask"].bool()}
     ai1 = {"state": nfe["state"], "embodiment_id": nfe["embodiment_id"]}
     with torch.no_grad():
-        v = pg.velocity(head, bo1, ai1, nfe["actions"], nfe["tau"], nfe["d_vis"])
+        v = pg.velocity(head, bo1, ai1, nfe["actions"], nfe["tau"], nfe["d_vis"],
+                        backbone_processed=True)
     a = nfe["velocity"].shape[-1]
     got, want = v[..., :a], nfe["velocity"]
     err = float((got - want).abs().max())

@@ -372,16 +372,28 @@ def _velocity(head, backbone_output, action_input, x, tau, d_vis=None):
     return pred[:, -h:]
 
 
-def velocity(action_head: nn.Module, backbone_output, action_input, x, tau, d_vis=None):
+def velocity(
+    action_head: nn.Module,
+    backbone_output,
+    action_input,
+    x,
+    tau,
+    d_vis=None,
+    *,
+    backbone_processed: bool = False,
+):
     """One NFE of a converted head: the velocity ``[B, H, A_max]`` at noisy actions ``x`` and
     per-position flow times ``tau [B, H]``, as pir2's runtime computes it (state token at
     ``state_timestep``; ``d_vis`` selects the delay embedding row). ``backbone_output`` holds
-    the backbone's ``backbone_features`` before ``vlln`` (and the masks); ``action_input``
-    ``state`` and ``embodiment_id``."""
+    ``backbone_features`` (and ``image_mask``, ``backbone_attention_mask``); ``action_input``
+    ``state`` (normalised, padded) and ``embodiment_id``. The features are the backbone's
+    output, passed through the head's ``vlln`` and VL self-attention here, unless
+    ``backbone_processed`` (e.g. ``vl_embs`` of ``pir2 run --record-nfe``, which the DiT takes
+    after them)."""
     if not is_per_position(action_head):
         raise ValueError("velocity() needs a head converted by pir2.gr00t.to_per_position")
     bo = dict(backbone_output.items()) if hasattr(backbone_output, "items") else backbone_output
-    if hasattr(action_head, "process_backbone_output"):
+    if not backbone_processed and hasattr(action_head, "process_backbone_output"):
         bo = action_head.process_backbone_output(bo)
     tau = torch.as_tensor(np.asarray(tau) if not torch.is_tensor(tau) else tau).to(x.device, x.dtype)
     return _velocity(action_head, bo, action_input, x, tau, d_vis)
