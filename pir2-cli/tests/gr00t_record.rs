@@ -193,11 +193,11 @@ fn record_nfe_writes_what_the_graphs_were_fed_and_the_candle_head_recomputes_it(
         let act = head.add_delay_embedding(&act, Some(&t["d_vis"])).unwrap();
         let sa = Tensor::cat(&[&s, &act], 1).unwrap();
         close("sa_embs", &f32s(&t["sa_embs"]), &f32s(&sa), 1e-4);
-        // … and the DiT and decoder on the recorded DiT inputs give the recorded velocity.
-        let vl = head.process_backbone(&t["vl_embs"]).unwrap();
+        // … and the DiT and decoder on the recorded DiT inputs give the recorded velocity
+        // (`vl_embs` as the DiT takes them: the backbone applied `vlln` already).
         let d_vis = t["d_vis"].to_dtype(DType::U32).unwrap();
         let vl = VlTokens {
-            embeddings: &vl,
+            embeddings: &t["vl_embs"],
             attention_mask: Some(&t["backbone_attention_mask"]),
             image_mask: Some(&t["image_mask"]),
             d_vis: Some(&d_vis),

@@ -136,7 +136,7 @@ pub struct Gr00tActionHead {
 /// | `timesteps` | i64 | `[B, H]` | the action encoder's timesteps `min(⌊τ·buckets⌋, buckets − 1)` |
 /// | `sa_embs` | f32 | `[B, 1 + H, D_in]` | the DiT's tokens, after the position and delay embeddings |
 /// | `timestep` | i64 | `[B, 1 + H]` | the DiT's timesteps (state token first) |
-/// | `vl_embs` | f32 | `[B, T, D_vl]` | the backbone tokens as fed (before `vlln`) |
+/// | `vl_embs` | f32 | `[B, T, D_vl]` | the backbone tokens as fed to the DiT (the backbone applied `vlln` and `vl_self_attention`) |
 /// | `image_mask`, `backbone_attention_mask` | u8 | `[B, T]` | when the DiT takes them |
 /// | `d_vis` | i64 | `[B]` | the slow features' age, ticks (before clamping to `d_vis_max`) |
 /// | `tau` | f32 | `[B, H]` | pir2's per-position flow time |
