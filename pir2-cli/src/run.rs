@@ -825,6 +825,9 @@ mod imp {
             .mode(&mode_overrides(args)?)
             .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
         if args.record_nfe.is_some() {
+            if args.record_calls == 0 {
+                bail!("--record-calls must be >= 1 (nothing was started)");
+            }
             if args.candle_head.is_some() {
                 bail!(
                     "--record-nfe records the checkpoint's ONNX action head (what the four graphs \
