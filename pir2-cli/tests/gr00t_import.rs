@@ -636,6 +636,101 @@ fn a_pir2_head_fine_tuned_in_pytorch_imports_with_its_heads_and_delay_table() {
     let dit = std::fs::read(out.join("onnx/dit.onnx")).unwrap();
     let has = |s: &str| dit.windows(s.len()).any(|w| w == s.as_bytes());
     assert!(has("proj_out_1_heads.weight"), "no heads in dit.onnx");
+    // And the ONNX head `pir2 gr00t run` uses computes what the candle head computes on
+    // what the graphs were fed (recorded with `record_nfe`).
+    onnx_call_matches_candle(&out, &direct, &dir.path().join("rec"));
+}
+
+/// One call of the imported ONNX head (`Gr00tActionHead`, πR² per-position τ, `d_vis` = 2),
+/// recorded; then the candle head `candle` on the recorded graph inputs gives the recorded
+/// DiT tokens and velocity.
+fn onnx_call_matches_candle(out: &Path, candle: &Gr00tN17Head, rec: &Path) {
+    use pir2_backends::gr00t::{CheckpointFiles, Gr00tActionHead, Normalizer, VlLayout};
+    use pir2_runtime::{ModelInput, SlowInput};
+    let files = CheckpointFiles::in_dir(out);
+    let cfg = EmbodimentConfig::load(&out.join("embodiment.toml")).unwrap();
+    let norm = Normalizer::load(&files.statistics, &cfg).unwrap();
+    let ort = pir2_backends::ort::OrtOptions::default();
+    let mut head = Gr00tActionHead::load(&files, &cfg, norm, cfg.embodiment_id, &ort).unwrap();
+    let t = 6;
+    head.set_vl_layout(VlLayout {
+        image_mask: (0..t).map(|i| i < 3).collect(),
+        attention_mask: vec![true; t],
+    });
+    head.record_nfe(rec, 1).unwrap();
+    let (h, a, sd) = (cfg.horizon, cfg.action_dim(), cfg.state_dim());
+    let mut rng = pir2_schedule::Rng::new(9);
+    let mut r = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.uniform_range(-1.0, 1.0)).collect() };
+    let (x, obs, vl) = (r(h * a), r(sd), r(t * D_VL));
+    let tau: Vec<f32> = (0..h).map(|p| 0.1 + 0.8 * p as f32 / h as f32).collect();
+    let input = ModelInput {
+        batch: 1,
+        horizon: h,
+        action_dim: a,
+        x: &x,
+        tau: &tau,
+        obs_fast: &obs,
+        n_obs: 1,
+        fast_dim: sd,
+        slow: SlowInput::Tokens {
+            data: &vl,
+            tokens: t,
+            dim: D_VL,
+        },
+        d_vis: &[2],
+    };
+    let mut v = vec![0.0; h * a];
+    head.forward(&input, &mut v).unwrap();
+
+    let dev = Device::Cpu;
+    let rt = candle_core::safetensors::load(rec.join("nfe-0000.safetensors"), &dev).unwrap();
+    let flat = |t: &Tensor| -> Vec<f32> {
+        t.to_dtype(DType::F32)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    };
+    let close = |what: &str, got: &[f32], want: &[f32]| {
+        assert_eq!(got.len(), want.len(), "{what}");
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            assert!(
+                (g - w).abs() <= 1e-4 * (1.0 + w.abs()),
+                "{what}[{i}]: ONNX {g}, candle {w}"
+            );
+        }
+    };
+    assert_eq!(flat(&rt["velocity"]), v);
+    let ids = &rt["embodiment_id"];
+    let c = candle.config();
+    let state = rt["state"].reshape((1, 1, c.max_state_dim)).unwrap();
+    let s = candle.encode_state(&state, ids).unwrap();
+    let act = candle
+        .encode_actions(&rt["actions"], &rt["timesteps"], ids)
+        .unwrap();
+    let act = candle
+        .add_delay_embedding(&act, Some(&rt["d_vis"]))
+        .unwrap();
+    let sa = Tensor::cat(&[&s, &act], 1).unwrap();
+    close("sa_embs", &flat(&rt["sa_embs"]), &flat(&sa));
+    // `vl_embs` as the DiT takes them: past `vlln` (the backbone side applies it).
+    let d_vis = rt["d_vis"].to_dtype(DType::U32).unwrap();
+    let vl = VlTokens {
+        embeddings: &rt["vl_embs"],
+        attention_mask: Some(&rt["backbone_attention_mask"]),
+        image_mask: Some(&rt["image_mask"]),
+        d_vis: Some(&d_vis),
+    };
+    let y = candle.dit(&rt["sa_embs"], &vl, &rt["timestep"]).unwrap();
+    let want = candle
+        .decode(&y, ids)
+        .unwrap()
+        .narrow(1, 1, h)
+        .unwrap()
+        .narrow(2, 0, a)
+        .unwrap();
+    close("velocity", &v, &flat(&want));
 }
 
 #[test]
