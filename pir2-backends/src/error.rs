@@ -269,6 +269,16 @@ pub enum Error {
         /// What went wrong.
         message: String,
     },
+    /// A recorded call of the GR00T action head (`Gr00tActionHead::record_nfe`) could not
+    /// be written.
+    #[cfg(feature = "gr00t")]
+    #[error("cannot write the recorded NFE `{path}`: {message}")]
+    NfeRecord {
+        /// The file (or the directory).
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
     /// The checkpoint has no tokenizer file.
     #[cfg(feature = "gr00t")]
     #[error("no tokenizer: neither `{tokenizer}` nor `{vocab}` exists")]
@@ -490,6 +500,7 @@ impl Error {
                 | Error::Example { .. }
                 | Error::Fixture(_)
                 | Error::Gr00tCandle { .. }
+                | Error::NfeRecord { .. }
         )
     }
     /// Without feature `gr00t` there is no GR00T stack.

@@ -111,6 +111,16 @@ pub struct Gr00tImportOptions {
     /// Control rate of the robot, Hz (GR00T's files do not record it).
     #[arg(long, default_value_t = 25.0)]
     pub control_hz: f64,
+    /// What the head was fine-tuned as, written as `[policy] trained`: pi_r2, pi_r2_hidden,
+    /// pi_r2_full, pi_r2_zero_delay, pi_r2_zero_delay_full, rtc or flow (default: pi_r2 for
+    /// a head with per-position AdaLN heads `<layer>_heads.*`, flow for one without). A head
+    /// with per-position heads is refused as flow or rtc.
+    #[arg(long)]
+    pub trained: Option<String>,
+    /// πR² NFEs per action (`[policy] nfe`; default 2, or the largest n πR²'s staircase
+    /// allows at the imported H and d_max when smaller); must fit that staircase.
+    #[arg(long)]
+    pub nfe: Option<usize>,
 }
 
 /// Options of `pir2 gr00t export`.
@@ -308,7 +318,21 @@ mod imp {
     }
 
     pub(super) fn import(o: &Gr00tImportOptions) -> Result<()> {
+        use pir2_backends::gr00t::config::policy_name;
         use pir2_backends::gr00t::import::{import_checkpoint, ImportOptions};
+        let trained = match &o.trained {
+            None => None,
+            Some(t) => {
+                let all = pir2_runtime::Policy::ALL;
+                match all.iter().find(|p| policy_name(**p) == *t) {
+                    Some(p) => Some(*p),
+                    None => {
+                        let names: Vec<String> = all.iter().map(|p| policy_name(*p)).collect();
+                        anyhow::bail!("--trained {t}: not one of {}", names.join(", "))
+                    }
+                }
+            }
+        };
         let s = import_checkpoint(
             &o.checkpoint,
             &o.out,
@@ -317,18 +341,28 @@ mod imp {
                 backbone_onnx: o.backbone_onnx.clone(),
                 keep_bf16: o.keep_bf16,
                 control_hz: o.control_hz,
+                trained,
+                nfe: o.nfe,
             },
         )
         .with_context(|| format!("importing {}", o.checkpoint.display()))?;
         println!(
             "wrote {} (embodiment `{}`, slot {}, H = {}, state {} / action {} values, \
-             [policy] trained = \"flow\"): {}",
+             {} AdaLN heads, [policy] trained = \"{}\", mode = \"{}\", nfe = {}): {}",
             s.out.display(),
             s.embodiment_tag,
             s.embodiment_id,
             s.horizon,
             s.state_dim,
             s.action_dim,
+            if s.position_heads {
+                "per-position"
+            } else {
+                "shared"
+            },
+            s.trained,
+            s.mode,
+            s.nfe,
             s.files.join(", ")
         );
         for (file, r) in &s.converted {

@@ -157,6 +157,19 @@ pub struct RunOptions {
     /// checkpoint's `[policy] rtc_ramp_rate`, else 5).
     #[arg(long)]
     pub rtc_ramp_rate: Option<f32>,
+    /// Record the action head's first calls into DIR (diagnostic): for each of the first
+    /// --record-calls calls, DIR/nfe-KKKK.safetensors with exactly what the four ONNX graphs
+    /// were fed (state, embodiment_id, actions, timesteps, sa_embs, timestep, vl_embs, the VL
+    /// masks) and what the head saw and returned (d_vis, tau, x, velocity), to compare with the
+    /// training framework (docs/gr00t-contract.md, "Recording the head's calls"). One file
+    /// write per recorded call: not for latency runs. DIR must be empty or new (checked before
+    /// the robot moves); the checkpoint's ONNX head only (not --candle-head or
+    /// --remote-policy).
+    #[arg(long, value_name = "DIR")]
+    pub record_nfe: Option<PathBuf>,
+    /// With --record-nfe: how many calls to record (the first ones).
+    #[arg(long, value_name = "N", default_value_t = 1, requires = "record_nfe")]
+    pub record_calls: usize,
     /// Mutual TLS for `tls/…` endpoints of --remote-policy / --remote-slow.
     #[command(flatten)]
     pub tls: crate::remote::TlsOptions,
@@ -811,6 +824,25 @@ mod imp {
         cfg.policy
             .mode(&mode_overrides(args)?)
             .with_context(|| format!("checkpoint {}", args.checkpoint.display()))?;
+        if args.record_nfe.is_some() {
+            if args.record_calls == 0 {
+                bail!("--record-calls must be >= 1 (nothing was started)");
+            }
+            if args.candle_head.is_some() {
+                bail!(
+                    "--record-nfe records the checkpoint's ONNX action head (what the four graphs \
+                     are fed); the candle head of --candle-head is not recorded: drop one of \
+                     the two (nothing was started)"
+                );
+            }
+            if args.remote_policy.is_some() {
+                bail!(
+                    "--record-nfe records the action head in this process; with \
+                     --remote-policy it runs on the policy server: drop one of the two \
+                     (nothing was started)"
+                );
+            }
+        }
         let head = match &args.candle_head {
             Some(step) => {
                 let (h, _) = load_candle_head(&args.checkpoint, step, &args.task)
@@ -822,7 +854,14 @@ mod imp {
                     stats: None,
                 }
             }
-            None => head(args, preflight(args)?)?,
+            None => {
+                let mut h = preflight(args)?;
+                if let Some(dir) = &args.record_nfe {
+                    h.record_nfe(dir, args.record_calls)
+                        .context("--record-nfe (nothing was started)")?;
+                }
+                head(args, h)?
+            }
         };
         let max_ticks = match (args.ticks, args.seconds) {
             (Some(t), _) => Some(t),

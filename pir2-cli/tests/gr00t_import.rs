@@ -365,7 +365,14 @@ fn a_gr00t_checkpoint_imports_and_its_head_runs_as_the_original() {
 
 /// `f` breaks one file of a good checkpoint; the import must fail with one error naming
 /// `file` and `field`, leaving no output.
-fn refused(dir: &Path, name: &str, extra: &[&str], f: impl FnOnce(&Path), file: &str, field: &str) {
+fn refused(
+    dir: &Path,
+    name: &str,
+    extra: &[&str],
+    f: impl FnOnce(&Path),
+    file: &str,
+    field: &str,
+) -> String {
     let ck = dir.join(format!("bad-{name}"));
     gr00t_checkpoint(&ck, name.contains("shard"));
     f(&ck);
@@ -377,6 +384,7 @@ fn refused(dir: &Path, name: &str, extra: &[&str], f: impl FnOnce(&Path), file: 
     assert!(text.contains(field), "{name}: `{field}` not named: {text}");
     assert_eq!(text.matches("Error").count(), 1, "{name}: {text}");
     assert!(!out.exists(), "{name}: output written");
+    text
 }
 
 fn edit(path: &Path, f: impl FnOnce(&mut Value)) {
@@ -521,5 +529,266 @@ fn bad_or_partial_checkpoints_are_one_error_naming_file_and_field() {
         },
         "config.json",
         "model_type",
+    );
+}
+
+/// Rows of the synthetic πR² head's delay table (`d_vis_max + 1`).
+const DELAY_ROWS: usize = 5;
+
+/// Rewrite the checkpoint's `model.safetensors` as a πR² head fine-tuned in PyTorch would be
+/// saved: every AdaLN modulation (`…norm1.linear`, `model.proj_out_1`) as per-position heads
+/// `<layer>_heads.{weight [heads, out, in], bias [heads, out]}`, each copy perturbed so the
+/// positions differ, except the layer `shared` (kept as GR00T's shared pair), plus a delay
+/// table `[DELAY_ROWS, D_in]`.
+fn pir2_head(ck: &Path, heads: usize, shared: Option<&str>) {
+    let cfg = Gr00tN17Config::from_json_file(&ck.join("config.json")).unwrap();
+    let mut map: HashMap<String, Tensor> = tensors(&cfg, DType::F32).into_iter().collect();
+    let layers: Vec<String> = map
+        .keys()
+        .filter_map(|k| k.strip_suffix(".weight"))
+        .filter(|k| k.ends_with("norm1.linear") || k.ends_with("model.proj_out_1"))
+        .map(str::to_string)
+        .collect();
+    assert_eq!(layers.len(), 3, "{layers:?}");
+    let mut rng = pir2_schedule::Rng::new(41);
+    for l in layers {
+        if shared.is_some_and(|s| l.ends_with(s)) {
+            continue;
+        }
+        for k in ["weight", "bias"] {
+            let t = map.remove(&format!("{l}.{k}")).unwrap();
+            let copies: Vec<Tensor> = (0..heads)
+                .map(|p| {
+                    let noise: Vec<f32> = (0..t.elem_count())
+                        .map(|_| rng.uniform_range(-0.05, 0.05))
+                        .collect();
+                    let noise = Tensor::from_vec(noise, t.shape(), &Device::Cpu).unwrap();
+                    ((&t * (1.0 + 0.1 * p as f64)).unwrap() + noise).unwrap()
+                })
+                .collect();
+            map.insert(format!("{l}_heads.{k}"), Tensor::stack(&copies, 0).unwrap());
+        }
+    }
+    let d_in = cfg.input_embedding_dim;
+    let delay: Vec<f32> = (0..DELAY_ROWS * d_in)
+        .map(|_| rng.uniform_range(-0.5, 0.5))
+        .collect();
+    map.insert(
+        format!("{PREFIX}delay_embedding.weight"),
+        Tensor::from_vec(delay, (DELAY_ROWS, d_in), &Device::Cpu).unwrap(),
+    );
+    candle_core::safetensors::save(&map, ck.join("model.safetensors")).unwrap();
+}
+
+#[test]
+fn a_pir2_head_fine_tuned_in_pytorch_imports_with_its_heads_and_delay_table() {
+    let dir = Scratch::new("gr00t-import-pir2");
+    let ck = dir.path().join("gr00t-pir2");
+    gr00t_checkpoint(&ck, false);
+    pir2_head(&ck, 1 + H, None);
+    let out = dir.path().join("imported");
+    let (o, text) = import(&ck, &out, &[]);
+    eprintln!("{text}");
+    assert!(o.status.success(), "import: {text}");
+    assert!(
+        text.contains("per-position AdaLN heads") && text.contains("trained = \"pi_r2\""),
+        "{text}"
+    );
+
+    // Declared a πR² head, deployed πR² async, the delay table's rows giving d_vis_max.
+    let emb = EmbodimentConfig::load(&out.join("embodiment.toml")).unwrap();
+    assert_eq!(emb.policy.trained, pir2_runtime::Policy::PiR2);
+    assert_eq!(emb.policy.mode.name(), "pir2_async");
+    // The default n = 2, at most what the staircase allows at H = 8, d_max = 3 (n_max = 1).
+    assert_eq!(emb.d_max, 3);
+    assert_eq!(emb.policy.nfe, 1);
+    assert_eq!(emb.d_vis_max, DELAY_ROWS - 1);
+    let toml = std::fs::read_to_string(out.join("embodiment.toml")).unwrap();
+    assert!(toml.contains("trained = \"pi_r2\""), "{toml}");
+
+    // The imported head is the checkpoint's: heads, delay table, one NFE bit for bit.
+    let dev = Device::Cpu;
+    let direct = Gr00tN17Head::load(&ck, &dev).unwrap();
+    let imported = Gr00tN17Head::load(&out, &dev).unwrap();
+    assert_eq!(direct.position_heads(), Some(1 + H));
+    assert_eq!(imported.position_heads(), Some(1 + H));
+    let (a, b) = (one_nfe(&direct), one_nfe(&imported));
+    assert_eq!(a, b);
+    assert!(a.iter().all(|v| v.is_finite()));
+    // The heads and the delay table matter: the same checkpoint with GR00T's shared layers
+    // and no delay table computes another NFE.
+    let flat = dir.path().join("flat");
+    gr00t_checkpoint(&flat, false);
+    let shared = Gr00tN17Head::load(&flat, &dev).unwrap();
+    assert_ne!(one_nfe(&shared), a);
+    // `pir2 gr00t train` can continue from it (its own delay table, of its size).
+    let trainable = Gr00tN17Head::load_trainable(&out, emb.d_vis_max, &dev).unwrap();
+    assert_eq!(one_nfe(&trainable), a);
+
+    // The side file of the ONNX head carries the delay table as trained.
+    let side = candle_core::safetensors::load(out.join("pir2_gr00t.safetensors"), &dev).unwrap();
+    let table = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    assert_eq!(
+        table(&side["delay_embedding.weight"]),
+        table(direct.delay_embedding().unwrap())
+    );
+    // The DiT graph carries the per-position heads (one initializer per layer).
+    let dit = std::fs::read(out.join("onnx/dit.onnx")).unwrap();
+    let has = |s: &str| dit.windows(s.len()).any(|w| w == s.as_bytes());
+    assert!(has("proj_out_1_heads.weight"), "no heads in dit.onnx");
+    // And the ONNX head `pir2 gr00t run` uses computes what the candle head computes on
+    // what the graphs were fed (recorded with `record_nfe`).
+    onnx_call_matches_candle(&out, &direct, &dir.path().join("rec"));
+}
+
+/// One call of the imported ONNX head (`Gr00tActionHead`, πR² per-position τ, `d_vis` = 2),
+/// recorded; then the candle head `candle` on the recorded graph inputs gives the recorded
+/// DiT tokens and velocity.
+fn onnx_call_matches_candle(out: &Path, candle: &Gr00tN17Head, rec: &Path) {
+    use pir2_backends::gr00t::{CheckpointFiles, Gr00tActionHead, Normalizer, VlLayout};
+    use pir2_runtime::{ModelInput, SlowInput};
+    let files = CheckpointFiles::in_dir(out);
+    let cfg = EmbodimentConfig::load(&out.join("embodiment.toml")).unwrap();
+    let norm = Normalizer::load(&files.statistics, &cfg).unwrap();
+    let ort = pir2_backends::ort::OrtOptions::default();
+    let mut head = Gr00tActionHead::load(&files, &cfg, norm, cfg.embodiment_id, &ort).unwrap();
+    let t = 6;
+    head.set_vl_layout(VlLayout {
+        image_mask: (0..t).map(|i| i < 3).collect(),
+        attention_mask: vec![true; t],
+    });
+    head.record_nfe(rec, 1).unwrap();
+    let (h, a, sd) = (cfg.horizon, cfg.action_dim(), cfg.state_dim());
+    let mut rng = pir2_schedule::Rng::new(9);
+    let mut r = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.uniform_range(-1.0, 1.0)).collect() };
+    let (x, obs, vl) = (r(h * a), r(sd), r(t * D_VL));
+    let tau: Vec<f32> = (0..h).map(|p| 0.1 + 0.8 * p as f32 / h as f32).collect();
+    let input = ModelInput {
+        batch: 1,
+        horizon: h,
+        action_dim: a,
+        x: &x,
+        tau: &tau,
+        obs_fast: &obs,
+        n_obs: 1,
+        fast_dim: sd,
+        slow: SlowInput::Tokens {
+            data: &vl,
+            tokens: t,
+            dim: D_VL,
+        },
+        d_vis: &[2],
+    };
+    let mut v = vec![0.0; h * a];
+    head.forward(&input, &mut v).unwrap();
+
+    let dev = Device::Cpu;
+    let rt = candle_core::safetensors::load(rec.join("nfe-0000.safetensors"), &dev).unwrap();
+    let flat = |t: &Tensor| -> Vec<f32> {
+        t.to_dtype(DType::F32)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    };
+    let close = |what: &str, got: &[f32], want: &[f32]| {
+        assert_eq!(got.len(), want.len(), "{what}");
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            assert!(
+                (g - w).abs() <= 1e-4 * (1.0 + w.abs()),
+                "{what}[{i}]: ONNX {g}, candle {w}"
+            );
+        }
+    };
+    assert_eq!(flat(&rt["velocity"]), v);
+    let ids = &rt["embodiment_id"];
+    let c = candle.config();
+    let state = rt["state"].reshape((1, 1, c.max_state_dim)).unwrap();
+    let s = candle.encode_state(&state, ids).unwrap();
+    let act = candle
+        .encode_actions(&rt["actions"], &rt["timesteps"], ids)
+        .unwrap();
+    let act = candle
+        .add_delay_embedding(&act, Some(&rt["d_vis"]))
+        .unwrap();
+    let sa = Tensor::cat(&[&s, &act], 1).unwrap();
+    close("sa_embs", &flat(&rt["sa_embs"]), &flat(&sa));
+    // `vl_embs` as the DiT takes them: past `vlln` (the backbone side applies it).
+    let d_vis = rt["d_vis"].to_dtype(DType::U32).unwrap();
+    let vl = VlTokens {
+        embeddings: &rt["vl_embs"],
+        attention_mask: Some(&rt["backbone_attention_mask"]),
+        image_mask: Some(&rt["image_mask"]),
+        d_vis: Some(&d_vis),
+    };
+    let y = candle.dit(&rt["sa_embs"], &vl, &rt["timestep"]).unwrap();
+    let want = candle
+        .decode(&y, ids)
+        .unwrap()
+        .narrow(1, 1, h)
+        .unwrap()
+        .narrow(2, 0, a)
+        .unwrap();
+    close("velocity", &v, &flat(&want));
+}
+
+#[test]
+fn pir2_heads_of_the_wrong_count_mixed_or_declared_a_baseline_are_refused() {
+    let dir = Scratch::new("gr00t-import-pir2-bad");
+    let d = dir.path();
+    // H heads where 1 + H are needed: the tensor, the file and both counts.
+    let text = refused(
+        d,
+        "heads-count",
+        &[],
+        |ck| pir2_head(ck, H, None),
+        "model.safetensors",
+        "action_head.model.transformer_blocks.0.norm1.linear_heads.weight",
+    );
+    assert!(
+        text.contains(&format!("has {H} per-position heads"))
+            && text.contains(&format!("1 + H = {}", H + 1)),
+        "{text}"
+    );
+    // One layer shared, the others per-position.
+    refused(
+        d,
+        "heads-mixed",
+        &[],
+        |ck| pir2_head(ck, 1 + H, Some("model.proj_out_1")),
+        "model.safetensors",
+        "action_head.model.proj_out_1.weight",
+    );
+    // A πR² head declared a baseline, or an n that does not fit the staircase.
+    for (name, extra) in [
+        ("heads-as-flow", ["--trained", "flow"]),
+        ("heads-as-rtc", ["--trained", "rtc"]),
+    ] {
+        let text = refused(
+            d,
+            name,
+            &extra,
+            |ck| pir2_head(ck, 1 + H, None),
+            "model.safetensors",
+            "--trained",
+        );
+        assert!(text.contains("per-position"), "{text}");
+    }
+    refused(
+        d,
+        "nfe-too-big",
+        &["--nfe", "2"],
+        |ck| pir2_head(ck, 1 + H, None),
+        "model.safetensors",
+        "--nfe",
+    );
+    refused(
+        d,
+        "nfe-for-flow",
+        &["--nfe", "2"],
+        |_| {},
+        "model.safetensors",
+        "--nfe",
     );
 }

@@ -18,10 +18,16 @@
 //! the same convention as pir2); the runtime's output map denormalises the executed actions
 //! ([`super::Normalizer::action_output_map`]).
 //!
+//! **Recording.** [`Gr00tActionHead::record_nfe`] writes what the four graphs were fed and
+//! what the head returned, for the first calls, one safetensors file per call
+//! ([`NfeRecorder`]): a diagnostic to compare the deployed head with the framework it was
+//! trained in.
+//!
 //! The slow input may be [`SlowInput::Tokens`] (`dim = D_vl`) or, as the runtime's action head
 //! passes it, a flat [`SlowInput::Vector`] of `T·D_vl` values that is read as `[T, D_vl]`.
 
-use std::path::Path;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
 
 use pir2_runtime::{ModelInput, SlowInput, VelocityModel};
 
@@ -115,6 +121,103 @@ pub struct Gr00tActionHead {
     dec: Vec<f32>,
     img_mask: Vec<bool>,
     att_mask: Vec<bool>,
+    recorder: Option<NfeRecorder>,
+}
+
+/// Records the first calls of a [`Gr00tActionHead`]: for call `k` (from 0) of the first
+/// `calls` successful ones, `DIR/nfe-{k:04}.safetensors` (written to a temporary name in `DIR`
+/// and renamed) with what the four graphs were fed and what the head returned:
+///
+/// | tensor | dtype | shape | what |
+/// |--------|-------|-------|------|
+/// | `state` | f32 | `[B, 1, n_obs·max_state_dim]` | the state encoder's input: normalised, padded |
+/// | `embodiment_id` | i64 | `[B]` | the projector slot (every graph) |
+/// | `actions` | f32 | `[B, H, A_max]` | the action encoder's input: the noisy actions, padded |
+/// | `timesteps` | i64 | `[B, H]` | the action encoder's timesteps `min(⌊τ·buckets⌋, buckets − 1)` |
+/// | `sa_embs` | f32 | `[B, 1 + H, D_in]` | the DiT's tokens, after the position and delay embeddings |
+/// | `timestep` | i64 | `[B, 1 + H]` | the DiT's timesteps (state token first) |
+/// | `vl_embs` | f32 | `[B, T, D_vl]` | the backbone tokens as fed to the DiT (the backbone applied `vlln` and `vl_self_attention`) |
+/// | `image_mask`, `backbone_attention_mask` | u8 | `[B, T]` | when the DiT takes them |
+/// | `d_vis` | i64 | `[B]` | the slow features' age, ticks (before clamping to `d_vis_max`) |
+/// | `tau` | f32 | `[B, H]` | pir2's per-position flow time |
+/// | `x` | f32 | `[B, H, A]` | the noisy actions, robot width |
+/// | `velocity` | f32 | `[B, H, A]` | the head's output |
+///
+/// The file's metadata: `pir2_version`, `embodiment_id`, `state_timestep`, `buckets`.
+#[derive(Debug, Clone)]
+pub struct NfeRecorder {
+    dir: PathBuf,
+    calls: usize,
+    written: usize,
+}
+
+impl NfeRecorder {
+    /// The directory written to.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Calls recorded so far.
+    pub fn written(&self) -> usize {
+        self.written
+    }
+
+    /// The file of call `k`.
+    pub fn file(dir: &Path, k: usize) -> PathBuf {
+        dir.join(format!("nfe-{k:04}.safetensors"))
+    }
+}
+
+/// One recorded tensor: dtype, shape, little-endian bytes.
+type Recorded = (safetensors::Dtype, Vec<usize>, Vec<u8>);
+
+fn f32s(shape: &[usize], v: &[f32]) -> Recorded {
+    let bytes = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+    (safetensors::Dtype::F32, shape.to_vec(), bytes)
+}
+
+fn i64s(shape: &[usize], v: &[i64]) -> Recorded {
+    let bytes = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+    (safetensors::Dtype::I64, shape.to_vec(), bytes)
+}
+
+fn u8s(shape: &[usize], v: &[bool]) -> Recorded {
+    (
+        safetensors::Dtype::U8,
+        shape.to_vec(),
+        v.iter().map(|&b| u8::from(b)).collect(),
+    )
+}
+
+/// Write `tensors` with `meta` to `path` through a temporary file in the same directory.
+fn write_record(
+    path: &Path,
+    tensors: Vec<(&'static str, Recorded)>,
+    meta: HashMap<String, String>,
+) -> Result<()> {
+    let fail = |message: String| Error::NfeRecord {
+        path: path.to_path_buf(),
+        message,
+    };
+    let mut views = Vec::with_capacity(tensors.len());
+    for (name, (dtype, shape, bytes)) in &tensors {
+        let v = safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes)
+            .map_err(|e| fail(format!("tensor `{name}`: {e}")))?;
+        views.push((*name, v));
+    }
+    let bytes =
+        safetensors::tensor::serialize(views, Some(meta)).map_err(|e| fail(e.to_string()))?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    let written = std::fs::write(&tmp, &bytes).and_then(|()| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(fail(e.to_string()));
+    }
+    Ok(())
 }
 
 impl Gr00tActionHead {
@@ -222,7 +325,28 @@ impl Gr00tActionHead {
             dec: Vec::new(),
             img_mask: Vec::new(),
             att_mask: Vec::new(),
+            recorder: None,
         })
+    }
+
+    /// Record the first `calls` successful calls of [`Self::forward`] into `dir` (see
+    /// [`NfeRecorder`] for the files). `dir` is created if missing; it must be empty (a
+    /// record is never mixed with another), else [`Error::NfeRecord`] naming it. Each
+    /// recorded call costs one file write: a diagnostic, not for latency measurements. A
+    /// write that fails is that call's error.
+    pub fn record_nfe(&mut self, dir: &Path, calls: usize) -> Result<()> {
+        prepare_record_dir(dir)?;
+        self.recorder = Some(NfeRecorder {
+            dir: dir.to_path_buf(),
+            calls,
+            written: 0,
+        });
+        Ok(())
+    }
+
+    /// The recorder, if [`Self::record_nfe`] set one.
+    pub fn recorder(&self) -> Option<&NfeRecorder> {
+        self.recorder.as_ref()
     }
 
     /// The sizes.
@@ -494,8 +618,95 @@ impl Gr00tActionHead {
                     .copy_from_slice(&self.dec[src..src + a]);
             }
         }
-        ensure_finite(out)
+        ensure_finite(out)?;
+        if self.recorder.as_ref().is_some_and(|r| r.written < r.calls) {
+            self.record(input, vl, t, (wants_img, wants_att), out)?;
+        }
+        Ok(())
     }
+
+    /// Write the call just made ([`NfeRecorder`]).
+    fn record(
+        &mut self,
+        input: &ModelInput<'_>,
+        vl: &[f32],
+        t: usize,
+        (img, att): (bool, bool),
+        out: &[f32],
+    ) -> Result<()> {
+        let Some(rec) = self.recorder.as_mut() else {
+            return Ok(());
+        };
+        let HeadDims {
+            horizon: h,
+            action_dim: a,
+            max_action_dim: a_max,
+            max_state_dim: msd,
+            n_obs,
+            d_in,
+            d_vl,
+            ..
+        } = self.dims;
+        let b = input.batch;
+        let d_vis: Vec<i64> = input.d_vis.iter().map(|&d| d as i64).collect();
+        let mut tensors = vec![
+            ("state", f32s(&[b, 1, n_obs * msd], &self.state)),
+            ("embodiment_id", i64s(&[b], &self.emb_id)),
+            ("actions", f32s(&[b, h, a_max], &self.actions)),
+            ("timesteps", i64s(&[b, h], &self.t_act)),
+            ("sa_embs", f32s(&[b, 1 + h, d_in], &self.sa)),
+            ("timestep", i64s(&[b, 1 + h], &self.t_all)),
+            ("vl_embs", f32s(&[b, t, d_vl], vl)),
+            ("d_vis", i64s(&[b], &d_vis)),
+            ("tau", f32s(&[b, h], input.tau)),
+            ("x", f32s(&[b, h, a], input.x)),
+            ("velocity", f32s(&[b, h, a], out)),
+        ];
+        if img {
+            tensors.push(("image_mask", u8s(&[b, t], &self.img_mask)));
+        }
+        if att {
+            tensors.push(("backbone_attention_mask", u8s(&[b, t], &self.att_mask)));
+        }
+        let meta = HashMap::from([
+            (
+                "pir2_version".to_string(),
+                env!("CARGO_PKG_VERSION").to_string(),
+            ),
+            ("embodiment_id".to_string(), self.embodiment_id.to_string()),
+            (
+                "state_timestep".to_string(),
+                self.state_timestep.to_string(),
+            ),
+            ("buckets".to_string(), self.buckets.to_string()),
+        ]);
+        write_record(&NfeRecorder::file(&rec.dir, rec.written), tensors, meta)?;
+        rec.written += 1;
+        Ok(())
+    }
+}
+
+/// Make `dir` ready for a record: created if missing, refused (naming it) if it is not an
+/// empty directory or cannot be created. `pir2 gr00t run --record-nfe` calls it before the
+/// run starts, so a bad directory fails while nothing moves.
+pub fn prepare_record_dir(dir: &Path) -> Result<()> {
+    let fail = |message: String| Error::NfeRecord {
+        path: dir.to_path_buf(),
+        message,
+    };
+    if dir.exists() {
+        let mut entries = std::fs::read_dir(dir)
+            .map_err(|e| fail(format!("is not a readable directory: {e}")))?;
+        if entries.next().is_some() {
+            return Err(fail(
+                "exists and is not empty; choose a new directory (a record is never mixed \
+                 with another)"
+                    .into(),
+            ));
+        }
+        return Ok(());
+    }
+    std::fs::create_dir_all(dir).map_err(|e| fail(format!("cannot be created: {e}")))
 }
 
 /// The velocity a head returns must be finite: the first bad index is one error.

@@ -101,7 +101,7 @@ pub use config::{
 #[cfg(all(feature = "gr00t", feature = "candle"))]
 pub use example::{write_example, ExampleSummary};
 #[cfg(feature = "gr00t")]
-pub use head::{Gr00tActionHead, HeadDims, VlLayout};
+pub use head::{prepare_record_dir, Gr00tActionHead, HeadDims, NfeRecorder, VlLayout};
 #[cfg(feature = "gr00t")]
 pub use prompt::{PromptTokenizer, Sequence};
 #[cfg(all(feature = "gr00t", feature = "candle"))]

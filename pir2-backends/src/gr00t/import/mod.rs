@@ -39,9 +39,13 @@
 //!
 //! **Output**: `config.json` (copied), `model.safetensors` (the `action_head.*` tensors and the
 //! token table, bytes copied as stored), the four ONNX action-head graphs and
-//! `pir2_gr00t.safetensors` (`n17::export`, with a zero delay table: exactly GR00T's head),
-//! `embodiment.toml` (mapped, `[policy] trained = "flow"`: a released head is a flow-matching
-//! head, not πR²-fine-tuned), `statistics.json`, `embodiment_id.json` and
+//! `pir2_gr00t.safetensors` (`n17::export`: the head's own delay table
+//! `action_head.delay_embedding.weight` when it has one, else a zero table, exactly GR00T's
+//! head; πR²'s per-position AdaLN heads `<layer>_heads.*` when it has them),
+//! `embodiment.toml` (mapped; `[policy] trained` is [`ImportOptions::trained`], else `"pi_r2"`
+//! with `mode = "pir2_async"` for a head with per-position heads, a πR² head fine-tuned
+//! elsewhere, and `"flow"` with `mode = "sync_flow"` for one without, a released GR00T
+//! head), `statistics.json`, `embodiment_id.json` and
 //! `processor_config.json` (copied), the VLM tokenizer when the checkpoint has one, and, with
 //! [`ImportOptions::backbone_onnx`], GR00T's exported ViT and LLM graphs (bfloat16 ones
 //! rewritten to float32 by [`crate::gr00t::onnx_f32`] unless [`ImportOptions::keep_bf16`]).

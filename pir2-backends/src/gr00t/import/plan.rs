@@ -18,7 +18,9 @@ use crate::error::{Error, Result};
 use crate::gr00t::config::{
     EmbodimentConfig, Group, GroupFormat, ImagePipeline, Norm, Normalizer, EMBED_TOKENS_KEY,
 };
-use crate::gr00t::n17::{Gr00tN17Config, TensorIndex, INDEX_FILE, PREFIX, SINGLE_FILE};
+use crate::gr00t::n17::{
+    Gr00tN17Config, TensorIndex, DELAY_EMBEDDING, INDEX_FILE, PREFIX, SINGLE_FILE,
+};
 
 /// The VLM the prompt and vision defaults of pir2 are those of (GR00T N1.7's default
 /// `model_name`).
@@ -39,6 +41,18 @@ pub struct ImportOptions {
     pub keep_bf16: bool,
     /// Control rate, Hz (not in GR00T's files; the dataset's fps).
     pub control_hz: f64,
+    /// What the head was fine-tuned as (`[policy] trained`); `None`: `pi_r2` for a head
+    /// with per-position AdaLN heads (πR²'s architecture), `flow` for one without (GR00T's).
+    /// A head with per-position heads declared `flow` or `rtc` is refused: the baselines keep
+    /// the shared modulation.
+    pub trained: Option<pir2_runtime::Policy>,
+    /// πR² NFEs per action (`[policy] nfe`); `None`: the [`PolicySection`] default (2), or
+    /// the largest `n` the staircase allows when that is smaller. Must fit the fresh
+    /// staircase at the imported `H` and `d_max`; refused for policies without an `n`
+    /// (`flow`, `rtc`, `pi_r2_full`, `pi_r2_zero_delay_full`).
+    ///
+    /// [`PolicySection`]: crate::gr00t::config::PolicySection
+    pub nfe: Option<usize>,
 }
 
 impl Default for ImportOptions {
@@ -48,6 +62,8 @@ impl Default for ImportOptions {
             backbone_onnx: None,
             keep_bf16: false,
             control_hz: 25.0,
+            trained: None,
+            nfe: None,
         }
     }
 }
@@ -543,9 +559,7 @@ pub(super) fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     emb.prompt.image_tokens = images * per_side * per_side;
     emb.prompt.chat.images = images;
     emb.prompt.chat.formalize_language = formalize;
-    emb.policy.trained = pir2_runtime::Policy::Flow;
     emb.policy.flow_steps = cfg.num_inference_timesteps.max(1);
-    emb.policy.mode = crate::gr00t::config::DeployKind::SyncFlow;
     emb.policy.h = emb.policy.h.min(h).max(1);
     emb.validate().map_err(|e| match e {
         Error::Gr00tConfig(m) => err(
@@ -613,7 +627,54 @@ pub(super) fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
     // Every statistic each group's norm needs, with the group's width.
     Normalizer::load(&statistics_path, &emb)?;
 
-    // ---- the weights ----
+    // ---- the weights, and what they say about the head ----
+    let weights_src = weights_source(ckpt)?;
+    let index = TensorIndex::open(&weights_src, PREFIX).map_err(|e| from_head(e, ckpt))?;
+    if index.names().next().is_none() {
+        return Err(err(
+            &weights_src,
+            format!("{PREFIX}*"),
+            "no action-head tensor in the checkpoint",
+        ));
+    }
+    let heads = position_heads(&index, &cfg, h)?;
+    if let Some(shape) = index.shape(&format!("{PREFIX}{DELAY_EMBEDDING}")) {
+        // πR²'s delay table: its rows say the largest slow-feature age it was trained for.
+        if let Some(&rows) = shape.first() {
+            if rows >= 1 {
+                emb.d_vis_max = rows - 1;
+            }
+        }
+    }
+    set_policy(&mut emb, opts, heads, &weights_src)?;
+    emb.validate().map_err(|e| match e {
+        Error::Gr00tConfig(m) => err(
+            &weights_src,
+            "[policy] / delay_embedding",
+            format!("does not make a valid pir2 embodiment: {m}"),
+        ),
+        other => other,
+    })?;
+    let embed =
+        TensorIndex::open(&weights_src, EMBED_TOKENS_KEY).map_err(|e| from_head(e, ckpt))?;
+    let embed = embed.contains(EMBED_TOKENS_KEY).then_some(embed);
+    Ok(Plan {
+        cfg,
+        emb,
+        tag,
+        index,
+        embed,
+        config_path,
+        processor_path,
+        statistics_path,
+        embodiment_id_path,
+        model_name,
+    })
+}
+
+/// The checkpoint's weights: `model.safetensors.index.json` (every shard it names must be
+/// there) or `model.safetensors`.
+fn weights_source(ckpt: &Path) -> Result<PathBuf> {
     let weights_src = if ckpt.join(INDEX_FILE).is_file() {
         ckpt.join(INDEX_FILE)
     } else if ckpt.join(SINGLE_FILE).is_file() {
@@ -640,29 +701,156 @@ pub(super) fn plan(ckpt: &Path, opts: &ImportOptions) -> Result<Plan> {
             }
         }
     }
-    let index = TensorIndex::open(&weights_src, PREFIX).map_err(|e| from_head(e, ckpt))?;
-    if index.names().next().is_none() {
+    Ok(weights_src)
+}
+
+/// Whether the head's AdaLN modulations are πR²'s per-position heads: every block's
+/// `norm1.linear` and `proj_out_1` as `<layer>_heads.{weight [1 + H, out, in], bias [1 + H,
+/// out]}` (`true`), or every one as GR00T's shared `<layer>.{weight, bias}` (`false`). A mix,
+/// or heads whose count is not `1 + H` (`h`: the imported horizon), is one error naming the
+/// tensor and the file.
+fn position_heads(index: &TensorIndex, cfg: &Gr00tN17Config, h: usize) -> Result<bool> {
+    let mut layers: Vec<String> = (0..cfg.dit.num_layers)
+        .map(|i| format!("model.transformer_blocks.{i}.norm1.linear"))
+        .filter(|l| {
+            index.contains(&format!("{PREFIX}{l}.weight"))
+                || index.contains(&format!("{PREFIX}{l}_heads.weight"))
+        })
+        .collect();
+    layers.push("model.proj_out_1".to_string());
+    // The file holding a tensor (its shard when the checkpoint is sharded).
+    let file = |name: &str| -> PathBuf {
+        index
+            .location(name)
+            .map_or_else(|| index.source().to_path_buf(), |l| l.0.to_path_buf())
+    };
+    let with: Vec<&String> = layers
+        .iter()
+        .filter(|l| index.contains(&format!("{PREFIX}{l}_heads.weight")))
+        .collect();
+    if with.is_empty() {
+        return Ok(false);
+    }
+    if let Some(shared) = layers
+        .iter()
+        .find(|l| !index.contains(&format!("{PREFIX}{l}_heads.weight")))
+    {
+        let name = format!("{PREFIX}{shared}.weight");
         return Err(err(
-            &weights_src,
-            format!("{PREFIX}*"),
-            "no action-head tensor in the checkpoint",
+            &file(&name),
+            name,
+            format!(
+                "is GR00T's shared modulation, but `{PREFIX}{}_heads.weight` is per-position: \
+                 a πR² head has per-position heads for every AdaLN layer (each block's \
+                 norm1.linear and proj_out_1) or for none",
+                with[0]
+            ),
         ));
     }
-    let embed =
-        TensorIndex::open(&weights_src, EMBED_TOKENS_KEY).map_err(|e| from_head(e, ckpt))?;
-    let embed = embed.contains(EMBED_TOKENS_KEY).then_some(embed);
-    Ok(Plan {
-        cfg,
-        emb,
-        tag,
-        index,
-        embed,
-        config_path,
-        processor_path,
-        statistics_path,
-        embodiment_id_path,
-        model_name,
-    })
+    for l in &layers {
+        for k in ["weight", "bias"] {
+            let name = format!("{PREFIX}{l}_heads.{k}");
+            let Some(shape) = index.shape(&name) else {
+                return Err(err(
+                    index.source(),
+                    name,
+                    "is missing (the `_heads.weight` is there)",
+                ));
+            };
+            let n = shape.first().copied().unwrap_or(0);
+            if n != 1 + h {
+                return Err(err(
+                    &file(&name),
+                    name,
+                    format!(
+                        "has {n} per-position heads, but the imported horizon H = {h} (the \
+                         action delta_indices) needs 1 + H = {} (the state token and H actions)",
+                        1 + h
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(true)
+}
+
+/// `[policy]` of the imported embodiment: `trained` (the request, else `pi_r2` for a head with
+/// per-position heads and `flow` without), the matching default `mode`, and `nfe` checked
+/// against the fresh staircase at the embodiment's `H` and `d_max`.
+fn set_policy(
+    emb: &mut EmbodimentConfig,
+    opts: &ImportOptions,
+    heads: bool,
+    weights: &Path,
+) -> Result<()> {
+    use crate::gr00t::config::{policy_name, DeployKind};
+    use pir2_runtime::Policy as P;
+    let trained = match opts.trained {
+        Some(p) => p,
+        None if heads => P::PiR2,
+        None => P::Flow,
+    };
+    if heads && !trained.per_position_heads() {
+        return Err(err(
+            weights,
+            "--trained",
+            format!(
+                "is `{}`, but the head has per-position AdaLN heads \
+                 (`{PREFIX}model.proj_out_1_heads.weight`), πR²'s architecture; the `{}` \
+                 baseline keeps GR00T's shared modulation",
+                policy_name(trained),
+                policy_name(trained)
+            ),
+        ));
+    }
+    let h = emb.horizon;
+    let staircase_d = match trained {
+        P::PiR2 | P::PiR2Hidden => Some(emb.d_max),
+        P::PiR2ZeroDelay => Some(0),
+        P::PiR2Full | P::PiR2ZeroDelayFull | P::Flow | P::Rtc => None,
+    };
+    let nfe = match (staircase_d, opts.nfe) {
+        (None, Some(n)) => {
+            return Err(err(
+                weights,
+                "--nfe",
+                format!(
+                    "is {n}, but a `{}` head has no πR² n to set",
+                    policy_name(trained)
+                ),
+            ))
+        }
+        (None, None) => emb.policy.nfe,
+        (Some(d), n) => {
+            // Unset: the section's default, at most the largest n the staircase allows.
+            let n = n.unwrap_or_else(|| {
+                emb.policy
+                    .nfe
+                    .min(pir2_schedule::Staircase::n_max(h, d))
+                    .max(1)
+            });
+            let fits =
+                pir2_schedule::Staircase::new(h, d, Some(n), pir2_schedule::Alignment::Fresh);
+            if let Err(e) = fits {
+                return Err(err(
+                    weights,
+                    "--nfe",
+                    format!(
+                        "is {n}, which does not fit πR²'s staircase at H = {h}, d_max = {d}: {e}"
+                    ),
+                ));
+            }
+            n
+        }
+    };
+    emb.policy.trained = trained;
+    emb.policy.nfe = nfe;
+    emb.policy.mode = match trained {
+        P::Flow => DeployKind::SyncFlow,
+        P::Rtc => DeployKind::Rtc,
+        _ => DeployKind::PiR2Async,
+    };
+    Ok(())
 }
 
 /// GR00T's normalisation of a non-sin/cos group (mean/std where the modality config lists

@@ -46,6 +46,14 @@ pub struct ImportSummary {
     pub state_dim: usize,
     /// See [`Self::state_dim`].
     pub action_dim: usize,
+    /// `[policy] trained` of the written embodiment (`flow`, `pi_r2`, …).
+    pub trained: String,
+    /// `[policy] mode` of the written embodiment.
+    pub mode: String,
+    /// `[policy] nfe` of the written embodiment.
+    pub nfe: usize,
+    /// Whether the head has πR²'s per-position AdaLN heads.
+    pub position_heads: bool,
     /// Backbone graphs rewritten from bfloat16 to float32: `(file, report)`.
     pub converted: Vec<(String, Bf16Report)>,
     /// What the user must still add before `pir2 gr00t run`.
@@ -182,7 +190,8 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
     };
     let plan = plan(ckpt, opts)?;
     let device = Device::Cpu;
-    // GR00T's head with a zero delay table: what the released head computes.
+    // The checkpoint's head, with its own delay table (a πR² head) or a zero one (GR00T's
+    // released head: exactly what it computes), and its per-position heads if it has them.
     let head = Gr00tN17Head::trainable_from_index(
         &plan.index,
         plan.cfg.clone(),
@@ -190,6 +199,7 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
         &device,
     )
     .map_err(|e| from_head(e, ckpt))?;
+    let position_heads = head.position_heads().is_some();
     let export =
         crate::gr00t::n17::export::export_gr00t_n17(&head, plan.emb.horizon).map_err(|e| {
             Error::Gr00tCandle {
@@ -321,6 +331,10 @@ pub fn import_checkpoint(ckpt: &Path, out: &Path, opts: &ImportOptions) -> Resul
         horizon: plan.emb.horizon,
         state_dim: plan.emb.state_dim(),
         action_dim: plan.emb.action_dim(),
+        trained: crate::gr00t::config::policy_name(plan.emb.policy.trained),
+        mode: plan.emb.policy.mode.name().to_string(),
+        nfe: plan.emb.policy.nfe,
+        position_heads,
         converted,
         missing,
     })
