@@ -95,8 +95,15 @@ lerobot() {
     # own torch) and the wheel built by scripts/build-python.sh. ONNX Runtime for Rust:
     # .native/env.sh (scripts/setup-native.sh).
     local t0=$SECONDS
-    # shellcheck disable=SC1091
-    source .native/env.sh
+    if [ -f .native/env.sh ]; then
+        # shellcheck disable=SC1091
+        source .native/env.sh
+    fi
+    if [ -z "${ORT_DYLIB_PATH:-}" ]; then
+        echo "lerobot: ORT_DYLIB_PATH is not set: run scripts/setup-native.sh first" >&2
+        summary+=("lerobot: FAILED (no ONNX Runtime: scripts/setup-native.sh)")
+        return 1
+    fi
     local py="${PIR2_LEROBOT_PYTHON:-}"
     if [ -z "$py" ]; then
         local venv=.native/venv-lerobot
@@ -120,7 +127,10 @@ lerobot() {
         "$pir2" eval ballplate --checkpoint "$work/torch" --policy pir2 --d0 1,2,3 \
             --episodes "$episodes" --json "$work/cells.json" | tee "$work/table.md"; then
         local rates
-        rates="$("$py" -c 'import json,sys; print(", ".join(f"{c["label"]} d0={c["d0"]}: {c["successes"]}/{c["episodes"]}" for c in json.load(open(sys.argv[1]))))' "$work/cells.json")"
+        rates="$("$py" -c 'import json,sys; print(", ".join("%s d0=%d: %d/%d" % (c["label"], c["d0"], c["successes"], c["episodes"]) for c in json.load(open(sys.argv[1]))))' "$work/cells.json")" || {
+            summary+=("lerobot: FAILED reading $work/cells.json")
+            return 1
+        }
         summary+=("lerobot: ok ($steps steps, 100 demos), success $rates, $((SECONDS - t0)) s")
         rm -rf "$work"
     else

@@ -1,7 +1,8 @@
 //! `pir2 eval ballplate --checkpoint DIR` on an ONNX checkpoint (model.onnx, stats.json,
 //! identity.json; what examples/lerobot-flow/train.py writes): it runs through ONNX Runtime
 //! and scores what the candle checkpoint it was exported from scores; a directory with
-//! neither or both weight files, a replaced graph and another policy are refused by name
+//! neither or both weight files, a replaced graph, a graph of other sizes than the task's and
+//! another policy are refused by name
 //! (feature `ort`; needs ORT_DYLIB_PATH, see scripts/setup-native.sh).
 #![cfg(feature = "ort")]
 
@@ -110,6 +111,39 @@ fn an_onnx_checkpoint_is_evaluated_like_the_candle_checkpoint_it_came_from() {
     let o = eval(&tampered, "pir2", &dir.path().join("t.json"));
     assert!(!o.status.success());
     assert!(stderr(&o).contains("was replaced"), "{}", stderr(&o));
+
+    // A graph of other sizes than the task's (H = 8 instead of 16).
+    let short = dir.path().join("short");
+    let mut small = CandleModel::new(
+        Config {
+            spec: pir2_backends::config::Spec { horizon: 8, ..spec },
+            model: ModelConfig::Mlp(MlpConfig {
+                width: 8,
+                depth: 1,
+                ..MlpConfig::default()
+            }),
+        },
+        Stats::identity(&spec),
+        1,
+    )
+    .unwrap();
+    small.set_policy(Some(Policy::PiR2));
+    small.save(&dir.path().join("short-candle")).unwrap();
+    std::fs::create_dir_all(&short).unwrap();
+    let status = Command::new(env!("CARGO_BIN_EXE_pir2"))
+        .args(["export"])
+        .arg(dir.path().join("short-candle"))
+        .arg("--onnx")
+        .arg(short.join("model.onnx"))
+        .status()
+        .unwrap();
+    assert!(status.success());
+    std::fs::copy(onnx.join("stats.json"), short.join("stats.json")).unwrap();
+    let sha = weights_sha256(&std::fs::read(short.join("model.onnx")).unwrap());
+    std::fs::write(short.join("identity.json"), identity(sha)).unwrap();
+    let o = eval(&short, "pir2", &dir.path().join("s.json"));
+    assert!(!o.status.success());
+    assert!(stderr(&o).contains("the task's = (16"), "{}", stderr(&o));
 
     // Both weight files, then neither.
     std::fs::copy(
