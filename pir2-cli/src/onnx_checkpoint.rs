@@ -39,6 +39,9 @@ pub enum CheckpointKind {
 /// Which kind of checkpoint `dir` is; a directory with neither or both weight files is
 /// refused by name.
 pub fn kind(dir: &Path) -> Result<CheckpointKind> {
+    if !dir.is_dir() {
+        bail!("checkpoint {} is not a directory", dir.display());
+    }
     let (candle, onnx) = (dir.join(WEIGHTS_FILE), dir.join(ONNX_FILE));
     match (candle.is_file(), onnx.is_file()) {
         (true, false) => Ok(CheckpointKind::Candle),
@@ -202,5 +205,7 @@ mod tests {
         std::fs::remove_file(dir.join(ONNX_FILE)).unwrap();
         assert_eq!(kind(&dir).unwrap(), CheckpointKind::Candle);
         std::fs::remove_dir_all(&dir).unwrap();
+        let err = format!("{:#}", kind(&dir).unwrap_err());
+        assert!(err.contains("not a directory"), "{err}");
     }
 }
