@@ -8,6 +8,9 @@
 #   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
 #   scripts/check-extra.sh torch        # the Python package's PyTorch side (pir2.gr00t): its tests
 #                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB)
+#   scripts/check-extra.sh lerobot      # examples/lerobot-flow end to end: pir2 collect ballplate,
+#                                       # train.py (PyTorch, LeRobotDataset, pir2 draws) a few
+#                                       # hundred steps, pir2 eval on the ONNX checkpoint
 #   scripts/check-extra.sh all
 #
 # Fuzzing: every property runs PIR2_FUZZ_CASES cases (default 10^6), in the test profile whose
@@ -113,20 +116,73 @@ torch() {
     fi
 }
 
+lerobot() {
+    # Python: $PIR2_LEROBOT_PYTHON (an interpreter with torch, lerobot==0.4.4's
+    # LeRobotDataset, onnx, onnxruntime==1.31.1 and the pir2 wheel), or a venv
+    # .native/venv-lerobot created here with `pip install lerobot==0.4.4` (which brings its
+    # own torch) and the wheel built by scripts/build-python.sh. ONNX Runtime for Rust:
+    # .native/env.sh (scripts/setup-native.sh).
+    local t0=$SECONDS
+    if [ -f .native/env.sh ]; then
+        # shellcheck disable=SC1091
+        source .native/env.sh
+    fi
+    if [ -z "${ORT_DYLIB_PATH:-}" ]; then
+        echo "lerobot: ORT_DYLIB_PATH is not set: run scripts/setup-native.sh first" >&2
+        summary+=("lerobot: FAILED (no ONNX Runtime: scripts/setup-native.sh)")
+        return 1
+    fi
+    local py="${PIR2_LEROBOT_PYTHON:-}"
+    if [ -z "$py" ]; then
+        local venv=.native/venv-lerobot
+        if [ ! -x "$venv/bin/python" ]; then
+            python3 -m venv "$venv"
+            "$venv/bin/pip" -q install "lerobot==0.4.4" onnx "onnxruntime==1.31.1"
+        fi
+        scripts/build-python.sh --out .native/wheels
+        "$venv/bin/pip" -q install --force-reinstall --no-deps .native/wheels/pir2-*.whl
+        py="$venv/bin/python"
+    fi
+    cargo build --release -p pir2-cli --features ort
+    local pir2
+    pir2="$(cargo metadata --format-version 1 --no-deps | "$py" -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/release/pir2"
+    local work
+    work="$(mktemp -d)"
+    local steps="${PIR2_LEROBOT_STEPS:-400}" episodes="${PIR2_LEROBOT_EPISODES:-20}"
+    if "$pir2" collect ballplate --out "$work/data" --episodes 100 --seed 0 &&
+        "$py" examples/lerobot-flow/train.py --data "$work/data" --out "$work/torch" \
+            --steps "$steps" --seed 0 &&
+        "$pir2" eval ballplate --checkpoint "$work/torch" --policy pir2 --d0 1,2,3 \
+            --episodes "$episodes" --json "$work/cells.json" | tee "$work/table.md"; then
+        local rates
+        rates="$("$py" -c 'import json,sys; print(", ".join("%s d0=%d: %d/%d" % (c["label"], c["d0"], c["successes"], c["episodes"]) for c in json.load(open(sys.argv[1]))))' "$work/cells.json")" || {
+            summary+=("lerobot: FAILED reading $work/cells.json")
+            return 1
+        }
+        summary+=("lerobot: ok ($steps steps, 100 demos), success $rates, $((SECONDS - t0)) s")
+        rm -rf "$work"
+    else
+        summary+=("lerobot: FAILED after $((SECONDS - t0)) s (outputs in $work)")
+        return 1
+    fi
+}
+
 status=0
 case "${1:-all}" in
 fuzz-fast) fuzz_fast || status=1 ;;
 fuzz-files) fuzz_files || status=1 ;;
 cuda) cuda || status=1 ;;
 torch) torch || status=1 ;;
+lerobot) lerobot || status=1 ;;
 all)
     fuzz_fast || status=1
     fuzz_files || status=1
     cuda || status=1
     torch || status=1
+    lerobot || status=1
     ;;
 *)
-    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|torch|all]" >&2
+    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|torch|lerobot|all]" >&2
     exit 2
     ;;
 esac

@@ -15,7 +15,18 @@ use pir2_runtime::Policy;
 /// another policy; `how` says where `policy` came from (e.g. `--policy`). A checkpoint whose
 /// policy is unrecorded (written before checkpoints recorded it) runs, with a note.
 pub fn expect_policy(model: &CandleModel, dir: &Path, policy: Policy, how: &str) -> Result<()> {
-    match model.policy() {
+    expect_trained_as(model.policy(), dir, policy, how)
+}
+
+/// [`expect_policy`] for any checkpoint whose recorded policy is `trained` (`None`:
+/// unrecorded), e.g. an ONNX checkpoint ([`crate::onnx_checkpoint`]).
+pub fn expect_trained_as(
+    trained: Option<Policy>,
+    dir: &Path,
+    policy: Policy,
+    how: &str,
+) -> Result<()> {
+    match trained {
         Some(trained) if trained != policy => bail!(
             "checkpoint {} was trained as {}; {how} {} would run it under another schedule",
             dir.display(),

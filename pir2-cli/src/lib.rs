@@ -15,6 +15,7 @@ pub mod commands;
 pub mod ep;
 pub mod gr00t;
 pub mod identity;
+pub mod onnx_checkpoint;
 pub mod plot;
 pub mod remote;
 pub mod run;

@@ -9,6 +9,7 @@ use anyhow::{bail, Context, Result};
 use pir2_backends::candle::CandleModel;
 
 use super::{CollectOptions, EvalOptions, ReportOptions, TaskCommands, TrainOptions};
+use crate::onnx_checkpoint::{CheckpointKind, OnnxCheckpoint};
 use crate::study::ballplate::{self, DemoConfig};
 use crate::study::pipeline::Models;
 
@@ -78,10 +79,30 @@ impl TaskCommands for BallPlate {
         if let Some(p) = o.json.as_ref().filter(|p| p.exists()) {
             bail!("{} already exists; choose another --json path", p.display());
         }
+        let episodes = o.episodes.unwrap_or(100);
+        if crate::onnx_checkpoint::kind(checkpoint)? == CheckpointKind::Onnx {
+            // An ONNX checkpoint (e.g. trained in PyTorch): run through ONNX Runtime.
+            if o.remote.is_some() {
+                bail!(
+                    "--remote evaluates a candle checkpoint served by `pir2 serve policy`; {} \
+                     is an ONNX checkpoint, evaluated locally only",
+                    checkpoint.display()
+                );
+            }
+            let ck = OnnxCheckpoint::read(checkpoint, &ballplate::spec())?;
+            crate::identity::expect_trained_as(ck.policy(), checkpoint, policy, "--policy")?;
+            let models = ck.models(&ballplate::spec())?;
+            eprintln!(
+                "evaluating ONNX checkpoint {} through ONNX Runtime",
+                checkpoint.display()
+            );
+            let (cells, labels) =
+                ballplate::eval_checkpoint(&models, policy, &o.d0, episodes, o.seed)?;
+            return report_cells(o, &cells, &labels);
+        }
         let model = CandleModel::load(checkpoint)
             .with_context(|| format!("loading {}", checkpoint.display()))?;
         crate::identity::expect_policy(&model, checkpoint, policy, "--policy")?;
-        let episodes = o.episodes.unwrap_or(100);
         let (cells, labels) = match &o.remote {
             None => {
                 let models = Models::local(&model)?;
@@ -104,14 +125,19 @@ impl TaskCommands for BallPlate {
                 res?
             }
         };
-        println!("{}", crate::study::table(&cells, &labels, &o.d0));
-        if let Some(p) = &o.json {
-            std::fs::write(p, serde_json::to_string_pretty(&cells)?)?;
-        }
-        Ok(())
+        report_cells(o, &cells, &labels)
     }
 
     fn report(&self, _: &ReportOptions) -> Result<()> {
         bail!("ballplate keeps no cell log: `pir2 report` is for leap-cube studies")
     }
+}
+
+/// Print the evaluation table and write the cells to `--json`.
+fn report_cells(o: &EvalOptions, cells: &[crate::study::Cell], labels: &[String]) -> Result<()> {
+    println!("{}", crate::study::table(cells, labels, &o.d0));
+    if let Some(p) = &o.json {
+        std::fs::write(p, serde_json::to_string_pretty(cells)?)?;
+    }
+    Ok(())
 }

@@ -209,6 +209,9 @@ pub struct EvalOptions {
     pub task: String,
     /// Checkpoint directory (leap-cube: the output of `pir2 train leap-cube`; a listed
     /// policy × seed without a `best/` there is an error, unless --train-missing).
+    /// ballplate: a candle checkpoint (config.json, stats.json, model.safetensors), or an
+    /// ONNX checkpoint (model.onnx, stats.json, identity.json; e.g. trained in PyTorch, see
+    /// examples/lerobot-flow) run through ONNX Runtime (a build with `--features ort`).
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
     /// leap-cube: train the listed policies missing from --checkpoint (into --out) instead
