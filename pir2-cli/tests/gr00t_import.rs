@@ -44,6 +44,7 @@ use pir2_backends::gr00t::{EmbodimentConfig, GroupFormat, EMBED_TOKENS_KEY};
 use serde_json::{json, Value};
 
 mod common;
+use common::gr00t::candle_on_recorded_call;
 use common::gr00t::pir2_text as pir2;
 use common::Scratch;
 
@@ -702,34 +703,8 @@ fn onnx_call_matches_candle(out: &Path, candle: &Gr00tN17Head, rec: &Path) {
         }
     };
     assert_eq!(flat(&rt["velocity"]), v);
-    let ids = &rt["embodiment_id"];
-    let c = candle.config();
-    let state = rt["state"].reshape((1, 1, c.max_state_dim)).unwrap();
-    let s = candle.encode_state(&state, ids).unwrap();
-    let act = candle
-        .encode_actions(&rt["actions"], &rt["timesteps"], ids)
-        .unwrap();
-    let act = candle
-        .add_delay_embedding(&act, Some(&rt["d_vis"]))
-        .unwrap();
-    let sa = Tensor::cat(&[&s, &act], 1).unwrap();
+    let (sa, want) = candle_on_recorded_call(candle, &rt, 1, a);
     close("sa_embs", &flat(&rt["sa_embs"]), &flat(&sa));
-    // `vl_embs` as the DiT takes them: past `vlln` (the backbone side applies it).
-    let d_vis = rt["d_vis"].to_dtype(DType::U32).unwrap();
-    let vl = VlTokens {
-        embeddings: &rt["vl_embs"],
-        attention_mask: Some(&rt["backbone_attention_mask"]),
-        image_mask: Some(&rt["image_mask"]),
-        d_vis: Some(&d_vis),
-    };
-    let y = candle.dit(&rt["sa_embs"], &vl, &rt["timestep"]).unwrap();
-    let want = candle
-        .decode(&y, ids)
-        .unwrap()
-        .narrow(1, 1, h)
-        .unwrap()
-        .narrow(2, 0, a)
-        .unwrap();
     close("velocity", &v, &flat(&want));
 }
 

@@ -10,11 +10,12 @@ use std::collections::HashMap;
 use std::ffi::OsStr;
 use std::path::Path;
 
-use candle_core::{DType, Device, Tensor, D};
-use pir2_backends::gr00t::n17::{Gr00tN17Head, VlTokens};
+use candle_core::{DType, Device, Tensor};
+use pir2_backends::gr00t::n17::Gr00tN17Head;
 use pir2_backends::gr00t::EmbodimentConfig;
 
 mod common;
+use common::gr00t::candle_on_recorded_call;
 use common::gr00t::pir2_text as pir2;
 use common::Scratch;
 
@@ -182,33 +183,11 @@ fn record_nfe_writes_what_the_graphs_were_fed_and_the_candle_head_recomputes_it(
         let v = f32s(&t["velocity"]);
         assert!(v.iter().all(|v| v.is_finite()), "{f}");
 
-        // The candle head the ONNX graphs were exported from, on the recorded inputs:
-        // the DiT's tokens from the state and action encoders with the delay row added …
-        let ids = &t["embodiment_id"];
-        let state = t["state"].reshape((b, emb.n_obs, c.max_state_dim)).unwrap();
-        let s = head.encode_state(&state, ids).unwrap();
-        let act = head
-            .encode_actions(&t["actions"], &t["timesteps"], ids)
-            .unwrap();
-        let act = head.add_delay_embedding(&act, Some(&t["d_vis"])).unwrap();
-        let sa = Tensor::cat(&[&s, &act], 1).unwrap();
+        // The candle head the ONNX graphs were exported from, on the recorded inputs: the
+        // DiT's tokens from the state and action encoders with the delay row added, and the
+        // DiT and decoder on the recorded DiT inputs give the recorded velocity.
+        let (sa, out) = candle_on_recorded_call(&head, &t, emb.n_obs, a);
         close("sa_embs", &f32s(&t["sa_embs"]), &f32s(&sa), 1e-4);
-        // … and the DiT and decoder on the recorded DiT inputs give the recorded velocity
-        // (`vl_embs` as the DiT takes them: the backbone applied `vlln` already).
-        let d_vis = t["d_vis"].to_dtype(DType::U32).unwrap();
-        let vl = VlTokens {
-            embeddings: &t["vl_embs"],
-            attention_mask: Some(&t["backbone_attention_mask"]),
-            image_mask: Some(&t["image_mask"]),
-            d_vis: Some(&d_vis),
-        };
-        let y = head.dit(&t["sa_embs"], &vl, &t["timestep"]).unwrap();
-        let out = head.decode(&y, ids).unwrap();
-        let out = out
-            .narrow(1, 1, h)
-            .unwrap()
-            .narrow(D::Minus1, 0, a)
-            .unwrap();
         close("velocity", &v, &f32s(&out), 1e-3);
     }
 }

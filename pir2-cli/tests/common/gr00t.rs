@@ -494,3 +494,44 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// The candle head `head` on one call `--record-nfe` recorded (`rec`: the file's tensors, see
+/// docs/gr00t-contract.md), returning what it computes from the recorded graph inputs:
+/// the DiT tokens `[B, 1 + H, D_in]` from the recorded state and noisy actions (state and action
+/// encoders, the delay row added), and the velocity `[B, H, A]` its DiT and decoder give on the
+/// recorded DiT inputs (`vl_embs` as the DiT takes them: the backbone side applied `vlln`).
+pub fn candle_on_recorded_call(
+    head: &pir2_backends::gr00t::n17::Gr00tN17Head,
+    rec: &HashMap<String, Tensor>,
+    n_obs: usize,
+    action_dim: usize,
+) -> (Tensor, Tensor) {
+    use candle_core::{DType, D};
+    use pir2_backends::gr00t::n17::VlTokens;
+    let c = head.config();
+    let ids = &rec["embodiment_id"];
+    let (b, h) = rec["timesteps"].dims2().unwrap();
+    let state = rec["state"].reshape((b, n_obs, c.max_state_dim)).unwrap();
+    let s = head.encode_state(&state, ids).unwrap();
+    let act = head
+        .encode_actions(&rec["actions"], &rec["timesteps"], ids)
+        .unwrap();
+    let act = head.add_delay_embedding(&act, Some(&rec["d_vis"])).unwrap();
+    let sa = Tensor::cat(&[&s, &act], 1).unwrap();
+    let d_vis = rec["d_vis"].to_dtype(DType::U32).unwrap();
+    let vl = VlTokens {
+        embeddings: &rec["vl_embs"],
+        attention_mask: Some(&rec["backbone_attention_mask"]),
+        image_mask: Some(&rec["image_mask"]),
+        d_vis: Some(&d_vis),
+    };
+    let y = head.dit(&rec["sa_embs"], &vl, &rec["timestep"]).unwrap();
+    let v = head
+        .decode(&y, ids)
+        .unwrap()
+        .narrow(1, 1, h)
+        .unwrap()
+        .narrow(D::Minus1, 0, action_dim)
+        .unwrap();
+    (sa, v)
+}
