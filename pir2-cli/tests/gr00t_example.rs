@@ -9,7 +9,7 @@ use std::ffi::OsStr;
 use std::path::Path;
 
 mod common;
-use common::gr00t::{pir2_text as pir2, read_json};
+use common::gr00t::{pir2_text as pir2, read_json, run_emulated_seconds};
 use common::Scratch;
 
 fn example(dir: &Path, seed: &str) -> (std::process::Output, String) {
@@ -77,20 +77,7 @@ fn example_checkpoint_runs_on_the_emulators_and_is_never_overwritten() {
 
     // The walkthrough's run, on the emulators for 2 s.
     let json = scratch.path().join("run.json");
-    let (out, text) = pir2(&[
-        OsStr::new("gr00t"),
-        OsStr::new("run"),
-        OsStr::new("gr00t-xarm-xhand"),
-        OsStr::new("--checkpoint"),
-        ck.as_os_str(),
-        OsStr::new("--task"),
-        OsStr::new("catch the book"),
-        OsStr::new("--emulate"),
-        OsStr::new("--seconds"),
-        OsStr::new("2"),
-        OsStr::new("--json"),
-        json.as_os_str(),
-    ]);
+    let (out, text) = run_emulated_seconds(&ck, "2", &[OsStr::new("--json"), json.as_os_str()]);
     eprintln!("{text}");
     assert!(out.status.success(), "run: {text}");
     let v = read_json(&json);

@@ -15,8 +15,8 @@ use pir2_backends::gr00t::n17::Gr00tN17Head;
 use pir2_backends::gr00t::EmbodimentConfig;
 
 mod common;
-use common::gr00t::candle_on_recorded_call;
 use common::gr00t::pir2_text as pir2;
+use common::gr00t::{candle_on_recorded_call, run_emulated_seconds};
 use common::Scratch;
 
 fn example(dir: &Path) {
@@ -31,19 +31,7 @@ fn example(dir: &Path) {
 }
 
 fn run(ck: &Path, extra: &[&OsStr]) -> (std::process::Output, String) {
-    let mut args = vec![
-        OsStr::new("run"),
-        OsStr::new("gr00t-xarm-xhand"),
-        OsStr::new("--checkpoint"),
-        ck.as_os_str(),
-        OsStr::new("--task"),
-        OsStr::new("catch the book"),
-        OsStr::new("--emulate"),
-        OsStr::new("--seconds"),
-        OsStr::new("1"),
-    ];
-    args.extend_from_slice(extra);
-    pir2(&args)
+    run_emulated_seconds(ck, "1", extra)
 }
 
 /// The safetensors metadata (`__metadata__` of the JSON header).

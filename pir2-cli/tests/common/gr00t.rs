@@ -535,3 +535,22 @@ pub fn candle_on_recorded_call(
         .unwrap();
     (sa, v)
 }
+
+/// `pir2 gr00t run gr00t-xarm-xhand --checkpoint CK --task "catch the book" --emulate
+/// --seconds S` with `extra` arguments appended, on the emulators; its exit and output.
+pub fn run_emulated_seconds(ck: &Path, seconds: &str, extra: &[&OsStr]) -> (Output, String) {
+    let mut args = vec![
+        OsStr::new("gr00t"),
+        OsStr::new("run"),
+        OsStr::new("gr00t-xarm-xhand"),
+        OsStr::new("--checkpoint"),
+        ck.as_os_str(),
+        OsStr::new("--task"),
+        OsStr::new("catch the book"),
+        OsStr::new("--emulate"),
+        OsStr::new("--seconds"),
+        OsStr::new(seconds),
+    ];
+    args.extend_from_slice(extra);
+    pir2_text(&args)
+}
