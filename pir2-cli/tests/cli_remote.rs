@@ -224,6 +224,81 @@ fn eval_remote_without_a_server_fails_cleanly() {
     assert!(t0.elapsed() < Duration::from_secs(20));
 }
 
+/// A rogue Zenoh client joins the policy server mid-eval and answers every request with
+/// finite, well-shaped, wrong velocities (the server routes the robot's requests to its
+/// clients, so the rogue's replies reach the robot through the endpoint it dialled): the
+/// eval uses only the replies of the server it shook hands with, counts the rogue's, and
+/// gives the local result. A rogue already there at the handshake makes the client refuse
+/// to pick a server (before: the first reply of anyone was used).
+#[test]
+fn a_rogue_client_of_the_policy_server_is_never_used() {
+    use pir2_runtime::testing::rogue::{Attach, Rogue};
+
+    let s = Scratch::new("eval-rogue");
+    let ck = checkpoint(s.path());
+    let ck_s = ck.to_str().unwrap();
+    let local_json = s.path().join("local.json");
+    let out = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--json"])
+        .arg(&local_json)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let _server = serve(&["policy", "--checkpoint", ck_s, "--listen", &endpoint]);
+    let remote_json = s.path().join("remote.json");
+    let mut eval = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint, "--json"])
+        .arg(&remote_json)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(eval.stderr.take().unwrap());
+    let mut lines = String::new();
+    while !lines.contains("connected to the policy server") {
+        assert!(
+            err.read_line(&mut lines).unwrap() > 0,
+            "eval exited: {lines}"
+        );
+    }
+    let rogue =
+        Rogue::policy_responder(&Attach::ClientOf(endpoint.clone()), "pir2/policy", 42.0).unwrap();
+    std::io::Read::read_to_string(&mut err, &mut lines).unwrap();
+    let status = eval.wait().unwrap();
+    assert!(status.success(), "{lines}");
+    assert!(rogue.sent() >= 1, "the rogue never got a request: {lines}");
+    let read = |p: &Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    };
+    assert_eq!(read(&local_json), read(&remote_json), "{lines}");
+    let foreign: u64 = lines
+        .split("foreign replies ")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{lines}"));
+    assert!(foreign >= 1, "{lines}");
+
+    // The rogue answers the next client's handshake too: refused, by name, nothing run.
+    let out = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint])
+        .args(["--connect-timeout", "5"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("2 peers answered the handshake") && err.contains("refusing to pick one"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+}
+
 /// An untrained ball-plate MLP checkpoint `dir/name` seeded `seed`, recording `policy`.
 fn checkpoint_as(
     dir: &Path,
@@ -419,10 +494,15 @@ fn a_garbled_tls_file_is_named_on_both_sides() {
     );
 }
 
+/// `pir2 gr00t run --remote-slow` fed by `pir2 gr00t serve slow`, while a rogue Zenoh client
+/// of the server re-publishes each of its frames under another sender with every value set
+/// to 1e6 (well-formed, fresh, wrong): the run uses the server's frames and counts the
+/// rogue's (before: any publisher on the key fed the robot).
 #[cfg(feature = "gr00t")]
 #[test]
 fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     use pir2_backends::gr00t::testing::{python_from_env, write_tiny_checkpoint};
+    use pir2_runtime::testing::rogue::{Attach, Rogue};
 
     let s = Scratch::new("gr00t-remote-slow");
     let ck = s.path().join("ck");
@@ -438,6 +518,8 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
         "--listen",
         &endpoint,
     ]);
+    let rogue =
+        Rogue::features_republisher(&Attach::ClientOf(endpoint.clone()), "pir2/slow", 1e6).unwrap();
     let json = s.path().join("run.json");
     let out = pir2()
         .args(["gr00t", "run", "gr00t-xarm-xhand", "--checkpoint", ck_s])
@@ -458,6 +540,8 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
     let r = &v["remote_slow"];
     assert!(r["frames"].as_u64().unwrap() >= 2, "{r}");
     assert!(r["clock_syncs"].as_u64().unwrap() >= 1, "{r}");
+    assert!(rogue.sent() >= 1, "the rogue saw no frame of the server");
+    assert!(r["foreign_replies"].as_u64().unwrap() >= 1, "{r}");
     let calls = v["trace"]["calls"].as_array().unwrap();
     assert!(!calls.is_empty());
     assert!(calls.iter().all(|c| c["d_vis"].as_u64().unwrap() <= 5));

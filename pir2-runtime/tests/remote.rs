@@ -728,12 +728,10 @@ fn unusable_replies_are_counted_and_end_in_a_safety_stop() {
 /// the first reply of any responder was used).
 #[test]
 fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
-    use pir2_runtime::remote::wire;
-    use zenoh::Wait;
+    use pir2_runtime::testing::rogue::{Attach, Rogue};
 
     let (port, rogue_port) = (free_port(), free_port());
     let server = policy_server(port, 20, Duration::ZERO);
-    let rogue = test_session("listen", rogue_port);
     let link = Link {
         retry: Duration::from_millis(20),
         connect: vec![ep(port), ep(rogue_port)],
@@ -748,35 +746,11 @@ fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
     };
     let mut m = RemoteModel::connect(cfg.clone()).unwrap();
     let stats = m.stats();
-    let q = rogue.declare_queryable("test/policy").wait().unwrap();
-    let stop = Arc::new(AtomicBool::new(false));
-    let answered = Arc::new(std::sync::atomic::AtomicU64::new(0));
-    let (s, a) = (stop.clone(), answered.clone());
-    let answering = std::thread::spawn(move || {
-        while !s.load(Ordering::Acquire) {
-            let Ok(Some(query)) = q.recv_timeout(Duration::from_millis(20)) else {
-                continue;
-            };
-            a.fetch_add(1, Ordering::SeqCst);
-            let bytes = query.payload().map(|p| p.to_bytes().to_vec()).unwrap();
-            let token = Some([7, 7, 7, 7]);
-            let reply = match wire::decode_request(&bytes) {
-                Ok(r) => {
-                    let shape = [r.batch, r.horizon, r.action_dim];
-                    let v = vec![42.0f32; shape.iter().product()];
-                    wire::encode_reply_with_token(7, &r.header, 0, shape, &v, token)
-                }
-                Err(_) => {
-                    let (h, _) = wire::decode_header(&bytes).unwrap();
-                    wire::encode_pong_with_token(7, &h, 0, None, token)
-                }
-            };
-            query.reply("test/policy", reply).wait().unwrap();
-        }
-    });
+    let rogue =
+        Rogue::policy_responder(&Attach::Listen(ep(rogue_port)), "test/policy", 42.0).unwrap();
     // Calls until the rogue (once its queryable is known to the client) answered 5 of them.
     let want: Vec<f32> = (0..8).map(|i| -(i as f32)).collect();
-    while answered.load(Ordering::SeqCst) < 5 {
+    while rogue.sent() < 5 {
         assert!(
             stats.counters().calls < 200,
             "the rogue never got a request"
@@ -795,9 +769,7 @@ fn replies_of_a_rogue_on_the_policy_key_are_counted_never_used() {
         ),
         "{e}"
     );
-    stop.store(true, Ordering::SeqCst);
-    answering.join().unwrap();
-    rogue.close().wait().unwrap();
+    drop(rogue);
     server.kill();
 }
 

@@ -148,3 +148,6 @@ impl VelocityModel for SleepyModel {
         Ok(())
     }
 }
+
+#[cfg(feature = "remote")]
+pub mod rogue;
