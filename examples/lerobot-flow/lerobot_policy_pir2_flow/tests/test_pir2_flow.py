@@ -8,6 +8,7 @@ import copy
 import hashlib
 import json
 
+import draccus
 import numpy as np
 import pir2
 import pytest
@@ -194,8 +195,19 @@ def test_export_matches_onnx_runtime(dataset_root, tmp_path):
         export(saved, out)
 
 
+def test_command_line_fields_parse_as_lerobot_train_parses_them():
+    cfg = draccus.parse(Pir2FlowConfig, args=[
+        "--device=cpu", '--recipe={"nfe": 3, "jitter": 0.1}', "--policy=pi_r2_hidden",
+        "--fast_features=[observation.state]", "--slow_features=[]", "--d_vis_max=5"])
+    assert cfg.recipe == {"nfe": 3, "jitter": 0.1} and cfg.policy == "pi_r2_hidden"
+    assert cfg.slow_features == [] and cfg.observation_delta_indices == [-1, 0]
+    with pytest.raises(Exception) as e:
+        draccus.parse(Pir2FlowConfig, args=["--device=cpu", '--recipe={"nfes": 3}'])
+    assert "unknown fields ['nfes']" in repr(e.value.__cause__ or e.value)
+
+
 def test_save_pretrained_round_trip_is_bit_exact(dataset_root, tmp_path):
-    cfg, ds, policy, pre, _ = make(dataset_root)
+    cfg, ds, policy, pre, _ = make(dataset_root, recipe={"nfe": 3}, policy="pi_r2_hidden")
     batch = batch_of(ds, pre, INDICES)
     policy.forward(batch)  # advance the generators: their state must be saved too
     policy.save_pretrained(tmp_path / "p")
@@ -250,13 +262,13 @@ def test_bad_input_is_named(dataset_root):
             "ACTION": NormalizationMode.MEAN_STD})
     with pytest.raises(ValueError, match="unknown policy 'pir3'"):
         Pir2FlowConfig(device="cpu", policy="pir3")
-    with pytest.raises(ValueError, match="recipe is not JSON"):
-        Pir2FlowConfig(device="cpu", recipe="{nfe: 2}")
+    with pytest.raises(ValueError, match="recipe must be a mapping"):
+        Pir2FlowConfig(device="cpu", recipe="paper_sim")
     with pytest.raises(ValueError, match=r"unknown fields \['nfes'\]"):
-        Pir2FlowConfig(device="cpu", recipe='{"nfes": 2}')
+        Pir2FlowConfig(device="cpu", recipe={"nfes": 2})
     with pytest.raises(ValueError, match="recipe"):
-        Pir2FlowConfig(device="cpu", recipe='{"nfe": "two"}')
-    assert Pir2FlowConfig(device="cpu", recipe='{"nfe": 3}').train_schedule() == \
+        Pir2FlowConfig(device="cpu", recipe={"nfe": "two"})
+    assert Pir2FlowConfig(device="cpu", recipe={"nfe": 3}).train_schedule() == \
         pir2.TrainSchedule.for_policy("pi_r2", {"nfe": 3})
     wrong = copy.deepcopy(cfg)
     wrong.fast_features = ["observation.joints"]

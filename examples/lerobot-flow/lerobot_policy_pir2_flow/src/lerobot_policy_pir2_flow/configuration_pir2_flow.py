@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import pir2
 from lerobot.configs.policies import PreTrainedConfig
@@ -43,9 +43,10 @@ class Pir2FlowConfig(PreTrainedConfig):
     to ``IDENTITY``. Actions are normalised by LeRobot's processors (``ACTION``, default
     ``MEAN_STD``).
 
-    Training draws: ``pir2.TrainSchedule.for_policy(policy, recipe)`` (``recipe`` a JSON of
-    pir2 ``Recipe`` overrides, e.g. ``{"nfe": 2}``), from generators seeded by ``seed`` whose
-    state is saved with the weights, so a resumed run continues the same sequence.
+    Training draws: ``pir2.TrainSchedule.for_policy(policy, recipe)`` (``recipe``: overrides
+    of pir2's default ``Recipe``, e.g. ``--policy.recipe='{"nfe": 2}'``), from generators
+    seeded by ``seed`` whose state is saved with the weights, so a resumed run continues the
+    same sequence.
 
     Inference on the LeRobot side (``select_action``): plain synchronous flow sampling, every
     position from noise to clean in ``num_inference_steps`` Euler steps, ``n_action_steps``
@@ -60,9 +61,9 @@ class Pir2FlowConfig(PreTrainedConfig):
     fast_features: list[str] = field(default_factory=lambda: [OBS_STATE])
     slow_features: list[str] = field(default_factory=lambda: [OBS_ENV_STATE])
 
-    # Training schedule: pir2 policy name and a JSON of pir2 Recipe overrides.
+    # Training schedule: pir2 policy name and overrides of pir2's default Recipe.
     policy: str = "pi_r2"
-    recipe: str = "{}"
+    recipe: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
 
     normalization_mapping: dict[str, NormalizationMode] = field(
@@ -125,15 +126,14 @@ class Pir2FlowConfig(PreTrainedConfig):
 
     def train_schedule(self) -> pir2.TrainSchedule:
         """The schedule the policy is trained with (``pir2.TrainSchedule.for_policy``)."""
-        try:
-            recipe = json.loads(self.recipe)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"pir2_flow: recipe is not JSON ({e}): {self.recipe!r}") from None
-        if isinstance(recipe, dict):
-            unknown = sorted(set(recipe) - set(RECIPE_FIELDS))
-            if unknown:
-                raise ValueError(f"pir2_flow: recipe has unknown fields {unknown}; pir2's Recipe "
-                                 f"has {', '.join(RECIPE_FIELDS)}")
+        recipe = self.recipe
+        if not isinstance(recipe, dict):
+            raise ValueError(f"pir2_flow: recipe must be a mapping of pir2 Recipe fields, got "
+                             f"{recipe!r}")
+        unknown = sorted(set(recipe) - set(RECIPE_FIELDS))
+        if unknown:
+            raise ValueError(f"pir2_flow: recipe has unknown fields {unknown}; pir2's Recipe "
+                             f"has {', '.join(RECIPE_FIELDS)}")
         try:
             schedule = pir2.TrainSchedule.for_policy(self.policy, recipe)
             schedule.validate(self.horizon)
