@@ -8,9 +8,10 @@
 #   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
 #   scripts/check-extra.sh torch        # the Python package's PyTorch side (pir2.gr00t): its tests
 #                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB)
-#   scripts/check-extra.sh lerobot      # examples/lerobot-flow end to end: pir2 collect ballplate,
-#                                       # train.py (PyTorch, LeRobotDataset, pir2 draws) a few
-#                                       # hundred steps, pir2 eval on the ONNX checkpoint
+#   scripts/check-extra.sh lerobot      # examples/lerobot-flow end to end: the pir2_flow LeRobot
+#                                       # plugin's tests, pir2 collect ballplate, lerobot-train
+#                                       # --policy.type=pir2_flow a few hundred steps, export,
+#                                       # pir2 eval on the ONNX checkpoint
 #   scripts/check-extra.sh all
 #
 # Fuzzing: every property runs PIR2_FUZZ_CASES cases (default 10^6), in the test profile whose
@@ -117,11 +118,13 @@ torch() {
 }
 
 lerobot() {
-    # Python: $PIR2_LEROBOT_PYTHON (an interpreter with torch, lerobot==0.4.4's
-    # LeRobotDataset, onnx, onnxruntime==1.31.1 and the pir2 wheel), or a venv
-    # .native/venv-lerobot created here with `pip install lerobot==0.4.4` (which brings its
-    # own torch) and the wheel built by scripts/build-python.sh. ONNX Runtime for Rust:
-    # .native/env.sh (scripts/setup-native.sh).
+    # Python: $PIR2_LEROBOT_PYTHON (an interpreter with torch, lerobot==0.4.4 and what its
+    # lerobot-train imports, onnx, onnxruntime==1.31.1, pytest and the pir2 wheel; see
+    # examples/lerobot-flow/README.md), or a venv .native/venv-lerobot created here with
+    # `pip install lerobot==0.4.4` (which brings its own torch) and the wheel built by
+    # scripts/build-python.sh. The plugin examples/lerobot-flow/lerobot_policy_pir2_flow is
+    # installed into it (editable). ONNX Runtime for Rust: .native/env.sh
+    # (scripts/setup-native.sh).
     local t0=$SECONDS
     if [ -f .native/env.sh ]; then
         # shellcheck disable=SC1091
@@ -137,11 +140,17 @@ lerobot() {
         local venv=.native/venv-lerobot
         if [ ! -x "$venv/bin/python" ]; then
             python3 -m venv "$venv"
-            "$venv/bin/pip" -q install "lerobot==0.4.4" onnx "onnxruntime==1.31.1"
+            "$venv/bin/pip" -q install "lerobot==0.4.4" onnx "onnxruntime==1.31.1" pytest
         fi
         scripts/build-python.sh --out .native/wheels
         "$venv/bin/pip" -q install --force-reinstall --no-deps .native/wheels/pir2-*.whl
         py="$venv/bin/python"
+    fi
+    "$py" -m pip -q install --no-deps -e examples/lerobot-flow/lerobot_policy_pir2_flow
+    local tests
+    if ! tests="$("$py" -m pytest -q -p no:cacheprovider examples/lerobot-flow/lerobot_policy_pir2_flow/tests 2>&1 | tail -n 1)"; then
+        summary+=("lerobot: FAILED plugin tests ($tests)")
+        return 1
     fi
     cargo build --release -p pir2-cli --features ort
     local pir2
@@ -149,17 +158,23 @@ lerobot() {
     local work
     work="$(mktemp -d)"
     local steps="${PIR2_LEROBOT_STEPS:-400}" episodes="${PIR2_LEROBOT_EPISODES:-20}"
+    # The dataset is local: LeRobot needs no hub access.
     if "$pir2" collect ballplate --out "$work/data" --episodes 100 --seed 0 &&
-        "$py" examples/lerobot-flow/train.py --data "$work/data" --out "$work/torch" \
-            --steps "$steps" --seed 0 &&
-        "$pir2" eval ballplate --checkpoint "$work/torch" --policy pir2 --d0 1,2,3 \
+        HF_HUB_OFFLINE=1 "$py" -m lerobot.scripts.lerobot_train --policy.type=pir2_flow \
+            --policy.device=cpu --policy.push_to_hub=false --dataset.repo_id=local \
+            --dataset.root="$work/data" --output_dir="$work/train" --steps="$steps" \
+            --batch_size=128 --num_workers=0 --save_freq="$steps" --log_freq=100 --seed=0 \
+            --wandb.enable=false &&
+        "$py" -m lerobot_policy_pir2_flow.export \
+            --policy-path "$work/train/checkpoints/last/pretrained_model" --out "$work/onnx" &&
+        "$pir2" eval ballplate --checkpoint "$work/onnx" --policy pir2 --d0 1,2,3 \
             --episodes "$episodes" --json "$work/cells.json" | tee "$work/table.md"; then
         local rates
         rates="$("$py" -c 'import json,sys; print(", ".join("%s d0=%d: %d/%d" % (c["label"], c["d0"], c["successes"], c["episodes"]) for c in json.load(open(sys.argv[1]))))' "$work/cells.json")" || {
             summary+=("lerobot: FAILED reading $work/cells.json")
             return 1
         }
-        summary+=("lerobot: ok ($steps steps, 100 demos), success $rates, $((SECONDS - t0)) s")
+        summary+=("lerobot: ok (plugin tests: $tests; lerobot-train $steps steps, 100 demos), success $rates, $((SECONDS - t0)) s")
         rm -rf "$work"
     else
         summary+=("lerobot: FAILED after $((SECONDS - t0)) s (outputs in $work)")

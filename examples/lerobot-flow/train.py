@@ -17,10 +17,15 @@ The output directory is an ONNX checkpoint pir2 runs with ONNX Runtime::
     OUT/identity.json   the policy trained as, SHA-256 of model.onnx
 
     pir2 eval ballplate --checkpoint OUT --policy pir2
+
+The network, the loss and the export are those of the LeRobot policy plugin
+``lerobot_policy_pir2_flow`` (``lerobot_policy_pir2_flow.flow``; install it with
+``pip install --no-deps -e examples/lerobot-flow/lerobot_policy_pir2_flow``); this script
+keeps pir2's own way of cutting samples (a frame drawn uniformly with replacement, the
+slow-feature age drawn per sample) in place of LeRobot's data loader and ``lerobot-train``.
 """
 
 import argparse
-import hashlib
 import json
 import math
 import pathlib
@@ -28,8 +33,14 @@ import pathlib
 import numpy as np
 import pir2
 import torch
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from torch import nn
+from lerobot_policy_pir2_flow.flow import (
+    FlowMLP,
+    cli_policy_name,
+    compute_stats,
+    export_checkpoint,
+    flow_loss,
+    load_episodes,
+)
 
 
 def parse_args():
@@ -55,48 +66,6 @@ def parse_args():
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--seed", type=int, default=0)
     return p.parse_args()
-
-
-def load_episodes(root, fast_keys, slow_keys, action_key):
-    """Per-episode (fast [T,F], slow [T,S], action [T,A]) float32 arrays, via LeRobot."""
-    ds = LeRobotDataset(repo_id="local/" + pathlib.Path(root).name, root=root)
-    cols = ["episode_index", "frame_index", *fast_keys, *slow_keys, action_key]
-    table = ds.hf_dataset.select_columns(cols).with_format("numpy")[:]
-    ep, frame = table["episode_index"], table["frame_index"]
-
-    def cat(keys):
-        if not keys:
-            return np.zeros((len(ep), 0), np.float32)
-        return np.concatenate(
-            [np.asarray(table[k], np.float32).reshape(len(ep), -1) for k in keys], axis=1
-        )
-
-    fast, slow, action = cat(fast_keys), cat(slow_keys), cat([action_key])
-    episodes = []
-    for e in np.unique(ep):  # episodes in episode_index order, frames in frame order
-        rows = np.flatnonzero(ep == e)
-        rows = rows[np.argsort(frame[rows], kind="stable")]
-        episodes.append((fast[rows], slow[rows], action[rows]))
-    return ds, episodes
-
-
-def norm(rows):
-    """pir2's Norm: mean and population std (f64 sums), std floored at 1e-4."""
-    rows = np.asarray(rows, np.float64)
-    n = max(len(rows), 1)
-    mean = rows.sum(0) / n
-    var = np.maximum((rows * rows).sum(0) / n - mean * mean, 0.0)
-    std = np.maximum(np.sqrt(var).astype(np.float32), np.float32(1e-4))
-    return {"mean": mean.astype(np.float32).tolist(), "std": std.tolist()}
-
-
-def compute_stats(episodes):
-    """pir2's stats.json: fast obs, successive fast differences within episodes, slow, action."""
-    fast = np.concatenate([f for f, _, _ in episodes])
-    diff = np.concatenate([f[1:] - f[:-1] for f, _, _ in episodes])
-    slow = np.concatenate([s for _, s, _ in episodes])
-    action = np.concatenate([a for _, _, a in episodes])
-    return {"fast": norm(fast), "fast_diff": norm(diff), "slow": norm(slow), "action": norm(action)}
 
 
 class Sampler:
@@ -131,55 +100,6 @@ class Sampler:
         )
 
 
-class FlowMLP(nn.Module):
-    """A velocity MLP with pir2's observation normalisation inside (the graph takes raw obs).
-
-    Input: the noisy chunk, per-position τ features (τ, sin πkτ, cos πkτ; a hidden front's
-    τ = -1 passes through the same features), the fast history encoded as pir2 encodes it
-    ([norm(o_t), norm_d(o_t - o_{t-1}), ...]), the normalised slow features and a one-hot of
-    the clamped slow-feature age d_vis.
-    """
-
-    def __init__(self, stats, horizon, action_dim, n_obs, fast_dim, slow_dim, d_vis_max,
-                 width, depth, tau_freqs):
-        super().__init__()
-        self.h, self.a, self.n_obs, self.d_vis_max = horizon, action_dim, n_obs, d_vis_max
-        t = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
-        self.register_buffer("fast_mean", t(stats["fast"]["mean"]))
-        self.register_buffer("fast_std", t(stats["fast"]["std"]))
-        self.register_buffer("diff_mean", t(stats["fast_diff"]["mean"]))
-        self.register_buffer("diff_std", t(stats["fast_diff"]["std"]))
-        self.register_buffer("slow_mean", t(stats["slow"]["mean"]))
-        self.register_buffer("slow_std", t(stats["slow"]["std"]))
-        self.register_buffer("freqs", math.pi * torch.arange(1, tau_freqs + 1, dtype=torch.float32))
-        self.register_buffer("ages", torch.arange(d_vis_max + 1, dtype=torch.int64))
-        d_in = horizon * action_dim + horizon * (1 + 2 * tau_freqs) + n_obs * fast_dim
-        d_in += slow_dim + d_vis_max + 1
-        layers = []
-        for _ in range(depth):
-            layers += [nn.Linear(d_in, width), nn.SiLU()]
-            d_in = width
-        layers.append(nn.Linear(d_in, horizon * action_dim))
-        self.net = nn.Sequential(*layers)
-
-    def forward(self, x, tau, obs_fast, obs_slow, d_vis):
-        b = x.shape[0]
-        ft = tau.unsqueeze(-1) * self.freqs
-        tau_feat = torch.cat([tau.unsqueeze(-1), torch.sin(ft), torch.cos(ft)], -1)
-        last = obs_fast[:, -1]
-        enc = [(last - self.fast_mean) / self.fast_std]
-        for k in range(1, self.n_obs):  # k-th difference o_{t-k+1} - o_{t-k}
-            d = obs_fast[:, self.n_obs - k] - obs_fast[:, self.n_obs - k - 1]
-            enc.append((d - self.diff_mean) / self.diff_std)
-        slow = (obs_slow - self.slow_mean) / self.slow_std
-        age = torch.clamp(d_vis, 0, self.d_vis_max).unsqueeze(-1)
-        one_hot = (age == self.ages).to(x.dtype)
-        z = torch.cat(
-            [x.reshape(b, -1), tau_feat.reshape(b, -1), *enc, slow, one_hot], -1
-        )
-        return self.net(z).reshape(b, self.h, self.a)
-
-
 def main():
     args = parse_args()
     out = pathlib.Path(args.out)
@@ -211,12 +131,7 @@ def main():
         fast, slow, act, dvis = sampler.batch(args.batch_size)
         eps = noise.standard_normal(act.shape).astype(np.float32)
         d = schedule.draw(args.batch_size, args.horizon, draw_rng)
-        x, tau_in, target = d.build(act, eps)
-        v = model(torch.from_numpy(x), torch.from_numpy(tau_in), torch.from_numpy(fast),
-                  torch.from_numpy(slow), torch.from_numpy(dvis))
-        mask = torch.from_numpy(d.mask).unsqueeze(-1)
-        # pir2's loss: Σ_p mask_p·|v_p − target_p|² / (A·Σ_p mask_p)
-        loss = (mask * (v - torch.from_numpy(target)) ** 2).sum() / (action_dim * mask.sum())
+        loss = flow_loss(model, d, act, eps, fast, slow, dvis)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -225,35 +140,15 @@ def main():
         if step % 100 == 0 or step == args.steps:
             print(f"step {step}/{args.steps}, loss {loss.item():.4f}")
 
-    # Export to pir2's ONNX contract: dynamic batch, every other size fixed.
-    model.eval()
-    out.mkdir(parents=True)
+    # Export to pir2's ONNX contract (checked with ONNX Runtime against the torch module).
     fast, slow, act, dvis = sampler.batch(2)
     d = schedule.draw(2, args.horizon, draw_rng)
     x, tau_in, _ = d.build(act, noise.standard_normal(act.shape).astype(np.float32))
     example = tuple(torch.from_numpy(a) for a in (x, tau_in, fast, slow, dvis))
-    names = ["x", "tau", "obs_fast", "obs_slow", "d_vis"]
-    torch.onnx.export(
-        model, example, str(out / "model.onnx"), input_names=names, output_names=["v"],
-        dynamic_axes={n: {0: "batch"} for n in names + ["v"]}, opset_version=17, dynamo=False,
-    )
-    # The exported graph must compute what the torch module computes.
-    import onnxruntime as ort
-
-    sess = ort.InferenceSession(str(out / "model.onnx"), providers=["CPUExecutionProvider"])
-    got = sess.run(["v"], {n: a.numpy() for n, a in zip(names, example)})[0]
-    with torch.no_grad():
-        want = model(*example).numpy()
-    err = float(np.abs(got - want).max())
-    assert err < 1e-4, f"ONNX Runtime and torch differ by {err}"
+    err = export_checkpoint(model, out, args.policy, stats, example=example)
     print(f"ONNX Runtime matches torch (max |diff| {err:.2e})")
-
-    (out / "stats.json").write_text(json.dumps(stats, indent=2))
-    sha = hashlib.sha256((out / "model.onnx").read_bytes()).hexdigest()
-    (out / "identity.json").write_text(json.dumps({"policy": args.policy, "weights_sha256": sha}))
-    cli_name = args.policy.replace("pi_r2", "pir2").replace("_", "-")  # pir2's --policy name
     print(f"wrote {out}/model.onnx, stats.json, identity.json; run it with\n"
-          f"  pir2 eval ballplate --checkpoint {out} --policy {cli_name}")
+          f"  pir2 eval ballplate --checkpoint {out} --policy {cli_policy_name(args.policy)}")
 
 
 if __name__ == "__main__":
