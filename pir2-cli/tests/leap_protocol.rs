@@ -259,6 +259,52 @@ fn the_ablation_configs_keep_the_fingerprint_of_their_committed_cells() {
     );
 }
 
+/// The heads study takes its baselines' cells from the ablation's committed logs: flow and
+/// train-time RTC train the same shared-FiLM U-Net under both configs, so their cells count
+/// under the ablation's fingerprint too; πR²'s (another network) do not.
+#[test]
+fn the_heads_study_reports_its_baselines_from_the_ablations_cells() {
+    use pir2_cli::study::report::report;
+    let dir = format!("{}/../studies/leap-cube", env!("CARGO_MANIFEST_DIR"));
+    let read = |name: &str| -> LeapStudyConfig {
+        let text = std::fs::read_to_string(format!("{dir}/{name}")).expect("a committed config");
+        toml::from_str(&text).expect("a valid study config")
+    };
+    let heads = task(read("study.toml"));
+    for p in [Policy::Flow, Policy::Rtc] {
+        let fps = heads.equivalent_fingerprints(p).unwrap();
+        assert!(
+            fps.iter().any(|f| f == "668fe64c89fa9b53"),
+            "{p:?}: {fps:?}"
+        );
+    }
+    for p in [Policy::PiR2Full, Policy::PiR2ZeroDelayFull, Policy::PiR2] {
+        assert!(
+            heads.equivalent_fingerprints(p).unwrap().is_empty(),
+            "{p:?}"
+        );
+    }
+    let log = std::path::PathBuf::from(format!(
+        "{dir}/results/ablation-per-position-tau/deployment-cells.jsonl"
+    ));
+    let study = heads.deployment_study();
+    let r = report(&heads, &study, &[log.as_path()], true).unwrap();
+    let seeds = heads.settings().seeds.len();
+    for row in &study.rows {
+        let n = r.cells.iter().filter(|c| c.label == row.row.label).count();
+        match row.row.policy {
+            Policy::Flow | Policy::Rtc => {
+                assert_eq!(n, seeds * study.columns.len(), "{}", row.row.label)
+            }
+            _ => assert_eq!(
+                n, 0,
+                "{}: the ablation's πR² is another network",
+                row.row.label
+            ),
+        }
+    }
+}
+
 /// The horizon study's config is the study config with its batched cells, nothing else.
 #[test]
 fn the_committed_horizon_config_is_the_study_config_batched() {

@@ -468,18 +468,29 @@ impl Task for LeapCubeTask {
     /// U-Net with per-position FiLM ([`LeapStudyConfig::pir2_film`]) for the πR² policies,
     /// shared FiLM for the baselines.
     fn model(&self, policy: Policy) -> ModelConfig {
-        let film = match policy {
-            Policy::Rtc | Policy::Flow => FilmMode::Shared,
-            _ => self.cfg.pir2_film,
-        };
-        ModelConfig::UNet(UNetConfig {
-            widths: self.cfg.widths.clone(),
-            groups: self.cfg.groups,
-            tau_dim: 32,
-            dvis_dim: 8,
-            film,
-            ..UNetConfig::default()
-        })
+        unet(&self.cfg, policy)
+    }
+
+    /// The same config with another `pir2_film`, when `policy`'s network does not change
+    /// with it (the baselines, whose U-Nets keep the shared FiLM): the per-position heads
+    /// study and the shared-projection ablation share their baselines' cells.
+    fn equivalent_fingerprints(&self, policy: Policy) -> Result<Vec<String>> {
+        let mut out = Vec::new();
+        for film in [
+            FilmMode::Shared,
+            FilmMode::PerPositionHeads,
+            FilmMode::PerPositionTau,
+        ] {
+            let other = LeapStudyConfig {
+                pir2_film: film,
+                ..self.cfg.clone()
+            };
+            if film != self.cfg.pir2_film && unet(&other, policy) == unet(&self.cfg, policy) {
+                out.push(super::evaluate::config_fingerprint(&other)?);
+                out.extend(super::evaluate::earlier_config_fingerprints(&other)?);
+            }
+        }
+        Ok(out)
     }
 
     /// AdamW β = (0.95, 0.999), cosine to 0, wd 1e-6, clip 1.0; steps, batch, lr and
@@ -565,6 +576,23 @@ impl Task for LeapCubeTask {
             self.cfg.seeds.len()
         )
     }
+}
+
+/// The U-Net `cfg` trains for `policy`: per-position FiLM (`cfg.pir2_film`) for the πR²
+/// policies, the shared FiLM for the baselines.
+fn unet(cfg: &LeapStudyConfig, policy: Policy) -> ModelConfig {
+    let film = match policy {
+        Policy::Rtc | Policy::Flow => FilmMode::Shared,
+        _ => cfg.pir2_film,
+    };
+    ModelConfig::UNet(UNetConfig {
+        widths: cfg.widths.clone(),
+        groups: cfg.groups,
+        tau_dim: 32,
+        dvis_dim: 8,
+        film,
+        ..UNetConfig::default()
+    })
 }
 
 fn to_dataset_episode(ep: &pir2_sim::leap::Episode) -> Episode {

@@ -155,6 +155,13 @@ pub trait Task: Sync {
     fn demonstrations(&self, out: &Path) -> Result<Vec<Episode>>;
     /// Plot title of `study` (`deployment`, `horizon`, ...).
     fn title(&self, study: &str) -> String;
+    /// Fingerprints of other configs whose cells of `policy` are this config's: configs
+    /// that differ from it only in settings `policy`'s training and evaluation do not read
+    /// (the Leap task: the πR² U-Nets' FiLM, for the baselines). A report takes `policy`'s
+    /// cells logged under them (`pir2 report`). Default: none.
+    fn equivalent_fingerprints(&self, _policy: Policy) -> Result<Vec<String>> {
+        Ok(Vec::new())
+    }
 }
 
 /// How a row's cells are run across the study's columns.

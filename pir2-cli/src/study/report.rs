@@ -228,37 +228,74 @@ fn run_checkpoints(
     })
 }
 
-/// Report `study` of `task` from the cell log at `log` (only read): the cells of the
-/// task's config (its fingerprint, or an earlier one of the same config), episode count and
-/// evaluation path; the chosen checkpoint of each run and, with the settings'
-/// `best_of_last`, the best checkpoint per cell, as `pir2 eval` computes them (see the module
-/// docs). A cell the log lacks is an error naming it, unless `partial`.
+/// Report `study` of `task` from the cell logs `logs` (only read; one log, or several whose
+/// cells are taken together, e.g. a study's own log and the log its baselines were measured
+/// in): the cells of the task's config (its fingerprint, or an earlier one of the same
+/// config; for a policy, also those of the configs [`Task::equivalent_fingerprints`] names,
+/// taken for that policy's runs only), episode count and evaluation path; the chosen
+/// checkpoint of each run and, with the settings' `best_of_last`, the best checkpoint per
+/// cell, as `pir2 eval` computes them (see the module docs). A cell the logs lack is an
+/// error naming it, unless `partial`.
 pub fn report<T: Task>(
     task: &T,
     study: &Study,
-    log: &Path,
+    logs: &[&Path],
     partial: bool,
 ) -> Result<LogReport<T::Config>> {
     let s = task.settings();
-    let text =
-        std::fs::read_to_string(log).with_context(|| format!("reading {}", log.display()))?;
-    let (entries, cut) = parse_log(&text, log)?;
-    if cut {
-        log_line(&format!(
-            "{}: a last line cut short by an interruption is left out",
-            log.display()
+    let shown = logs
+        .iter()
+        .map(|l| l.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" + ");
+    let log = Path::new(&shown);
+    let mut texts = Vec::with_capacity(logs.len());
+    for l in logs {
+        texts.push((
+            std::fs::read_to_string(l).with_context(|| format!("reading {}", l.display()))?,
+            *l,
         ));
+    }
+    let mut entries = Vec::new();
+    for (text, l) in &texts {
+        let (e, cut) = parse_log(text, l)?;
+        if cut {
+            log_line(&format!(
+                "{}: a last line cut short by an interruption is left out",
+                l.display()
+            ));
+        }
+        entries.extend(e);
     }
     let fingerprint = config_fingerprint(task.config())?;
     let mut fingerprints = earlier_config_fingerprints(task.config())?;
     fingerprints.push(fingerprint.clone());
+    // Per policy: the other fingerprints its cells count under, and its runs' names.
+    let mut equivalent: Vec<(Vec<String>, Vec<String>)> = Vec::new();
+    for p in study.policies() {
+        let fps = task.equivalent_fingerprints(p)?;
+        if !fps.is_empty() {
+            let runs = s.seeds.iter().map(|&seed| policy_dir(p, seed)).collect();
+            equivalent.push((fps, runs));
+        }
+    }
+    let of_this_config = |e: &Entry| {
+        fingerprints.contains(&e.config)
+            || equivalent.iter().any(|(fps, runs)| {
+                fps.contains(&e.config)
+                    && runs.iter().any(|r| {
+                        e.key
+                            .checkpoint
+                            .strip_prefix(r.as_str())
+                            .is_some_and(|rest| rest.starts_with('/'))
+                    })
+            })
+    };
     let tag = EvalPath::of(&s).cell_tag();
     let mine: Vec<&Entry> = entries
         .iter()
         .map(|(e, _)| e)
-        .filter(|e| {
-            fingerprints.contains(&e.config) && e.key.episodes == s.episodes && e.key.eval == tag
-        })
+        .filter(|e| of_this_config(e) && e.key.episodes == s.episodes && e.key.eval == tag)
         .collect();
     if mine.is_empty() {
         let logged: BTreeSet<&str> = entries.iter().map(|(e, _)| e.config.as_str()).collect();
@@ -493,7 +530,17 @@ mod tests {
         fn title(&self, s: &str) -> String {
             self.0.title(s)
         }
+        /// Flow's cells also count under [`EQUIVALENT`] (a config that trains and evaluates
+        /// flow the same way).
+        fn equivalent_fingerprints(&self, p: Policy) -> Result<Vec<String>> {
+            Ok(match p {
+                Policy::Flow => vec![EQUIVALENT.to_string()],
+                _ => Vec::new(),
+            })
+        }
     }
+
+    const EQUIVALENT: &str = "00000000e0e0e0e0";
 
     /// Seeds 0 and 1, d0 ∈ {1, 2}, 10 episodes, 100 steps in 5 checkpoints (steps 20, 40,
     /// …, 100), best of the last 2.
@@ -682,7 +729,7 @@ mod tests {
         let dir = tmp("protocol");
         let log = write(&dir, &lines);
         let before = std::fs::read(&log).unwrap();
-        let r = report(&t, &s, &log, false).unwrap();
+        let r = report(&t, &s, &[log.as_path()], false).unwrap();
         assert_eq!(
             r.other_lines, 3,
             "the early step is of this config, the rest not"
@@ -722,6 +769,47 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// The baselines' cells of another log, logged under a config equivalent for them, give
+    /// the report the one log of everything gives; that log's cells of other policies are
+    /// not taken (they ran another network).
+    #[test]
+    fn a_baselines_cells_count_under_an_equivalent_config_from_another_log() {
+        let t = task();
+        let s = study(&t);
+        let pir2 = s.rows[1].row.label.clone();
+        let fp = config_fingerprint(t.config()).unwrap();
+        let full = full_log(&t, |c, col, seed| {
+            (c.len() + col.unwrap_or(0) + seed as usize) % 10
+        });
+        let dir = tmp("equivalent");
+        let whole = write(&dir.join("whole"), &full);
+        let whole = report(&t, &s, &[whole.as_path()], false).unwrap();
+        let (flow, own): (Vec<String>, Vec<String>) =
+            full.into_iter().partition(|l| l.contains("\"flow-seed"));
+        let mut other: Vec<String> = flow.iter().map(|l| l.replace(&fp, EQUIVALENT)).collect();
+        // Another network under the same name as the study's chosen πR² checkpoint: were it
+        // taken, the report would refuse two sets of weights under one name.
+        other.push(line_n(
+            EQUIVALENT,
+            "pir2-seed0/best@100#wother",
+            &pir2,
+            None,
+            0,
+            10,
+            9,
+        ));
+        let (a, b) = (write(&dir.join("a"), &own), write(&dir.join("b"), &other));
+        let r = report(&t, &s, &[a.as_path(), b.as_path()], false).unwrap();
+        assert_eq!(r.cells, whole.cells);
+        assert_eq!(r.best_per_cell, whole.best_per_cell);
+        assert_eq!(r.other_lines, 1);
+        let e = report(&t, &s, &[a.as_path()], false)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lacks") && e.contains("flow-seed0"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
     #[test]
     fn a_missing_cell_is_named_unless_the_report_is_partial() {
         let t = task();
@@ -734,7 +822,9 @@ mod tests {
             .collect();
         let dir = tmp("missing");
         let log = write(&dir, &lines);
-        let e = report(&t, &s, &log, false).unwrap_err().to_string();
+        let e = report(&t, &s, &[log.as_path()], false)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("lacks 2 cells"), "{e}");
         assert!(
             e.contains(&format!("{flow}, d0=2, seed 1: flow-seed1/step-000080")),
@@ -742,7 +832,7 @@ mod tests {
         );
         assert!(e.contains("no chosen checkpoint of pir2-seed1"), "{e}");
         assert!(e.contains("--partial"), "{e}");
-        let r = report(&t, &s, &log, true).unwrap();
+        let r = report(&t, &s, &[log.as_path()], true).unwrap();
         assert_eq!(r.missing.len(), 2, "{:?}", r.missing);
         // Seed 1's πR² cells are gone from both tables, flow's d0 = 2 cell only from the
         // best-per-cell one.
@@ -767,7 +857,9 @@ mod tests {
         ));
         let dir = tmp("ambiguous");
         let log = write(&dir, &lines);
-        let e = report(&t, &s, &log, true).unwrap_err().to_string();
+        let e = report(&t, &s, &[log.as_path()], true)
+            .unwrap_err()
+            .to_string();
         assert!(
             e.contains("flow-seed0/best@40#wa0") && e.contains("flow-seed0/best@40#wother"),
             "{e}"
@@ -788,7 +880,9 @@ mod tests {
         )];
         let dir = tmp("other");
         let log = write(&dir, &lines);
-        let e = report(&t, &s, &log, true).unwrap_err().to_string();
+        let e = report(&t, &s, &[log.as_path()], true)
+            .unwrap_err()
+            .to_string();
         let fp = config_fingerprint(t.config()).unwrap();
         assert!(e.contains("0123456789abcdef") && e.contains(&fp), "{e}");
         let _ = std::fs::remove_dir_all(&dir);

@@ -76,6 +76,9 @@ impl TaskCommands for BallPlate {
             .as_deref()
             .context("--checkpoint is required for ballplate")?;
         let policy = o.policy.context("--policy is required for ballplate")?;
+        if !o.policies.is_empty() {
+            bail!("--policies narrows a leap-cube study; ballplate evaluates one checkpoint, named by --policy");
+        }
         if let Some(p) = o.json.as_ref().filter(|p| p.exists()) {
             bail!("{} already exists; choose another --json path", p.display());
         }

@@ -2,7 +2,7 @@
 //! task with the error [`super::NEEDS_MUJOCO`]). The work itself is
 //! [`crate::study::leap_cube`]'s.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 
 use anyhow::{bail, Context, Result};
@@ -111,7 +111,7 @@ impl TaskCommands for LeapCube {
             .out
             .as_deref()
             .context("--out is required for leap-cube")?;
-        let cfg = Overrides {
+        let mut cfg = Overrides {
             config: o.config.as_deref(),
             data: o.data.as_deref(),
             pretrained: o.checkpoint.as_deref(),
@@ -119,6 +119,9 @@ impl TaskCommands for LeapCube {
             train_missing: o.train_missing,
         }
         .load()?;
+        if !o.policies.is_empty() {
+            cfg.policies = o.policies.clone();
+        }
         let r = match o.study.as_str() {
             "deployment" => leap_cube::study_deployment(&cfg, out, o.resume)?,
             "horizon" => leap_cube::study_horizon(&cfg, out, o.resume)?,
@@ -155,11 +158,15 @@ impl TaskCommands for LeapCube {
             "horizon" => task.horizon_study(),
             other => bail!("unknown study {other} (deployment or horizon)"),
         };
-        let r = report::report(&task, &s, &o.cells, o.partial)?;
+        let logs: Vec<&Path> = o.cells.iter().map(PathBuf::as_path).collect();
+        let r = report::report(&task, &s, &logs, o.partial)?;
         println!(
             "\nLeap cube, {} study from {} ({} episodes per cell, config {}):\n\n{}",
             r.study,
-            o.cells.display(),
+            logs.iter()
+                .map(|l| l.display().to_string())
+                .collect::<Vec<_>>()
+                .join(" + "),
             r.config.episodes,
             r.fingerprint,
             r.table()

@@ -114,6 +114,18 @@ pub(crate) fn policy_parser() -> impl TypedValueParser<Value = Policy> {
     })
 }
 
+/// A policy by its name in study configs (`policies = [...]`: `flow`, `rtc`, `pi_r2`,
+/// `pi_r2_full`, ...).
+pub(crate) fn config_policy(s: &str) -> std::result::Result<Policy, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|_| {
+        let names: Vec<String> = Policy::ALL
+            .iter()
+            .filter_map(|p| serde_json::to_value(p).ok()?.as_str().map(str::to_string))
+            .collect();
+        format!("unknown policy `{s}` (one of {})", names.join(", "))
+    })
+}
+
 /// `pir2 collect`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct CollectOptions {
@@ -221,6 +233,12 @@ pub struct EvalOptions {
     /// Which policy the checkpoint is (ballplate).
     #[arg(long, value_parser = policy_parser())]
     pub policy: Option<Policy>,
+    /// leap-cube: evaluate only these policies (comma-separated; default: the config's
+    /// `policies`), e.g. the πR² rows of a study whose baselines' cells are in another log
+    /// (`pir2 report` takes several). What is evaluated is not part of a cell's key, so
+    /// the cells are the same as with the whole list.
+    #[arg(long, value_parser = config_policy, value_delimiter = ',')]
+    pub policies: Vec<Policy>,
     /// leap-cube: which study.
     #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
     pub study: String,
@@ -289,9 +307,11 @@ pub struct ReportOptions {
     /// the config's fingerprint, under which the cells are logged, includes it.
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// The cell log.
-    #[arg(long)]
-    pub cells: PathBuf,
+    /// The cell log; repeat to take several logs together (e.g. a study's own log and the
+    /// log its baselines were measured in: a baseline's cells count under every config
+    /// that trains and evaluates it the same way).
+    #[arg(long, required = true)]
+    pub cells: Vec<PathBuf>,
     /// Also write `report.json`, `table.md` and the plots here (must not exist or be
     /// empty).
     #[arg(long)]
@@ -349,4 +369,20 @@ pub fn eval(o: &EvalOptions) -> Result<()> {
 /// `pir2 report`: a study's tables from its cell log.
 pub fn report(o: &ReportOptions) -> Result<()> {
     task(&o.task)?.report(o)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_policy_names_are_the_study_configs() {
+        assert_eq!(
+            config_policy("pi_r2_zero_delay_full"),
+            Ok(Policy::PiR2ZeroDelayFull)
+        );
+        assert_eq!(config_policy("flow"), Ok(Policy::Flow));
+        let e = config_policy("pir2-full").unwrap_err();
+        assert!(e.contains("pi_r2_full") && e.contains("`pir2-full`"), "{e}");
+    }
 }
