@@ -7,7 +7,9 @@
 #                                       # embodiment (about 1 ms a case: ~20 min each at 10^6)
 #   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
 #   scripts/check-extra.sh torch        # the Python package's PyTorch side (pir2.gr00t): its tests
-#                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB)
+#                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB);
+#                                       # with PIR2_ISAAC_GR00T=<Isaac-GR00T checkout>, also on
+#                                       # Isaac-GR00T's own DiT classes (test_gr00t_isaac.py)
 #   scripts/check-extra.sh lerobot      # examples/lerobot-flow end to end: the pir2_flow LeRobot
 #                                       # plugin's tests, pir2 collect ballplate, lerobot-train
 #                                       # --policy.type=pir2_flow a few hundred steps, export,
@@ -108,11 +110,28 @@ torch() {
     cargo build -p pir2-cli --features gr00t
     local bin
     bin="$(cargo metadata --format-version 1 --no-deps | "$venv/bin/python" -c 'import json,sys; print(json.load(sys.stdin)["target_directory"])')/debug/pir2"
-    if (cd bindings/python/tests && PIR2_BIN="$bin" "$venv/bin/python" -m pytest -q -s -p no:cacheprovider \
-        test_gr00t_torch.py test_gr00t_roundtrip.py); then
-        summary+=("torch: pir2.gr00t tests and the PyTorch -> pir2 round trip ok, $((SECONDS - t0)) s")
+    # test_gr00t_isaac.py converts heads built on Isaac-GR00T's own DiT classes: it runs when
+    # PIR2_ISAAC_GR00T names a checkout of NVIDIA/Isaac-GR00T (its gr00t/model/modules/dit.py
+    # is loaded by path), and skips itself otherwise.
+    local isaac_root="${PIR2_ISAAC_GR00T:-}" isaac
+    if [ -n "$isaac_root" ] && [ -f "$isaac_root/gr00t/model/modules/dit.py" ]; then
+        isaac_root="$(cd "$isaac_root" && pwd)"
+        isaac="Isaac-GR00T check ran against $isaac_root"
+        local rev
+        if [ -e "$isaac_root/.git" ] && rev="$(git -C "$isaac_root" rev-parse --short HEAD 2>/dev/null)"; then
+            isaac+=" at $rev"
+        fi
+    elif [ -n "$isaac_root" ]; then
+        isaac="Isaac-GR00T check SKIPPED ($isaac_root has no gr00t/model/modules/dit.py)"
     else
-        summary+=("torch: FAILED after $((SECONDS - t0)) s")
+        isaac="Isaac-GR00T check skipped (set PIR2_ISAAC_GR00T to an Isaac-GR00T checkout)"
+    fi
+    if (cd bindings/python/tests && PIR2_BIN="$bin" PIR2_ISAAC_GR00T="$isaac_root" \
+        "$venv/bin/python" -m pytest -q -s -p no:cacheprovider \
+        test_gr00t_torch.py test_gr00t_isaac.py test_gr00t_roundtrip.py); then
+        summary+=("torch: pir2.gr00t tests and the PyTorch -> pir2 round trip ok; $isaac; $((SECONDS - t0)) s")
+    else
+        summary+=("torch: FAILED after $((SECONDS - t0)) s; $isaac")
         return 1
     fi
 }

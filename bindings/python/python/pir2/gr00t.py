@@ -29,11 +29,15 @@ Convention (pir2's and GR00T's): ``τ = 0`` is noise, ``τ = 1`` is clean,
 ``state_timestep`` (pir2's default: the last bucket, ``buckets − 1``).
 
 The behaviour reproduced is that of Isaac-GR00T's ``gr00t/model/modules/dit.py`` (``DiT``,
-``AlternateVLDiT``, ``AdaLayerNorm``) and ``gr00t/model/gr00t_n1d7/gr00t_n1d7.py``
-(``Gr00tN1d7ActionHead.forward``) as published on GitHub (NVIDIA/Isaac-GR00T, 2026); no code
-of theirs is used. What is bit-identical to pir2's Rust trainer: the schedule draws
-(``τ``, mask, delay) for a seed. What is not: the noise ``ε`` (torch's generator), the
-network's floating-point evaluation order, batching and the optimiser.
+``AlternateVLDiT``, ``AdaLayerNorm``, the ``kv_cache`` of its inference path) and
+``gr00t/model/gr00t_n1d7/gr00t_n1d7.py`` (``Gr00tN1d7ActionHead.forward``) as published on
+GitHub (NVIDIA/Isaac-GR00T, 2026); no code of theirs is used. The package's
+``tests/test_gr00t_isaac.py`` runs the conversion on those real classes, given a checkout
+(``PIR2_ISAAC_GR00T``; last run against commit 2ea60d6d388d08fcc734dd339c6e183fdab5309c):
+a uniform ``τ`` gives the real DiT's velocity within 1e-6. What is bit-identical to pir2's
+Rust trainer: the schedule draws (``τ``, mask, delay) for a seed. What is not: the noise ``ε``
+(torch's generator), the network's floating-point evaluation order, batching and the
+optimiser.
 """
 
 from __future__ import annotations
