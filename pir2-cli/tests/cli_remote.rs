@@ -118,16 +118,14 @@ const EVAL: [&str; 8] = [
     "--seed",
 ];
 
-#[test]
-fn eval_remote_matches_local_and_survives_a_server_restart() {
-    let s = Scratch::new("eval-remote");
-    let ck = checkpoint(s.path());
-    let ck_s = ck.to_str().unwrap();
-    let local_json = s.path().join("local.json");
+/// `pir2 eval` (the lock-step ball-plate eval of [`EVAL`], seed 5) of `ck` run locally: the
+/// result JSON it wrote in `dir`.
+fn local_eval(dir: &Path, ck: &str) -> PathBuf {
+    let json = dir.join("local.json");
     let out = pir2()
         .args(EVAL)
-        .args(["5", "--checkpoint", ck_s, "--json"])
-        .arg(&local_json)
+        .args(["5", "--checkpoint", ck, "--json"])
+        .arg(&json)
         .output()
         .unwrap();
     assert!(
@@ -135,32 +133,63 @@ fn eval_remote_matches_local_and_survives_a_server_restart() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    json
+}
+
+/// The same eval against the policy server at `endpoint`, writing `json`, once it printed
+/// that it is connected: the child, its stderr, and what it printed so far.
+fn remote_eval_connected(
+    ck: &str,
+    endpoint: &str,
+    json: &Path,
+) -> (Child, BufReader<std::process::ChildStderr>, String) {
+    let mut eval = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck, "--remote", endpoint, "--json"])
+        .arg(json)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(eval.stderr.take().unwrap());
+    let mut lines = String::new();
+    while !lines.contains("connected to the policy server") {
+        assert!(
+            err.read_line(&mut lines).unwrap() > 0,
+            "eval exited: {lines}"
+        );
+    }
+    (eval, err, lines)
+}
+
+fn read_json(p: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+}
+
+/// The counter `name` of the remote eval's report (`… timeouts N reconnects M …`).
+fn counter(report: &str, name: &str) -> u64 {
+    report
+        .split(&format!("{name} "))
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no `{name}` in {report}"))
+}
+
+#[test]
+fn eval_remote_matches_local_and_survives_a_server_restart() {
+    let s = Scratch::new("eval-remote");
+    let ck = checkpoint(s.path());
+    let ck_s = ck.to_str().unwrap();
+    let local_json = local_eval(s.path(), ck_s);
 
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let server_args = ["policy", "--checkpoint", ck_s, "--listen", &endpoint];
     let server = serve(&server_args);
     let remote_json = s.path().join("remote.json");
     let t0 = Instant::now();
-    let mut eval = pir2()
-        .args(EVAL)
-        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint, "--json"])
-        .arg(&remote_json)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // Wait until the eval is connected, then kill the server for ~0.5 s mid-run.
-    let mut err = BufReader::new(eval.stderr.take().unwrap());
-    let mut lines = Vec::new();
-    loop {
-        let mut l = String::new();
-        assert!(err.read_line(&mut l).unwrap() > 0, "eval exited: {lines:?}");
-        let connected = l.contains("connected to the policy server");
-        lines.push(l);
-        if connected {
-            break;
-        }
-    }
+    // Once the eval is connected, kill the server for ~0.5 s mid-run.
+    let (mut eval, mut err, lines) = remote_eval_connected(ck_s, &endpoint, &remote_json);
     std::thread::sleep(Duration::from_millis(300));
     drop(server);
     std::thread::sleep(Duration::from_millis(500));
@@ -169,31 +198,16 @@ fn eval_remote_matches_local_and_survives_a_server_restart() {
     let mut rest = String::new();
     std::io::Read::read_to_string(&mut err, &mut rest).unwrap();
     let status = eval.wait().unwrap();
-    eprintln!("remote eval {:?}: {lines:?} {rest}", t0.elapsed());
+    eprintln!("remote eval {:?}: {lines} {rest}", t0.elapsed());
     assert!(status.success(), "{rest}");
     assert!(
         still_running,
         "the eval finished before the server was killed"
     );
-
-    let read = |p: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-    };
-    assert_eq!(read(&local_json), read(&remote_json));
-    // The outage was seen, retried and counted: `... timeouts N reconnects M ...`.
-    let count = |name: &str| -> u64 {
-        let i = rest
-            .find(&format!("{name} "))
-            .unwrap_or_else(|| panic!("{rest}"));
-        rest[i + name.len() + 1..]
-            .split_whitespace()
-            .next()
-            .unwrap()
-            .parse()
-            .unwrap()
-    };
-    assert!(count("timeouts") >= 1, "{rest}");
-    assert!(count("reconnects") >= 1, "{rest}");
+    assert_eq!(read_json(&local_json), read_json(&remote_json));
+    // The outage was seen, retried and counted.
+    assert!(counter(&rest, "timeouts") >= 1, "{rest}");
+    assert!(counter(&rest, "reconnects") >= 1, "{rest}");
 }
 
 #[test]
@@ -237,51 +251,20 @@ fn a_rogue_client_of_the_policy_server_is_never_used() {
     let s = Scratch::new("eval-rogue");
     let ck = checkpoint(s.path());
     let ck_s = ck.to_str().unwrap();
-    let local_json = s.path().join("local.json");
-    let out = pir2()
-        .args(EVAL)
-        .args(["5", "--checkpoint", ck_s, "--json"])
-        .arg(&local_json)
-        .output()
-        .unwrap();
-    assert!(out.status.success());
+    let local_json = local_eval(s.path(), ck_s);
 
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let _server = serve(&["policy", "--checkpoint", ck_s, "--listen", &endpoint]);
     let remote_json = s.path().join("remote.json");
-    let mut eval = pir2()
-        .args(EVAL)
-        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint, "--json"])
-        .arg(&remote_json)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut err = BufReader::new(eval.stderr.take().unwrap());
-    let mut lines = String::new();
-    while !lines.contains("connected to the policy server") {
-        assert!(
-            err.read_line(&mut lines).unwrap() > 0,
-            "eval exited: {lines}"
-        );
-    }
+    let (mut eval, mut err, mut lines) = remote_eval_connected(ck_s, &endpoint, &remote_json);
     let rogue =
         Rogue::policy_responder(&Attach::ClientOf(endpoint.clone()), "pir2/policy", 42.0).unwrap();
     std::io::Read::read_to_string(&mut err, &mut lines).unwrap();
     let status = eval.wait().unwrap();
     assert!(status.success(), "{lines}");
     assert!(rogue.sent() >= 1, "the rogue never got a request: {lines}");
-    let read = |p: &Path| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
-    };
-    assert_eq!(read(&local_json), read(&remote_json), "{lines}");
-    let foreign: u64 = lines
-        .split("foreign replies ")
-        .nth(1)
-        .and_then(|r| r.split_whitespace().next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("{lines}"));
-    assert!(foreign >= 1, "{lines}");
+    assert_eq!(read_json(&local_json), read_json(&remote_json), "{lines}");
+    assert!(counter(&lines, "foreign replies") >= 1, "{lines}");
 
     // The rogue answers the next client's handshake too: refused, by name, nothing run.
     let out = pir2()
@@ -532,8 +515,7 @@ fn gr00t_run_with_the_backbone_behind_pir2_serve_slow() {
         String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
     eprintln!("{text}");
     assert!(out.status.success(), "{text}");
-    let v: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let v = read_json(&json);
     assert_eq!(v["trace"]["ticks"], 50);
     assert!(v["trace"]["swaps"].as_u64().unwrap() >= 1);
     assert!(v["hand_commands"].as_u64().unwrap() >= 50);
@@ -619,10 +601,6 @@ mod remote_head {
                 return (run, err);
             }
         }
-    }
-
-    fn read_json(p: &Path) -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
     }
 
     fn ds(v: &serde_json::Value) -> Vec<u64> {
@@ -922,8 +900,7 @@ mod remote_head {
             "{rest}"
         );
         assert!(took < Duration::from_secs(8), "{took:?}");
-        let v: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let v = read_json(&json);
         assert_eq!(v["limits"]["stall_limit_ms"], 400.0, "{v}");
     }
 
