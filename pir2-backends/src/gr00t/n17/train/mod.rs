@@ -43,8 +43,10 @@
 //! norm of each parameter tensor, one `f32` each, comes back to the host for the global
 //! norm), the AdamW moments and update (tensor ops, in place on the `Var`s) and, off the
 //! CPU, the dropout masks ([`MaskSource::Device`](crate::gr00t::n17::MaskSource::Device))
-//! run there. The host holds the weights and the optimiser state only when a checkpoint is
-//! written or a run resumes, in the same files as before. On the CPU the device-side AdamW
+//! run there. The host's copies of the weights and the optimiser state (the checkpoint's
+//! form, files unchanged) are read from the device only when a checkpoint is written and
+//! written to it only when a run resumes; between checkpoints they are stale. On the CPU the
+//! device-side AdamW
 //! writes the host AdamW's bits and the masks are the host-built ones, so CPU runs are
 //! unchanged. Only the CPU has been run: the CUDA and Metal paths use the same candle ops
 //! (`u32` and `f32` elementwise kernels, no `affine`) but have not been compiled or run here.
