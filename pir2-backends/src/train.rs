@@ -47,7 +47,7 @@ mod state;
 pub(crate) use batcher::Batcher;
 pub(crate) use data::check_dataset;
 pub use data::{compute_stats, Dataset, Episode};
-pub(crate) use optim::{clip_grad_store, clip_grads, AdamW};
+pub(crate) use optim::{clip_grad_store, clip_grads, AdamW, DeviceAdamW};
 pub(crate) use run::{
     backward_to_host, finish, masked_mse, run_controls, step_dir, LossLog, RunControl,
 };

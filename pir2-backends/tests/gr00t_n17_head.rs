@@ -739,3 +739,91 @@ fn dropout_applies_in_the_training_forward_only_and_is_keyed_by_seed_step_and_si
     let e = Gr00tN17Config::from_json_str(&json.to_string(), Path::new("c.json")).unwrap_err();
     assert!(e.to_string().contains("dropout"), "{e}");
 }
+
+#[test]
+fn device_built_dropout_masks_are_a_pure_function_of_seed_step_and_site() {
+    use pir2_backends::gr00t::n17::{DitConfig, DitDropout, DropoutSite, MaskSource};
+    let dev = Device::Cpu;
+    let cfg = alt_config().dit;
+    let d = DitDropout::from_config(&cfg, 7, 3);
+    let shape = (4, 50, 512); // 102 400 values: rows of 512 columns.
+    let n = 4 * 50 * 512;
+    let get = |d: &DitDropout, site: DropoutSite, src: MaskSource| -> Vec<f32> {
+        let m = d.mask_tensor(site, shape, &dev, src).unwrap();
+        assert_eq!(m.dims(), [4, 50, 512]);
+        assert_eq!(m.dtype(), DType::F32);
+        m.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    let site = DropoutSite::FeedForwardInner(1);
+
+    // The CPU's masks are unchanged: the host source is `mask` itself, and the training
+    // forward on the CPU uses it.
+    assert_eq!(MaskSource::for_device(&dev), MaskSource::Host);
+    let host = get(&d, site, MaskSource::Host);
+    assert_eq!(bits(&host), bits(&d.mask(site, n).unwrap()));
+
+    for p in [0.2, 0.5] {
+        let dp = DitDropout { rate: p, ..d };
+        let m = get(&dp, site, MaskSource::Device);
+        // A fresh object with the same (seed, step, site) gives the same bits.
+        let fresh = DitDropout::from_config(
+            &DitConfig {
+                dropout: p,
+                ..cfg.clone()
+            },
+            7,
+            3,
+        );
+        assert_eq!(bits(&m), bits(&get(&fresh, site, MaskSource::Device)));
+        // 0 or exactly 1/(1 − p); dropped at rate p within 5 binomial σ.
+        let scale = (1.0 / (1.0 - p)) as f32;
+        assert!(m.iter().all(|&v| v == 0.0 || v == scale), "p = {p}");
+        let sigma = (p * (1.0 - p) / n as f64).sqrt();
+        let rate = |k: usize, of: usize| k as f64 / of as f64;
+        let dropped = rate(m.iter().filter(|&&v| v == 0.0).count(), n);
+        assert!(
+            (dropped - p).abs() < 5.0 * sigma,
+            "p = {p}: dropped {dropped}"
+        );
+        // Neighbours are independent: both dropped at rate p² (row and column neighbours).
+        let (rows, cols) = (n / 512, 512);
+        let both = |di: usize, dj: usize| {
+            let mut k = 0;
+            let mut of = 0;
+            for i in 0..rows - di {
+                for j in 0..cols - dj {
+                    of += 1;
+                    k += usize::from(m[i * cols + j] == 0.0 && m[(i + di) * cols + j + dj] == 0.0);
+                }
+            }
+            (rate(k, of), of)
+        };
+        for (di, dj) in [(0, 1), (1, 0), (1, 1)] {
+            let (r, of) = both(di, dj);
+            let q = p * p;
+            let s = (q * (1.0 - q) / of as f64).sqrt();
+            assert!((r - q).abs() < 5.0 * s, "p = {p}, ({di}, {dj}): both {r}");
+        }
+        // Not the host's bits.
+        assert_ne!(bits(&m), bits(&get(&dp, site, MaskSource::Host)));
+    }
+
+    // Other sites, steps and seeds draw other masks.
+    let m = get(&d, site, MaskSource::Device);
+    for (other, s) in [
+        (d, DropoutSite::FeedForwardInner(0)),
+        (d, DropoutSite::FeedForwardOutput(1)),
+        (d, DropoutSite::Attention(1)),
+        (DitDropout { step: 4, ..d }, site),
+        (DitDropout { seed: 8, ..d }, site),
+    ] {
+        assert_ne!(bits(&m), bits(&get(&other, s, MaskSource::Device)), "{s:?}");
+    }
+    // Rate 0 keeps everything; an invalid rate is an error, as on the host.
+    let ones = get(&DitDropout { rate: 0.0, ..d }, site, MaskSource::Device);
+    assert!(ones.iter().all(|&v| v == 1.0));
+    assert!(DitDropout { rate: 1.0, ..d }
+        .mask_tensor(site, 4, &dev, MaskSource::Device)
+        .is_err());
+}

@@ -90,7 +90,7 @@ use std::path::Path;
 use candle_core::{DType, Device, Tensor, Var, D};
 
 pub use config::{DitConfig, Gr00tN17Config, VlSelfAttentionConfig};
-pub use dropout::{DitDropout, DropoutSite};
+pub use dropout::{DitDropout, DropoutSite, MaskSource, DEVICE_MODULUS};
 pub(crate) use layers::{action_time_frequencies, dit_time_frequencies, sinusoidal_table_values};
 pub use weights::{TensorIndex, INDEX_FILE, SINGLE_FILE};
 

@@ -38,9 +38,18 @@
 //! bit-identical to an uninterrupted one. [`Gr00tTrainer::dropout`]`(false)` trains without
 //! it. Whether it is on, and its rate, are part of the run's identity ([`RUN_FILE`]).
 //!
-//! The per-step tensors live on the head's device (`load_trainable(.., device)`); the
-//! optimiser state and update are on the host. Only the CPU has been run; the `cuda` and
-//! `metal` features have not been compiled here.
+//! A step stays on the head's device (`load_trainable(.., device)`): the batch's tensors
+//! are uploaded once, then the forward, the backward, the grad-norm clip (only the squared
+//! norm of each parameter tensor, one `f32` each, comes back to the host for the global
+//! norm), the AdamW moments and update (tensor ops, in place on the `Var`s) and, off the
+//! CPU, the dropout masks ([`MaskSource::Device`](crate::gr00t::n17::MaskSource::Device))
+//! run there. The host's copies of the weights and the optimiser state (the checkpoint's
+//! form, files unchanged) are read from the device only when a checkpoint is written and
+//! written to it only when a run resumes; between checkpoints they are stale. On the CPU the
+//! device-side AdamW
+//! writes the host AdamW's bits and the masks are the host-built ones, so CPU runs are
+//! unchanged. Only the CPU has been run: the CUDA and Metal paths use the same candle ops
+//! (`u32` and `f32` elementwise kernels, no `affine`) but have not been compiled or run here.
 //!
 //! Not done here: EMA, self-rollout and validation hooks of [`crate::train::Trainer`] are refused
 //! by name.
@@ -92,6 +101,14 @@ pub trait ActionTargets {
 }
 
 // ---------------------------------------------------------------- trainer
+
+/// The host copies of the trained weights and the optimiser state, for a checkpoint.
+fn to_host(st: &mut State, vars: &[Var], opt: &DeviceAdamW) -> Result<()> {
+    for (p, v) in st.params.iter_mut().zip(vars) {
+        *p = v.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+    }
+    opt.to_host(&mut st.opt)
+}
 
 /// The run's identity file in the output directory: a resumed run must match it.
 pub const RUN_FILE: &str = "gr00t_run.json";
@@ -312,8 +329,8 @@ impl<'a> Gr00tTrainer<'a> {
         }
         let mut log = LossLog::open(Some(&out), None)?;
 
-        // The head's device: every per-step tensor lives there; the AdamW update runs on
-        // the host copies, as in the U-Net trainer.
+        // The head's device: every per-step tensor lives there, the AdamW moments and
+        // update too ([`DeviceAdamW`]). The host holds the state only to save or restore it.
         let dev = head.device().clone();
         let vars: Vec<Var> = head
             .trainable_vars()
@@ -340,16 +357,13 @@ impl<'a> Gr00tTrainer<'a> {
         let stats = Stats::identity(&spec);
         let mut batcher = Batcher::new(data, &spec, &stats, &cfg);
         batcher.full_chunks_only(data);
-        let set_vars = |params: &[Vec<f32>]| -> Result<()> {
-            for (v, p) in vars.iter().zip(params) {
-                v.set(&Tensor::from_slice(p, v.dims(), &dev)?)?;
-            }
-            Ok(())
-        };
         if let Some(dir) = &resume_from {
             batcher.rng = st.load(dir, &cfg, &names)?;
-            set_vars(&st.params)?;
+            for (v, p) in vars.iter().zip(&st.params) {
+                v.set(&Tensor::from_slice(p, v.dims(), &dev)?)?;
+            }
         }
+        let mut opt = DeviceAdamW::from_host(&st.opt, &vars)?;
         let extra = std::mem::take(&mut self.extra_files);
         let write_model = |dir: &Path| -> Result<()> {
             head.save_weights(&dir.join(WEIGHTS_FILE))?;
@@ -381,11 +395,11 @@ impl<'a> Gr00tTrainer<'a> {
         let mut x_pad = vec![0f32; b * h * a_max];
         let mut t_act = vec![0u32; b * h];
         let mut t_tok = vec![0u32; b * (1 + h)];
-        let mut grads: Vec<Vec<f32>> = st.params.iter().map(|p| vec![0.0; p.len()]).collect();
         let ids = Tensor::from_vec(vec![self.spec.embodiment_id; b], b, &dev)?;
 
         for step in st.step..cfg.steps {
             if self.ctl.stop_before(step, Some(&out), &mut log, |p| {
+                to_host(&mut st, &vars, &opt)?;
                 st.save_step(write_model, p, batcher.rng.state(), &names, &cfg)
             })? {
                 break;
@@ -448,9 +462,9 @@ impl<'a> Gr00tTrainer<'a> {
                     loss: loss_v,
                 });
             }
-            let gn = backward_to_host(&loss, &vars, cfg.grad_clip, &mut grads)?;
-            st.opt.step(&mut st.params, &grads, lr);
-            set_vars(&st.params)?;
+            let mut grads = loss.backward()?;
+            let gn = clip_grad_store(&mut grads, &vars, cfg.grad_clip)?;
+            opt.step(&vars, &grads, lr)?;
             let done = step + 1;
             let progress = Progress {
                 step: done,
@@ -467,9 +481,197 @@ impl<'a> Gr00tTrainer<'a> {
                     dir: Some(dir.clone()),
                 });
                 log.flush()?;
+                to_host(&mut st, &vars, &opt)?;
                 st.save_step(write_model, &dir, batcher.rng.state(), &names, &cfg)?;
             }
         }
         finish(Some(&out), &mut log, st, &cfg)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Instant;
+
+    use candle_core::Device;
+
+    use super::*;
+    use crate::gr00t::n17::{DropoutSite, MaskSource};
+
+    /// Not a check but a measurement (it asserts only that both optimisers write the same
+    /// bits): training steps of the reference fixture's tiny head on the CPU, the AdamW
+    /// update on host copies (weights and gradients to `Vec<f32>`, back with `Var::set`, the
+    /// trainer's former path) against [`DeviceAdamW`], in interleaved rounds; then a DiT
+    /// dropout mask built on the host against one built with device ops. Prints the
+    /// medians and their ratios:
+    /// `cargo test -p pir2-backends --features gr00t --lib step_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "a measurement: prints timings"]
+    fn host_and_device_adamw_step_timing() {
+        let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/gr00t_n17_head");
+        let dir = std::env::temp_dir().join(format!("pir2-adamw-timing-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::copy(
+            fixtures.join("alt.weights.safetensors"),
+            dir.join("model.safetensors"),
+        )
+        .unwrap();
+        std::fs::copy(fixtures.join("alt.config.json"), dir.join("config.json")).unwrap();
+        let dev = Device::Cpu;
+        let heads = [
+            Gr00tN17Head::load_trainable(&dir, 2, &dev).unwrap(),
+            Gr00tN17Head::load_trainable(&dir, 2, &dev).unwrap(),
+        ];
+        let _ = std::fs::remove_dir_all(&dir);
+        let io = candle_core::safetensors::load(fixtures.join("alt.io.safetensors"), &dev).unwrap();
+        let get = |k: &str| &io[k];
+        let vars: Vec<Vec<Var>> = heads
+            .iter()
+            .map(|h| h.trainable_vars().iter().map(|(_, v)| v.clone()).collect())
+            .collect();
+        let n_params: usize = vars[0].iter().map(|v| v.elem_count()).sum();
+        let cfg = TrainConfig {
+            weight_decay: 0.05,
+            ..TrainConfig::default()
+        };
+        let host_params: Vec<Vec<f32>> = vars[0]
+            .iter()
+            .map(|v| {
+                v.as_tensor()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap()
+            })
+            .collect();
+        let mut host = (AdamW::new(&cfg, &host_params), host_params);
+        let mut grads: Vec<Vec<f32>> = host.1.iter().map(|p| vec![0.0; p.len()]).collect();
+        let mut device = DeviceAdamW::from_host(&host.0, &vars[1]).unwrap();
+
+        let b = get("in.actions").dim(0).unwrap();
+        let d_vis = Tensor::zeros(b, DType::U32, &dev).unwrap();
+        // One step of head `k`; returns (whole step, optimiser part) in seconds.
+        let mut step = |k: usize, lr: f64| -> (f64, f64) {
+            let t0 = Instant::now();
+            let head = &heads[k];
+            let ids = get("in.embodiment_id");
+            let vl = head.process_backbone(get("in.backbone_features")).unwrap();
+            let s = head.encode_state(get("in.state"), ids).unwrap();
+            let tokens = VlTokens {
+                embeddings: &vl,
+                attention_mask: Some(get("in.backbone_attention_mask")),
+                image_mask: Some(get("in.image_mask")),
+                d_vis: Some(&d_vis),
+            };
+            let ts = Timesteps::Shared(get("in.timesteps"));
+            let v = head
+                .velocity(&s, get("in.actions"), ts, &tokens, ids)
+                .unwrap();
+            let loss = v.sqr().unwrap().mean_all().unwrap();
+            let mut gs = loss.backward().unwrap();
+            clip_grad_store(&mut gs, &vars[k], Some(1.0)).unwrap();
+            let t1 = Instant::now();
+            if k == 0 {
+                for (g, v) in grads.iter_mut().zip(&vars[0]) {
+                    match gs.get(v.as_tensor()) {
+                        Some(t) => g.copy_from_slice(&t.flatten_all().unwrap().to_vec1().unwrap()),
+                        None => g.fill(0.0),
+                    }
+                }
+                host.0.step(&mut host.1, &grads, lr);
+                for (v, p) in vars[0].iter().zip(&host.1) {
+                    v.set(&Tensor::from_slice(p, v.dims(), &dev).unwrap())
+                        .unwrap();
+                }
+            } else {
+                device.step(&vars[1], &gs, lr).unwrap();
+            }
+            let t2 = Instant::now();
+            ((t2 - t0).as_secs_f64(), (t2 - t1).as_secs_f64())
+        };
+        let (rounds, per) = (6, 10);
+        let mut t = [Vec::new(), Vec::new()];
+        for r in 0..rounds {
+            for (k, tk) in t.iter_mut().enumerate() {
+                for i in 0..per {
+                    let lr = cfg.lr_at(r * per + i);
+                    let x = step(k, lr);
+                    if r > 0 {
+                        tk.push(x);
+                    }
+                }
+            }
+        }
+        let median = |xs: &mut Vec<f64>| {
+            xs.sort_by(f64::total_cmp);
+            xs[xs.len() / 2]
+        };
+        let [h, d] = t;
+        let (mut hs, mut ho): (Vec<f64>, Vec<f64>) = h.into_iter().unzip();
+        let (mut ds, mut dopt): (Vec<f64>, Vec<f64>) = d.into_iter().unzip();
+        let (hs, ho, ds, dopt) = (
+            median(&mut hs),
+            median(&mut ho),
+            median(&mut ds),
+            median(&mut dopt),
+        );
+        println!(
+            "tiny GR00T head, {n_params} parameters in {} tensors, batch {}:",
+            vars[0].len(),
+            get("in.actions").dim(0).unwrap()
+        );
+        println!(
+            "  step: host AdamW {:.3} ms, device AdamW {:.3} ms, device/host {:.3}",
+            hs * 1e3,
+            ds * 1e3,
+            ds / hs
+        );
+        println!(
+            "  optimiser only: host {:.3} ms, device {:.3} ms, device/host {:.3}",
+            ho * 1e3,
+            dopt * 1e3,
+            dopt / ho
+        );
+        for (a, b) in vars[0].iter().zip(&vars[1]) {
+            let bits = |v: &Var| {
+                let x = v
+                    .as_tensor()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap();
+                x.iter().map(|f| f.to_bits()).collect::<Vec<_>>()
+            };
+            assert_eq!(bits(a), bits(b), "the two optimisers wrote other weights");
+        }
+
+        // One DiT dropout mask at the paper's batch (512) for this head's FF width.
+        let c = heads[0].config();
+        let d = DitDropout::from_config(&c.dit, 1, 2);
+        let inner = heads[0]
+            .trainable_vars()
+            .iter()
+            .find(|(n, _)| n.ends_with("ff.net.0.proj.weight"))
+            .map(|(_, v)| v.dim(0).unwrap())
+            .unwrap();
+        let shape = (512, 1 + c.max_seq_len.min(17), inner);
+        let time = |src: MaskSource| {
+            let mut xs: Vec<f64> = (0..5)
+                .map(|_| {
+                    let t0 = Instant::now();
+                    d.mask_tensor(DropoutSite::FeedForwardInner(0), shape, &dev, src)
+                        .unwrap();
+                    t0.elapsed().as_secs_f64()
+                })
+                .collect();
+            median(&mut xs)
+        };
+        let (mh, md) = (time(MaskSource::Host), time(MaskSource::Device));
+        println!(
+            "  dropout mask {shape:?}: host-built {:.2} ms, device-built (CPU) {:.2} ms, ratio {:.2}",
+            mh * 1e3,
+            md * 1e3,
+            md / mh
+        );
     }
 }
