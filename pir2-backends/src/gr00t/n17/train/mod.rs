@@ -36,7 +36,9 @@
 //! blocks at the checkpoint's rate (`diffusion_model_cfg.dropout`, `final_dropout`; see
 //! [`DitDropout`]), masks keyed by the run's seed and the step index, so a resumed run is
 //! bit-identical to an uninterrupted one. [`Gr00tTrainer::dropout`]`(false)` trains without
-//! it. Whether it is on, and its rate, are part of the run's identity ([`RUN_FILE`]).
+//! it. Whether it is on, its rate, and whether its masks are built on the device (off the
+//! CPU) are part of the run's identity ([`RUN_FILE`]): a run resumes on the kind of device it
+//! began on.
 //!
 //! A step stays on the head's device (`load_trainable(.., device)`): the batch's tensors
 //! are uploaded once, then the forward, the backward, the grad-norm clip (only the squared
@@ -292,9 +294,19 @@ impl<'a> Gr00tTrainer<'a> {
         let out = self.out_dir.clone();
         // The run's identity: written once, checked on resume.
         let dit = &head.config().dit;
-        let dropout = (self.dropout && dit.dropout > 0.0).then(
-            || serde_json::json!({ "rate": dit.dropout, "final_dropout": dit.final_dropout }),
-        );
+        let dropout = (self.dropout && dit.dropout > 0.0).then(|| {
+            let mut d =
+                serde_json::json!({ "rate": dit.dropout, "final_dropout": dit.final_dropout });
+            // Device-built masks have other bits than the host-built ones CPU runs draw: a
+            // run resumed on another kind of device would not continue its masks, so it is
+            // refused. (Absent for host masks, so runs logged before keep their identity.)
+            if crate::gr00t::n17::MaskSource::for_device(head.device())
+                == crate::gr00t::n17::MaskSource::Device
+            {
+                d["masks"] = "device".into();
+            }
+            d
+        });
         let id = serde_json::json!({
             "spec": self.spec,
             "identity": self.identity,
