@@ -30,6 +30,23 @@ fn err(e: Error) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
 
+/// A recipe dict naming a field `Recipe` does not have is an error listing the fields (serde
+/// would ignore it, and the schedule would silently be another one than asked for).
+fn check_recipe_keys(given: &serde_json::Value) -> PyResult<()> {
+    let known = serde_json::to_value(Recipe::default())
+        .map_err(|e| invalid("recipe", e.to_string()))?;
+    if let (Some(given), Some(known)) = (given.as_object(), known.as_object()) {
+        if let Some(k) = given.keys().find(|k| !known.contains_key(*k)) {
+            let fields: Vec<&str> = known.keys().map(String::as_str).collect();
+            return Err(invalid(
+                "recipe",
+                format!("unknown field {k:?}; the fields are {}", fields.join(", ")),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn invalid(field: &'static str, message: impl Into<String>) -> PyErr {
     err(Error::Invalid {
         field,
@@ -880,7 +897,11 @@ impl PyTrainSchedule {
                             .import("json")?
                             .call_method1("dumps", (obj,))?
                             .extract()?;
-                        serde_json::from_str(&text).map_err(|e| invalid("recipe", e.to_string()))?
+                        let given: serde_json::Value = serde_json::from_str(&text)
+                            .map_err(|e| invalid("recipe", e.to_string()))?;
+                        check_recipe_keys(&given)?;
+                        serde_json::from_value(given)
+                            .map_err(|e| invalid("recipe", e.to_string()))?
                     } else {
                         return Err(invalid(
                             "recipe",

@@ -42,6 +42,9 @@ def test_schedule_errors():
         T.for_policy("pi_r3")
     with pytest.raises(ValueError, match=r"invalid `recipe`"):
         T.for_policy("pi_r2", {"nfe": "two"})
+    # A misspelt field is named, never ignored.
+    with pytest.raises(ValueError, match=r'invalid `recipe`: unknown field "nfee"; the fields are .*nfe'):
+        T.for_policy("pi_r2", {"nfee": 3})
     with pytest.raises(ValueError, match=r"invalid `schedule`"):
         T.from_json('{"kind": "nope"}')
 

@@ -203,7 +203,8 @@ def test_command_line_fields_parse_as_lerobot_train_parses_them():
     assert cfg.slow_features == [] and cfg.observation_delta_indices == [-1, 0]
     with pytest.raises(Exception) as e:
         draccus.parse(Pir2FlowConfig, args=["--device=cpu", '--recipe={"nfes": 3}'])
-    assert "unknown fields ['nfes']" in repr(e.value.__cause__ or e.value)
+    msg = str(e.value.__cause__ or e.value)
+    assert 'unknown field "nfes"' in msg, msg
 
 
 def test_save_pretrained_round_trip_is_bit_exact(dataset_root, tmp_path):
@@ -264,7 +265,7 @@ def test_bad_input_is_named(dataset_root):
         Pir2FlowConfig(device="cpu", policy="pir3")
     with pytest.raises(ValueError, match="recipe must be a mapping"):
         Pir2FlowConfig(device="cpu", recipe="paper_sim")
-    with pytest.raises(ValueError, match=r"unknown fields \['nfes'\]"):
+    with pytest.raises(ValueError, match=r'unknown field "nfes"; the fields are .*nfe'):
         Pir2FlowConfig(device="cpu", recipe={"nfes": 2})
     with pytest.raises(ValueError, match="recipe"):
         Pir2FlowConfig(device="cpu", recipe={"nfe": "two"})
