@@ -29,7 +29,8 @@ pub enum Gr00tCmd {
     /// (docs/gr00t-contract.md), which `pir2 gr00t run` runs.
     Export(Gr00tExportOptions),
     /// One-NFE latency of a GR00T export's action head and backbone, and the delay `d` it
-    /// implies.
+    /// implies; with `--train`, the time of one `pir2 gr00t train` step of a checkpoint's
+    /// head at a given batch (default: the paper's 512) on a synthetic batch.
     Bench(Gr00tBenchOptions),
     /// Write a small example checkpoint with random weights (the xArm6 + XHand embodiment,
     /// N1.7's shapes at tiny widths: action head, stand-in backbone, tokenizer) that
