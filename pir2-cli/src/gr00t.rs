@@ -29,7 +29,8 @@ pub enum Gr00tCmd {
     /// (docs/gr00t-contract.md), which `pir2 gr00t run` runs.
     Export(Gr00tExportOptions),
     /// One-NFE latency of a GR00T export's action head and backbone, and the delay `d` it
-    /// implies.
+    /// implies; with `--train`, the time of one `pir2 gr00t train` step of a checkpoint's
+    /// head at a given batch (default: the paper's 512) on a synthetic batch.
     Bench(Gr00tBenchOptions),
     /// Write a small example checkpoint with random weights (the xArm6 + XHand embodiment,
     /// N1.7's shapes at tiny widths: action head, stand-in backbone, tokenizer) that
@@ -137,20 +138,61 @@ pub struct Gr00tExportOptions {
 }
 
 /// Options of `pir2 gr00t bench`.
+///
+/// Without `--train`: the one-NFE latency of an export's ONNX graphs (`--checkpoint EXPORT
+/// --task T [--seconds S] [--ep EP]`). With `--train`: the wall-clock time of one
+/// `pir2 gr00t train` step (batch draw, upload, forward with GR00T's dropout, loss, backward,
+/// grad-norm clip, AdamW) on a synthetic seeded batch of the head's real shapes
+/// (`--checkpoint HEAD [--batch 512] [--steps N] [--warmup K] [--device D] [--json FILE]`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct Gr00tBenchOptions {
-    /// The export directory (docs/gr00t-contract.md).
+    /// The export directory (docs/gr00t-contract.md); with --train, a checkpoint
+    /// `pir2 gr00t train` takes (config.json + model.safetensors: a GR00T N1.7 directory,
+    /// `pir2 gr00t example`'s `head/`, a training step directory).
     #[arg(long)]
     pub checkpoint: PathBuf,
     /// The task (key or prompt) whose prompt layout the head is fed.
-    #[arg(long)]
-    pub task: String,
+    #[arg(long, required_unless_present = "train")]
+    pub task: Option<String>,
     /// Seconds of calls per graph.
     #[arg(long, default_value_t = 5.0)]
     pub seconds: f64,
     /// Where ONNX Runtime runs the graphs.
     #[command(flatten)]
     pub ep: EpOptions,
+    /// Time training steps of the candle head instead of the ONNX graphs' inference.
+    #[arg(long, conflicts_with_all = ["task", "seconds", "ep", "ep_device", "trt_cache"])]
+    pub train: bool,
+    /// --train: samples per step (the paper's batch: 512).
+    #[arg(long, default_value_t = 512, requires = "train")]
+    pub batch: usize,
+    /// --train: timed steps.
+    #[arg(long, default_value_t = 10, requires = "train")]
+    pub steps: usize,
+    /// --train: untimed steps before them.
+    #[arg(long, default_value_t = 2, requires = "train")]
+    pub warmup: usize,
+    /// --train: the candle device, `cpu`, `cuda[:N]` (a build with `--features cuda`) or
+    /// `metal[:N]` (`--features metal`); a GPU the build lacks is an error, never the CPU.
+    #[arg(long, default_value = "cpu", requires = "train")]
+    pub device: String,
+    /// --train: seed of the synthetic batch and of the draws.
+    #[arg(long, default_value_t = 0, requires = "train")]
+    pub seed: u64,
+    /// --train: the embodiment file (default: embodiment.toml in the checkpoint directory or
+    /// the one above it).
+    #[arg(long, requires = "train")]
+    pub embodiment: Option<PathBuf>,
+    /// --train: VL tokens per sample (default: the embodiment's prompt.image_tokens +
+    /// prompt.text_tokens, the backbone's sequence).
+    #[arg(long, requires = "train")]
+    pub vl_tokens: Option<usize>,
+    /// --train: without GR00T's DiT dropout (as `pir2 gr00t train --no-dropout`).
+    #[arg(long = "no-dropout", action = clap::ArgAction::SetFalse, requires = "train")]
+    pub dropout: bool,
+    /// --train: also write the measurement to this JSON file.
+    #[arg(long, requires = "train")]
+    pub json: Option<PathBuf>,
 }
 
 /// Run a `pir2 gr00t` verb. Training, feature extraction, runs and servers stop on
@@ -293,11 +335,44 @@ mod imp {
     }
 
     pub(super) fn bench(o: &Gr00tBenchOptions) -> Result<()> {
+        if o.train {
+            return bench_train(o);
+        }
+        let task = o
+            .task
+            .as_deref()
+            .context("--task is required without --train")?;
         print!(
             "{}",
-            crate::bench::gr00t(&o.checkpoint, &o.task, &o.ep, o.seconds)
+            crate::bench::gr00t(&o.checkpoint, task, &o.ep, o.seconds)
                 .with_context(|| format!("benchmarking {}", o.checkpoint.display()))?
         );
+        Ok(())
+    }
+
+    fn bench_train(o: &Gr00tBenchOptions) -> Result<()> {
+        let r = gr00t::bench_train(o)?;
+        println!(
+            "gr00t train step: {} on {}, batch {}, H {}, A {}, VL tokens {} x {}, {} parameters, \
+             dropout {}",
+            r.checkpoint.display(),
+            r.device,
+            r.batch,
+            r.horizon,
+            r.action_dim,
+            r.vl_tokens,
+            r.vl_dim,
+            r.parameters,
+            if r.dropout { "on" } else { "off" }
+        );
+        println!(
+            "  {} timed steps after {} warm-up: median {:.1} ms, p90 {:.1} ms, {:.1} samples/s",
+            r.steps, r.warmup, r.median_ms, r.p90_ms, r.samples_per_s
+        );
+        if let Some(path) = &o.json {
+            std::fs::write(path, serde_json::to_string_pretty(&r)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
         Ok(())
     }
 

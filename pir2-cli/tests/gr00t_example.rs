@@ -106,3 +106,75 @@ fn example_checkpoint_runs_on_the_emulators_and_is_never_overwritten() {
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
+
+/// `pir2 gr00t bench --train` on the example's head: a few training steps at a tiny batch,
+/// its `--json` with finite positive times; `--device cuda` in a build without feature `cuda`
+/// is one error naming the feature (never a CPU run); `--train` with `--task` is refused.
+#[test]
+fn bench_train_times_training_steps_of_the_example_head() {
+    let scratch = Scratch::new("gr00t-bench-train");
+    let ck = scratch.path().join("ex");
+    let (out, text) = example(&ck, "3");
+    assert!(out.status.success(), "example: {text}");
+    let head = ck.join("head");
+    let json = scratch.path().join("bench.json");
+    let (out, text) = pir2(&[
+        OsStr::new("gr00t"),
+        OsStr::new("bench"),
+        OsStr::new("--train"),
+        OsStr::new("--checkpoint"),
+        head.as_os_str(),
+        OsStr::new("--batch"),
+        OsStr::new("4"),
+        OsStr::new("--steps"),
+        OsStr::new("2"),
+        OsStr::new("--warmup"),
+        OsStr::new("1"),
+        OsStr::new("--json"),
+        json.as_os_str(),
+    ]);
+    assert!(out.status.success(), "bench --train: {text}");
+    assert!(text.contains("median"), "{text}");
+    let r = read_json(&json);
+    assert_eq!(r["batch"], 4);
+    assert_eq!(r["steps"], 2);
+    assert_eq!(r["warmup"], 1);
+    assert_eq!(r["device"], "cpu");
+    assert!(r["parameters"].as_u64().unwrap() > 0);
+    for k in ["median_ms", "p90_ms", "samples_per_s"] {
+        let v = r[k].as_f64().unwrap();
+        assert!(v.is_finite() && v > 0.0, "{k} = {v}");
+    }
+    let steps = r["step_ms"].as_array().unwrap();
+    assert_eq!(steps.len(), 2);
+    assert!(steps
+        .iter()
+        .all(|s| s.as_f64().is_some_and(|v| v.is_finite() && v > 0.0)));
+    assert!(r["p90_ms"].as_f64().unwrap() >= r["median_ms"].as_f64().unwrap());
+
+    if !cfg!(feature = "cuda") {
+        let (out, text) = pir2(&[
+            OsStr::new("gr00t"),
+            OsStr::new("bench"),
+            OsStr::new("--train"),
+            OsStr::new("--checkpoint"),
+            head.as_os_str(),
+            OsStr::new("--device"),
+            OsStr::new("cuda"),
+        ]);
+        assert!(!out.status.success(), "{text}");
+        assert!(text.contains("--features cuda"), "{text}");
+        assert!(!text.contains("median"), "{text}");
+    }
+    let (out, text) = pir2(&[
+        OsStr::new("gr00t"),
+        OsStr::new("bench"),
+        OsStr::new("--train"),
+        OsStr::new("--checkpoint"),
+        head.as_os_str(),
+        OsStr::new("--task"),
+        OsStr::new("catch the book"),
+    ]);
+    assert!(!out.status.success(), "{text}");
+    assert!(text.contains("cannot be used with"), "{text}");
+}

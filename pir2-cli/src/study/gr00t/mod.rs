@@ -6,6 +6,8 @@
 //! the work needs feature `gr00t`.
 
 #[cfg(feature = "gr00t")]
+mod bench;
+#[cfg(feature = "gr00t")]
 mod export;
 #[cfg(feature = "gr00t")]
 pub mod features;
@@ -18,6 +20,8 @@ use std::sync::Arc;
 
 use pir2_sim::dataset::DEFAULT_TOLERANCE_S;
 
+#[cfg(feature = "gr00t")]
+pub use bench::{bench_train, Gr00tTrainBench};
 #[cfg(feature = "gr00t")]
 pub use export::{export, Gr00tExportSummary};
 #[cfg(feature = "gr00t")]

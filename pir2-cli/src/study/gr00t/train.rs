@@ -316,27 +316,89 @@ pub(super) fn check_head_fits(
     Ok(())
 }
 
-/// `pir2 gr00t train` (see the module docs).
-pub fn train(
-    o: &Gr00tTrainOptions,
-    mut progress: impl FnMut(&Progress),
-) -> Result<Gr00tTrainSummary> {
-    let device = pir2_backends::candle::device(&o.device)?;
-    let emb = EmbodimentConfig::load(&o.embodiment)
-        .with_context(|| format!("embodiment {}", o.embodiment.display()))?;
-    let mut head = Gr00tN17Head::load_trainable(&o.checkpoint, emb.d_vis_max, &device)
-        .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
+/// The embodiment `embodiment` and the head of `checkpoint` as `pir2 gr00t train` trains it,
+/// on the candle device `device` (`cpu`, `cuda[:N]`, `metal[:N]`; a GPU the build lacks is
+/// one error naming its feature): trainable, with the delay table of `d_vis_max + 1` rows and,
+/// for a policy trained with them, per-position AdaLN heads; checked against the embodiment.
+pub(super) fn load_head(
+    checkpoint: &Path,
+    embodiment: &Path,
+    device: &str,
+) -> Result<(EmbodimentConfig, Gr00tN17Head)> {
+    let device = pir2_backends::candle::device(device)?;
+    let emb = EmbodimentConfig::load(embodiment)
+        .with_context(|| format!("embodiment {}", embodiment.display()))?;
+    let mut head = Gr00tN17Head::load_trainable(checkpoint, emb.d_vis_max, &device)
+        .with_context(|| format!("GR00T N1.7 checkpoint {}", checkpoint.display()))?;
     // The paper's architecture: πR² gives every DiT token its own AdaLN head, initialised from
     // the checkpoint's shared pair (the baselines keep GR00T's shared modulation).
     if emb.policy.trained.per_position_heads() {
         head = head
             .with_position_heads(emb.horizon)
-            .with_context(|| format!("GR00T N1.7 checkpoint {}", o.checkpoint.display()))?;
+            .with_context(|| format!("GR00T N1.7 checkpoint {}", checkpoint.display()))?;
     }
+    check_head_fits(&emb, head.config(), checkpoint, embodiment)?;
+    Ok((emb, head))
+}
+
+/// The paper's robot recipe for `emb` (AdamW, lr with 5 % warm-up and cosine decay, weight
+/// decay 1e-5, clip 1.0, the draws of the policy `emb` trains).
+pub(super) fn train_config(
+    emb: &EmbodimentConfig,
+    steps: usize,
+    batch_size: usize,
+    lr: f64,
+    seed: u64,
+    checkpoint_every: Option<usize>,
+) -> TrainConfig {
+    let recipe = Recipe {
+        nfe: emb.policy.nfe,
+        flow_steps: emb.policy.flow_steps,
+        delays: DelayLaw::Uniform,
+        pir2_d_max: emb.d_max,
+        rtc_d_max: 10,
+        jitter: 0.0,
+        ..Recipe::default()
+    };
+    TrainConfig {
+        steps,
+        batch_size,
+        lr,
+        min_lr: 0.0,
+        warmup: steps / 20,
+        betas: (0.95, 0.999),
+        eps: 1e-8,
+        weight_decay: 1e-5,
+        grad_clip: Some(1.0),
+        ema: None,
+        seed,
+        schedule: gr00t_schedule(emb.policy.trained.schedule(&recipe)),
+        checkpoint_every,
+        self_rollout: None,
+        log_every: 10,
+    }
+}
+
+/// The trainer's view of `emb`.
+pub(super) fn train_spec(emb: &EmbodimentConfig) -> Gr00tTrainSpec {
+    Gr00tTrainSpec {
+        horizon: emb.horizon,
+        action_dim: emb.action_dim(),
+        d_vis_max: emb.d_vis_max,
+        embodiment_id: emb.embodiment_id as u32,
+        state_timestep: emb.state_timestep() as u32,
+    }
+}
+
+/// `pir2 gr00t train` (see the module docs).
+pub fn train(
+    o: &Gr00tTrainOptions,
+    mut progress: impl FnMut(&Progress),
+) -> Result<Gr00tTrainSummary> {
+    let (emb, head) = load_head(&o.checkpoint, &o.embodiment, &o.device)?;
     let c = head.config().clone();
     let ck = o.checkpoint.display();
     let ed = o.embodiment.display();
-    check_head_fits(&emb, &c, &o.checkpoint, &o.embodiment)?;
 
     // The dataset: widths first, against the embodiment.
     let sel = FeatureSelection {
@@ -425,39 +487,15 @@ pub fn train(
     let (mut cache, built) =
         VlCache::open_or_build(&o.out.join("vl-cache"), &key, &head, &features)?;
 
-    let recipe = Recipe {
-        nfe: emb.policy.nfe,
-        flow_steps: emb.policy.flow_steps,
-        delays: DelayLaw::Uniform,
-        pir2_d_max: emb.d_max,
-        rtc_d_max: 10,
-        jitter: 0.0,
-        ..Recipe::default()
-    };
-    let cfg = TrainConfig {
-        steps: o.steps,
-        batch_size: o.batch_size,
-        lr: o.lr,
-        min_lr: 0.0,
-        warmup: o.steps / 20,
-        betas: (0.95, 0.999),
-        eps: 1e-8,
-        weight_decay: 1e-5,
-        grad_clip: Some(1.0),
-        ema: None,
-        seed: o.seed,
-        schedule: gr00t_schedule(emb.policy.trained.schedule(&recipe)),
-        checkpoint_every: o.checkpoint_every,
-        self_rollout: None,
-        log_every: 10,
-    };
-    let spec = Gr00tTrainSpec {
-        horizon: emb.horizon,
-        action_dim: a,
-        d_vis_max: emb.d_vis_max,
-        embodiment_id: emb.embodiment_id as u32,
-        state_timestep: emb.state_timestep() as u32,
-    };
+    let cfg = train_config(
+        &emb,
+        o.steps,
+        o.batch_size,
+        o.lr,
+        o.seed,
+        o.checkpoint_every,
+    );
+    let spec = train_spec(&emb);
     let identity = serde_json::json!({
         "checkpoint": head_fingerprint(&head)?,
         "dataset": data_fp,

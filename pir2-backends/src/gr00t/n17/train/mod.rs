@@ -112,6 +112,195 @@ fn to_host(st: &mut State, vars: &[Var], opt: &DeviceAdamW) -> Result<()> {
     opt.to_host(&mut st.opt)
 }
 
+/// The host-side buffers of one training step's batch, allocated once per run.
+struct StepBuffers {
+    b: usize,
+    h: usize,
+    a: usize,
+    a_max: usize,
+    n_obs: usize,
+    fast_dim: usize,
+    t_vl: usize,
+    d_vl: usize,
+    buckets: usize,
+    state_timestep: u32,
+    /// First frame of each episode in the frames of all episodes in order.
+    cum: Vec<usize>,
+    emb: Vec<f32>,
+    image: Vec<f32>,
+    attn: Vec<f32>,
+    x_pad: Vec<f32>,
+    t_act: Vec<u32>,
+    t_tok: Vec<u32>,
+    ids: Tensor,
+}
+
+impl StepBuffers {
+    fn new(
+        head: &Gr00tN17Head,
+        spec: &Spec,
+        cfg: &TrainConfig,
+        ts: &Gr00tTrainSpec,
+        data: &[Episode],
+        vl: &dyn VlFeatures,
+    ) -> Result<Self> {
+        let c = head.config();
+        let (b, h) = (cfg.batch_size, spec.horizon);
+        let (t_vl, d_vl) = (vl.tokens(), vl.dim());
+        let cum = data
+            .iter()
+            .scan(0, |acc, e| {
+                let start = *acc;
+                *acc += e.len();
+                Some(start)
+            })
+            .collect();
+        Ok(Self {
+            b,
+            h,
+            a: spec.action_dim,
+            a_max: c.max_action_dim,
+            n_obs: spec.n_obs,
+            fast_dim: spec.fast_dim,
+            t_vl,
+            d_vl,
+            buckets: c.num_timestep_buckets,
+            state_timestep: ts.state_timestep,
+            cum,
+            emb: vec![0f32; b * t_vl * d_vl],
+            image: vec![0f32; b * t_vl],
+            attn: vec![0f32; b * t_vl],
+            x_pad: vec![0f32; b * h * c.max_action_dim],
+            t_act: vec![0u32; b * h],
+            t_tok: vec![0u32; b * (1 + h)],
+            ids: Tensor::from_vec(vec![ts.embodiment_id; b], b, head.device())?,
+        })
+    }
+}
+
+/// What one training step reads besides the head, the batcher and the optimiser.
+struct StepInputs<'s, 'a> {
+    data: &'s [Episode],
+    vl: &'s mut dyn VlFeatures,
+    targets: Option<&'a dyn ActionTargets>,
+    dropout: bool,
+    cfg: &'s TrainConfig,
+    step: usize,
+    lr: f64,
+}
+
+/// ONE training step, the trainer's own (also what [`Gr00tTrainer::time_steps`] times): the
+/// batch drawn by `batcher` (targets encoded by `targets`), its VL tokens read from `vl`, the
+/// tensors uploaded to the head's device, the forward (`velocity_train` with GR00T's dropout
+/// keyed by the seed and `step`, or `velocity`), the masked MSE, the backward, the grad-norm
+/// clip and the AdamW update at `lr`. Returns the loss and the gradient norm before the clip.
+fn train_step(
+    head: &Gr00tN17Head,
+    inp: StepInputs<'_, '_>,
+    batcher: &mut Batcher,
+    buf: &mut StepBuffers,
+    vars: &[Var],
+    opt: &mut DeviceAdamW,
+) -> Result<(f32, f32)> {
+    let StepInputs {
+        data,
+        vl,
+        targets,
+        dropout,
+        cfg,
+        step,
+        lr,
+    } = inp;
+    let dev = head.device();
+    let c = head.config();
+    let StepBuffers {
+        b,
+        h,
+        a,
+        a_max,
+        n_obs,
+        fast_dim,
+        t_vl,
+        d_vl,
+        buckets,
+        state_timestep,
+        ..
+    } = *buf;
+    match targets {
+        Some(tg) => {
+            let mut f = |e: usize, t: usize, c: &mut [f32]| tg.encode(e, t, c);
+            batcher.fill_encoded(data, Some(&mut f))?
+        }
+        None => batcher.fill(data)?,
+    }
+    for i in 0..b {
+        let (e, t) = batcher.slow_frame[i];
+        vl.read(
+            buf.cum[e] + t,
+            &mut buf.emb[i * t_vl * d_vl..(i + 1) * t_vl * d_vl],
+            &mut buf.image[i * t_vl..(i + 1) * t_vl],
+            &mut buf.attn[i * t_vl..(i + 1) * t_vl],
+        )?;
+        buf.t_tok[i * (1 + h)] = state_timestep;
+        for p in 0..h {
+            let q = i * h + p;
+            let tb = timestep_bucket(batcher.tau[q], buckets);
+            buf.t_act[q] = tb;
+            buf.t_tok[i * (1 + h) + 1 + p] = tb;
+            buf.x_pad[q * a_max..q * a_max + a].copy_from_slice(&batcher.x[q * a..(q + 1) * a]);
+        }
+    }
+    let state = Tensor::from_slice(&batcher.fast, (b, n_obs, fast_dim), dev)?;
+    let x = Tensor::from_slice(&buf.x_pad, (b, h, a_max), dev)?;
+    let ta = Tensor::from_slice(&buf.t_act, (b, h), dev)?;
+    let tt = Tensor::from_slice(&buf.t_tok, (b, 1 + h), dev)?;
+    let vl_emb = Tensor::from_slice(&buf.emb, (b, t_vl, d_vl), dev)?;
+    let im = Tensor::from_slice(&buf.image, (b, t_vl), dev)?;
+    let am = Tensor::from_slice(&buf.attn, (b, t_vl), dev)?;
+    let dv = Tensor::from_slice(&batcher.dvis, b, dev)?;
+    let tokens = VlTokens {
+        embeddings: &vl_emb,
+        attention_mask: Some(&am),
+        image_mask: Some(&im),
+        d_vis: Some(&dv),
+    };
+    let ids = &buf.ids;
+    let s = head.encode_state(&state, ids)?;
+    let ts = Timesteps::PerPosition {
+        actions: &ta,
+        tokens: &tt,
+    };
+    let v = if dropout {
+        let d = DitDropout::from_config(&c.dit, cfg.seed, step as u64);
+        head.velocity_train(&s, &x, ts, &tokens, ids, &d)?
+    } else {
+        head.velocity(&s, &x, ts, &tokens, ids)?
+    };
+    let loss = masked_mse(v.narrow(2, 0, a)?, &batcher.target, &batcher.mask)?;
+    let loss_v = loss.to_dtype(DType::F32)?.to_scalar::<f32>()?;
+    if !loss_v.is_finite() {
+        return Err(Error::Diverged {
+            step: step + 1,
+            loss: loss_v,
+        });
+    }
+    let mut grads = loss.backward()?;
+    let gn = clip_grad_store(&mut grads, vars, cfg.grad_clip)?;
+    opt.step(vars, &grads, lr)?;
+    Ok((loss_v, gn))
+}
+
+/// Wall-clock times of training steps ([`Gr00tTrainer::time_steps`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StepTimes {
+    /// Seconds of each timed step, in order (the device synchronised after each).
+    pub seconds: Vec<f64>,
+    /// Trained parameters (elements of the head's trainable tensors).
+    pub parameters: usize,
+    /// The last step's loss.
+    pub last_loss: f32,
+}
+
 /// The run's identity file in the output directory: a resumed run must match it.
 pub const RUN_FILE: &str = "gr00t_run.json";
 /// The head's weights in every step checkpoint (GR00T's names, with the delay table).
@@ -384,30 +573,8 @@ impl<'a> Gr00tTrainer<'a> {
             }
             Ok(())
         };
-        let c = head.config();
-        let (b, h, a, a_max) = (
-            cfg.batch_size,
-            spec.horizon,
-            spec.action_dim,
-            c.max_action_dim,
-        );
-        let (t_vl, d_vl) = (vl.tokens(), vl.dim());
-        let buckets = c.num_timestep_buckets;
-        let cum: Vec<usize> = data
-            .iter()
-            .scan(0, |acc, e| {
-                let start = *acc;
-                *acc += e.len();
-                Some(start)
-            })
-            .collect();
-        let mut emb = vec![0f32; b * t_vl * d_vl];
-        let mut image = vec![0f32; b * t_vl];
-        let mut attn = vec![0f32; b * t_vl];
-        let mut x_pad = vec![0f32; b * h * a_max];
-        let mut t_act = vec![0u32; b * h];
-        let mut t_tok = vec![0u32; b * (1 + h)];
-        let ids = Tensor::from_vec(vec![self.spec.embodiment_id; b], b, &dev)?;
+        let mut buf = StepBuffers::new(head, &spec, &cfg, &self.spec, data, &*vl)?;
+        let dropout = dropout.is_some();
 
         for step in st.step..cfg.steps {
             if self.ctl.stop_before(step, Some(&out), &mut log, |p| {
@@ -417,66 +584,22 @@ impl<'a> Gr00tTrainer<'a> {
                 break;
             }
             let lr = cfg.lr_at(step);
-            match self.targets {
-                Some(tg) => {
-                    let mut f = |e: usize, t: usize, c: &mut [f32]| tg.encode(e, t, c);
-                    batcher.fill_encoded(data, Some(&mut f))?
-                }
-                None => batcher.fill(data)?,
-            }
-            for i in 0..b {
-                let (e, t) = batcher.slow_frame[i];
-                vl.read(
-                    cum[e] + t,
-                    &mut emb[i * t_vl * d_vl..(i + 1) * t_vl * d_vl],
-                    &mut image[i * t_vl..(i + 1) * t_vl],
-                    &mut attn[i * t_vl..(i + 1) * t_vl],
-                )?;
-                t_tok[i * (1 + h)] = self.spec.state_timestep;
-                for p in 0..h {
-                    let q = i * h + p;
-                    let tb = timestep_bucket(batcher.tau[q], buckets);
-                    t_act[q] = tb;
-                    t_tok[i * (1 + h) + 1 + p] = tb;
-                    x_pad[q * a_max..q * a_max + a].copy_from_slice(&batcher.x[q * a..(q + 1) * a]);
-                }
-            }
-            let state = Tensor::from_slice(&batcher.fast, (b, spec.n_obs, spec.fast_dim), &dev)?;
-            let x = Tensor::from_slice(&x_pad, (b, h, a_max), &dev)?;
-            let ta = Tensor::from_slice(&t_act, (b, h), &dev)?;
-            let tt = Tensor::from_slice(&t_tok, (b, 1 + h), &dev)?;
-            let vl_emb = Tensor::from_slice(&emb, (b, t_vl, d_vl), &dev)?;
-            let im = Tensor::from_slice(&image, (b, t_vl), &dev)?;
-            let am = Tensor::from_slice(&attn, (b, t_vl), &dev)?;
-            let dv = Tensor::from_slice(&batcher.dvis, b, &dev)?;
-            let tokens = VlTokens {
-                embeddings: &vl_emb,
-                attention_mask: Some(&am),
-                image_mask: Some(&im),
-                d_vis: Some(&dv),
-            };
-            let s = head.encode_state(&state, &ids)?;
-            let ts = Timesteps::PerPosition {
-                actions: &ta,
-                tokens: &tt,
-            };
-            let v = if dropout.is_some() {
-                let d = DitDropout::from_config(&c.dit, cfg.seed, step as u64);
-                head.velocity_train(&s, &x, ts, &tokens, &ids, &d)?
-            } else {
-                head.velocity(&s, &x, ts, &tokens, &ids)?
-            };
-            let loss = masked_mse(v.narrow(2, 0, a)?, &batcher.target, &batcher.mask)?;
-            let loss_v = loss.to_dtype(DType::F32)?.to_scalar::<f32>()?;
-            if !loss_v.is_finite() {
-                return Err(Error::Diverged {
-                    step: step + 1,
-                    loss: loss_v,
-                });
-            }
-            let mut grads = loss.backward()?;
-            let gn = clip_grad_store(&mut grads, &vars, cfg.grad_clip)?;
-            opt.step(&vars, &grads, lr)?;
+            let (loss_v, gn) = train_step(
+                head,
+                StepInputs {
+                    data,
+                    vl,
+                    targets: self.targets,
+                    dropout,
+                    cfg: &cfg,
+                    step,
+                    lr,
+                },
+                &mut batcher,
+                &mut buf,
+                &vars,
+                &mut opt,
+            )?;
             let done = step + 1;
             let progress = Progress {
                 step: done,
@@ -498,6 +621,74 @@ impl<'a> Gr00tTrainer<'a> {
             }
         }
         finish(Some(&out), &mut log, st, &cfg)
+    }
+
+    /// Time training steps of `head` on `data` and `vl` (as [`run`](Self::run) takes them):
+    /// `warmup` untimed steps, then `steps` timed ones, each the step [`run`](Self::run)
+    /// takes (the same function: batch draw, upload, forward with the dropout, loss,
+    /// backward, clip, AdamW) from a fresh optimiser state, at the learning rates of
+    /// steps `0..warmup + steps` of the configured schedule. Nothing is written (no output
+    /// directory, log or checkpoint; the spec's checks are the run's). The head keeps the
+    /// weights of the last step. Each timed step ends with the device synchronised.
+    pub fn time_steps(
+        self,
+        head: &Gr00tN17Head,
+        data: &[Episode],
+        vl: &mut dyn VlFeatures,
+        warmup: usize,
+        steps: usize,
+    ) -> Result<StepTimes> {
+        let spec = self.check(head, data, vl)?;
+        let cfg = self.cfg.clone();
+        let dropout = self.dropout && head.config().dit.dropout > 0.0;
+        let dev = head.device().clone();
+        let vars: Vec<Var> = head
+            .trainable_vars()
+            .iter()
+            .map(|(_, v)| v.clone())
+            .collect();
+        let params = vars
+            .iter()
+            .map(|v| Ok(v.as_tensor().flatten_all()?.to_vec1::<f32>()?))
+            .collect::<Result<Vec<_>>>()?;
+        let parameters = params.iter().map(Vec::len).sum();
+        let mut opt = DeviceAdamW::from_host(&AdamW::new(&cfg, &params), &vars)?;
+        drop(params);
+        let stats = Stats::identity(&spec);
+        let mut batcher = Batcher::new(data, &spec, &stats, &cfg);
+        batcher.full_chunks_only(data);
+        let mut buf = StepBuffers::new(head, &spec, &cfg, &self.spec, data, &*vl)?;
+        let mut seconds = Vec::with_capacity(steps);
+        let mut last_loss = f32::NAN;
+        for step in 0..warmup + steps {
+            let t0 = std::time::Instant::now();
+            let (loss, _) = train_step(
+                head,
+                StepInputs {
+                    data,
+                    vl,
+                    targets: self.targets,
+                    dropout,
+                    cfg: &cfg,
+                    step,
+                    lr: cfg.lr_at(step),
+                },
+                &mut batcher,
+                &mut buf,
+                &vars,
+                &mut opt,
+            )?;
+            dev.synchronize()?;
+            if step >= warmup {
+                seconds.push(t0.elapsed().as_secs_f64());
+            }
+            last_loss = loss;
+        }
+        Ok(StepTimes {
+            seconds,
+            parameters,
+            last_loss,
+        })
     }
 }
 
