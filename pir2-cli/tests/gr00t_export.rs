@@ -145,7 +145,7 @@ fn dataset(root: &Path, emb: &EmbodimentConfig) {
 /// then 4 text tokens.
 fn features(path: &Path, frames: usize) {
     let dev = Device::Cpu;
-    let emb = Tensor::randn(0f32, 1.0, (frames, TOKENS, D_VL), &dev).unwrap();
+    let emb = common::gr00t::seeded_normal((frames, TOKENS, D_VL), 0x6e02);
     let image: Vec<u8> = (0..frames)
         .flat_map(|_| (0..TOKENS).map(|k| (k < 4) as u8))
         .collect();

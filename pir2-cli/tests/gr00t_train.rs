@@ -78,7 +78,7 @@ fn dataset_of(root: &Path, state_dim: usize, frames: usize) {
 
 /// Backbone outputs: N frames of 6 tokens of width 20; tokens 0-1 text, 2-4 image, 5 padding.
 fn features(path: &Path, frames: usize, seed: u64) {
-    let emb = Tensor::randn(0f32, 1.0, (frames, TOKENS, ALT_D_VL), &Device::Cpu).unwrap();
+    let emb = common::gr00t::seeded_normal((frames, TOKENS, ALT_D_VL), 0x6e01);
     // A fixed per-seed offset so two seeds give different files.
     let emb = (emb + seed as f64).unwrap();
     write_alt_features(path, emb);

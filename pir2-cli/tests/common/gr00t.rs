@@ -554,3 +554,12 @@ pub fn run_emulated_seconds(ck: &Path, seconds: &str, extra: &[&OsStr]) -> (Outp
     args.extend_from_slice(extra);
     pir2_text(&args)
 }
+
+/// Standard-normal values of `shape` drawn from pir2's seeded generator, so a test's
+/// inputs are the same bits on every run (candle's CPU `randn` is not seedable).
+pub fn seeded_normal(shape: (usize, usize, usize), seed: u64) -> Tensor {
+    let mut rng = pir2_schedule::Rng::new(seed);
+    let n = shape.0 * shape.1 * shape.2;
+    let v: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+    Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+}
