@@ -118,12 +118,19 @@ fn bench_train_times_training_steps_of_the_example_head() {
     assert!(out.status.success(), "example: {text}");
     let head = ck.join("head");
     let json = scratch.path().join("bench.json");
-    let (out, text) = pir2(&[
-        OsStr::new("gr00t"),
-        OsStr::new("bench"),
-        OsStr::new("--train"),
-        OsStr::new("--checkpoint"),
-        head.as_os_str(),
+    // `pir2 gr00t bench --train --checkpoint HEAD EXTRA…`.
+    let bench = |extra: &[&OsStr]| {
+        let mut args = vec![
+            OsStr::new("gr00t"),
+            OsStr::new("bench"),
+            OsStr::new("--train"),
+            OsStr::new("--checkpoint"),
+            head.as_os_str(),
+        ];
+        args.extend_from_slice(extra);
+        pir2(&args)
+    };
+    let (out, text) = bench(&[
         OsStr::new("--batch"),
         OsStr::new("4"),
         OsStr::new("--steps"),
@@ -153,28 +160,12 @@ fn bench_train_times_training_steps_of_the_example_head() {
     assert!(r["p90_ms"].as_f64().unwrap() >= r["median_ms"].as_f64().unwrap());
 
     if !cfg!(feature = "cuda") {
-        let (out, text) = pir2(&[
-            OsStr::new("gr00t"),
-            OsStr::new("bench"),
-            OsStr::new("--train"),
-            OsStr::new("--checkpoint"),
-            head.as_os_str(),
-            OsStr::new("--device"),
-            OsStr::new("cuda"),
-        ]);
+        let (out, text) = bench(&[OsStr::new("--device"), OsStr::new("cuda")]);
         assert!(!out.status.success(), "{text}");
         assert!(text.contains("--features cuda"), "{text}");
         assert!(!text.contains("median"), "{text}");
     }
-    let (out, text) = pir2(&[
-        OsStr::new("gr00t"),
-        OsStr::new("bench"),
-        OsStr::new("--train"),
-        OsStr::new("--checkpoint"),
-        head.as_os_str(),
-        OsStr::new("--task"),
-        OsStr::new("catch the book"),
-    ]);
+    let (out, text) = bench(&[OsStr::new("--task"), OsStr::new("catch the book")]);
     assert!(!out.status.success(), "{text}");
     assert!(text.contains("cannot be used with"), "{text}");
 }

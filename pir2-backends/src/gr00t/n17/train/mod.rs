@@ -104,6 +104,20 @@ pub trait ActionTargets {
 
 // ---------------------------------------------------------------- trainer
 
+/// The head's trainable variables and host copies of their values (flattened).
+fn trainable(head: &Gr00tN17Head) -> Result<(Vec<Var>, Vec<Vec<f32>>)> {
+    let vars: Vec<Var> = head
+        .trainable_vars()
+        .iter()
+        .map(|(_, v)| v.clone())
+        .collect();
+    let params = vars
+        .iter()
+        .map(|v| Ok(v.as_tensor().flatten_all()?.to_vec1::<f32>()?))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((vars, params))
+}
+
 /// The host copies of the trained weights and the optimiser state, for a checkpoint.
 fn to_host(st: &mut State, vars: &[Var], opt: &DeviceAdamW) -> Result<()> {
     for (p, v) in st.params.iter_mut().zip(vars) {
@@ -533,20 +547,12 @@ impl<'a> Gr00tTrainer<'a> {
         // The head's device: every per-step tensor lives there, the AdamW moments and
         // update too ([`DeviceAdamW`]). The host holds the state only to save or restore it.
         let dev = head.device().clone();
-        let vars: Vec<Var> = head
-            .trainable_vars()
-            .iter()
-            .map(|(_, v)| v.clone())
-            .collect();
         let names: Vec<String> = head
             .trainable_vars()
             .iter()
             .map(|(n, _)| n.clone())
             .collect();
-        let params = vars
-            .iter()
-            .map(|v| Ok(v.as_tensor().flatten_all()?.to_vec1::<f32>()?))
-            .collect::<Result<Vec<_>>>()?;
+        let (vars, params) = trainable(head)?;
         let mut st = State {
             step: 0,
             opt: AdamW::new(&cfg, &params),
@@ -642,15 +648,7 @@ impl<'a> Gr00tTrainer<'a> {
         let cfg = self.cfg.clone();
         let dropout = self.dropout && head.config().dit.dropout > 0.0;
         let dev = head.device().clone();
-        let vars: Vec<Var> = head
-            .trainable_vars()
-            .iter()
-            .map(|(_, v)| v.clone())
-            .collect();
-        let params = vars
-            .iter()
-            .map(|v| Ok(v.as_tensor().flatten_all()?.to_vec1::<f32>()?))
-            .collect::<Result<Vec<_>>>()?;
+        let (vars, params) = trainable(head)?;
         let parameters = params.iter().map(Vec::len).sum();
         let mut opt = DeviceAdamW::from_host(&AdamW::new(&cfg, &params), &vars)?;
         drop(params);
