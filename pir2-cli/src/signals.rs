@@ -51,9 +51,7 @@ fn watch(stop: &AtomicBool) {
     loop {
         let n = SIGNALS.load(Ordering::SeqCst);
         if n >= 1 && !stop.swap(true, Ordering::SeqCst) {
-            eprintln!(
-                "signal received: stopping (a second signal stops the robot and exits at once)"
-            );
+            eprintln!("{}", first_signal_message(has_emergency_hook()));
         }
         if n >= 2 {
             eprintln!("second signal: emergency stop, exiting");
@@ -65,6 +63,24 @@ fn watch(stop: &AtomicBool) {
         }
         std::thread::sleep(Duration::from_millis(5));
     }
+}
+
+/// What the first signal prints: a command driving a robot (one that registered an emergency
+/// stop) says the second signal stops it; any other command (training, collection, an
+/// evaluation in simulation) says only that it exits.
+fn first_signal_message(robot: bool) -> &'static str {
+    if robot {
+        "signal received: stopping (a second signal stops the robot and exits at once)"
+    } else {
+        "signal received: stopping after the current step (a second signal exits at once)"
+    }
+}
+
+fn has_emergency_hook() -> bool {
+    EMERGENCY
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .is_some()
 }
 
 /// Register what a second signal runs before the process exits (replaces an earlier hook).

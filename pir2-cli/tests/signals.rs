@@ -41,6 +41,8 @@ fn sigterm_stops_a_command_cleanly() {
     assert_eq!(status.signal(), None, "killed by a signal: {err}");
     assert!(status.success(), "{status:?}: {err}");
     assert!(err.contains("signal received: stopping"), "{err}");
+    // No robot registered an emergency stop here: the message promises no robot stop.
+    assert!(err.contains("a second signal exits at once"), "{err}");
 }
 
 const CHILD: &str = "PIR2_SIGNALS_TEST_CHILD";
@@ -87,5 +89,9 @@ fn a_second_signal_runs_the_emergency_stop_and_exits() {
         "{text}"
     );
     assert!(text.contains("emergency stop ran"), "{text}");
+    assert!(
+        text.contains("a second signal stops the robot and exits at once"),
+        "{text}"
+    );
     assert!(!text.contains("not exited"), "{text}");
 }
