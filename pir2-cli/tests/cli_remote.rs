@@ -477,6 +477,100 @@ fn a_garbled_tls_file_is_named_on_both_sides() {
     );
 }
 
+/// A CA certificate written to `dir/name.pem`, with its key (the certificates it signs).
+fn test_ca(dir: &Path, name: &str) -> (rcgen::Certificate, rcgen::KeyPair, PathBuf) {
+    use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair};
+    let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
+    p.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+    p.distinguished_name.push(DnType::CommonName, name);
+    let key = KeyPair::generate().unwrap();
+    let cert = p.self_signed(&key).unwrap();
+    let pem = dir.join(format!("{name}.pem"));
+    std::fs::write(&pem, cert.pem()).unwrap();
+    (cert, key, pem)
+}
+
+/// `--tls-ca trust --tls-cert --tls-key` of a certificate for 127.0.0.1 signed by `issuer`.
+fn tls_args(
+    dir: &Path,
+    name: &str,
+    issuer: &(rcgen::Certificate, rcgen::KeyPair, PathBuf),
+    trust: &Path,
+) -> Vec<String> {
+    let mut p = rcgen::CertificateParams::new(vec!["127.0.0.1".to_string()]).unwrap();
+    p.distinguished_name.push(rcgen::DnType::CommonName, name);
+    let key = rcgen::KeyPair::generate().unwrap();
+    let cert = p.signed_by(&key, &issuer.0, &issuer.1).unwrap();
+    let (c, k) = (
+        dir.join(format!("{name}.crt")),
+        dir.join(format!("{name}.key")),
+    );
+    std::fs::write(&c, cert.pem()).unwrap();
+    std::fs::write(&k, key.serialize_pem()).unwrap();
+    [
+        "--tls-ca".into(),
+        trust.display().to_string(),
+        "--tls-cert".into(),
+        c.display().to_string(),
+        "--tls-key".into(),
+        k.display().to_string(),
+    ]
+    .into()
+}
+
+/// Mutual TLS through the binary: `pir2 eval --remote tls/…` with certificates of the user's CA
+/// gives the local eval's result; a robot that trusts another CA than the one that signed the
+/// server's certificate ends in one error naming the TLS handshake and its cause (before: "no
+/// answer" after the connect timeout).
+#[test]
+fn a_tls_handshake_the_servers_certificate_fails_is_named_as_such() {
+    let s = Scratch::new("tls-handshake");
+    let ck = checkpoint(s.path());
+    let ck_s = ck.to_str().unwrap();
+    let local_json = local_eval(s.path(), ck_s);
+    let user_ca = test_ca(s.path(), "user-ca");
+    let other_ca = test_ca(s.path(), "other-ca");
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let server_tls = tls_args(s.path(), "server", &user_ca, &user_ca.2);
+    let mut server_args = vec!["policy", "--checkpoint", ck_s, "--listen", &endpoint];
+    server_args.extend(server_tls.iter().map(String::as_str));
+    let _server = serve(&server_args);
+
+    let remote_json = s.path().join("remote.json");
+    let good = tls_args(s.path(), "robot", &user_ca, &user_ca.2);
+    let out = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint, "--json"])
+        .arg(&remote_json)
+        .args(["--connect-timeout", "10"])
+        .args(&good)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert_eq!(read_json(&local_json), read_json(&remote_json), "{err}");
+
+    let wrong_ca = tls_args(s.path(), "robot-other-ca", &user_ca, &other_ca.2);
+    let out = pir2()
+        .args(EVAL)
+        .args(["5", "--checkpoint", ck_s, "--remote", &endpoint])
+        .args(["--connect-timeout", "3"])
+        .args(&wrong_ca)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("TLS: the TLS handshake with `tls/127.0.0.1:")
+            && err.contains("not signed by"),
+        "{err}"
+    );
+    assert!(
+        !err.contains("no answer") && !err.contains("panicked"),
+        "{err}"
+    );
+}
+
 /// `pir2 gr00t run --remote-slow` fed by `pir2 gr00t serve slow`, while a rogue Zenoh client
 /// of the server re-publishes each of its frames under another sender with every value set
 /// to 1e6 (well-formed, fresh, wrong): the run uses the server's frames and counts the
