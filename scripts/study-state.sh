@@ -17,7 +17,7 @@
 # (policy x seed folder) its files (loss.jsonl, ...), its `best/` once the run has finished,
 # otherwise its newest resumable checkpoint (`step-NNNNNN` or `interrupted-NNNNNN`: weights,
 # optimiser moments, EMA, the best pick so far, the batch generator's state). A run holds
-# about 100 MB (U-Net [64, 128, 256] with per-position heads) until it has finished, 25 MB after.
+# about 120 MB (U-Net [64, 128, 256] with per-position heads) until it has finished, 25 MB after.
 #
 # `save` replaces STATE_DIR's content; it refuses a STATE_DIR that it did not write (no
 # `STATE` file in it), so nothing else is overwritten. `restore` refuses a RUN_DIR that holds
