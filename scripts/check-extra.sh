@@ -5,7 +5,6 @@
 #   scripts/check-extra.sh fuzz-fast    # the byte parsers: Zenoh wire, xArm and XHand frames
 #   scripts/check-extra.sh fuzz-files   # the file parsers: dataset, study config, checkpoint,
 #                                       # embodiment (optimised build with the checks on)
-#   scripts/check-extra.sh cuda         # does `--features gr00t,cuda` compile? (nvcc from PyPI)
 #   scripts/check-extra.sh torch        # the Python package's PyTorch side (pir2.gr00t): its tests
 #                                       # and the PyTorch -> pir2 round trip (full torch, ~5 GB);
 #                                       # with PIR2_ISAAC_GR00T=<Isaac-GR00T checkout>, also on
@@ -73,34 +72,6 @@ fuzz_files() {
         cargo test "${opt[@]}" -p pir2-sim --test reader_fuzz --test config_fuzz
     timed "checkpoint + embodiment (pir2-backends)" \
         cargo test "${opt[@]}" -p pir2-backends --features gr00t --test checkpoint_fuzz --test embodiment_fuzz
-}
-
-cuda() {
-    # candle's CUDA backend compiles its kernels with NVIDIA's `nvcc` at build time. PyPI's
-    # CUDA 13 wheel `nvidia-cuda-nvcc` ships it (the CUDA 12 wheel has only `ptxas`); without
-    # an `nvcc` on PATH this installs it into .native/venv-cuda. cudarc 0.19's build script
-    # knows CUDA up to 13.4, so the 13.5 toolkit is declared as 13.4 (same driver API);
-    # CUDA_COMPUTE_CAP picks the PTX target where no GPU can be queried.
-    local t0=$SECONDS
-    if ! command -v nvcc >/dev/null 2>&1; then
-        local venv=.native/venv-cuda
-        if [ ! -x "$venv/bin/python" ]; then
-            python3 -m venv "$venv"
-        fi
-        "$venv/bin/pip" -q install "nvidia-cuda-nvcc==13.5.37" "nvidia-cuda-runtime==13.5.37" \
-            "nvidia-cuda-nvrtc==13.5.37" nvidia-cuda-cccl nvidia-cublas nvidia-curand
-        local cu
-        cu="$("$venv/bin/python" -c 'import nvidia, os; print(os.path.join(nvidia.__path__[0], "cu13"))')"
-        export PATH="$cu/bin:$PATH" CUDA_ROOT="$cu" CUDA_PATH="$cu" CUDA_TOOLKIT_ROOT_DIR="$cu"
-        export CUDARC_CUDA_VERSION="${CUDARC_CUDA_VERSION:-13040}"
-    fi
-    export CUDA_COMPUTE_CAP="${CUDA_COMPUTE_CAP:-80}"
-    if cargo check -p pir2-backends --features gr00t,cuda; then
-        summary+=("cuda: --features gr00t,cuda compiles ($(nvcc --version | tail -1)), $((SECONDS - t0)) s")
-    else
-        summary+=("cuda: --features gr00t,cuda FAILED to compile after $((SECONDS - t0)) s")
-        return 1
-    fi
 }
 
 torch() {
@@ -215,18 +186,16 @@ status=0
 case "${1:-all}" in
 fuzz-fast) fuzz_fast || status=1 ;;
 fuzz-files) fuzz_files || status=1 ;;
-cuda) cuda || status=1 ;;
 torch) torch || status=1 ;;
 lerobot) lerobot || status=1 ;;
 all)
     fuzz_fast || status=1
     fuzz_files || status=1
-    cuda || status=1
     torch || status=1
     lerobot || status=1
     ;;
 *)
-    echo "usage: $0 [fuzz-fast|fuzz-files|cuda|torch|lerobot|all]" >&2
+    echo "usage: $0 [fuzz-fast|fuzz-files|torch|lerobot|all]" >&2
     exit 2
     ;;
 esac

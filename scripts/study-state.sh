@@ -17,7 +17,10 @@
 # (policy x seed folder) its files (loss.jsonl, ...), its `best/` once the run has finished,
 # otherwise its newest resumable checkpoint (`step-NNNNNN` or `interrupted-NNNNNN`: weights,
 # optimiser moments, EMA, the best pick so far, the batch generator's state). A run holds
-# about 120 MB (U-Net [64, 128, 256] with per-position heads) until it has finished, 25 MB after.
+# about 100 MB (U-Net [64, 128, 256] with per-position heads) until it has finished, 25 MB after.
+# To keep each save's commit small (a replaced state counts twice in a push: the old files
+# removed, the new ones added), a study longer than a sitting trains one run at a time
+# (`pir2 train leap-cube --policy P --seeds S`), so one save replaces one run's state.
 #
 # `save` replaces STATE_DIR's content; it refuses a STATE_DIR that it did not write (no
 # `STATE` file in it), so nothing else is overwritten. `restore` refuses a RUN_DIR that holds
@@ -68,6 +71,12 @@ save() {
             ckpt="$(newest "$run")"
             if [ -n "$ckpt" ]; then
                 cp -rp "$ckpt" "$tmp/$name/"
+                # An interrupted state's model.safetensors is the `param/` tensors of its
+                # train_state.safetensors, and `--resume` reads only the latter: 25 MB a run
+                # not carried. (A step checkpoint keeps it: the best-of-last cells read it.)
+                case "$(basename "$ckpt")" in
+                interrupted-*) rm -f "$tmp/$name/$(basename "$ckpt")/model.safetensors" ;;
+                esac
                 summary+=("$name resumes from $(basename "$ckpt")")
             else
                 summary+=("$name has no checkpoint yet (starts over)")

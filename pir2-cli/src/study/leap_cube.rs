@@ -732,13 +732,15 @@ pub fn load_demos(root: &Path) -> Result<Vec<Episode>> {
 /// Result of a Leap study.
 pub type LeapStudyResult = StudyResult<LeapStudyConfig>;
 
-/// Train `policies` × `cfg.seeds` on the dataset `cfg.dataset` into `out` (a new directory):
+/// Train `policies` × `cfg.seeds` (or only `seeds` of them) on the dataset `cfg.dataset` into
+/// `out` (a new directory):
 /// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the chosen
 /// checkpoint `best/`. Point [`LeapStudyConfig::pretrained`] at `out` to evaluate them.
 /// With `resume`, `out` is an earlier run of the same config ([`pipeline::train_into`]).
 pub fn train_policies(
     cfg: &LeapStudyConfig,
     policies: &[Policy],
+    seeds: Option<&[u64]>,
     out: &Path,
     resume: bool,
 ) -> Result<Vec<(Policy, u64, Scores)>> {
@@ -749,7 +751,7 @@ pub fn train_policies(
         pretrained: None,
         ..cfg.clone()
     })?;
-    pipeline::train_into(&task, policies, out, resume)
+    pipeline::train_into(&task, policies, seeds, out, resume)
 }
 
 /// Deployment study: every row × `d0s` × seeds through the lock-step runtime with

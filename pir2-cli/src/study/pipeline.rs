@@ -248,19 +248,21 @@ pub fn refuse_missing_pretrained(s: &Settings, policies: &[Policy]) -> Result<()
 /// Train (or load from the settings' `pretrained`) every policy × seed on the worker
 /// threads; each trained policy's run goes to `ckpt_root/<policy>-seed<s>/` and its chosen
 /// checkpoint to `.../best`. A run missing from `pretrained` is trained only with the
-/// settings' `train_missing` ([`refuse_missing_pretrained`]).
+/// settings' `train_missing` ([`refuse_missing_pretrained`]). `only_seeds` narrows the
+/// settings' seeds (each must be one of them); the jobs keep the settings' seed-major order.
 pub fn train_all<T: Task>(
     task: &T,
     demos: &[Episode],
     policies: &[Policy],
+    only_seeds: Option<&[u64]>,
     ckpt_root: &Path,
     resume: bool,
 ) -> Result<Vec<Trained>> {
     let s = task.settings();
     refuse_missing_pretrained(&s, policies)?;
     let steps = task.optimiser().steps;
-    let jobs: Vec<(Policy, u64)> = s
-        .seeds
+    let seeds = select_seeds(&s.seeds, only_seeds)?;
+    let jobs: Vec<(Policy, u64)> = seeds
         .iter()
         .flat_map(|&seed| policies.iter().map(move |&p| (p, seed)))
         .collect();
@@ -361,6 +363,7 @@ pub fn run<T: Task>(
         task,
         &demos,
         &study.policies(),
+        None,
         &out.join("checkpoints"),
         resume,
     )?;
@@ -433,7 +436,8 @@ pub fn run<T: Task>(
     Ok(result)
 }
 
-/// Train `policies` × the settings' seeds into `out` (a new directory):
+/// Train `policies` × the settings' seeds (or only `only_seeds` of them, [`train_all`]) into
+/// `out` (a new directory):
 /// `out/<policy>-seed<s>/` holds the step checkpoints, `loss.jsonl`, `best.json` and the
 /// chosen checkpoint `best/`; the task's config is written to `out/config.toml` and what the
 /// demonstrations were to `out/data.json` ([`DataFingerprint`]); `resume` refuses a different
@@ -441,6 +445,7 @@ pub fn run<T: Task>(
 pub fn train_into<T: Task>(
     task: &T,
     policies: &[Policy],
+    only_seeds: Option<&[u64]>,
     out: &Path,
     resume: bool,
 ) -> Result<Vec<(Policy, u64, Scores)>> {
@@ -471,11 +476,23 @@ pub fn train_into<T: Task>(
     }
     let demos = task.demonstrations(out)?;
     check_data(&out.join(DATA_FILE), &demos, resume)?;
-    let trained = train_all(task, &demos, policies, out, resume)?;
+    let trained = train_all(task, &demos, policies, only_seeds, out, resume)?;
     Ok(trained
         .into_iter()
         .map(|t| (t.policy, t.seed, t.scores))
         .collect())
+}
+
+/// The settings' `seeds`, or the `only` of them in the settings' order; a seed of `only` that
+/// the settings do not list is an error naming it (and the listed ones).
+fn select_seeds(seeds: &[u64], only: Option<&[u64]>) -> Result<Vec<u64>> {
+    let Some(only) = only else {
+        return Ok(seeds.to_vec());
+    };
+    if let Some(s) = only.iter().find(|s| !seeds.contains(s)) {
+        bail!("seed {s} is not one of the config's seeds {seeds:?}");
+    }
+    Ok(seeds.iter().copied().filter(|s| only.contains(s)).collect())
 }
 
 /// File in a training run's directory naming the demonstrations it trains on.
@@ -651,10 +668,19 @@ impl ProgressMeter {
 #[cfg(test)]
 mod tests {
     use super::{
-        check_data, refuse_missing_pretrained, train_jobs, DataFingerprint, Policy, ProgressMeter,
-        Settings,
+        check_data, refuse_missing_pretrained, select_seeds, train_jobs, DataFingerprint, Policy,
+        ProgressMeter, Settings,
     };
     use pir2_sim::dataset::Episode;
+
+    #[test]
+    fn only_seeds_narrow_the_configs_seeds_in_their_order_and_refuse_others_by_name() {
+        let all = [0, 1, 2];
+        assert_eq!(select_seeds(&all, None).unwrap(), vec![0, 1, 2]);
+        assert_eq!(select_seeds(&all, Some(&[2, 0])).unwrap(), vec![0, 2]);
+        let e = select_seeds(&all, Some(&[1, 5])).unwrap_err().to_string();
+        assert!(e.contains("seed 5") && e.contains("[0, 1, 2]"), "{e}");
+    }
 
     #[test]
     fn a_resumed_run_refuses_other_demonstrations_by_name() {

@@ -78,8 +78,8 @@ impl TaskCommands for LeapCube {
         Ok(())
     }
 
-    /// `--policy` (the config's `policies` when absent) × the config's seeds into `--out`;
-    /// `--resume` continues an interrupted run there.
+    /// `--policy` (the config's `policies` when absent) × `--seeds` (the config's seeds when
+    /// absent) into `--out`; `--resume` continues an interrupted run there.
     fn train(&self, o: &TrainOptions) -> Result<()> {
         let cfg = Overrides {
             config: o.config.as_deref(),
@@ -91,7 +91,7 @@ impl TaskCommands for LeapCube {
             Some(p) => vec![p],
             None => cfg.policies.clone(),
         };
-        let r = leap_cube::train_policies(&cfg, &policies, &o.out, o.resume)?;
+        let r = leap_cube::train_policies(&cfg, &policies, o.seeds.as_deref(), &o.out, o.resume)?;
         for (p, s, scores) in r {
             println!("{p:?} seed {s}: closed-loop validation (step, success) {scores:?}");
         }

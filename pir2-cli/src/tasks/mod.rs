@@ -202,6 +202,12 @@ pub struct TrainOptions {
     /// Seed (ballplate; leap-cube trains the config's seeds).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// leap-cube: train only these of the config's seeds (default: all of them). Like
+    /// --policy, it narrows which runs this command trains without changing the run's config,
+    /// so a long study can go one run at a time and resume run by run; a seed the config
+    /// does not list is refused.
+    #[arg(long, value_delimiter = ',')]
+    pub seeds: Option<Vec<u64>>,
     /// Continue an interrupted `pir2 train … --out DIR` (SIGINT / SIGTERM save the training
     /// state and name it) with the same config and data (leap-cube: checked against
     /// `DIR/config.toml` and `DIR/data.json`; ballplate: the policy, seed and config against
