@@ -120,6 +120,18 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     std::fs::write(&written, text.replace("best_of_last = 0\n", "")).expect("older config");
     let mut resume = train.to_vec();
     resume.push("--resume");
+    // --seeds narrows the config's seeds (one run at a time); a seed it does not list is
+    // refused by name, before anything is trained.
+    let mut other_seed = resume.clone();
+    other_seed.extend(["--policy", "flow", "--seeds", "3"]);
+    let o = pir2(&other_seed);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("seed 3 is not one of the config's seeds [0]"),
+        "{err}"
+    );
+    assert!(!trained.join("flow-seed0/best").exists());
     let o = pir2(&resume);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");

@@ -485,7 +485,7 @@ pub fn train_into<T: Task>(
 
 /// The settings' `seeds`, or the `only` of them in the settings' order; a seed of `only` that
 /// the settings do not list is an error naming it (and the listed ones).
-fn select_seeds(seeds: &[u64], only: Option<&[u64]>) -> Result<Vec<u64>> {
+pub(crate) fn select_seeds(seeds: &[u64], only: Option<&[u64]>) -> Result<Vec<u64>> {
     let Some(only) = only else {
         return Ok(seeds.to_vec());
     };

@@ -7,6 +7,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 
 use pir2_backends::candle::CandleModel;
+use pir2_runtime::Policy;
 
 use super::{CollectOptions, EvalOptions, ReportOptions, TaskCommands, TrainOptions};
 use crate::onnx_checkpoint::{CheckpointKind, OnnxCheckpoint};
@@ -43,6 +44,15 @@ impl TaskCommands for BallPlate {
 
     fn train(&self, o: &TrainOptions) -> Result<()> {
         let policy = o.policy.context("--policy is required for ballplate")?;
+        if !matches!(
+            policy,
+            Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full | Policy::Rtc | Policy::Flow
+        ) {
+            bail!(
+                "--policy {}: ballplate trains pir2, pir2-hidden, pir2-full, rtc or flow",
+                policy.name()
+            );
+        }
         let cfg = DemoConfig::load(o.config.as_deref(), false)?;
         let scores = ballplate::train_checkpoint(&o.data, policy, &cfg, o.seed, &o.out, o.resume)
             .map_err(|e| {

@@ -9,6 +9,7 @@ use anyhow::{bail, Context, Result};
 
 use super::{CollectOptions, EvalOptions, ReportOptions, TaskCommands, TrainOptions};
 use crate::study::leap_cube::{self, ExpertChoice, LeapCubeTask, LeapStudyConfig};
+use crate::study::pipeline::select_seeds;
 use crate::study::report;
 
 /// The Leap-hand cube task's commands.
@@ -122,6 +123,7 @@ impl TaskCommands for LeapCube {
         if !o.policies.is_empty() {
             cfg.policies = o.policies.clone();
         }
+        cfg.seeds = select_seeds(&cfg.seeds, o.seeds.as_deref())?;
         let r = match o.study.as_str() {
             "deployment" => leap_cube::study_deployment(&cfg, out, o.resume)?,
             "horizon" => leap_cube::study_horizon(&cfg, out, o.resume)?,

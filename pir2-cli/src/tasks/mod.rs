@@ -114,6 +114,18 @@ pub(crate) fn policy_parser() -> impl TypedValueParser<Value = Policy> {
     })
 }
 
+/// `pir2 train --policy`: a policy by its name ([`Policy::name`]: `pir2-full`,
+/// `pir2-zero-delay-full`, ...) or by its name in study configs (`pi_r2_zero_delay_full`, ...).
+pub(crate) fn train_policy(s: &str) -> std::result::Result<Policy, String> {
+    if let Some(p) = Policy::ALL.iter().find(|p| p.name() == s) {
+        return Ok(*p);
+    }
+    config_policy(s).map_err(|e| {
+        let names: Vec<&str> = Policy::ALL.iter().map(|p| p.name()).collect();
+        format!("{e}; or {}", names.join(", "))
+    })
+}
+
 /// A policy by its name in study configs (`policies = [...]`: `flow`, `rtc`, `pi_r2`,
 /// `pi_r2_full`, ...).
 pub(crate) fn config_policy(s: &str) -> std::result::Result<Policy, String> {
@@ -189,8 +201,10 @@ pub struct TrainOptions {
     /// Dataset directory (LeRobotDataset v3.0).
     #[arg(long)]
     pub data: PathBuf,
-    /// Which policy (required for ballplate; leap-cube: the config's `policies` when absent).
-    #[arg(long, value_parser = policy_parser())]
+    /// Which policy: pir2, pir2-hidden, pir2-full, rtc, flow, pir2-zero-delay or
+    /// pir2-zero-delay-full (or its name in study configs, e.g. pi_r2_zero_delay_full).
+    /// Required for ballplate (the first five); leap-cube: the config's `policies` when absent.
+    #[arg(long, value_parser = train_policy)]
     pub policy: Option<Policy>,
     /// Checkpoint directory (must not exist, unless --resume).
     #[arg(long)]
@@ -245,6 +259,12 @@ pub struct EvalOptions {
     /// the cells are the same as with the whole list.
     #[arg(long, value_parser = config_policy, value_delimiter = ',')]
     pub policies: Vec<Policy>,
+    /// leap-cube: evaluate only these of the config's seeds (comma-separated; default: all),
+    /// e.g. a one-seed table while the other seeds train. The seeds evaluated are not part
+    /// of a cell's key either, so `--resume` with more seeds later measures only the new
+    /// cells; a seed the config does not list is refused.
+    #[arg(long, value_delimiter = ',')]
+    pub seeds: Option<Vec<u64>>,
     /// leap-cube: which study.
     #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
     pub study: String,
@@ -380,6 +400,24 @@ pub fn report(o: &ReportOptions) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn train_takes_every_policy_by_either_name_and_lists_them_when_wrong() {
+        for p in Policy::ALL {
+            assert_eq!(train_policy(p.name()), Ok(p));
+        }
+        assert_eq!(
+            train_policy("pi_r2_zero_delay_full"),
+            Ok(Policy::PiR2ZeroDelayFull)
+        );
+        let e = train_policy("pir2-fast").unwrap_err();
+        assert!(
+            e.contains("`pir2-fast`")
+                && e.contains("pi_r2_full")
+                && e.contains("pir2-zero-delay-full"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn config_policy_names_are_the_study_configs() {
