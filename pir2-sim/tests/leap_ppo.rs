@@ -9,7 +9,7 @@ use std::sync::OnceLock;
 use nalgebra::{UnitQuaternion, Vector3};
 use pir2_sim::leap::math::{self, Quat};
 use pir2_sim::leap::ppo::task::{actor_dim, critic_dim, tolerance_linear, PpoEnv};
-use pir2_sim::leap::ppo::{evaluate, PpoConfig, PpoExpert, Trainer};
+use pir2_sim::leap::ppo::{evaluate, evaluate_delayed, PpoConfig, PpoExpert, Trainer};
 use pir2_sim::leap::{LeapConfig, LeapModel, NU};
 use pir2_sim::Error;
 
@@ -210,6 +210,12 @@ fn expert_weights_round_trip_and_act_deterministically() {
     let r2 = evaluate(m, &ex, 0..2, 0, 2).unwrap();
     assert_eq!(r1, r2);
     assert_eq!(r1.episodes, 2);
+    assert_eq!(evaluate_delayed(m, &ex, 0..2, 0, 1, 0).unwrap(), r1);
+    // Delayed actions: each episode starts its own queue, so the thread count (which
+    // episodes follow which on a thread) does not change the result either.
+    let d1 = evaluate_delayed(m, &ex, 0..3, 0, 1, 3).unwrap();
+    assert_eq!(d1, evaluate_delayed(m, &ex, 0..3, 0, 2, 3).unwrap());
+    assert_eq!(d1.episodes, 3);
     // A checkpoint is not an expert file and vice versa: one clear error.
     let ck = dir.join("checkpoint.safetensors");
     tr.save_checkpoint(&ck).unwrap();

@@ -7,6 +7,7 @@
 //! target/release/examples/leap_ppo --out RUN_DIR --steps 100000000          # train
 //! target/release/examples/leap_ppo --out RUN_DIR --resume --steps 200000000 # continue
 //! target/release/examples/leap_ppo --eval --weights RUN_DIR/expert.safetensors --episodes 200
+//! target/release/examples/leap_ppo --eval --weights EXPERT --delays 0,1,2,3   # actions late
 //! target/release/examples/leap_ppo --bench
 //! ```
 
@@ -18,7 +19,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use pir2_runtime::Environment;
 use pir2_schedule::Rng;
-use pir2_sim::leap::ppo::{evaluate, IterStats, PpoConfig, PpoExpert, Trainer};
+use pir2_sim::leap::ppo::{evaluate, evaluate_delayed, IterStats, PpoConfig, PpoExpert, Trainer};
 use pir2_sim::leap::{LeapConfig, LeapCubeEnv, LeapModel, NU};
 use serde_json::json;
 
@@ -35,6 +36,7 @@ struct Args {
     weights: Option<PathBuf>,
     episodes: usize,
     eval_seed: u64,
+    delays: Vec<usize>,
     cfg: PpoConfig,
     bench_steps: usize,
 }
@@ -69,6 +71,7 @@ fn parse() -> anyhow::Result<Args> {
         weights: None,
         episodes: 200,
         eval_seed: 0,
+        delays: Vec::new(),
         cfg: PpoConfig::default(),
         bench_steps: 20_000,
     };
@@ -88,6 +91,12 @@ fn parse() -> anyhow::Result<Args> {
             "--weights" => a.weights = Some(val()?.into()),
             "--episodes" => a.episodes = val()?.parse()?,
             "--eval-seed" => a.eval_seed = val()?.parse()?,
+            "--delays" => {
+                a.delays = val()?
+                    .split(',')
+                    .map(|d| d.trim().parse::<usize>())
+                    .collect::<Result<_, _>>()?
+            }
             "--bench-steps" => a.bench_steps = val()?.parse()?,
             "--seed" => a.cfg.seed = val()?.parse()?,
             "--n-envs" => a.cfg.n_envs = val()?.parse()?,
@@ -123,6 +132,27 @@ fn main() -> anyhow::Result<()> {
                 .as_deref()
                 .context("--eval needs --weights FILE")?;
             let ex = PpoExpert::load(w)?;
+            if !args.delays.is_empty() {
+                println!("delay (ticks) | success | median steps to success");
+                for &d in &args.delays {
+                    let r = evaluate_delayed(
+                        &model,
+                        &ex,
+                        0..args.episodes,
+                        args.eval_seed,
+                        args.threads,
+                        d,
+                    )?;
+                    println!(
+                        "{d:>13} | {}/{} = {:.3} | {}",
+                        r.successes,
+                        r.episodes,
+                        r.success_rate(),
+                        r.median_steps().map_or("-".into(), |m| m.to_string())
+                    );
+                }
+                return Ok(());
+            }
             let t0 = Instant::now();
             let r = evaluate(&model, &ex, 0..args.episodes, args.eval_seed, args.threads)?;
             let (it, steps) = ex.trained();

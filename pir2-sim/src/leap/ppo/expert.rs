@@ -381,6 +381,22 @@ pub fn evaluate(
     seed: u64,
     threads: usize,
 ) -> Result<EvalReport> {
+    evaluate_delayed(model, expert, episodes, seed, threads, 0)
+}
+
+/// [`evaluate`] with the expert's actions reaching the hand `delay` control ticks late: the
+/// action computed on the observation of tick `t` is applied at tick `t + delay`, and the
+/// first `delay` ticks apply the zero action (hold the motor targets). How much a delay
+/// alone costs this task under this expert, with no learning in the way (`delay` 0 is
+/// [`evaluate`]).
+pub fn evaluate_delayed(
+    model: &LeapModel,
+    expert: &PpoExpert,
+    episodes: Range<usize>,
+    seed: u64,
+    threads: usize,
+    delay: usize,
+) -> Result<EvalReport> {
     let idx: Vec<usize> = episodes.collect();
     let threads = threads.clamp(1, idx.len().max(1));
     let run = |mine: Vec<usize>| -> Result<Vec<(usize, bool, bool, usize)>> {
@@ -389,13 +405,17 @@ pub fn evaluate(
         let mut ex = expert.clone();
         let (mut fast, mut slow) = ([0.0f32; 32], [0.0f32; 9]);
         let mut out = Vec::with_capacity(mine.len());
+        let mut queue = std::collections::VecDeque::with_capacity(delay + 1);
         for i in mine {
             env.reset(episode_seeds(seed, i).0);
             ex.reset();
+            queue.clear();
+            queue.extend(std::iter::repeat_n([0.0f32; NU], delay));
             let (mut success, mut steps) = (false, 0);
             for _ in 0..cfg.max_steps {
                 env.observe(&mut fast, &mut slow);
-                let a = ex.act(&fast, &slow);
+                queue.push_back(ex.act(&fast, &slow));
+                let a = queue.pop_front().expect("one action queued per tick");
                 let st = env.step(&a);
                 steps += 1;
                 if st.done {

@@ -33,6 +33,7 @@ pub mod task;
 mod trainer;
 
 pub use expert::{
-    evaluate, nearest_goal_rows, EvalReport, OrientationInput, PpoExpert, Squash, EXPERT_FORMAT,
+    evaluate, evaluate_delayed, nearest_goal_rows, EvalReport, OrientationInput, PpoExpert, Squash,
+    EXPERT_FORMAT,
 };
 pub use trainer::{EpisodeRecord, IterStats, PpoConfig, Trainer, CHECKPOINT_FORMAT};
