@@ -44,13 +44,12 @@ impl TaskCommands for BallPlate {
 
     fn train(&self, o: &TrainOptions) -> Result<()> {
         let policy = o.policy.context("--policy is required for ballplate")?;
-        if !matches!(
-            policy,
-            Policy::PiR2 | Policy::PiR2Hidden | Policy::PiR2Full | Policy::Rtc | Policy::Flow
-        ) {
+        if !super::BALLPLATE_POLICIES.contains(&policy) {
+            let names: Vec<&str> = super::BALLPLATE_POLICIES.map(Policy::name).to_vec();
             bail!(
-                "--policy {}: ballplate trains pir2, pir2-hidden, pir2-full, rtc or flow",
-                policy.name()
+                "--policy {}: ballplate trains {}",
+                policy.name(),
+                names.join(", ")
             );
         }
         let cfg = DemoConfig::load(o.config.as_deref(), false)?;

@@ -103,16 +103,22 @@ fn reporting_task_names() -> PossibleValuesParser {
 
 /// `--policy`: the policies by their command-line names.
 pub(crate) fn policy_parser() -> impl TypedValueParser<Value = Policy> {
-    PossibleValuesParser::new(["pir2", "pir2-hidden", "pir2-full", "rtc", "flow"]).map(|s| match s
-        .as_str()
-    {
-        "pir2" => Policy::PiR2,
-        "pir2-hidden" => Policy::PiR2Hidden,
-        "pir2-full" => Policy::PiR2Full,
-        "rtc" => Policy::Rtc,
-        _ => Policy::Flow,
+    PossibleValuesParser::new(BALLPLATE_POLICIES.map(Policy::name)).map(|s| {
+        *BALLPLATE_POLICIES
+            .iter()
+            .find(|p| p.name() == s)
+            .expect("a possible value")
     })
 }
+
+/// The policies of the ball-plate task (and of a candle checkpoint's `--policy`).
+pub(crate) const BALLPLATE_POLICIES: [Policy; 5] = [
+    Policy::PiR2,
+    Policy::PiR2Hidden,
+    Policy::PiR2Full,
+    Policy::Rtc,
+    Policy::Flow,
+];
 
 /// `pir2 train --policy`: a policy by its name ([`Policy::name`]: `pir2-full`,
 /// `pir2-zero-delay-full`, ...) or by its name in study configs (`pi_r2_zero_delay_full`, ...).

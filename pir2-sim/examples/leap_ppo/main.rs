@@ -48,12 +48,12 @@ enum Mode {
     Bench,
 }
 
-fn parse_list(s: &str) -> anyhow::Result<Vec<usize>> {
+fn parse_list(s: &str, what: &str) -> anyhow::Result<Vec<usize>> {
     s.split(',')
         .map(|v| {
             v.trim()
                 .parse::<usize>()
-                .context("hidden sizes: comma-separated integers")
+                .with_context(|| format!("{what}: comma-separated integers"))
         })
         .collect()
 }
@@ -91,12 +91,7 @@ fn parse() -> anyhow::Result<Args> {
             "--weights" => a.weights = Some(val()?.into()),
             "--episodes" => a.episodes = val()?.parse()?,
             "--eval-seed" => a.eval_seed = val()?.parse()?,
-            "--delays" => {
-                a.delays = val()?
-                    .split(',')
-                    .map(|d| d.trim().parse::<usize>())
-                    .collect::<Result<_, _>>()?
-            }
+            "--delays" => a.delays = parse_list(&val()?, "delays")?,
             "--bench-steps" => a.bench_steps = val()?.parse()?,
             "--seed" => a.cfg.seed = val()?.parse()?,
             "--n-envs" => a.cfg.n_envs = val()?.parse()?,
@@ -110,7 +105,7 @@ fn parse() -> anyhow::Result<Args> {
             "--lambda" => a.cfg.gae_lambda = val()?.parse()?,
             "--init-std" => a.cfg.init_log_std = val()?.parse::<f32>()?.ln(),
             "--hidden" => {
-                let h = parse_list(&val()?)?;
+                let h = parse_list(&val()?, "hidden sizes")?;
                 a.cfg.actor_hidden = h.clone();
                 a.cfg.critic_hidden = h;
             }
