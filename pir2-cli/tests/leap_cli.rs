@@ -310,6 +310,45 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         );
     }
 
+    // A run without the step checkpoints the best-per-cell protocol takes (one restored from
+    // its saved state keeps only best/) is refused by name before anything is measured;
+    // --best-of-last 0 measures its chosen cells.
+    for e in std::fs::read_dir(trained.join("rtc-seed0"))
+        .unwrap()
+        .flatten()
+    {
+        if e.file_name().to_string_lossy().starts_with("step-") {
+            std::fs::remove_dir_all(e.path()).unwrap();
+        }
+    }
+    let chosen_only = dir.join("chosen-only");
+    let mut eval_chosen = vec![
+        "eval",
+        "leap-cube",
+        "--config",
+        s(&eval_cfg),
+        "--data",
+        s(&data),
+        "--checkpoint",
+        s(&trained),
+        "--out",
+        s(&chosen_only),
+        "--policies",
+        "rtc",
+    ];
+    let o = pir2(&eval_chosen);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("rtc-seed0") && err.contains("step-00000") && err.contains("--best-of-last 0"),
+        "{err}"
+    );
+    assert!(!chosen_only.exists(), "nothing measured, nothing written");
+    eval_chosen.extend(["--best-of-last", "0"]);
+    let out = ok(&eval_chosen);
+    assert!(out.contains("train-time RTC"), "{out}");
+    assert!(!out.contains("Best checkpoint per cell"), "{out}");
+
     // A listed policy missing from --checkpoint (the zero-delay variant was not trained) is
     // refused by name before anything runs; --train-missing trains it into --out.
     let with_zero = dir.join("with-zero.toml");

@@ -30,6 +30,7 @@ use pir2_runtime::{LockstepTiming, Mode};
 
 use super::closed_loop::{closed_loop, EvalPath, Models, Trained};
 use super::output::{log_line, write_atomically};
+use super::report::checkpoint_steps;
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.
@@ -522,30 +523,46 @@ pub fn evaluate<'m, T: Task>(
     Ok(cells)
 }
 
-/// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`,
-/// leaving out the chosen one (the step named by `dir/best.json`), whose cells are measured
-/// anyway. Fewer when the run has fewer.
-pub fn last_step_checkpoints(dir: &Path, k: usize) -> Result<Vec<PathBuf>> {
+/// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`
+/// among `steps` (the steps a run writes them at, [`checkpoint_steps`]), leaving out the
+/// chosen one (the step named by `dir/best.json`), whose cells are measured anyway. Fewer when
+/// the run writes fewer. A run that lacks any of them (one restored from the state that
+/// travels between machines has only `best/`) is an error naming the missing steps: its
+/// best-per-cell cells would otherwise quietly be its chosen checkpoint's, a table
+/// `pir2 report` refuses for the same log.
+pub fn last_step_checkpoints(dir: &Path, steps: &[usize], k: usize) -> Result<Vec<PathBuf>> {
     let chosen = std::fs::read_to_string(dir.join("best.json"))
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
-    let mut steps = Vec::new();
-    let entries = std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))?;
-    for e in entries {
-        let e = e.with_context(|| format!("reading {}", dir.display()))?;
-        let name = e.file_name().to_string_lossy().into_owned();
-        if let Some(step) = name
-            .strip_prefix("step-")
-            .and_then(|n| n.parse::<u64>().ok())
-        {
-            if Some(step) != chosen && e.path().is_dir() {
-                steps.push((step, e.path()));
-            }
-        }
+    let wanted: Vec<PathBuf> = steps
+        .iter()
+        .rev()
+        .filter(|&&s| Some(s as u64) != chosen)
+        .take(k)
+        .map(|s| dir.join(format!("step-{s:06}")))
+        .collect();
+    let missing: Vec<String> = wanted
+        .iter()
+        .filter(|p| !p.is_dir())
+        .map(|p| {
+            p.file_name()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned()
+        })
+        .collect();
+    if !missing.is_empty() {
+        bail!(
+            "{}: the best-checkpoint-per-cell protocol (best_of_last = {k}) takes its step \
+             checkpoint(s) {} and the run does not have them (a run's step checkpoints do not \
+             travel with its saved state); measure its best-per-cell cells where it was \
+             trained, or evaluate with --best-of-last 0 for the chosen checkpoint's cells",
+            dir.display(),
+            missing.join(", ")
+        );
     }
-    steps.sort_by_key(|s| std::cmp::Reverse(s.0));
-    Ok(steps.into_iter().take(k).map(|s| s.1).collect())
+    Ok(wanted)
 }
 
 /// The paper's optimistic checkpoint protocol ("for each cell we pick the best epoch per
@@ -566,9 +583,10 @@ pub fn evaluate_best_per_cell<T: Task>(
     pb: &ProgressBar,
 ) -> Result<Vec<Cell>> {
     let mut best = chosen.to_vec();
+    let steps = checkpoint_steps(task.optimiser().steps, task.settings().checkpoints);
     let ckpts = trained
         .iter()
-        .map(|t| last_step_checkpoints(&t.dir, k))
+        .map(|t| last_step_checkpoints(&t.dir, &steps, k))
         .collect::<Result<Vec<_>>>()?;
     for j in 0..k {
         // The j-th latest other checkpoint of every run that has one; the rest keep their
@@ -748,8 +766,9 @@ mod tests {
         }
         std::fs::create_dir_all(dir.join("best")).unwrap();
         std::fs::write(dir.join("step-000500"), "a file, not a checkpoint").unwrap();
+        let steps = [100, 200, 300, 400];
         let names = |k| -> Vec<String> {
-            last_step_checkpoints(&dir, k)
+            last_step_checkpoints(&dir, &steps, k)
                 .unwrap()
                 .iter()
                 .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
@@ -765,6 +784,18 @@ mod tests {
         assert_eq!(names(9), ["step-000300", "step-000200", "step-000100"]);
         assert!(names(0).is_empty());
         assert!(chosen_checkpoint(&dir).ends_with("/best@400"));
+        // A run without some of the steps the protocol takes (restored from its travelling
+        // state) is refused by name, never evaluated as if its chosen checkpoint were them.
+        std::fs::remove_dir(dir.join("step-000200")).unwrap();
+        assert_eq!(names(1), ["step-000300"]);
+        let e = last_step_checkpoints(&dir, &steps, 2)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("step-000200") && !e.contains("step-000300"),
+            "{e}"
+        );
+        assert!(e.contains("best_of_last = 2"), "{e}");
         // With weights, the key names them: other weights under the same name and step
         // (a retrained run) make another key, the same weights the same key.
         std::fs::write(dir.join("best/model.safetensors"), b"weights a").unwrap();

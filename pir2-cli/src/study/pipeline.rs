@@ -29,6 +29,7 @@ pub use super::evaluate::{
 };
 use super::evaluate::{fnv1a, FNV_OFFSET};
 pub use super::output::{bar, log_line, prepare_out, write_atomically};
+use super::report::checkpoint_steps;
 use super::{Policy, Scores, Settings, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
@@ -245,6 +246,28 @@ pub fn refuse_missing_pretrained(s: &Settings, policies: &[Policy]) -> Result<()
     Ok(())
 }
 
+/// Before anything is measured: with the settings' `best_of_last` > 0, every finished run in
+/// the settings' `pretrained` must have the step checkpoints the best-per-cell protocol takes
+/// ([`last_step_checkpoints`]: an error naming the first run that lacks some). A run restored
+/// from its saved state has only `best/`; refused at the end, its chosen cells would have
+/// been measured for nothing.
+pub fn refuse_missing_step_checkpoints<T: Task>(task: &T, policies: &[Policy]) -> Result<()> {
+    let s = task.settings();
+    let Some(dir) = s.pretrained.as_deref().filter(|_| s.best_of_last > 0) else {
+        return Ok(());
+    };
+    let steps = checkpoint_steps(task.optimiser().steps, s.checkpoints);
+    for &seed in &s.seeds {
+        for &p in policies {
+            let run = dir.join(policy_dir(p, seed));
+            if run.join("best").is_dir() {
+                last_step_checkpoints(&run, &steps, s.best_of_last)?;
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Train (or load from the settings' `pretrained`) every policy × seed on the worker
 /// threads; each trained policy's run goes to `ckpt_root/<policy>-seed<s>/` and its chosen
 /// checkpoint to `.../best`. A run missing from `pretrained` is trained only with the
@@ -342,6 +365,7 @@ pub fn run<T: Task>(
 ) -> Result<StudyResult<T::Config>> {
     // Before anything is loaded or written: a listed run missing from `pretrained`.
     refuse_missing_pretrained(&task.settings(), &study.policies())?;
+    refuse_missing_step_checkpoints(task, &study.policies())?;
     if resume {
         std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     } else {

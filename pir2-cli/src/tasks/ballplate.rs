@@ -88,6 +88,9 @@ impl TaskCommands for BallPlate {
         if !o.policies.is_empty() {
             bail!("--policies narrows a leap-cube study; ballplate evaluates one checkpoint, named by --policy");
         }
+        if o.best_of_last.is_some() {
+            bail!("--best-of-last applies to a leap-cube study's runs; ballplate evaluates one checkpoint");
+        }
         if let Some(p) = o.json.as_ref().filter(|p| p.exists()) {
             bail!("{} already exists; choose another --json path", p.display());
         }

@@ -124,6 +124,9 @@ impl TaskCommands for LeapCube {
             cfg.policies = o.policies.clone();
         }
         cfg.seeds = select_seeds(&cfg.seeds, o.seeds.as_deref())?;
+        if let Some(k) = o.best_of_last {
+            cfg.best_of_last = k;
+        }
         let r = match o.study.as_str() {
             "deployment" => leap_cube::study_deployment(&cfg, out, o.resume)?,
             "horizon" => leap_cube::study_horizon(&cfg, out, o.resume)?,

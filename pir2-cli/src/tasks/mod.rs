@@ -271,6 +271,12 @@ pub struct EvalOptions {
     /// cells; a seed the config does not list is refused.
     #[arg(long, value_delimiter = ',')]
     pub seeds: Option<Vec<u64>>,
+    /// leap-cube: how many other step checkpoints of each run the best-checkpoint-per-cell
+    /// protocol takes (default: the config's `best_of_last`). 0 measures only the chosen
+    /// checkpoints' cells, e.g. of a run restored from its saved state, which has no step
+    /// checkpoints (with more, such a run is refused by name). Not part of a cell's key.
+    #[arg(long)]
+    pub best_of_last: Option<usize>,
     /// leap-cube: which study.
     #[arg(long, value_parser = ["deployment", "horizon"], default_value = "deployment")]
     pub study: String,
