@@ -5,8 +5,12 @@
 //! batch 256 (the hand-written kernels, `PIR2_BENCH_TRAIN_THREADS` threads, default 2).
 //! Ratios are to the shared head.
 //!
+//! A second table puts the paper's widths (256/512/1024) beside the study's, both with the
+//! paper's heads: what a run at the paper's scale would cost on this machine.
+//!
 //! `cargo bench -p pir2-backends --bench film` (`PIR2_BENCH_ITERS`, default 300 timed calls per
-//! cell; `PIR2_BENCH_TRAIN_STEPS`, default 5 timed steps per cell, 0 skips training).
+//! cell; `PIR2_BENCH_TRAIN_STEPS`, default 5 timed steps per cell, 0 skips training;
+//! `PIR2_BENCH_PAPER_WIDTHS=0` skips the second table).
 
 mod common;
 
@@ -25,13 +29,23 @@ fn spec() -> Spec {
     }
 }
 
+/// The study's U-Net widths (`studies/leap-cube/study.toml`).
+const STUDY_WIDTHS: [usize; 3] = [64, 128, 256];
+/// The paper's U-Net widths (its simulation appendix).
+const PAPER_WIDTHS: [usize; 3] = [256, 512, 1024];
+
 /// The Leap-cube study's U-Net (`pir2_cli::study::leap_cube`: widths from the study config,
 /// `tau_dim` 32, `dvis_dim` 8, two slow frames of 9).
 fn config(film: FilmMode) -> Config {
+    config_with(film, &STUDY_WIDTHS)
+}
+
+/// The same U-Net at other widths.
+fn config_with(film: FilmMode, widths: &[usize]) -> Config {
     Config {
         spec: spec(),
         model: ModelConfig::UNet(UNetConfig {
-            widths: vec![64, 128, 256],
+            widths: widths.to_vec(),
             groups: 8,
             tau_dim: 32,
             dvis_dim: 8,
@@ -107,18 +121,21 @@ fn main() {
         let us = nfe_us(&mut m, iters);
         rows.push((label, params, film_params, us, cfg));
     }
-    let train: Vec<f64> = if steps > 0 {
-        std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("thread pool");
-        rows.iter()
-            .map(|r| pool.install(|| common::train_step_s(&r.4, true, steps)))
-            .collect()
-    } else {
-        vec![f64::NAN; rows.len()]
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool");
+    let train_s = |cfg: &Config| {
+        if steps > 0 {
+            std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+            let s = pool.install(|| common::train_step_s(cfg, true, steps));
+            std::env::set_var("RAYON_NUM_THREADS", "1");
+            s
+        } else {
+            f64::NAN
+        }
     };
+    let train: Vec<f64> = rows.iter().map(|r| train_s(&r.4)).collect();
     println!(
         "Leap-cube study U-Net (H = 16, widths 64/128/256): {iters} batch-1 NFEs on 1 thread; \
          {steps} training steps at batch 256 on {threads} threads; ratio = / shared"
@@ -139,6 +156,36 @@ fn main() {
             r.3.median_us / base_us,
             t,
             t / base_step
+        );
+    }
+    if env_usize("PIR2_BENCH_PAPER_WIDTHS", 1) == 0 {
+        return;
+    }
+    // The paper's widths beside the study's, both with the paper's heads (the heads row above
+    // is the study's; measured again here so that the two sit side by side).
+    println!(
+        "\nper-position heads at the study's widths {STUDY_WIDTHS:?} and the paper's {PAPER_WIDTHS:?}; \
+         ratio = / the study's"
+    );
+    println!(
+        "{:<20} {:>11} {:>10} {:>7} {:>10} {:>7}",
+        "widths", "parameters", "NFE µs", "ratio", "s/step", "ratio"
+    );
+    let mut base = None;
+    for widths in [&STUDY_WIDTHS, &PAPER_WIDTHS] {
+        let cfg = config_with(FilmMode::PerPositionHeads, widths);
+        let mut m = CandleModel::new(cfg.clone(), Stats::identity(&cfg.spec), 0).expect("model");
+        let us = nfe_us(&mut m, iters).median_us;
+        let t = train_s(&cfg);
+        let (b_us, b_t) = *base.get_or_insert((us, t));
+        println!(
+            "{:<20} {:>11} {:>10.1} {:>6.2}x {:>10.3} {:>6.2}x",
+            format!("{widths:?}"),
+            m.num_params(),
+            us,
+            us / b_us,
+            t,
+            t / b_t
         );
     }
 }
