@@ -16,6 +16,32 @@ fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
 }
 
+/// `pir2 eval leap-cube --study STUDY` with `config` and `data` over the runs in `trained`
+/// into `out`.
+#[cfg(feature = "mujoco")]
+fn eval_args<'a>(
+    study: &'a str,
+    config: &'a Path,
+    data: &'a Path,
+    trained: &'a Path,
+    out: &'a Path,
+) -> Vec<&'a str> {
+    vec![
+        "eval",
+        "leap-cube",
+        "--study",
+        study,
+        "--config",
+        s(config),
+        "--data",
+        s(data),
+        "--checkpoint",
+        s(trained),
+        "--out",
+        s(out),
+    ]
+}
+
 #[cfg(not(feature = "mujoco"))]
 #[test]
 fn leap_cube_without_the_feature_says_how_to_build() {
@@ -169,20 +195,8 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         ("horizon", "| sync flow |", "h=8"),
     ] {
         let out_dir = dir.join(study);
-        let out = ok(&[
-            "eval",
-            "leap-cube",
-            "--study",
-            study,
-            "--config",
-            s(&eval_cfg),
-            "--data",
-            s(&data),
-            "--checkpoint",
-            s(&trained),
-            "--out",
-            s(&out_dir),
-        ]);
+        let eval = eval_args(study, &eval_cfg, &data, &trained, &out_dir);
+        let out = ok(&eval);
         assert!(out.contains(row) && out.contains(col), "{out}");
         for f in [
             "result.json",
@@ -216,20 +230,6 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         let log = std::fs::read_to_string(&log_file).unwrap();
         let lines: Vec<&str> = log.lines().collect();
         assert!(lines.len() >= cells.len(), "{study}: {log}");
-        let eval = [
-            "eval",
-            "leap-cube",
-            "--study",
-            study,
-            "--config",
-            s(&eval_cfg),
-            "--data",
-            s(&data),
-            "--checkpoint",
-            s(&trained),
-            "--out",
-            s(&out_dir),
-        ];
         let again = pir2(&eval);
         assert!(
             !again.status.success(),
@@ -322,20 +322,8 @@ fn leap_cube_collect_train_eval_through_the_binary() {
         }
     }
     let chosen_only = dir.join("chosen-only");
-    let mut eval_chosen = vec![
-        "eval",
-        "leap-cube",
-        "--config",
-        s(&eval_cfg),
-        "--data",
-        s(&data),
-        "--checkpoint",
-        s(&trained),
-        "--out",
-        s(&chosen_only),
-        "--policies",
-        "rtc",
-    ];
+    let mut eval_chosen = eval_args("deployment", &eval_cfg, &data, &trained, &chosen_only);
+    eval_chosen.extend(["--policies", "rtc"]);
     let o = pir2(&eval_chosen);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "{err}");
@@ -358,20 +346,7 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     )
     .unwrap();
     let zero_out = dir.join("horizon-zero");
-    let mut eval_zero = vec![
-        "eval",
-        "leap-cube",
-        "--study",
-        "horizon",
-        "--config",
-        s(&with_zero),
-        "--data",
-        s(&data),
-        "--checkpoint",
-        s(&trained),
-        "--out",
-        s(&zero_out),
-    ];
+    let mut eval_zero = eval_args("horizon", &with_zero, &data, &trained, &zero_out);
     let o = pir2(&eval_zero);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
