@@ -357,8 +357,23 @@ fn leap_cube_collect_train_eval_through_the_binary() {
     assert!(!err.contains("flow-seed0"), "{err}");
     assert!(!zero_out.exists(), "nothing is written");
     eval_zero.push("--train-missing");
-    let out = ok(&eval_zero);
+    let o = pir2(&eval_zero);
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{err}");
     assert!(out.contains("zero-delay"), "{out}");
+    // It is validated as it runs, without latency (not at the baselines' d0).
+    let validations: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("PiR2ZeroDelay seed 0: checkpoint validation"))
+        .collect();
+    assert!(!validations.is_empty(), "{err}");
+    assert!(
+        validations.iter().all(|l| l.ends_with("at zero latency")),
+        "{err}"
+    );
     assert!(zero_out
         .join("checkpoints/pir2zerodelay-seed0/best")
         .exists());

@@ -132,9 +132,15 @@ pub fn train_policy_resumable<T: Task>(
                 })
                 .map(|r| r.0)
                 .unwrap_or(0); // an error counts as no success
+                               // The zero-delay variants are validated without latency, the rest at `val_d0`.
+            let at = if val_timing == pir2_runtime::LockstepTiming::zero_latency() {
+                "zero latency".to_string()
+            } else {
+                format!("d0 = {}", s.val_d0)
+            };
             log_line(&format!(
-                "  {policy:?} seed {seed}: checkpoint validation {ok}/{} at d0 = {}",
-                s.val_episodes, s.val_d0
+                "  {policy:?} seed {seed}: checkpoint validation {ok}/{} at {at}",
+                s.val_episodes
             ));
             let rate = ok as f64 / s.val_episodes.max(1) as f64;
             scores.push((step, rate));
