@@ -160,6 +160,16 @@ fn a_checkpoint_evaluated_as_another_policy_is_refused_and_an_old_one_still_runs
     }
     let table = ok(&args(&eval_as("ck-rtc/best", "rtc")), d);
     assert!(table.contains("RTC"), "{table}");
+    // The options of a leap-cube study are refused by name, not ignored.
+    for (extra, named) in [
+        (["--policies", "rtc"], "--policies"),
+        (["--best-of-last", "0"], "--best-of-last"),
+    ] {
+        let mut a = eval_as("ck-rtc/best", "rtc");
+        a.extend(extra.map(String::from));
+        let err = refused(&args(&a), d);
+        assert!(err.contains(named) && err.contains("ballplate"), "{err}");
+    }
 
     // A checkpoint written before identity.json existed runs as the policy asked for, and
     // says its policy is unrecorded.

@@ -132,8 +132,8 @@ pub fn train_policy_resumable<T: Task>(
                 })
                 .map(|r| r.0)
                 .unwrap_or(0); // an error counts as no success
-                               // The zero-delay variants are validated without latency, the rest at `val_d0`.
             let at = if val_timing == pir2_runtime::LockstepTiming::zero_latency() {
+                // The zero-delay variants: they run without latency.
                 "zero latency".to_string()
             } else {
                 format!("d0 = {}", s.val_d0)
