@@ -18,7 +18,8 @@ For each window `w` it prints the share of the action variance left in the `w`-t
 average (inside one episode): about `1/w` for actions uncorrelated from tick to tick, near 1
 for smooth ones. It also prints the share of action entries at the bound (`|a| >= 0.99`, where `tanh` saturates:
 bang-bang control is not smooth) and the mean `|a|`. By default only the episodes that reach
-the goal count (the ones `pir2 train` learns from); `--all-episodes` takes every episode.
+the goal and have at least 2 frames count (the ones `pir2 train` learns from);
+`--all-episodes` takes every episode of at least 2 frames.
 
 Needs `pyarrow` and `numpy` (both in `.native/venv` after `scripts/setup-native.sh`).
 Reads only; writes nothing. `--self-test` writes white noise and a slow sine as a small dataset
@@ -172,7 +173,8 @@ def main():
         return
     root, lags, windows, all_episodes = parse_args(sys.argv[1:])
     episodes = load(root)
-    used = [a for a, ok in episodes.values() if ok or all_episodes]
+    # The episodes `pir2 train` learns from: those reaching the goal, at least 2 frames long.
+    used = [a for a, ok in episodes.values() if (ok or all_episodes) and len(a) >= 2]
     if not used:
         fail(f"{root}: no episode reaches the goal (use --all-episodes to take them all)")
     stacked = np.concatenate(used)
@@ -180,7 +182,8 @@ def main():
     var = stacked.var(axis=0)
     print(
         f"{root}: {len(used)} of {len(episodes)} episodes "
-        f"({'all' if all_episodes else 'those reaching the goal'}), {len(stacked)} frames, "
+        f"({'all' if all_episodes else 'those reaching the goal'}; at least 2 frames), "
+        f"{len(stacked)} frames, "
         f"{stacked.shape[1]}-d actions"
     )
     at_bound = np.mean(np.abs(stacked) >= 0.99)
