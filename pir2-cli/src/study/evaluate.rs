@@ -30,7 +30,7 @@ use pir2_runtime::{LockstepTiming, Mode};
 
 use super::closed_loop::{closed_loop, EvalPath, Models, Trained};
 use super::output::{log_line, write_atomically};
-use super::report::checkpoint_steps;
+use super::report::task_checkpoint_steps;
 use super::{Cell, Policy, Study, Sweep, Task};
 
 /// File of the cell log inside a study's output directory.
@@ -524,7 +524,7 @@ pub fn evaluate<'m, T: Task>(
 }
 
 /// The last `k` step checkpoints (`step-NNNNNN/`, latest first) of the training run in `dir`
-/// among `steps` (the steps a run writes them at, [`checkpoint_steps`]), leaving out the
+/// among `steps` (the steps a run writes them at, [`task_checkpoint_steps`]), leaving out the
 /// chosen one (the step named by `dir/best.json`), whose cells are measured anyway. Fewer when
 /// the run writes fewer. A run that lacks any of them (one restored from the state that
 /// travels between machines has only `best/`) is an error naming the missing steps: its
@@ -535,22 +535,17 @@ pub fn last_step_checkpoints(dir: &Path, steps: &[usize], k: usize) -> Result<Ve
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .and_then(|v| v.get("step").and_then(serde_json::Value::as_u64));
-    let wanted: Vec<PathBuf> = steps
+    let wanted: Vec<String> = steps
         .iter()
         .rev()
         .filter(|&&s| Some(s as u64) != chosen)
         .take(k)
-        .map(|s| dir.join(format!("step-{s:06}")))
+        .map(|s| format!("step-{s:06}"))
         .collect();
-    let missing: Vec<String> = wanted
+    let missing: Vec<&str> = wanted
         .iter()
-        .filter(|p| !p.is_dir())
-        .map(|p| {
-            p.file_name()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned()
-        })
+        .filter(|name| !dir.join(name).is_dir())
+        .map(String::as_str)
         .collect();
     if !missing.is_empty() {
         bail!(
@@ -562,7 +557,7 @@ pub fn last_step_checkpoints(dir: &Path, steps: &[usize], k: usize) -> Result<Ve
             missing.join(", ")
         );
     }
-    Ok(wanted)
+    Ok(wanted.iter().map(|name| dir.join(name)).collect())
 }
 
 /// The paper's optimistic checkpoint protocol ("for each cell we pick the best epoch per
@@ -583,7 +578,7 @@ pub fn evaluate_best_per_cell<T: Task>(
     pb: &ProgressBar,
 ) -> Result<Vec<Cell>> {
     let mut best = chosen.to_vec();
-    let steps = checkpoint_steps(task.optimiser().steps, task.settings().checkpoints);
+    let steps = task_checkpoint_steps(task);
     let ckpts = trained
         .iter()
         .map(|t| last_step_checkpoints(&t.dir, &steps, k))

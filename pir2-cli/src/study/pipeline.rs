@@ -29,7 +29,7 @@ pub use super::evaluate::{
 };
 use super::evaluate::{fnv1a, FNV_OFFSET};
 pub use super::output::{bar, log_line, prepare_out, write_atomically};
-use super::report::checkpoint_steps;
+use super::report::task_checkpoint_steps;
 use super::{Policy, Scores, Settings, Study, StudyResult, Task};
 use crate::plot::plot_series;
 
@@ -262,7 +262,7 @@ pub fn refuse_missing_step_checkpoints<T: Task>(task: &T, policies: &[Policy]) -
     let Some(dir) = s.pretrained.as_deref().filter(|_| s.best_of_last > 0) else {
         return Ok(());
     };
-    let steps = checkpoint_steps(task.optimiser().steps, s.checkpoints);
+    let steps = task_checkpoint_steps(task);
     for &seed in &s.seeds {
         for &p in policies {
             let run = dir.join(policy_dir(p, seed));

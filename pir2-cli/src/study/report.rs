@@ -160,6 +160,12 @@ pub fn checkpoint_steps(steps: usize, checkpoints: usize) -> Vec<usize> {
         .collect()
 }
 
+/// The step checkpoints a training run of `task` writes ([`checkpoint_steps`] of its
+/// optimiser's steps and its settings' `checkpoints`).
+pub fn task_checkpoint_steps<T: Task>(task: &T) -> Vec<usize> {
+    checkpoint_steps(task.optimiser().steps, task.settings().checkpoints)
+}
+
 /// Whether the cell-log checkpoint name `name` is `base` (with a `@<step>` or `#w<hash>`
 /// suffix, or none).
 fn is_named(name: &str, base: &str) -> bool {
@@ -331,7 +337,7 @@ pub fn report<T: Task>(
             }
         }
     }
-    let steps = checkpoint_steps(task.optimiser().steps, s.checkpoints);
+    let steps = task_checkpoint_steps(task);
     let k = s.best_of_last;
     let mut runs = Vec::new();
     for p in study.policies() {
